@@ -1,0 +1,134 @@
+"""SO(3) on plain tensors ``(..., 3)`` / ``(..., 3, 3)``: hat, Exp, Log and the series
+functions ``Gamma_1`` (left Jacobian) and ``Gamma_2`` used by exact zero-order-hold IMU
+integration.
+
+Singular branches use the double-``where`` form with Taylor series, so values and gradients
+are finite at the identity and at a half turn.
+
+Reference: T. Barfoot, *State Estimation for Robotics*, sec. 7.1 (Gamma functions in
+eq. 7.86 are Barfoot's ``J`` and ``N``); Forster et al., "On-Manifold Preintegration", 2017.
+"""
+
+from __future__ import annotations
+
+__all__ = ["hat", "vee", "exp", "log", "gamma1", "gamma2", "right_jacobian", "project"]
+
+import torch
+
+_SMALL_ANGLE = 1e-4
+
+
+def hat(phi: torch.Tensor) -> torch.Tensor:
+    """Skew-symmetric matrix ``[phi]x`` so that ``hat(a) @ b == cross(a, b)``.
+
+    Shape: (..., 3) -> (..., 3, 3).
+    """
+    x, y, z = phi.unbind(-1)
+    zero = torch.zeros_like(x)
+    rows = (
+        torch.stack((zero, -z, y), -1),
+        torch.stack((z, zero, -x), -1),
+        torch.stack((-y, x, zero), -1),
+    )
+    return torch.stack(rows, -2)
+
+
+def vee(skew: torch.Tensor) -> torch.Tensor:
+    """Inverse of :func:`hat`: (..., 3, 3) -> (..., 3)."""
+    return torch.stack((skew[..., 2, 1], skew[..., 0, 2], skew[..., 1, 0]), -1)
+
+
+def _angle_terms(phi: torch.Tensor):
+    """theta^2 and a safe theta for the series coefficients; (..., 3) -> (..., 1, 1)."""
+    theta2 = (phi * phi).sum(-1)[..., None, None]
+    small = theta2 < _SMALL_ANGLE**2
+    safe_theta2 = torch.where(small, torch.ones_like(theta2), theta2)
+    return theta2, small, safe_theta2, torch.sqrt(safe_theta2)
+
+
+def exp(phi: torch.Tensor) -> torch.Tensor:
+    """Rotation matrix ``Exp(phi) = I + a [phi]x + b [phi]x^2`` (Rodrigues).
+
+    Args:
+        phi: rotation vector (..., 3), rad.
+    Returns:
+        (..., 3, 3) rotation matrices.
+    """
+    theta2, small, t2, t = _angle_terms(phi)
+    a = torch.where(small, 1.0 - theta2 / 6.0 + theta2**2 / 120.0, torch.sin(t) / t)
+    b = torch.where(small, 0.5 - theta2 / 24.0 + theta2**2 / 720.0, (1.0 - torch.cos(t)) / t2)
+    skew = hat(phi)
+    eye = torch.eye(3, dtype=phi.dtype, device=phi.device)
+    return eye + a * skew + b * (skew @ skew)
+
+
+def gamma1(phi: torch.Tensor) -> torch.Tensor:
+    """``Gamma_1(phi) = sum_n [phi]x^n / (n+1)!``, the SO(3) left Jacobian.
+
+    ``integral_0^1 Exp(s phi) ds = Gamma_1(phi)``. Shape (..., 3) -> (..., 3, 3).
+    """
+    theta2, small, t2, t = _angle_terms(phi)
+    a = torch.where(small, 0.5 - theta2 / 24.0 + theta2**2 / 720.0, (1.0 - torch.cos(t)) / t2)
+    b = torch.where(
+        small, 1.0 / 6.0 - theta2 / 120.0 + theta2**2 / 5040.0, (t - torch.sin(t)) / (t2 * t)
+    )
+    skew = hat(phi)
+    eye = torch.eye(3, dtype=phi.dtype, device=phi.device)
+    return eye + a * skew + b * (skew @ skew)
+
+
+def gamma2(phi: torch.Tensor) -> torch.Tensor:
+    """``Gamma_2(phi) = sum_n [phi]x^n / (n+2)!``.
+
+    ``integral_0^1 integral_0^s Exp(u phi) du ds = Gamma_2(phi)``. Shape (..., 3) -> (..., 3, 3).
+    """
+    theta2, small, t2, t = _angle_terms(phi)
+    a = torch.where(
+        small, 1.0 / 6.0 - theta2 / 120.0 + theta2**2 / 5040.0, (t - torch.sin(t)) / (t2 * t)
+    )
+    b = torch.where(
+        small,
+        1.0 / 24.0 - theta2 / 720.0 + theta2**2 / 40320.0,
+        (t2 + 2.0 * torch.cos(t) - 2.0) / (2.0 * t2 * t2),
+    )
+    skew = hat(phi)
+    eye = torch.eye(3, dtype=phi.dtype, device=phi.device)
+    return 0.5 * eye + a * skew + b * (skew @ skew)
+
+
+def right_jacobian(phi: torch.Tensor) -> torch.Tensor:
+    """SO(3) right Jacobian ``J_r(phi) = Gamma_1(-phi)``: ``Exp(phi + d) ~ Exp(phi) Exp(J_r d)``.
+
+    Shape (..., 3) -> (..., 3, 3).
+    """
+    return gamma1(-phi)
+
+
+def log(rot: torch.Tensor) -> torch.Tensor:
+    """Rotation vector ``Log(R)`` (..., 3, 3) -> (..., 3), angle in [0, pi].
+
+    Uses the quaternion route (pytorch_kinematics' branch-free ``matrix_to_quaternion``)
+    and ``2 atan2(|v|, w)``, which is accurate at the identity and at a half turn.
+    """
+    from pytorch_kinematics.transforms import matrix_to_quaternion
+
+    quat = matrix_to_quaternion(rot)
+    quat = torch.where(quat[..., :1] < 0, -quat, quat)
+    w, vec = quat[..., :1], quat[..., 1:]
+    norm2 = (vec * vec).sum(-1, keepdim=True)
+    small = norm2 < 1e-16
+    safe_norm = torch.sqrt(torch.where(small, torch.ones_like(norm2), norm2))
+    scale = torch.where(
+        small, 2.0 / w.clamp_min(1e-300) * (1.0 - norm2 / (3.0 * w * w)), 2.0 * torch.atan2(
+            safe_norm, w) / safe_norm
+    )
+    return scale * vec
+
+
+def project(mat: torch.Tensor) -> torch.Tensor:
+    """Nearest rotation matrix (SVD, determinant fixed to +1). Shape (..., 3, 3)."""
+    u, _, vh = torch.linalg.svd(mat)
+    det = torch.linalg.det(u @ vh)
+    ones = torch.ones_like(det)
+    fix = torch.diag_embed(torch.stack((ones, ones, det), -1))
+    return u @ fix @ vh
