@@ -280,7 +280,9 @@ def _pad_cat(tensors: list[torch.Tensor], fill: float | bool) -> torch.Tensor:
     padded = []
     for x in tensors:
         pad_shape = (x.shape[0], longest - x.shape[1], *x.shape[2:])
-        padded.append(torch.cat((x, torch.full(pad_shape, fill, dtype=x.dtype, device=x.device)), 1))
+        padded.append(
+            torch.cat((x, torch.full(pad_shape, fill, dtype=x.dtype, device=x.device)), 1)
+        )
     return torch.cat(padded, 0)
 
 
@@ -344,9 +346,7 @@ def batch_sequences(sequences: list[Sequence]) -> Sequence:
     label_keys = sorted({k for s in singles for k in s.labels})
     labels = {}
     for key in label_keys:
-        parts = [
-            s.labels.get(key, torch.zeros((1, 0, 2), dtype=template.dtype)) for s in singles
-        ]
+        parts = [s.labels.get(key, torch.zeros((1, 0, 2), dtype=template.dtype)) for s in singles]
         labels[key] = _pad_cat(parts, float("nan"))
     meta: dict[str, Any] = {"per_sequence": [s.meta for s in singles]}
     return Sequence(

@@ -1,0 +1,124 @@
+"""Readers and writers: native .npz/.csv sequences, TUM trajectories, EuRoC ASL folders and
+the KITTI drive shipped with gtsam.
+
+:func:`load_sequence` is the one entry point for sequences; it dispatches on ``fmt`` or
+detects the format. Every reader returns a B = 1 :class:`~msf_torch.types.Sequence` in
+float64 and follows the same rules for bad input (see :mod:`msf_torch.io.native`):
+malformed data raises :class:`DataError` naming file, line and field; non-finite samples are
+dropped and counted in ``meta``; backwards time raises unless ``sort=True``; repeated
+timestamps keep the first sample.
+"""
+
+from __future__ import annotations
+
+__all__ = [
+    "FORMATS",
+    "DataError",
+    "MissingExtraError",
+    "atomic_write",
+    "atomic_save_npz",
+    "detect_format",
+    "gtsam_data_path",
+    "load_kitti_gtsam",
+    "load_sequence",
+    "read_euroc",
+    "read_native",
+    "read_tum",
+    "write_native",
+    "write_tum",
+]
+
+import os
+from pathlib import Path
+
+from msf_torch.io.atomic import atomic_save_npz, atomic_write
+from msf_torch.io.errors import DataError, MissingExtraError
+from msf_torch.io.euroc import find_euroc_root, read_euroc
+from msf_torch.io.kitti_gtsam import KITTI_GTSAM_NAME, gtsam_data_path, load_kitti_gtsam
+from msf_torch.io.native import read_native, write_native
+from msf_torch.io.tum import read_tum, write_tum
+from msf_torch.types import Sequence
+
+FORMATS = ("native", "npz", "csv", "euroc", "tum", "kitti-gtsam")
+"""Accepted values of ``load_sequence(fmt=...)``."""
+
+_TRAJECTORY_SUFFIXES = (".tum", ".txt")
+_ACCEPTED = (
+    "'kitti-gtsam' (the KITTI drive shipped with gtsam), a native .npz file, a native "
+    "folder with imu.csv, or a EuRoC ASL folder with mav0/ or imu0/"
+)
+
+
+def _tum_is_not_a_sequence(path: Path) -> DataError:
+    return DataError(
+        path,
+        "a TUM file holds a trajectory, not a sensor sequence: read it with "
+        "msf_torch.io.read_tum, or score it with `msf eval`",
+    )
+
+
+def detect_format(source: str | os.PathLike[str]) -> str:
+    """Guess the format of ``source``; one of ``"kitti-gtsam"``, ``"npz"``, ``"csv"``,
+    ``"euroc"``, ``"tum"``.
+
+    Rules, in order: the name ``"kitti-gtsam"`` (when no such file exists); a file ending in
+    ``.npz``; a folder holding ``imu.csv``; a folder holding ``mav0/`` or ``imu0/``; a
+    ``.tum``/``.txt`` file (a trajectory).
+
+    Raises:
+        DataError: the path does not exist or matches no format (the message lists them).
+    """
+    path = Path(source)
+    if str(source) == KITTI_GTSAM_NAME and not path.exists():
+        return "kitti-gtsam"
+    if not path.exists():
+        raise DataError(path, f"no such file or folder (accepted: {_ACCEPTED})")
+    if path.is_file() and path.suffix.lower() == ".npz":
+        return "npz"
+    if path.is_dir():
+        if (path / "imu.csv").is_file():
+            return "csv"
+        if find_euroc_root(path) is not None:
+            return "euroc"
+    if path.is_file() and path.suffix.lower() in _TRAJECTORY_SUFFIXES:
+        return "tum"
+    raise DataError(path, f"unrecognised sequence format; accepted: {_ACCEPTED}")
+
+
+def load_sequence(
+    source: str | os.PathLike[str], fmt: str | None = None, sort: bool = False
+) -> Sequence:
+    """Load a recorded sequence (B = 1) from a file, folder or named dataset.
+
+    Args:
+        source: a path, or ``"kitti-gtsam"`` for the KITTI IMU + GPS drive shipped with gtsam.
+        fmt: one of :data:`FORMATS` (``"native"`` = ``.npz`` or CSV folder, ``"npz"``,
+            ``"csv"``, ``"euroc"``, ``"tum"``, ``"kitti-gtsam"``), or None to detect it
+            (:func:`detect_format`).
+        sort: stably sort streams whose timestamps go backwards instead of raising.
+
+    Returns:
+        a :class:`~msf_torch.types.Sequence` with B = 1, float64, all-True masks.
+
+    Raises:
+        ValueError: an unknown ``fmt`` (the message lists the accepted ones).
+        DataError: bad or unrecognised input; for a TUM file, an explanation that it is a
+            trajectory (use :func:`read_tum` or ``msf eval``).
+        MissingExtraError: ``"kitti-gtsam"`` without gtsam installed.
+    """
+    if fmt is not None and fmt not in FORMATS:
+        raise ValueError(f"unknown format {fmt!r}; accepted: {', '.join(FORMATS)}")
+    if fmt is None:
+        fmt = detect_format(source)
+    path = Path(source)
+    if fmt == "kitti-gtsam":
+        return load_kitti_gtsam(sort=sort)
+    if fmt == "tum":
+        raise _tum_is_not_a_sequence(path)
+    if fmt == "euroc":
+        return read_euroc(path, sort=sort)
+    if fmt == "npz" and (path.is_dir() or path.suffix.lower() != ".npz"):
+        raise DataError(path, "format 'npz' needs a file ending in .npz")
+    if fmt == "csv" and path.exists() and not path.is_dir():
+        raise DataError(path, "format 'csv' needs a folder holding imu.csv")
+    return read_native(path, sort=sort)

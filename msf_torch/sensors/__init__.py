@@ -1,0 +1,25 @@
+"""Measurement models: one residual ``r = h(x) - z`` per sensor, its error-state Jacobian and
+noise. The ESKF front end and the LM back end both call these."""
+
+from msf_torch.sensors.gnss import gnss_residual
+from msf_torch.sensors.imu import ImuNoise, Preintegrated, preintegrate, propagate_nominal, zoh_step
+from msf_torch.sensors.noise import GaussianNoise
+from msf_torch.sensors.pose import pose_residual
+from msf_torch.sensors.vehicle import nonholonomic_residual, zero_velocity_residual
+from msf_torch.sensors.wheel import body_velocity_residual, wheel_residual, wheel_speed_and_yaw_rate
+
+__all__ = [
+    "GaussianNoise",
+    "ImuNoise",
+    "Preintegrated",
+    "body_velocity_residual",
+    "gnss_residual",
+    "nonholonomic_residual",
+    "pose_residual",
+    "preintegrate",
+    "propagate_nominal",
+    "wheel_residual",
+    "wheel_speed_and_yaw_rate",
+    "zero_velocity_residual",
+    "zoh_step",
+]

@@ -1,0 +1,1 @@
+"""Peer (third-party) baselines used by the benchmarks."""

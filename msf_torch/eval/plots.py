@@ -1,0 +1,202 @@
+"""Overview figure of one run: top-down trajectory, position error, wheel slip factor.
+
+Drawn with matplotlib's object API on an Agg canvas (no pyplot state, no display needed) and
+written atomically: a temporary file in the target directory, then ``os.replace``, so a reader
+never sees a half-written PNG and a failed save leaves no stray file.
+"""
+
+from __future__ import annotations
+
+__all__ = ["overview_figure"]
+
+import os
+import tempfile
+from collections.abc import Sequence as SequenceABC
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.figure import Figure
+
+from msf_torch.types import Trajectory
+
+_EST_COLOR = "tab:blue"
+_REF_COLOR = "0.3"
+_OUTAGE_COLOR = "tab:red"
+_DPI = 120
+
+
+def _as_numpy(x: Any, name: str) -> np.ndarray:
+    """1-D float64 numpy copy of a tensor or array-like."""
+    if isinstance(x, torch.Tensor):
+        x = x.detach().cpu().to(torch.float64).numpy()
+    arr = np.asarray(x, dtype=np.float64).reshape(-1)
+    return arr
+
+
+def _xy(traj: Trajectory, name: str) -> tuple[np.ndarray, np.ndarray]:
+    """Real times (K,) and positions (K, 3) of a B = 1 trajectory, numpy float64."""
+    if traj.batch_size != 1:
+        raise ValueError(f"{name} must have B = 1, got B = {traj.batch_size}; use select(i)")
+    keep = traj.mask[0].detach().cpu().numpy()
+    t = traj.t[0].detach().cpu().to(torch.float64).numpy()[keep]
+    p = traj.position[0].detach().cpu().to(torch.float64).numpy()[keep]
+    return t, p
+
+
+def _no_data(ax, text: str) -> None:
+    ax.text(
+        0.5, 0.5, text, ha="center", va="center", transform=ax.transAxes, color="0.4", fontsize=11
+    )
+    ax.set_xticks([])
+    ax.set_yticks([])
+
+
+def overview_figure(
+    path: str | os.PathLike,
+    estimate: Trajectory,
+    reference: Trajectory | None = None,
+    error_t: torch.Tensor | np.ndarray | None = None,
+    error: torch.Tensor | np.ndarray | None = None,
+    slip_t: torch.Tensor | np.ndarray | None = None,
+    slip: torch.Tensor | np.ndarray | None = None,
+    outage: SequenceABC[float] | None = None,
+    title: str = "",
+) -> Path:
+    """Write a three-panel PNG overview of one run.
+
+    Panels: (left) top-down x-y trajectory, estimate against reference, equal axes, with the
+    estimate's part inside ``outage`` drawn in red; (top right) position error over time with
+    the outage shaded; (bottom right) wheel slip factor over time, or "no wheel data".
+
+    All times are seconds on the estimate's clock and are drawn relative to the estimate's
+    first real time.
+
+    Args:
+        path: output ``.png`` path (parent directories are created).
+        estimate: estimated trajectory, B = 1 (``mask`` honoured), m.
+        reference: reference trajectory, B = 1, or None. Drawn as given (not aligned); pass
+            an aligned estimate if frames differ.
+        error_t: (K,) times of ``error``, s.
+        error: (K,) position error, m. When None and ``reference`` is given, it is computed
+            with :func:`msf_torch.eval.metrics.position_errors` (SE(3) alignment).
+        slip_t: (L,) times of ``slip``, s.
+        slip: (L,) wheel slip factor, dimensionless; None hides the curve.
+        outage: ``(t0, t1)`` s, a sensor outage to highlight, or None.
+        title: figure title.
+
+    Returns:
+        The written path.
+
+    Raises:
+        ValueError: B is not 1, or a time/value pair has different lengths.
+    """
+    path = Path(path)
+    t_est, p_est = _xy(estimate, "estimate")
+    t_origin = float(t_est[0]) if t_est.size else 0.0
+    p_ref = None
+    if reference is not None:
+        _, p_ref = _xy(reference, "reference")
+        if error is None:
+            from msf_torch.eval.metrics import position_errors
+
+            et, ee = position_errors(estimate, reference, align="se3")
+            error_t, error = et, ee
+    pairs = {}
+    for name, times, values in (("error", error_t, error), ("slip", slip_t, slip)):
+        if values is None:
+            pairs[name] = None
+            continue
+        if times is None:
+            raise ValueError(f"{name} is given without {name}_t")
+        tt, vv = _as_numpy(times, f"{name}_t"), _as_numpy(values, name)
+        if tt.shape != vv.shape:
+            raise ValueError(f"{name}_t has {tt.size} samples but {name} has {vv.size}")
+        pairs[name] = (tt - t_origin, vv)
+    span = None
+    if outage is not None:
+        t0, t1 = (float(v) for v in outage)
+        span = (t0 - t_origin, t1 - t_origin)
+
+    fig = Figure(figsize=(13.0, 6.5), dpi=_DPI, layout="constrained")
+    FigureCanvasAgg(fig)
+    grid = fig.add_gridspec(2, 2, width_ratios=(1.15, 1.0))
+    ax_xy = fig.add_subplot(grid[:, 0])
+    ax_err = fig.add_subplot(grid[0, 1])
+    both = pairs["error"] is not None and pairs["slip"] is not None
+    ax_slip = fig.add_subplot(grid[1, 1], sharex=ax_err if both else None)
+
+    # Top-down trajectory.
+    if p_ref is not None:
+        ax_xy.plot(
+            p_ref[:, 0], p_ref[:, 1], color=_REF_COLOR, ls="--", lw=1.3, label="reference", zorder=3
+        )
+    ax_xy.plot(p_est[:, 0], p_est[:, 1], color=_EST_COLOR, lw=1.5, label="estimate")
+    if p_est.shape[0]:
+        ax_xy.plot(*p_est[0, :2], "o", color="tab:green", ms=6, label="start", zorder=5)
+        ax_xy.plot(*p_est[-1, :2], "s", color="black", ms=5, label="end", zorder=5)
+    if span is not None:
+        inside = (t_est - t_origin >= span[0]) & (t_est - t_origin <= span[1])
+        seg = np.where(inside[:, None], p_est[:, :2], np.nan)
+        ax_xy.plot(
+            seg[:, 0],
+            seg[:, 1],
+            color=_OUTAGE_COLOR,
+            lw=3.0,
+            alpha=0.85,
+            label="estimate during outage",
+        )
+    ax_xy.set_aspect("equal", adjustable="datalim")
+    ax_xy.set_xlabel("x [m]")
+    ax_xy.set_ylabel("y [m]")
+    ax_xy.set_title("trajectory (top-down)")
+    ax_xy.grid(True, alpha=0.35)
+    ax_xy.legend(loc="best", fontsize=9)
+
+    # Position error.
+    if pairs["error"] is not None:
+        tt, vv = pairs["error"]
+        rmse = float(np.sqrt(np.mean(vv**2))) if vv.size else float("nan")
+        ax_err.plot(tt, vv, color=_EST_COLOR, lw=1.2, label=f"position error (RMSE {rmse:.3f} m)")
+        if span is not None:
+            ax_err.axvspan(*span, color=_OUTAGE_COLOR, alpha=0.12, label="outage")
+        ax_err.set_ylabel("position error [m]")
+        ax_err.set_ylim(bottom=0.0)
+        ax_err.grid(True, alpha=0.35)
+        ax_err.legend(loc="upper left", fontsize=9)
+    else:
+        _no_data(ax_err, "no reference")
+    ax_err.set_title("position error")
+
+    # Slip factor.
+    if pairs["slip"] is not None:
+        tt, vv = pairs["slip"]
+        ax_slip.plot(tt, vv, color="tab:purple", lw=1.2, label="slip factor")
+        if span is not None:
+            ax_slip.axvspan(*span, color=_OUTAGE_COLOR, alpha=0.12, label="outage")
+        ax_slip.set_ylabel("slip factor [-]")
+        ax_slip.set_xlabel("time since start [s]")
+        ax_slip.grid(True, alpha=0.35)
+        ax_slip.legend(loc="upper left", fontsize=9)
+    else:
+        _no_data(ax_slip, "no wheel data")
+        if pairs["error"] is not None:
+            ax_err.set_xlabel("time since start [s]")
+    ax_slip.set_title("wheel slip")
+    if title:
+        fig.suptitle(title)
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as handle:
+            fig.savefig(handle, format="png", dpi=_DPI)
+        os.chmod(tmp, 0o644)  # mkstemp makes 0600; give the PNG ordinary permissions
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+    return path

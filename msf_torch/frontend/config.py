@@ -1,0 +1,183 @@
+"""Front-end configuration: one flat dataclass, loadable from YAML with key-naming errors.
+
+Units are in the field names. Defaults suit a small wheeled robot with a MEMS IMU of the
+ADIS16470 class (see ``msf_torch.sim``); dataset loaders may supply their own IMU noise
+(e.g. the KITTI metadata file), which :func:`config_for_sequence` applies unless the YAML
+sets the value explicitly.
+"""
+
+from __future__ import annotations
+
+__all__ = ["EskfConfig", "load_config", "config_for_sequence"]
+
+import dataclasses
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+
+@dataclass
+class EskfConfig:
+    """ESKF front-end settings (all SI units, named in the field)."""
+
+    # IMU noise densities (continuous time)
+    gyro_noise_density: float = 9.9e-5  # rad/s/sqrt(Hz)
+    accel_noise_density: float = 6.2e-4  # m/s^2/sqrt(Hz)
+    gyro_bias_rw_density: float = 3.9e-6  # rad/s^2/sqrt(Hz)
+    accel_bias_rw_density: float = 1.3e-5  # m/s^3/sqrt(Hz)
+    gravity_mps2: float = 9.80665
+    # initial state
+    init_window_s: float = 0.5  # accelerometer averaging for roll/pitch
+    init_min_gnss_distance_m: float = 2.0  # displacement that fixes the initial yaw
+    init_position_sigma_m: float = 1.0
+    init_velocity_sigma_mps: float = 0.5
+    init_roll_pitch_sigma_rad: float = 0.05
+    init_yaw_sigma_rad: float = 0.2
+    init_gyro_bias_sigma_radps: float = 3.5e-3
+    init_accel_bias_sigma_mps2: float = 0.05
+    init_gyro_bias_radps: list[float] = field(default_factory=lambda: [0.0, 0.0, 0.0])
+    init_accel_bias_mps2: list[float] = field(default_factory=lambda: [0.0, 0.0, 0.0])
+    # IMU gaps
+    imu_gap_s: float = 0.1  # a sample interval longer than this is a gap
+    imu_gap_noise_scale: float = 100.0  # variance multiplier over a gap
+    # wheel odometry
+    wheel_track_m: float = 0.55
+    wheel_lever_arm_m: list[float] = field(default_factory=lambda: [0.0, 0.0, 0.0])
+    wheel_speed_sigma_mps: float = 0.05
+    wheel_lateral_sigma_mps: float = 0.05
+    wheel_yaw_rate_sigma_radps: float = 0.05
+    # the wheel yaw rate (v_r - v_l) / D carries the left/right radius mismatch as a bias
+    # proportional to speed; by default it feeds only the slip factor, not the state
+    wheel_yaw_rate_update: bool = False
+    # non-holonomic constraint (vehicles without wheel data)
+    nhc: str = "auto"  # auto (when a sequence has no wheel data) | on | off
+    nhc_rate_hz: float = 2.0
+    nhc_sigma_mps: float = 0.1
+    nhc_lever_arm_m: list[float] = field(default_factory=lambda: [0.0, 0.0, 0.0])
+    # zero-velocity update
+    zupt: bool = True
+    zupt_sigma_mps: float = 0.01
+    zupt_wheel_speed_mps: float = 0.005
+    zupt_gyro_radps: float = 0.01
+    zupt_accel_std_mps2: float = 0.05
+    zupt_window_s: float = 0.5
+    # GNSS
+    gnss_sigma_m: list[float] = field(default_factory=lambda: [0.5, 0.5, 1.0])
+    gnss_lever_arm_m: list[float] = field(default_factory=lambda: [0.0, 0.0, 0.0])
+    # chi-square gating (probability of the acceptance region; 1.0 disables)
+    gate_probability: float = 0.9999
+    gate_pseudo_measurements: bool = False  # also gate NHC and zero-velocity updates
+    gate_reopen_after: int = 3  # absolute sensors (GNSS, pose) pass after this many rejections
+    # wheel slip factor
+    slip_detection: bool = True
+    slip_sensitivity: float = 3.0  # factor = exp(-q / (2 k^2)), q = normalised disagreement
+    slip_recovery_per_s: float = 1.0  # how fast the factor may rise again, 1/s
+    slip_skip_below: float = 0.2  # wheel updates skipped below this factor
+    slip_flag_below: float = 0.5  # a wheel epoch counts as slipping below this factor
+    # time tolerance when merging measurement times, s
+    time_tolerance_s: float = 1e-6
+
+    def replace(self, **changes: Any) -> EskfConfig:
+        """A copy with ``changes`` applied (names are checked)."""
+        return dataclasses.replace(self, **changes)
+
+    def validate(self) -> None:
+        """Raise ``ValueError`` naming the first bad key."""
+        positive = [
+            "gyro_noise_density",
+            "accel_noise_density",
+            "gravity_mps2",
+            "wheel_track_m",
+            "wheel_speed_sigma_mps",
+            "wheel_lateral_sigma_mps",
+            "wheel_yaw_rate_sigma_radps",
+            "nhc_rate_hz",
+            "nhc_sigma_mps",
+            "zupt_sigma_mps",
+            "imu_gap_s",
+            "slip_sensitivity",
+        ]
+        for key in positive:
+            value = getattr(self, key)
+            if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
+                raise ValueError(f"config key '{key}' must be a positive number, got {value!r}")
+        if self.nhc not in ("auto", "on", "off"):
+            raise ValueError(f"config key 'nhc' must be auto, on or off, got {self.nhc!r}")
+        if not 0.0 < self.gate_probability <= 1.0:
+            raise ValueError("config key 'gate_probability' must lie in (0, 1]")
+        for key in (
+            "wheel_lever_arm_m",
+            "nhc_lever_arm_m",
+            "gnss_lever_arm_m",
+            "gnss_sigma_m",
+            "init_gyro_bias_radps",
+            "init_accel_bias_mps2",
+        ):
+            value = getattr(self, key)
+            if len(value) != 3:
+                raise ValueError(f"config key '{key}' must have 3 entries, got {value!r}")
+
+
+def load_config(path: str | Path | None = None, **overrides: Any) -> EskfConfig:
+    """Read an :class:`EskfConfig` from YAML (safe loader), then apply ``overrides``.
+
+    Unknown keys raise ``ValueError`` naming the key and the file.
+    """
+    values: dict[str, Any] = {}
+    if path is not None:
+        with open(path, encoding="utf-8") as handle:
+            loaded = yaml.safe_load(handle) or {}
+        if not isinstance(loaded, dict):
+            raise ValueError(f"{path}: the config must be a mapping of keys to values")
+        values.update(loaded)
+    values.update(overrides)
+    known = {f.name for f in dataclasses.fields(EskfConfig)}
+    for key in values:
+        if key not in known:
+            where = f"{path}: " if path is not None else ""
+            raise ValueError(f"{where}unknown config key '{key}'")
+    config = EskfConfig(**values)
+    config.validate()
+    return config
+
+
+_NOISE_FROM_META = {
+    "gyro_noise_sigma": "gyro_noise_density",
+    "accel_noise_sigma": "accel_noise_density",
+    "gyro_bias_rw_sigma": "gyro_bias_rw_density",
+    "accel_bias_rw_sigma": "accel_bias_rw_density",
+}
+
+
+def config_for_sequence(config: EskfConfig, meta: dict[str, Any], explicit: set[str]) -> EskfConfig:
+    """Fill IMU noise densities and sensor geometry from a dataset's metadata.
+
+    ``meta`` is ``Sequence.meta`` (B = 1); values come from ``meta["imu_noise"]`` (dataset
+    files such as KITTI's metadata) and ``meta["sensor"]`` (native ``meta.json`` / the
+    simulator). Keys in ``explicit`` (set by the user's YAML or CLI) are left alone.
+    """
+    changes: dict[str, Any] = {}
+    imu_noise = meta.get("imu_noise") or meta.get("sensor", {}).get("imu_noise") or {}
+    for meta_key, cfg_key in _NOISE_FROM_META.items():
+        if meta_key in imu_noise and cfg_key not in explicit:
+            changes[cfg_key] = float(imu_noise[meta_key])
+    for cfg_key in (
+        "gyro_noise_density",
+        "accel_noise_density",
+        "gyro_bias_rw_density",
+        "accel_bias_rw_density",
+    ):
+        if cfg_key in imu_noise and cfg_key not in explicit:
+            changes[cfg_key] = float(imu_noise[cfg_key])
+    sensor = meta.get("sensor", {})
+    if "wheel_track_m" in sensor and "wheel_track_m" not in explicit:
+        changes["wheel_track_m"] = float(sensor["wheel_track_m"])
+    if "gnss_sigma_m" in sensor and "gnss_sigma_m" not in explicit:
+        sigma = sensor["gnss_sigma_m"]
+        changes["gnss_sigma_m"] = (
+            [float(s) for s in sigma] if isinstance(sigma, list) else [float(sigma)] * 3
+        )
+    return config.replace(**changes) if changes else config

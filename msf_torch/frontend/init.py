@@ -1,0 +1,146 @@
+"""Initial state of the front end from the first seconds of each sequence.
+
+Roll and pitch come from the mean accelerometer reading over ``init_window_s`` (gravity
+direction). Yaw, in order of preference: the first pose measurement (a heading source);
+with GNSS and wheels, the 2-D rotation that best aligns the wheel/gyro dead-reckoned path
+with the GNSS track up to ``init_min_gnss_distance_m`` of travel (Procrustes); with GNSS
+only, the course of the first GNSS displacement of that length; else 0 (the world frame
+then starts aligned with the body). Biases and all uncertainties come from the config.
+"""
+
+from __future__ import annotations
+
+__all__ = ["initial_state"]
+
+import math
+
+import numpy as np
+import torch
+
+from msf_torch.frontend.config import EskfConfig
+from msf_torch.geometry.conventions import ERROR_STATE_DIM
+from msf_torch.types import NavState, Sequence
+
+
+def _rpy_matrix(roll: float, pitch: float, yaw: float) -> np.ndarray:
+    cr, sr, cp, sp, cy, sy = (
+        math.cos(roll),
+        math.sin(roll),
+        math.cos(pitch),
+        math.sin(pitch),
+        math.cos(yaw),
+        math.sin(yaw),
+    )
+    rz = np.array([[cy, -sy, 0], [sy, cy, 0], [0, 0, 1]])
+    ry = np.array([[cp, 0, sp], [0, 1, 0], [-sp, 0, cp]])
+    rx = np.array([[1, 0, 0], [0, cr, -sr], [0, sr, cr]])
+    return rz @ ry @ rx
+
+
+def _valid(stream, b: int):
+    if stream is None:
+        return None
+    mask = stream.mask[b].cpu().numpy()
+    if not mask.any():
+        return None
+    return {
+        k: v[b].detach().cpu().numpy()[mask] for k, v in stream.tensors().items() if k != "mask"
+    }
+
+
+def _one(seq: Sequence, b: int, cfg: EskfConfig) -> tuple[np.ndarray, ...]:
+    imu = _valid(seq.imu, b)
+    t0 = imu["t"][0]
+    window = imu["t"] <= t0 + cfg.init_window_s
+    f = imu["accel"][window].mean(0) - np.asarray(cfg.init_accel_bias_mps2)
+    roll = math.atan2(f[1], f[2])
+    pitch = math.atan2(-f[0], math.hypot(f[1], f[2]))
+    yaw = 0.0
+    position = np.zeros(3)
+    velocity = np.zeros(3)
+    wheel = _valid(seq.wheel, b)
+    gnss = _valid(seq.gnss, b)
+    poses = _valid(seq.poses, b)
+    wheel_speed = 0.0
+    if wheel is not None:
+        wheel_speed = 0.5 * (wheel["left_speed"][0] + wheel["right_speed"][0])
+    if poses is not None:
+        from msf_torch.geometry.quaternion import quat_to_matrix
+
+        rot = quat_to_matrix(torch.as_tensor(poses["quaternion"][0])).numpy()
+        position = poses["position"][0]
+        velocity = rot @ np.array([wheel_speed, 0.0, 0.0])
+        return position, velocity, rot
+    if gnss is not None:
+        g0 = gnss["position"][0]
+        dist = np.linalg.norm(gnss["position"][:, :2] - g0[:2], axis=1)
+        far = np.nonzero(dist >= cfg.init_min_gnss_distance_m)[0]
+        position = g0.copy()
+        if far.size:
+            k = far[0]
+            if wheel is not None:
+                # dead-reckon with wheel speed and gyro yaw rate in the initial heading frame
+                speed = np.interp(
+                    imu["t"], wheel["t"], 0.5 * (wheel["left_speed"] + wheel["right_speed"])
+                )
+                dt = np.diff(imu["t"], append=imu["t"][-1])
+                heading = np.cumsum(imu["gyro"][:, 2] * dt) - imu["gyro"][:, 2] * dt
+                path = np.stack(
+                    (
+                        np.cumsum(speed * np.cos(heading) * dt),
+                        np.cumsum(speed * np.sin(heading) * dt),
+                    ),
+                    1,
+                )
+                path = np.vstack((np.zeros(2), path[:-1]))
+                dr = np.stack(
+                    [np.interp(gnss["t"][: k + 1], imu["t"], path[:, i]) for i in range(2)], 1
+                )
+                gg = gnss["position"][: k + 1, :2] - g0[:2]
+                dr = dr - dr[0]
+                cross = np.sum(dr[:, 0] * gg[:, 1] - dr[:, 1] * gg[:, 0])
+                dot = np.sum(dr[:, 0] * gg[:, 0] + dr[:, 1] * gg[:, 1])
+                yaw = math.atan2(cross, dot)
+            else:
+                delta = gnss["position"][k] - g0
+                yaw = math.atan2(delta[1], delta[0])
+                elapsed = max(gnss["t"][k] - gnss["t"][0], 1e-3)
+                velocity = np.array([delta[0], delta[1], 0.0]) / elapsed
+    rot = _rpy_matrix(roll, pitch, yaw)
+    if wheel is not None:
+        velocity = rot @ np.array([wheel_speed, 0.0, 0.0])
+    if gnss is not None:
+        lever = rot @ np.asarray(cfg.gnss_lever_arm_m)
+        position = gnss["position"][0] - lever - velocity * (gnss["t"][0] - t0)
+    return position, velocity, rot
+
+
+def initial_state(seq: Sequence, cfg: EskfConfig) -> tuple[NavState, torch.Tensor]:
+    """Initial nominal state and covariance for every sequence of the batch.
+
+    Returns:
+        NavState with (B, ...) fields and covariance (B, 15, 15).
+    """
+    dtype, device = seq.imu.t.dtype, seq.imu.t.device
+    parts = [_one(seq, b, cfg) for b in range(seq.batch_size)]
+
+    def stack(i):
+        return torch.as_tensor(np.stack([p[i] for p in parts]), dtype=dtype, device=device)
+
+    batch = seq.batch_size
+    gyro_bias = torch.as_tensor(cfg.init_gyro_bias_radps, dtype=dtype, device=device)
+    accel_bias = torch.as_tensor(cfg.init_accel_bias_mps2, dtype=dtype, device=device)
+    state = NavState(
+        position=stack(0),
+        velocity=stack(1),
+        rotation=stack(2),
+        gyro_bias=gyro_bias.expand(batch, 3).clone(),
+        accel_bias=accel_bias.expand(batch, 3).clone(),
+    )
+    rp, yaw = cfg.init_roll_pitch_sigma_rad, cfg.init_yaw_sigma_rad
+    sigmas = [cfg.init_position_sigma_m] * 3 + [cfg.init_velocity_sigma_mps] * 3
+    sigmas += [rp, rp, yaw] + [cfg.init_gyro_bias_sigma_radps] * 3
+    sigmas += [cfg.init_accel_bias_sigma_mps2] * 3
+    sig = torch.as_tensor(sigmas, dtype=dtype, device=device)
+    cov = torch.diag_embed(sig**2).expand(batch, ERROR_STATE_DIM, ERROR_STATE_DIM).clone()
+    return state, cov

@@ -1,0 +1,324 @@
+"""Cut a batch of sequences into filter epochs: IMU samples between update times.
+
+An *epoch* ends at an update time (a wheel, GNSS or pose measurement, an NHC/ZUPT
+pseudo-measurement time, or the last IMU sample). The IMU timeline is split at every update
+time; each piece is held at the value of the latest IMU sample at or before its start
+(zero-order hold), so a measurement that falls between two IMU samples is fused at its own
+time with no interpolation error. The result is a set of dense, padded ``(B, E, L)``
+tensors: the filter then loops over E only, and everything inside an epoch is vectorised
+(``sensors.imu.preintegrate``). Padding has ``dt = 0``, an exact no-op.
+
+Building the schedule is preprocessing with numpy (one pass per sequence, vectorised over
+its samples); the hot path never loops over B.
+"""
+
+from __future__ import annotations
+
+__all__ = ["Schedule", "build_schedule"]
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from msf_torch.frontend.config import EskfConfig
+from msf_torch.types import Sequence
+
+
+@dataclass
+class Schedule:
+    """Padded per-epoch tensors for a batch (B sequences, E epochs, L samples per epoch).
+
+    Attributes:
+        t_start: (B,) filter start time (first IMU sample), s.
+        t_end: (B, E) epoch end times, s.
+        epoch_mask: (B, E) bool, real epochs.
+        gyro, accel: (B, E, L, 3) ZOH values of each piece.
+        dt: (B, E, L) piece durations, s (0 = padding).
+        noise_scale: (B, E, L) IMU variance multipliers (gaps).
+        gap: (B, E) bool, the epoch contains an IMU gap.
+        gyro_end: (B, E, 3) raw gyro held at the epoch end (for lever-arm terms).
+        wheel_left, wheel_right: (B, E) rim speeds, m/s; wheel_mask (B, E).
+        gnss_position: (B, E, 3) m; gnss_sigma (B, E, 3) m (config default filled in);
+            gnss_mask (B, E).
+        pose_position (B, E, 3), pose_rotation (B, E, 3, 3), pose_covariance (B, E, 6, 6),
+            pose_mask (B, E).
+        nhc_mask, zupt_mask: (B, E) bool pseudo-measurements.
+        imu_index_end: (B, E) index of the IMU sample held at each epoch end.
+    """
+
+    t_start: torch.Tensor
+    t_end: torch.Tensor
+    epoch_mask: torch.Tensor
+    gyro: torch.Tensor
+    accel: torch.Tensor
+    dt: torch.Tensor
+    noise_scale: torch.Tensor
+    gap: torch.Tensor
+    gyro_end: torch.Tensor
+    wheel_left: torch.Tensor
+    wheel_right: torch.Tensor
+    wheel_mask: torch.Tensor
+    gnss_position: torch.Tensor
+    gnss_sigma: torch.Tensor
+    gnss_mask: torch.Tensor
+    pose_position: torch.Tensor
+    pose_rotation: torch.Tensor
+    pose_covariance: torch.Tensor
+    pose_mask: torch.Tensor
+    nhc_mask: torch.Tensor
+    zupt_mask: torch.Tensor
+    imu_index_end: torch.Tensor
+
+    @property
+    def num_epochs(self) -> int:
+        """E."""
+        return self.t_end.shape[1]
+
+
+def _merge_times(times: np.ndarray, tol: float) -> np.ndarray:
+    """Sorted unique times, merging values closer than ``tol`` (first kept)."""
+    if times.size == 0:
+        return times
+    times = np.sort(times)
+    keep = np.concatenate(([True], np.diff(times) > tol))
+    return times[keep]
+
+
+def _match(times: np.ndarray, targets: np.ndarray, tol: float) -> np.ndarray:
+    """Index into ``times`` of each target within ``tol``, else -1. ``times`` sorted."""
+    if times.size == 0:
+        return np.full(targets.shape, -1, dtype=np.int64)
+    idx = (
+        np.clip(np.searchsorted(times, targets), 1, times.size - 1)
+        if times.size > 1
+        else (np.zeros(targets.shape, dtype=np.int64))
+    )
+    best = idx.copy()
+    if times.size > 1:
+        left = idx - 1
+        closer_left = np.abs(times[left] - targets) <= np.abs(times[idx] - targets)
+        best = np.where(closer_left, left, idx)
+    ok = np.abs(times[best] - targets) <= tol
+    return np.where(ok, best, -1)
+
+
+def _stationary_imu(
+    t: np.ndarray, gyro: np.ndarray, accel: np.ndarray, targets: np.ndarray, cfg: EskfConfig
+) -> np.ndarray:
+    """IMU stationarity test over the window ending at each target time (vectorised)."""
+    acc_norm = np.linalg.norm(accel, axis=1)
+    gyro_norm = np.linalg.norm(gyro, axis=1)
+    c1 = np.concatenate(([0.0], np.cumsum(acc_norm)))
+    c2 = np.concatenate(([0.0], np.cumsum(acc_norm**2)))
+    cg = np.concatenate(([0.0], np.cumsum(gyro_norm)))
+    hi = np.searchsorted(t, targets, side="right")
+    lo = np.searchsorted(t, targets - cfg.zupt_window_s, side="left")
+    count = np.maximum(hi - lo, 1)
+    mean = (c1[hi] - c1[lo]) / count
+    var = np.maximum((c2[hi] - c2[lo]) / count - mean**2, 0.0)
+    gyro_mean = (cg[hi] - cg[lo]) / count
+    enough = (hi - lo) >= 5
+    return enough & (np.sqrt(var) < cfg.zupt_accel_std_mps2) & (gyro_mean < cfg.zupt_gyro_radps)
+
+
+def _np(x: torch.Tensor) -> np.ndarray:
+    return x.detach().cpu().numpy()
+
+
+def build_schedule(seq: Sequence, cfg: EskfConfig) -> Schedule:
+    """Build the padded epoch schedule of a batch.
+
+    Args:
+        seq: batch of B sequences (masks mark real samples).
+        cfg: front-end configuration (tolerances, NHC rate, gap threshold, ZUPT tests).
+    Returns:
+        :class:`Schedule` on the IMU tensors' device and dtype.
+    """
+    tol = cfg.time_tolerance_s
+    dtype, device = seq.imu.t.dtype, seq.imu.t.device
+    per_seq = []
+    for b in range(seq.batch_size):
+        imu_mask = _np(seq.imu.mask[b])
+        imu_t = _np(seq.imu.t[b])[imu_mask]
+        if imu_t.size < 2:
+            raise ValueError(f"sequence '{seq.names[b]}' has {imu_t.size} IMU samples; need >= 2")
+        gyro = _np(seq.imu.gyro[b])[imu_mask]
+        accel = _np(seq.imu.accel[b])[imu_mask]
+        t0, t_last = imu_t[0], imu_t[-1]
+
+        def stream_times(stream, b=b, t0=t0, t_last=t_last):
+            if stream is None:
+                return np.zeros(0), np.zeros(0, dtype=np.int64)
+            m = _np(stream.mask[b])
+            t = _np(stream.t[b])
+            keep = m & (t > t0 + tol) & (t <= t_last + tol)
+            return t[keep], np.nonzero(keep)[0]
+
+        wheel_t, wheel_src = stream_times(seq.wheel)
+        gnss_t, gnss_src = stream_times(seq.gnss)
+        pose_t, pose_src = stream_times(seq.poses)
+        use_nhc = cfg.nhc == "on" or (cfg.nhc == "auto" and wheel_t.size == 0)
+        pseudo_t = np.zeros(0)
+        if use_nhc or (cfg.zupt and wheel_t.size == 0):
+            step = 1.0 / cfg.nhc_rate_hz
+            pseudo_t = t0 + step * np.arange(1, int(np.floor((t_last - t0) / step)) + 1)
+        updates = _merge_times(np.concatenate((wheel_t, gnss_t, pose_t, pseudo_t, [t_last])), tol)
+        bounds = _merge_times(np.concatenate((imu_t, updates)), tol)
+        piece_start = bounds[:-1]
+        piece_dt = np.diff(bounds)
+        sample = np.searchsorted(imu_t, piece_start + tol, side="right") - 1
+        epoch = np.searchsorted(updates, piece_start + tol, side="right")
+        first = np.searchsorted(epoch, np.arange(updates.size), side="left")
+        slot = np.arange(piece_start.size) - first[epoch]
+        spacing = np.diff(imu_t, append=imu_t[-1])
+        gap_piece = spacing[sample] > cfg.imu_gap_s
+        end_sample = np.searchsorted(imu_t, updates + tol, side="right") - 1
+        end_sample = np.clip(end_sample, 0, imu_t.size - 1)
+        # measurements at each epoch end
+        wheel_idx = _match(wheel_t, updates, tol)
+        gnss_idx = _match(gnss_t, updates, tol)
+        pose_idx = _match(pose_t, updates, tol)
+        pseudo = _match(pseudo_t, updates, tol) >= 0
+        zupt = np.zeros(updates.size, dtype=bool)
+        if cfg.zupt:
+            still_imu = _stationary_imu(imu_t, gyro, accel, updates, cfg)
+            if wheel_t.size:
+                wl = _np(seq.wheel.left_speed[b])[wheel_src]
+                wr = _np(seq.wheel.right_speed[b])[wheel_src]
+                still_wheel = np.zeros(updates.size, dtype=bool)
+                has = wheel_idx >= 0
+                still_wheel[has] = (np.abs(wl[wheel_idx[has]]) < cfg.zupt_wheel_speed_mps) & (
+                    np.abs(wr[wheel_idx[has]]) < cfg.zupt_wheel_speed_mps
+                )
+                zupt = still_wheel & (
+                    np.linalg.norm(gyro[end_sample], axis=1) < cfg.zupt_gyro_radps
+                )
+            else:
+                zupt = pseudo & still_imu
+        per_seq.append(
+            dict(
+                t0=t0,
+                updates=updates,
+                epoch=epoch,
+                slot=slot,
+                sample=sample,
+                piece_dt=piece_dt,
+                gap_piece=gap_piece,
+                end_sample=end_sample,
+                imu_sel=np.nonzero(imu_mask)[0],
+                wheel=(wheel_idx, wheel_src),
+                gnss=(gnss_idx, gnss_src),
+                pose=(pose_idx, pose_src),
+                nhc=pseudo & use_nhc,
+                zupt=zupt,
+            )
+        )
+
+    batch = seq.batch_size
+    n_epochs = max(p["updates"].size for p in per_seq)
+    n_slots = max(int(p["slot"].max()) + 1 for p in per_seq)
+    f64 = dict(dtype=dtype, device=device)
+
+    def zeros(*shape, dt=dtype):
+        return torch.zeros(*shape, dtype=dt, device=device)
+
+    t_end = zeros(batch, n_epochs)
+    epoch_mask = zeros(batch, n_epochs, dt=torch.bool)
+    dt = zeros(batch, n_epochs, n_slots)
+    noise_scale = torch.ones(batch, n_epochs, n_slots, **f64)
+    gap = zeros(batch, n_epochs, dt=torch.bool)
+    sample_index = torch.zeros(batch, n_epochs, n_slots, dtype=torch.long, device=device)
+    end_index = torch.zeros(batch, n_epochs, dtype=torch.long, device=device)
+    masks = {
+        k: zeros(batch, n_epochs, dt=torch.bool) for k in ("wheel", "gnss", "pose", "nhc", "zupt")
+    }
+    src = {
+        k: torch.zeros(batch, n_epochs, dtype=torch.long, device=device)
+        for k in ("wheel", "gnss", "pose")
+    }
+    t_start = torch.zeros(batch, **f64)
+    for b, p in enumerate(per_seq):
+        n_e = p["updates"].size
+        t_start[b] = float(p["t0"])
+        t_end[b, :n_e] = torch.as_tensor(p["updates"], **f64)
+        t_end[b, n_e:] = float(p["updates"][-1])
+        epoch_mask[b, :n_e] = True
+        e_idx = torch.as_tensor(p["epoch"], device=device)
+        s_idx = torch.as_tensor(p["slot"], device=device)
+        dt[b, e_idx, s_idx] = torch.as_tensor(p["piece_dt"], **f64)
+        scale = np.where(p["gap_piece"], cfg.imu_gap_noise_scale, 1.0)
+        noise_scale[b, e_idx, s_idx] = torch.as_tensor(scale, **f64)
+        gap_epochs = np.unique(p["epoch"][p["gap_piece"]])
+        gap[b, torch.as_tensor(gap_epochs, dtype=torch.long, device=device)] = True
+        sample_index[b, e_idx, s_idx] = torch.as_tensor(p["imu_sel"][p["sample"]], device=device)
+        end_index[b, :n_e] = torch.as_tensor(p["imu_sel"][p["end_sample"]], device=device)
+        for key in ("wheel", "gnss", "pose"):
+            idx, source = p[key]
+            has = idx >= 0
+            masks[key][b, :n_e] = torch.as_tensor(has, device=device)
+            src[key][b, :n_e][torch.as_tensor(has, device=device)] = torch.as_tensor(
+                source[idx[has]], dtype=torch.long, device=device
+            )
+        masks["nhc"][b, :n_e] = torch.as_tensor(p["nhc"], device=device)
+        masks["zupt"][b, :n_e] = torch.as_tensor(p["zupt"], device=device)
+
+    rows = torch.arange(batch, device=device)[:, None]
+    gyro = seq.imu.gyro[rows[..., None], sample_index]
+    accel = seq.imu.accel[rows[..., None], sample_index]
+    gyro_end = seq.imu.gyro[rows, end_index]
+
+    def take(stream, name, key, shape):
+        if stream is None:
+            return zeros(batch, n_epochs, *shape)
+        return getattr(stream, name)[rows, src[key]]
+
+    wheel_left = take(seq.wheel, "left_speed", "wheel", ())
+    wheel_right = take(seq.wheel, "right_speed", "wheel", ())
+    gnss_position = take(seq.gnss, "position", "gnss", (3,))
+    gnss_sigma = take(seq.gnss, "sigma", "gnss", (3,))
+    default_sigma = torch.as_tensor(cfg.gnss_sigma_m, **f64)
+    gnss_sigma = torch.where(
+        torch.isfinite(gnss_sigma) & (gnss_sigma > 0), gnss_sigma, default_sigma
+    )
+    pose_position = take(seq.poses, "position", "pose", (3,))
+    if seq.poses is None:
+        pose_rotation = torch.eye(3, **f64).expand(batch, n_epochs, 3, 3).clone()
+        pose_covariance = torch.eye(6, **f64).expand(batch, n_epochs, 6, 6).clone()
+    else:
+        from msf_torch.geometry.quaternion import quat_to_matrix
+
+        pose_quat = seq.poses.quaternion[rows, src["pose"]]
+        pose_quat = torch.where(
+            masks["pose"][..., None], pose_quat, torch.tensor([1.0, 0, 0, 0], **f64)
+        )
+        pose_rotation = quat_to_matrix(pose_quat)
+        pose_covariance = torch.where(
+            masks["pose"][..., None, None],
+            seq.poses.covariance[rows, src["pose"]],
+            torch.eye(6, **f64),
+        )
+    return Schedule(
+        t_start=t_start,
+        t_end=t_end,
+        epoch_mask=epoch_mask,
+        gyro=gyro,
+        accel=accel,
+        dt=dt,
+        noise_scale=noise_scale,
+        gap=gap,
+        gyro_end=gyro_end,
+        wheel_left=wheel_left,
+        wheel_right=wheel_right,
+        wheel_mask=masks["wheel"],
+        gnss_position=gnss_position,
+        gnss_sigma=gnss_sigma,
+        gnss_mask=masks["gnss"],
+        pose_position=pose_position,
+        pose_rotation=pose_rotation,
+        pose_covariance=pose_covariance,
+        pose_mask=masks["pose"],
+        nhc_mask=masks["nhc"],
+        zupt_mask=masks["zupt"],
+        imu_index_end=end_index,
+    )

@@ -1,0 +1,589 @@
+"""The native msf_torch sequence format: one ``.npz`` file or a folder of CSV tables.
+
+Both forms hold the same schema. Only the IMU is required; every other table is optional.
+Times are seconds on the sequence's own clock, positions are metres in the local world frame
+(ENU, z up), quaternions are Hamilton ``[w, x, y, z]`` body -> world (see
+``msf_torch.geometry.conventions``) and are normalised on read.
+
+CSV folder
+----------
+One table per file, comma separated, a header row naming the columns (any order, no unknown
+or repeated columns), ``#`` comment lines and blank lines ignored. Numbers use Python's
+``float`` grammar (``nan`` and ``inf`` are accepted and then handled by the rules below).
+
+==================== =================================================================
+file                 columns
+==================== =================================================================
+``imu.csv``          ``t, gyro_x, gyro_y, gyro_z, accel_x, accel_y, accel_z``
+                     (s, rad/s, m/s^2; accel is specific force, +g on z at rest)
+``wheel.csv``        ``t, left_speed, right_speed`` (s, rim speeds in m/s)
+``gnss.csv``         ``t, x, y, z`` [``, sigma_x, sigma_y, sigma_z``] (s, m, m)
+``poses.csv``        ``t, x, y, z, qw, qx, qy, qz`` then the uncertainty, one of:
+                     nothing (covariance unknown: NaN);
+                     6 standard deviations ``sigma_x, sigma_y, sigma_z, sigma_roll,
+                     sigma_pitch, sigma_yaw`` (m, rad; covariance = diag(sigma^2));
+                     21 covariance entries ``c00, c01, ..., c05, c11, ..., c55`` (the upper
+                     triangle, row-major, ``cIJ`` with I <= J; m^2, m rad, rad^2).
+                     The covariance is over ``[dp (world, m), dtheta (body, rad)]``.
+``ground_truth.csv`` ``t, x, y, z, qw, qx, qy, qz``
+``labels.csv``       ``name, t_start, t_end`` (s); e.g. ``slip`` or ``weather:rain``; a
+                     name may appear on many rows (one interval each)
+``meta.json``        optional JSON object describing the sensors, e.g.
+                     ``{"wheel_track_m": 0.5, "imu_noise": {...}}``
+==================== =================================================================
+
+NPZ file
+--------
+Arrays keyed ``<stream>/<field>``, float64, N samples per stream:
+
+``imu/t`` (N,), ``imu/gyro`` (N, 3), ``imu/accel`` (N, 3);
+``wheel/t``, ``wheel/left_speed``, ``wheel/right_speed`` (N,);
+``gnss/t`` (N,), ``gnss/position`` (N, 3), optional ``gnss/sigma`` (N, 3);
+``poses/t`` (N,), ``poses/position`` (N, 3), ``poses/quaternion`` (N, 4) ``[w,x,y,z]``,
+optional ``poses/covariance`` (N, 6, 6);
+``ground_truth/t``, ``ground_truth/position``, ``ground_truth/quaternion``;
+``labels/<name>`` (K, 2) ``[t_start, t_end]`` rows; ``meta_json`` a 0-d string holding the
+same JSON object as ``meta.json``. Unknown keys are an error.
+
+Rules on read (every format in ``msf_torch.io`` follows them)
+------------------------------------------------------------
+* Malformed input raises :class:`~msf_torch.io.errors.DataError` naming the file, the
+  1-based line (CSV) and the column: a cell that is not a number, a row with the wrong
+  number of cells, a missing or unknown column, a zero quaternion, a negative sigma.
+* A sample with NaN or inf in its time or values is dropped, counted in
+  ``meta["dropped_nonfinite"][stream]``; the first few line numbers go to
+  ``meta["dropped_lines"][stream]`` (CSV) or sample indices to
+  ``meta["dropped_indices"][stream]`` (npz). Uncertainties (``sigma_*``, ``c*``) may be NaN,
+  meaning "not given, use the estimator's default".
+* Timestamps that go backwards raise DataError naming the line, unless ``sort=True``: then
+  each stream is stably sorted and ``meta["sorted"][stream]`` counts the backwards steps.
+* A sample whose timestamp exactly repeats the previous one is dropped (the first is kept),
+  counted in ``meta["dropped_duplicates"][stream]``.
+* ``meta["source"]`` is the path read, ``meta["format"]`` is ``"native-csv"`` or
+  ``"native-npz"``, ``meta["sensor"]`` is the ``meta.json`` object, and its ``"imu_noise"``
+  entry (if any) is also put at ``meta["imu_noise"]``, where every reader puts IMU noise.
+"""
+
+from __future__ import annotations
+
+__all__ = [
+    "IMU_COLUMNS",
+    "WHEEL_COLUMNS",
+    "GNSS_COLUMNS",
+    "GNSS_SIGMA_COLUMNS",
+    "POSE_COLUMNS",
+    "POSE_SIGMA_COLUMNS",
+    "POSE_COVARIANCE_COLUMNS",
+    "LABEL_COLUMNS",
+    "TABLE_FILES",
+    "read_native",
+    "write_native",
+]
+
+import contextlib
+import csv
+import json
+import os
+import zipfile
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from msf_torch.io import _tables
+from msf_torch.io._tables import CleanReport, Table
+from msf_torch.io.atomic import atomic_save_npz, atomic_write
+from msf_torch.io.errors import DataError
+from msf_torch.types import (
+    GnssFixes,
+    ImuSamples,
+    PoseMeasurements,
+    Sequence,
+    Trajectory,
+    WheelSamples,
+)
+
+IMU_COLUMNS = ["t", "gyro_x", "gyro_y", "gyro_z", "accel_x", "accel_y", "accel_z"]
+WHEEL_COLUMNS = ["t", "left_speed", "right_speed"]
+GNSS_COLUMNS = ["t", "x", "y", "z"]
+GNSS_SIGMA_COLUMNS = ["sigma_x", "sigma_y", "sigma_z"]
+POSE_COLUMNS = ["t", "x", "y", "z", "qw", "qx", "qy", "qz"]
+POSE_SIGMA_COLUMNS = ["sigma_x", "sigma_y", "sigma_z", "sigma_roll", "sigma_pitch", "sigma_yaw"]
+POSE_COVARIANCE_COLUMNS = [f"c{i}{j}" for i in range(6) for j in range(i, 6)]
+LABEL_COLUMNS = ["name", "t_start", "t_end"]
+
+TABLE_FILES = {
+    "imu": "imu.csv",
+    "wheel": "wheel.csv",
+    "gnss": "gnss.csv",
+    "poses": "poses.csv",
+    "ground_truth": "ground_truth.csv",
+}
+"""Stream name -> CSV file name in a native folder."""
+
+_LABELS_FILE = "labels.csv"
+_META_FILE = "meta.json"
+
+_KINDS: dict[str, type] = {
+    "imu": ImuSamples,
+    "wheel": WheelSamples,
+    "gnss": GnssFixes,
+    "poses": PoseMeasurements,
+    "ground_truth": Trajectory,
+}
+
+# stream -> field -> trailing shape; "optional" fields may be absent (filled with NaN).
+_NPZ_FIELDS: dict[str, dict[str, tuple[int, ...]]] = {
+    "imu": {"t": (), "gyro": (3,), "accel": (3,)},
+    "wheel": {"t": (), "left_speed": (), "right_speed": ()},
+    "gnss": {"t": (), "position": (3,), "sigma": (3,)},
+    "poses": {"t": (), "position": (3,), "quaternion": (4,), "covariance": (6, 6)},
+    "ground_truth": {"t": (), "position": (3,), "quaternion": (4,)},
+}
+_OPTIONAL = {("gnss", "sigma"), ("poses", "covariance")}
+_NAN_OK = {"gnss": ("sigma",), "poses": ("covariance",)}
+_QUAT_STREAMS = ("poses", "ground_truth")
+
+
+# --------------------------------------------------------------------------- reading
+
+
+def read_native(path: str | os.PathLike[str], sort: bool = False) -> Sequence:
+    """Read a native sequence: a ``.npz`` file or a folder of CSV tables (module docstring).
+
+    Args:
+        path: the ``.npz`` file or the folder holding ``imu.csv`` and friends.
+        sort: stably sort streams whose timestamps go backwards instead of raising.
+
+    Returns:
+        a :class:`~msf_torch.types.Sequence` with B = 1: float64 tensors (1, N, ...), all-True
+        masks, labels (1, K, 2), ``names == [stem of path]`` and ``meta`` as described in the
+        module docstring.
+
+    Raises:
+        DataError: naming the file, line and field of bad input.
+    """
+    p = Path(path)
+    if p.is_dir():
+        return _read_folder(p, sort)
+    if p.suffix.lower() == ".npz":
+        if not p.exists():
+            raise DataError(p, "no such file")
+        return _read_npz(p, sort)
+    if not p.exists():
+        raise DataError(p, "no such file or folder")
+    raise DataError(p, "not a native sequence: expected a .npz file or a folder with imu.csv")
+
+
+def _read_folder(folder: Path, sort: bool) -> Sequence:
+    raw: dict[str, dict[str, np.ndarray]] = {}
+    where: dict[str, tuple[str, np.ndarray | None, str]] = {}
+    for stream, fname in TABLE_FILES.items():
+        file = folder / fname
+        if not file.exists():
+            if stream == "imu":
+                raise DataError(
+                    folder,
+                    "not a native sequence folder: imu.csv is missing (the one required table)",
+                )
+            continue
+        table = _tables.read_table(file)
+        raw[stream] = _arrays_from_table(stream, table)
+        where[stream] = (str(file), table.lines, "")
+    labels = _read_labels_csv(folder / _LABELS_FILE)
+    sensor = _read_meta_json(folder / _META_FILE)
+    return _assemble(folder, "native-csv", raw, where, labels, sensor, sort)
+
+
+def _check_sigmas(table: Table, data: np.ndarray, columns: list[str], first: int) -> None:
+    """DataError at the first negative sigma in data[:, first:first+len(columns)]."""
+    block = data[:, first : first + len(columns)]
+    bad = np.argwhere(block < 0)
+    if bad.size:
+        r, c = (int(x) for x in bad[0])
+        raise DataError(
+            table.path,
+            f"a standard deviation must not be negative, got {block[r, c]!r}",
+            line=int(table.lines[r]),
+            field=columns[c],
+        )
+
+
+def _arrays_from_table(stream: str, table: Table) -> dict[str, np.ndarray]:
+    """Convert one CSV table of the native schema to field -> (N, ...) arrays."""
+    if stream == "imu":
+        _tables.check_columns(table, IMU_COLUMNS)
+        d = table.floats(IMU_COLUMNS)
+        return {"t": d[:, 0], "gyro": d[:, 1:4], "accel": d[:, 4:7]}
+    if stream == "wheel":
+        _tables.check_columns(table, WHEEL_COLUMNS)
+        d = table.floats(WHEEL_COLUMNS)
+        return {"t": d[:, 0], "left_speed": d[:, 1], "right_speed": d[:, 2]}
+    if stream == "gnss":
+        extra = _tables.check_columns(table, GNSS_COLUMNS, [[GNSS_SIGMA_COLUMNS]])
+        d = table.floats(GNSS_COLUMNS + extra)
+        if extra:
+            _check_sigmas(table, d, GNSS_SIGMA_COLUMNS, 4)
+            sigma = d[:, 4:7]
+        else:
+            sigma = np.full((d.shape[0], 3), np.nan)
+        return {"t": d[:, 0], "position": d[:, 1:4], "sigma": sigma}
+    if stream == "poses":
+        extra = _tables.check_columns(
+            table, POSE_COLUMNS, [[POSE_SIGMA_COLUMNS, POSE_COVARIANCE_COLUMNS]]
+        )
+        d = table.floats(POSE_COLUMNS + extra)
+        n = d.shape[0]
+        if extra == POSE_SIGMA_COLUMNS:
+            _check_sigmas(table, d, POSE_SIGMA_COLUMNS, 8)
+            cov = np.zeros((n, 6, 6))
+            idx = np.arange(6)
+            cov[:, idx, idx] = d[:, 8:14] ** 2
+        elif extra:
+            diag = [POSE_COVARIANCE_COLUMNS.index(f"c{i}{i}") for i in range(6)]
+            _check_sigmas(table, d[:, [8 + k for k in diag]], [f"c{i}{i}" for i in range(6)], 0)
+            rows, cols = np.triu_indices(6)
+            cov = np.zeros((n, 6, 6))
+            cov[:, rows, cols] = d[:, 8:29]
+            cov[:, cols, rows] = d[:, 8:29]
+        else:
+            cov = np.full((n, 6, 6), np.nan)
+        return {"t": d[:, 0], "position": d[:, 1:4], "quaternion": d[:, 4:8], "covariance": cov}
+    _tables.check_columns(table, POSE_COLUMNS)
+    d = table.floats(POSE_COLUMNS)
+    return {"t": d[:, 0], "position": d[:, 1:4], "quaternion": d[:, 4:8]}
+
+
+def _read_labels_csv(file: Path) -> dict[str, list[tuple[float, float]]]:
+    if not file.exists():
+        return {}
+    table = _tables.read_table(file)
+    _tables.check_columns(table, LABEL_COLUMNS)
+    names = table.strings("name")
+    spans = table.floats(["t_start", "t_end"])
+    out: dict[str, list[tuple[float, float]]] = {}
+    for r, name in enumerate(names):
+        line = int(table.lines[r])
+        if not name:
+            raise DataError(file, "empty label name", line=line, field="name")
+        _check_interval(str(file), spans[r], line=line)
+        out.setdefault(name, []).append((float(spans[r, 0]), float(spans[r, 1])))
+    return out
+
+
+def _check_interval(path: str, span: np.ndarray, *, line: int | None = None, key: str = "") -> None:
+    prefix = key if line is None else ""
+    if not np.isfinite(span).all():
+        raise DataError(
+            path,
+            f"{prefix}a label interval must be finite, got {span.tolist()}",
+            line=line,
+            field=None if line is None else "t_start",
+        )
+    if span[1] < span[0]:
+        raise DataError(
+            path,
+            f"{prefix}t_end {span[1]!r} is before t_start {span[0]!r}",
+            line=line,
+            field=None if line is None else "t_end",
+        )
+
+
+def _parse_meta_json(path: str, text: str) -> dict[str, Any]:
+    try:
+        value = json.loads(text)
+    except json.JSONDecodeError as err:
+        raise DataError(path, f"invalid JSON: {err.msg}", line=err.lineno) from None
+    if not isinstance(value, dict):
+        raise DataError(path, f"must hold a JSON object, got {type(value).__name__}")
+    return value
+
+
+def _read_meta_json(file: Path) -> dict[str, Any]:
+    if not file.exists():
+        return {}
+    try:
+        text = file.read_text(encoding="utf-8-sig")
+    except UnicodeDecodeError as err:
+        raise DataError(file, f"not a UTF-8 text file ({err.reason})") from None
+    return _parse_meta_json(str(file), text)
+
+
+def _read_npz(path: Path, sort: bool) -> Sequence:
+    spath = str(path)
+    try:
+        archive = np.load(path, allow_pickle=False)
+    except (OSError, ValueError, zipfile.BadZipFile) as err:
+        raise DataError(path, f"not a readable .npz file ({err})") from None
+    if not isinstance(archive, np.lib.npyio.NpzFile):
+        raise DataError(path, "not a .npz archive (a single .npy array?)")
+    with archive as z:
+        try:
+            contents = {key: z[key] for key in z.files}
+        except (OSError, ValueError, zipfile.BadZipFile) as err:
+            raise DataError(path, f"corrupt .npz member ({err})") from None
+    raw: dict[str, dict[str, np.ndarray]] = {}
+    where: dict[str, tuple[str, np.ndarray | None, str]] = {}
+    labels: dict[str, list[tuple[float, float]]] = {}
+    sensor: dict[str, Any] = {}
+    for key in contents:
+        stream, _, fname = key.partition("/")
+        if key == "meta_json" or (stream == "labels" and fname):
+            continue
+        if stream not in _NPZ_FIELDS or fname not in _NPZ_FIELDS[stream]:
+            raise DataError(
+                path,
+                "unknown key (expected <stream>/<field> with stream in "
+                f"{', '.join(_NPZ_FIELDS)}, labels/<name> or meta_json)",
+                field=key,
+            )
+    if not any(k.startswith("imu/") for k in contents):
+        raise DataError(path, "missing key: the imu stream is required", field="imu/t")
+    for stream, fields in _NPZ_FIELDS.items():
+        if not any(f"{stream}/{f}" in contents for f in fields):
+            continue
+        arrays: dict[str, np.ndarray] = {}
+        n: int | None = None
+        for fname, trailing in fields.items():
+            key = f"{stream}/{fname}"
+            if key not in contents:
+                if (stream, fname) in _OPTIONAL:
+                    continue
+                needed = ", ".join(f"{stream}/{f}" for f in fields if (stream, f) not in _OPTIONAL)
+                raise DataError(
+                    path, f"missing key (the {stream} stream needs {needed})", field=key
+                )
+            value = _numeric(spath, key, contents[key])
+            if n is None:
+                n = value.shape[0] if value.ndim else -1
+            expected = (n, *trailing)
+            if value.shape != expected:
+                raise DataError(
+                    path,
+                    f"shape {tuple(value.shape)}, expected {expected} "
+                    f"(N = {n} samples from {stream}/t)",
+                    field=key,
+                )
+            arrays[fname] = value
+        count = arrays["t"].shape[0]
+        for fname, trailing in fields.items():
+            if fname not in arrays:
+                arrays[fname] = np.full((count, *trailing), np.nan)
+        raw[stream] = arrays
+        where[stream] = (spath, None, f"{stream}/")
+    for key, value in contents.items():
+        if key.startswith("labels/") and len(key) > len("labels/"):
+            spans = _numeric(spath, key, value)
+            if spans.ndim != 2 or spans.shape[1] != 2:
+                raise DataError(path, f"shape {tuple(spans.shape)}, expected (K, 2)", field=key)
+            for k, span in enumerate(spans):
+                _check_interval(spath, span, key=f"{key} row {k}: ")
+            labels[key[len("labels/") :]] = [(float(a), float(b)) for a, b in spans]
+    if "meta_json" in contents:
+        text = contents["meta_json"]
+        if text.dtype.kind != "U" or text.ndim != 0:
+            raise DataError(path, "must be a 0-d string array", field="meta_json")
+        sensor = _parse_meta_json(f"{spath}[meta_json]", str(text[()]))
+    return _assemble(path, "native-npz", raw, where, labels, sensor, sort)
+
+
+def _numeric(path: str, key: str, value: np.ndarray) -> np.ndarray:
+    if value.dtype.kind not in "fiub":
+        raise DataError(path, f"not a numeric array (dtype {value.dtype})", field=key)
+    return value.astype(np.float64)
+
+
+def _assemble(
+    path: Path,
+    fmt: str,
+    raw: dict[str, dict[str, np.ndarray]],
+    where: dict[str, tuple[str, np.ndarray | None, str]],
+    labels: dict[str, list[tuple[float, float]]],
+    sensor: dict[str, Any],
+    sort: bool,
+) -> Sequence:
+    """Apply the cleaning rules to raw streams and build the Sequence (B = 1)."""
+    report = CleanReport()
+    streams: dict[str, Any] = {}
+    for stream, arrays in raw.items():
+        file, lines, prefix = where[stream]
+        if stream in _QUAT_STREAMS:
+            _tables.check_quaternions(
+                file,
+                arrays["quaternion"],
+                lines=lines,
+                field_prefix=prefix,
+                name="qw" if lines is not None else "quaternion",
+            )
+        cleaned = _tables.clean_stream(
+            report,
+            stream,
+            file,
+            arrays,
+            lines=lines,
+            sort=sort,
+            nan_ok=_NAN_OK.get(stream, ()),
+            field_prefix=prefix,
+        )
+        if stream in _QUAT_STREAMS:
+            cleaned["quaternion"] = _tables.normalise_quaternions(cleaned["quaternion"])
+        streams[stream] = _tables.stream_from_arrays(_KINDS[stream], cleaned)
+    if streams["imu"].length == 0:
+        raise DataError(where["imu"][0], "no IMU samples (after dropping non-finite rows)")
+    meta: dict[str, Any] = {"source": str(path), "format": fmt, **report.to_meta()}
+    if sensor:
+        meta["sensor"] = sensor
+        if "imu_noise" in sensor:
+            meta["imu_noise"] = sensor["imu_noise"]
+    label_tensors = {
+        name: torch.tensor(spans, dtype=torch.float64).reshape(1, -1, 2)
+        for name, spans in labels.items()
+    }
+    seq = Sequence(names=[_tables.path_name(path)], labels=label_tensors, meta=meta, **streams)
+    seq.check()
+    return seq
+
+
+# --------------------------------------------------------------------------- writing
+
+
+def _np(x: torch.Tensor) -> np.ndarray:
+    return x.detach().to(device="cpu", dtype=torch.float64).numpy()
+
+
+def _stream_arrays(seq: Sequence) -> dict[str, dict[str, np.ndarray]]:
+    """Stream -> field -> (N, ...) float64 arrays of the real (masked-in) samples."""
+    out: dict[str, dict[str, np.ndarray]] = {}
+    for stream, value in seq.streams().items():
+        compact = value.compact()
+        out[stream] = {k: _np(v[0]) for k, v in compact.tensors().items() if k != "mask"}
+    return out
+
+
+def _label_arrays(seq: Sequence) -> dict[str, np.ndarray]:
+    out = {}
+    for name, spans in seq.labels.items():
+        if not name or "\n" in name:
+            raise ValueError(f"label name {name!r} cannot be stored")
+        value = _np(spans[0]).reshape(-1, 2)
+        out[name] = value[~np.isnan(value).all(axis=1)]
+    return out
+
+
+def _sensor_json(seq: Sequence) -> str | None:
+    sensor = dict(seq.meta.get("sensor") or {})
+    if "imu_noise" in seq.meta and "imu_noise" not in sensor:
+        sensor["imu_noise"] = seq.meta["imu_noise"]
+    if not sensor:
+        return None
+    try:
+        return json.dumps(sensor, indent=2, sort_keys=True, allow_nan=True)
+    except TypeError as err:
+        raise ValueError(f"seq.meta['sensor'] must be JSON-serialisable: {err}") from None
+
+
+def write_native(seq: Sequence, path: str | os.PathLike[str]) -> Path:
+    """Write a B = 1 sequence in the native format (module docstring), atomically.
+
+    A path ending in ``.npz`` gives one npz file; any other path is a folder (created if
+    needed) that receives one CSV per stream plus ``labels.csv`` and ``meta.json``. Each
+    file is written through a temporary file and renamed into place, so a failure never
+    leaves a truncated file. In a folder, native tables of streams the sequence lacks are
+    removed (so reading back gives exactly ``seq``); other files are left alone.
+
+    Only real samples (mask True) are written. Numbers are written with ``repr`` (the
+    shortest string that reads back to the same float64), so a round trip is exact up to
+    quaternion re-normalisation. ``meta["sensor"]`` (plus ``meta["imu_noise"]``) is stored
+    as the JSON sensor description; the other meta entries are derived on read and not
+    stored.
+
+    Args:
+        seq: the sequence, B = 1, any device / floating dtype.
+        path: ``something.npz`` or a folder.
+
+    Returns:
+        the path written, as a ``Path``.
+
+    Raises:
+        ValueError: B != 1, a non-JSON sensor meta, a label name that cannot be stored.
+    """
+    if seq.batch_size != 1:
+        raise ValueError(f"write_native writes one sequence, got B = {seq.batch_size}")
+    seq.check()
+    target = Path(path)
+    streams = _stream_arrays(seq)
+    labels = _label_arrays(seq)
+    sensor = _sensor_json(seq)
+    if target.suffix.lower() == ".npz":
+        arrays: dict[str, np.ndarray] = {}
+        for stream, fields in streams.items():
+            for fname, value in fields.items():
+                if (stream, fname) in _OPTIONAL and np.isnan(value).all():
+                    continue
+                arrays[f"{stream}/{fname}"] = value
+        for name, spans in labels.items():
+            arrays[f"labels/{name}"] = spans
+        if sensor is not None:
+            arrays["meta_json"] = np.array(sensor)
+        atomic_save_npz(target, **arrays)
+        return target
+    if target.exists() and not target.is_dir():
+        raise ValueError(f"{target} is a file; give a .npz path or a folder")
+    target.mkdir(parents=True, exist_ok=True)
+    for stream, fname in TABLE_FILES.items():
+        file = target / fname
+        if stream not in streams:
+            with contextlib.suppress(FileNotFoundError):
+                file.unlink()
+            continue
+        header, matrix = _table_for(stream, streams[stream])
+        with atomic_write(file, newline="") as handle:
+            handle.write(",".join(header) + "\n")
+            handle.write(_format_rows(matrix))
+    labels_file = target / _LABELS_FILE
+    if labels:
+        with atomic_write(labels_file, newline="") as handle:
+            writer = csv.writer(handle, lineterminator="\n")
+            writer.writerow(LABEL_COLUMNS)
+            for name, spans in labels.items():
+                for t0, t1 in spans.tolist():
+                    writer.writerow([name, repr(t0), repr(t1)])
+    else:
+        with contextlib.suppress(FileNotFoundError):
+            labels_file.unlink()
+    meta_file = target / _META_FILE
+    if sensor is not None:
+        with atomic_write(meta_file) as handle:
+            handle.write(sensor + "\n")
+    else:
+        with contextlib.suppress(FileNotFoundError):
+            meta_file.unlink()
+    return target
+
+
+def _table_for(stream: str, a: dict[str, np.ndarray]) -> tuple[list[str], np.ndarray]:
+    """Header and (N, C) matrix of one native CSV table."""
+    t = a["t"][:, None]
+    if stream == "imu":
+        return IMU_COLUMNS, np.hstack((t, a["gyro"], a["accel"]))
+    if stream == "wheel":
+        return WHEEL_COLUMNS, np.hstack((t, a["left_speed"][:, None], a["right_speed"][:, None]))
+    if stream == "gnss":
+        if np.isnan(a["sigma"]).all():
+            return GNSS_COLUMNS, np.hstack((t, a["position"]))
+        return GNSS_COLUMNS + GNSS_SIGMA_COLUMNS, np.hstack((t, a["position"], a["sigma"]))
+    base = np.hstack((t, a["position"], a["quaternion"]))
+    if stream == "poses" and not np.isnan(a["covariance"]).all():
+        rows, cols = np.triu_indices(6)
+        return POSE_COLUMNS + POSE_COVARIANCE_COLUMNS, np.hstack(
+            (base, a["covariance"][:, rows, cols])
+        )
+    return POSE_COLUMNS, base
+
+
+def _format_rows(matrix: np.ndarray) -> str:
+    """Rows of floats as CSV text, each number as its shortest exact ``repr``."""
+    if matrix.shape[0] == 0:
+        return ""
+    return "".join(",".join(map(repr, row)) + "\n" for row in matrix.tolist())

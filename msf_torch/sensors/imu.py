@@ -1,0 +1,302 @@
+"""IMU measurement model: exact zero-order-hold (ZOH) integration and preintegration.
+
+Between samples the bias-corrected angular rate ``w`` and specific force ``f`` are held
+constant (zero-order hold). Over an interval ``dt`` this is integrated exactly:
+
+    R+ = R Exp(w dt)
+    v+ = v + g dt   + R Gamma_1(w dt) f dt
+    p+ = p + v dt + 1/2 g dt^2 + R Gamma_2(w dt) f dt^2
+
+so motion with constant body rates is reproduced to machine precision. Preintegration
+accumulates the same step in the frame of the interval's first sample, independent of the
+state there (Forster et al. 2017, with the exact Gamma functions):
+
+    dR_{k+1} = dR_k Exp(w_k dt_k)
+    dv_{k+1} = dv_k + dR_k Gamma_1 f_k dt_k
+    dp_{k+1} = dp_k + dv_k dt_k + dR_k Gamma_2 f_k dt_k^2
+
+Its error ``[d dp, d dv, d dtheta]`` (order of ``conventions``) follows the linear recursion
+``e_{k+1} = A_k e_k + B_k n_k``; the recursion gives the increments' covariance (split into a
+unit-gyro and a unit-accel part so noise densities can be learned) and the first-order
+bias Jacobians. The ESKF and the LM back end both consume :class:`Preintegrated`.
+
+Noise: continuous white-noise densities ``sigma_g`` (rad/s/sqrt(Hz)) and ``sigma_a``
+(m/s^2/sqrt(Hz)); a sample held for ``dt`` has variance ``sigma^2 / dt``.
+"""
+
+from __future__ import annotations
+
+__all__ = ["ImuNoise", "Preintegrated", "zoh_step", "preintegrate", "propagate_nominal"]
+
+from dataclasses import dataclass
+
+import torch
+
+from msf_torch.geometry import so3
+
+
+@dataclass
+class ImuNoise:
+    """Continuous-time IMU noise densities, as tensors (broadcast against B).
+
+    Attributes:
+        gyro_noise_density: rad/s/sqrt(Hz) (angular random walk).
+        accel_noise_density: m/s^2/sqrt(Hz) (velocity random walk).
+        gyro_bias_rw_density: rad/s^2/sqrt(Hz) (gyro bias random walk).
+        accel_bias_rw_density: m/s^3/sqrt(Hz) (accel bias random walk).
+    """
+
+    gyro_noise_density: torch.Tensor
+    accel_noise_density: torch.Tensor
+    gyro_bias_rw_density: torch.Tensor
+    accel_bias_rw_density: torch.Tensor
+
+
+def zoh_step(
+    position: torch.Tensor,
+    velocity: torch.Tensor,
+    rotation: torch.Tensor,
+    gyro: torch.Tensor,
+    accel: torch.Tensor,
+    dt: torch.Tensor,
+    gravity: torch.Tensor,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """One exact ZOH step of the nominal state.
+
+    Args:
+        position, velocity: (..., 3) world, m and m/s.
+        rotation: (..., 3, 3) body -> world.
+        gyro, accel: (..., 3) bias-corrected body rate (rad/s) and specific force (m/s^2).
+        dt: (...,) s.
+        gravity: (3,) world gravity, m/s^2.
+    Returns:
+        position, velocity, rotation after ``dt``.
+    """
+    dtv = dt[..., None]
+    phi = gyro * dtv
+    rf = (rotation @ (so3.gamma1(phi) @ accel[..., None])).squeeze(-1)
+    rf2 = (rotation @ (so3.gamma2(phi) @ accel[..., None])).squeeze(-1)
+    new_position = position + velocity * dtv + 0.5 * gravity * dtv**2 + rf2 * dtv**2
+    new_velocity = velocity + gravity * dtv + rf * dtv
+    new_rotation = rotation @ so3.exp(phi)
+    return new_position, new_velocity, new_rotation
+
+
+@dataclass
+class Preintegrated:
+    """IMU increments over intervals, in the frame of each interval's first sample.
+
+    Shapes are (..., ) = any leading dims (B, E for the filter's epochs).
+
+    Attributes:
+        delta_t: (...,) s.
+        delta_rotation: (..., 3, 3).
+        delta_velocity: (..., 3) m/s (gravity excluded).
+        delta_position: (..., 3) m (gravity excluded).
+        bias_jacobian: (..., 9, 6) d[dp, dv, dtheta] / d[b_g, b_a].
+        cov_unit_gyro: (..., 9, 9) covariance of [dp, dv, dtheta] for unit gyro density.
+        cov_unit_accel: (..., 9, 9) the same for unit accel density.
+        gyro_bias_lin, accel_bias_lin: (..., 3) biases the increments were computed with.
+    """
+
+    delta_t: torch.Tensor
+    delta_rotation: torch.Tensor
+    delta_velocity: torch.Tensor
+    delta_position: torch.Tensor
+    bias_jacobian: torch.Tensor
+    cov_unit_gyro: torch.Tensor
+    cov_unit_accel: torch.Tensor
+    gyro_bias_lin: torch.Tensor
+    accel_bias_lin: torch.Tensor
+
+    def covariance(self, noise: ImuNoise) -> torch.Tensor:
+        """Increment covariance (..., 9, 9) for the given noise densities."""
+        sg = noise.gyro_noise_density[..., None, None]
+        sa = noise.accel_noise_density[..., None, None]
+        return sg**2 * self.cov_unit_gyro + sa**2 * self.cov_unit_accel
+
+    def corrected(
+        self, gyro_bias: torch.Tensor, accel_bias: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """First-order bias correction of the increments.
+
+        Args:
+            gyro_bias, accel_bias: (..., 3) new bias estimates.
+        Returns:
+            delta_rotation (..., 3, 3), delta_velocity (..., 3), delta_position (..., 3).
+        """
+        dbias = torch.cat((gyro_bias - self.gyro_bias_lin, accel_bias - self.accel_bias_lin), -1)
+        corr = (self.bias_jacobian @ dbias[..., None]).squeeze(-1)
+        delta_rotation = self.delta_rotation @ so3.exp(corr[..., 6:9])
+        return (
+            delta_rotation,
+            self.delta_velocity + corr[..., 3:6],
+            self.delta_position + corr[..., 0:3],
+        )
+
+
+def _outer_sum(weight: torch.Tensor, a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """``sum_j w_j a_j b_j^T`` over axis -2: weight (..., L), a, b (..., L, 3) -> (..., 3, 3)."""
+    return (weight[..., None] * a).mT @ b
+
+
+def _cross_gram(weight: torch.Tensor, a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """``sum_j w_j [a_j]x [b_j]x^T = sum_j w_j ((a_j . b_j) I - b_j a_j^T)``, (..., 3, 3)."""
+    eye = torch.eye(3, dtype=a.dtype, device=a.device)
+    dot = (weight * (a * b).sum(-1)).sum(-1)[..., None, None]
+    return dot * eye - _outer_sum(weight, b, a)
+
+
+def preintegrate(
+    gyro: torch.Tensor,
+    accel: torch.Tensor,
+    dt: torch.Tensor,
+    gyro_bias: torch.Tensor,
+    accel_bias: torch.Tensor,
+    noise_scale: torch.Tensor | None = None,
+) -> Preintegrated:
+    """Preintegrate IMU samples over the last axis L, vectorised over leading dims.
+
+    Only the rotation prefix product loops over L (one 3x3 product per sample, batched
+    over all leading dims); the rest is closed-form sums. Writing ``y_j`` for sample j's
+    rotation error input in the interval frame, the error recursion unrolls to
+
+        dtheta_L = R_L^T sum_j y_j
+        dv_L     = sum_j h_j - [V_L - V_{j+1}]x y_j
+        dp_L     = sum_j (T_L - T_{j+1}) h_j + q_j - [P_L - P_{j+1} - (T_L - T_{j+1}) V_{j+1}]x y_j
+
+    with ``y_j = -R_{j+1} J_r(w_j dt_j) dt_j (db_g + n_g)``,
+    ``h_j = -R_j Gamma_1 dt_j (db_a + n_a)``, ``q_j = -R_j Gamma_2 dt_j^2 (db_a + n_a)``
+    and ``R, V, P, T`` the prefix rotation, velocity, position and time. Summing these
+    per-sample maps gives the bias Jacobians exactly. For the covariance the maps are taken
+    at zeroth order in ``w dt`` (``J_r = Gamma_1 = I``, ``Gamma_2 = I/2``), which makes every
+    term rotation-free and the covariance a handful of weighted sums; its relative error is
+    O(|w| dt) (1e-2 at 1 rad/s and 100 Hz) and it is exact for non-rotating motion. Samples
+    with ``dt = 0`` are exact no-ops, which is how ragged intervals are padded.
+
+    Args:
+        gyro: (..., L, 3) raw angular rate, rad/s.
+        accel: (..., L, 3) raw specific force, m/s^2.
+        dt: (..., L) hold time of each sample, s.
+        gyro_bias, accel_bias: (..., 3) linearisation biases.
+        noise_scale: optional (..., L) variance multiplier per sample (e.g. IMU gaps).
+    Returns:
+        :class:`Preintegrated` with leading dims (...).
+    """
+    omega = gyro - gyro_bias[..., None, :]
+    force = accel - accel_bias[..., None, :]
+    dt_col = dt[..., None]
+    dt_mat = dt_col[..., None]
+    phi = omega * dt_col
+    mats = so3.series(phi)
+    step_rot = mats["exp"]
+
+    rotations = [
+        torch.eye(3, dtype=gyro.dtype, device=gyro.device).expand_as(step_rot[..., 0, :, :])
+    ]
+    for k in range(dt.shape[-1]):
+        rotations.append(rotations[-1] @ step_rot[..., k, :, :])
+    prefix_rot = torch.stack(rotations, -3)  # (..., L + 1, 3, 3)
+    rot_start, rot_end = prefix_rot[..., :-1, :, :], prefix_rot[..., 1:, :, :]
+
+    acc_v = rot_start @ (mats["gamma1"] * dt_mat)  # R_j Gamma_1 dt_j
+    acc_p = rot_start @ (mats["gamma2"] * dt_mat**2)  # R_j Gamma_2 dt_j^2
+    vel_steps = (acc_v @ force[..., None]).squeeze(-1)  # (..., L, 3)
+    pos_steps = (acc_p @ force[..., None]).squeeze(-1)
+    vel_after = torch.cumsum(vel_steps, -2)  # V_{j+1}
+    vel_before = vel_after - vel_steps  # V_j
+    pos_after = torch.cumsum(vel_before * dt_col + pos_steps, -2)  # P_{j+1}
+    time_after = torch.cumsum(dt, -1)  # T_{j+1}
+    delta_t = time_after[..., -1]
+    delta_velocity = vel_after[..., -1, :]
+    delta_position = pos_after[..., -1, :]
+    delta_rotation = prefix_rot[..., -1, :, :]
+
+    remaining = delta_t[..., None] - time_after  # T_L - T_{j+1}
+    vel_lever = delta_velocity[..., None, :] - vel_after  # D_j
+    pos_lever = delta_position[..., None, :] - pos_after - remaining[..., None] * vel_after  # C_j
+
+    gyro_in = rot_end @ (mats["right_jacobian"] * dt_mat)  # -Y_j
+    sum_gyro_in = gyro_in.sum(-3)
+    jac_theta_bg = -delta_rotation.mT @ sum_gyro_in
+    jac_v_bg = (so3.hat(vel_lever) @ gyro_in).sum(-3)
+    jac_p_bg = (so3.hat(pos_lever) @ gyro_in).sum(-3)
+    jac_v_ba = -acc_v.sum(-3)
+    jac_p_ba = -(remaining[..., None, None] * acc_v + acc_p).sum(-3)
+    zeros = torch.zeros_like(jac_v_ba)
+    jac = torch.cat(
+        (
+            torch.cat((jac_p_bg, jac_p_ba), -1),
+            torch.cat((jac_v_bg, jac_v_ba), -1),
+            torch.cat((jac_theta_bg, zeros), -1),
+        ),
+        -2,
+    )
+
+    scale = torch.ones_like(dt) if noise_scale is None else noise_scale
+    weight = scale * dt  # discrete variance (1/dt) times dt^2 from the maps
+    eye = torch.eye(3, dtype=gyro.dtype, device=gyro.device)
+    w_sum = weight.sum(-1)[..., None, None]
+    gg_tt = w_sum * eye
+    gg_vt = -so3.hat((weight[..., None] * vel_lever).sum(-2)) @ delta_rotation
+    gg_pt = -so3.hat((weight[..., None] * pos_lever).sum(-2)) @ delta_rotation
+    gg_vv = _cross_gram(weight, vel_lever, vel_lever)
+    gg_pv = _cross_gram(weight, pos_lever, vel_lever)
+    gg_pp = _cross_gram(weight, pos_lever, pos_lever)
+    cov_g = torch.cat(
+        (
+            torch.cat((gg_pp, gg_pv, gg_pt), -1),
+            torch.cat((gg_pv.mT, gg_vv, gg_vt), -1),
+            torch.cat((gg_pt.mT, gg_vt.mT, gg_tt), -1),
+        ),
+        -2,
+    )
+    lever_t = remaining + 0.5 * dt
+    aa_vv = w_sum * eye
+    aa_pv = (weight * lever_t).sum(-1)[..., None, None] * eye
+    aa_pp = (weight * lever_t**2).sum(-1)[..., None, None] * eye
+    cov_a = torch.cat(
+        (
+            torch.cat((aa_pp, aa_pv, zeros), -1),
+            torch.cat((aa_pv, aa_vv, zeros), -1),
+            torch.cat((zeros, zeros, zeros), -1),
+        ),
+        -2,
+    )
+    return Preintegrated(
+        delta_t=delta_t,
+        delta_rotation=delta_rotation,
+        delta_velocity=delta_velocity,
+        delta_position=delta_position,
+        bias_jacobian=jac,
+        cov_unit_gyro=cov_g,
+        cov_unit_accel=cov_a,
+        gyro_bias_lin=gyro_bias,
+        accel_bias_lin=accel_bias,
+    )
+
+
+def propagate_nominal(
+    position: torch.Tensor,
+    velocity: torch.Tensor,
+    rotation: torch.Tensor,
+    delta_t: torch.Tensor,
+    delta_rotation: torch.Tensor,
+    delta_velocity: torch.Tensor,
+    delta_position: torch.Tensor,
+    gravity: torch.Tensor,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Apply (bias-corrected) increments to the nominal state at the interval start.
+
+    ``p_j = p_i + v_i dT + 1/2 g dT^2 + R_i dp``, ``v_j = v_i + g dT + R_i dv``,
+    ``R_j = R_i dR``. Shapes as :func:`zoh_step` with ``delta_t`` (...,).
+    """
+    dtv = delta_t[..., None]
+    new_position = (
+        position
+        + velocity * dtv
+        + 0.5 * gravity * dtv**2
+        + (rotation @ delta_position[..., None]).squeeze(-1)
+    )
+    new_velocity = velocity + gravity * dtv + (rotation @ delta_velocity[..., None]).squeeze(-1)
+    return new_position, new_velocity, rotation @ delta_rotation

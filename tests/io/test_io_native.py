@@ -1,0 +1,272 @@
+"""Native .npz / CSV-folder format: round trips and the bad-input rules."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+import torch
+
+from msf_torch.io import DataError, load_sequence, read_native, write_native
+from msf_torch.io.native import IMU_COLUMNS, POSE_COLUMNS, POSE_SIGMA_COLUMNS
+
+IMU_HEADER = ",".join(IMU_COLUMNS) + "\n"
+
+
+def _imu_rows(times, start=0.0) -> str:
+    return "".join(f"{t},0.1,0.2,0.3,0.0,0.0,9.81\n" for t in times)
+
+
+def _write(folder, name, text):
+    folder.mkdir(parents=True, exist_ok=True)
+    (folder / name).write_text(text)
+    return folder / name
+
+
+def assert_sequences_close(a, b, tol=1e-12):
+    assert a.names == b.names
+    assert set(a.streams()) == set(b.streams())
+    for key, stream in a.streams().items():
+        other = getattr(b, key)
+        for fname, value in stream.tensors().items():
+            got = getattr(other, fname)
+            assert got.shape == value.shape, (key, fname)
+            if value.dtype == torch.bool:
+                assert torch.equal(got, value), (key, fname)
+            else:
+                assert got.dtype == torch.float64
+                torch.testing.assert_close(got, value, atol=tol, rtol=0, equal_nan=True)
+    assert set(a.labels) == set(b.labels)
+    for name, spans in a.labels.items():
+        torch.testing.assert_close(b.labels[name], spans, atol=tol, rtol=0)
+
+
+@pytest.mark.parametrize("target", ["run.npz", "run"])
+def test_round_trip(tmp_path, sequence, target):
+    path = write_native(sequence, tmp_path / target)
+    back = read_native(path)
+    assert back.names == ["run"]
+    back.names = sequence.names
+    assert_sequences_close(sequence, back)
+    assert back.meta["sensor"] == sequence.meta["sensor"]
+    assert back.meta["imu_noise"] == {"gyro_noise_density": 1.7e-4}
+    assert back.meta["source"] == str(path)
+    assert back.meta["dropped_nonfinite"] == {k: 0 for k in sequence.streams()}
+    assert back.meta["dropped_duplicates"] == {k: 0 for k in sequence.streams()}
+    # writing again onto the same target replaces it
+    write_native(back, path)
+    again = read_native(path)
+    again.names = back.names
+    assert_sequences_close(back, again)
+
+
+def test_round_trip_imu_only_and_masked_samples(tmp_path, sequence):
+    seq = dataclasses.replace(
+        sequence, wheel=None, gnss=None, poses=None, ground_truth=None, labels={}, meta={}
+    )
+    seq.imu.mask[0, 3] = False
+    for target in ("only.npz", "only"):
+        back = read_native(write_native(seq, tmp_path / target))
+        assert back.wheel is None and back.gnss is None and back.labels == {}
+        assert "sensor" not in back.meta
+        torch.testing.assert_close(back.imu.t, seq.imu.compact().t, atol=1e-12, rtol=0)
+
+
+def test_folder_rewrite_removes_stale_tables(tmp_path, sequence):
+    folder = tmp_path / "seq"
+    write_native(sequence, folder)
+    (folder / "notes.txt").write_text("kept")
+    write_native(dataclasses.replace(sequence, wheel=None, labels={}, meta={}), folder)
+    assert not (folder / "wheel.csv").exists()
+    assert not (folder / "labels.csv").exists()
+    assert not (folder / "meta.json").exists()
+    assert (folder / "notes.txt").read_text() == "kept"
+    assert read_native(folder).wheel is None
+
+
+def test_write_rejects_batches(tmp_path, sequence, sequence_factory):
+    from msf_torch.types import batch_sequences
+
+    with pytest.raises(ValueError, match="B = 2"):
+        write_native(batch_sequences([sequence, sequence_factory(1)]), tmp_path / "x.npz")
+
+
+def test_nonfinite_rows_are_dropped_and_counted(tmp_path):
+    folder = tmp_path / "nan"
+    _write(
+        folder,
+        "imu.csv",
+        IMU_HEADER
+        + "0.0,0.1,0.2,0.3,0,0,9.81\n"
+        + "0.01,nan,0.2,0.3,0,0,9.81\n"
+        + "0.02,0.1,0.2,0.3,0,0,9.81\n"
+        + "0.03,0.1,0.2,0.3,inf,0,9.81\n"
+        + "nan,0.1,0.2,0.3,0,0,9.81\n"
+        + "0.05,0.1,0.2,0.3,0,0,9.81\n",
+    )
+    _write(
+        folder,
+        "gnss.csv",
+        "t,x,y,z,sigma_x,sigma_y,sigma_z\n0,1,2,3,nan,nan,nan\n1,1,2,3,inf,1,1\n",
+    )
+    seq = read_native(folder)
+    assert seq.imu.t.tolist() == [[0.0, 0.02, 0.05]]
+    assert seq.meta["dropped_nonfinite"] == {"imu": 3, "gnss": 1}
+    assert seq.meta["dropped_lines"] == {"imu": [3, 5, 6], "gnss": [3]}
+    # NaN sigma means "not given" and is kept
+    assert seq.gnss.length == 1 and torch.isnan(seq.gnss.sigma).all()
+
+
+def test_nonfinite_npz_samples_dropped_by_index(tmp_path, sequence):
+    sequence.imu.gyro[0, 4, 1] = float("nan")
+    back = read_native(write_native(sequence, tmp_path / "n.npz"))
+    assert back.imu.length == sequence.imu.length - 1
+    assert back.meta["dropped_nonfinite"]["imu"] == 1
+    assert back.meta["dropped_indices"] == {"imu": [4]}
+
+
+def test_backwards_time_names_file_and_line(tmp_path):
+    folder = tmp_path / "back"
+    _write(folder, "imu.csv", "# a comment line\n" + IMU_HEADER + _imu_rows([0.0, 0.2, 0.1, 0.3]))
+    with pytest.raises(DataError) as info:
+        read_native(folder)
+    err = info.value
+    assert err.path.endswith("imu.csv") and err.line == 5 and err.field == "t"
+    assert "imu.csv:5: field 't': time goes backwards" in str(err)
+    assert "sort=True" in str(err)
+    seq = read_native(folder, sort=True)
+    assert seq.imu.t.tolist() == [[0.0, 0.1, 0.2, 0.3]]
+    assert seq.meta["sorted"] == {"imu": 1}
+    assert load_sequence(folder, sort=True).imu.length == 4
+
+
+def test_backwards_time_in_npz_names_key_and_sample(tmp_path, sequence):
+    sequence.wheel.t[0, 7] = 0.0
+    path = write_native(sequence, tmp_path / "b.npz")
+    with pytest.raises(DataError, match=r"field 'wheel/t': sample 7: time goes backwards"):
+        read_native(path)
+    assert read_native(path, sort=True).wheel.t[0, 0] == 0.0
+
+
+def test_duplicate_timestamps_keep_first(tmp_path):
+    folder = tmp_path / "dup"
+    _write(
+        folder,
+        "imu.csv",
+        IMU_HEADER + "0.0,1,1,1,0,0,9\n0.1,2,2,2,0,0,9\n0.1,3,3,3,0,0,9\n0.2,4,4,4,0,0,9\n",
+    )
+    seq = read_native(folder)
+    assert seq.imu.t.tolist() == [[0.0, 0.1, 0.2]]
+    assert seq.imu.gyro[0, :, 0].tolist() == [1.0, 2.0, 4.0]
+    assert seq.meta["dropped_duplicates"] == {"imu": 1}
+
+
+def test_non_numeric_cell_names_file_line_field(tmp_path):
+    folder = tmp_path / "bad"
+    _write(folder, "imu.csv", IMU_HEADER + _imu_rows([0.0]) + "0.1,0.1,abc,0.3,0,0,9.81\n")
+    with pytest.raises(DataError) as info:
+        read_native(folder)
+    err = info.value
+    assert (err.line, err.field) == (3, "gyro_y")
+    assert str(err) == f"{folder / 'imu.csv'}:3: field 'gyro_y': not a number: 'abc'"
+
+
+def test_empty_cell_and_wrong_column_count(tmp_path):
+    folder = tmp_path / "cols"
+    _write(folder, "imu.csv", IMU_HEADER + _imu_rows([0.0]) + "0.1,0.1,0.2,0.3,0,0\n")
+    with pytest.raises(DataError, match=r"imu.csv:3: expected 7 columns .* got 6"):
+        read_native(folder)
+    _write(folder, "imu.csv", IMU_HEADER + "0.1,0.1,,0.3,0,0,9.81\n")
+    with pytest.raises(DataError, match="field 'gyro_y': empty cell"):
+        read_native(folder)
+
+
+def test_missing_and_unknown_columns(tmp_path):
+    folder = tmp_path / "hdr"
+    _write(folder, "imu.csv", "t,gyro_x,gyro_y,accel_x,accel_y,accel_z\n0,0,0,0,0,9.8\n")
+    with pytest.raises(DataError) as info:
+        read_native(folder)
+    assert (info.value.line, info.value.field) == (1, "gyro_z")
+    assert "missing column" in str(info.value)
+    _write(folder, "imu.csv", IMU_HEADER.strip() + ",temp\n0,0,0,0,0,0,9.8,20\n")
+    with pytest.raises(DataError, match="field 'temp': unknown column"):
+        read_native(folder)
+    _write(folder, "imu.csv", IMU_HEADER + _imu_rows([0.0]))
+    _write(folder, "gnss.csv", "t,x,y,z,sigma_x\n0,1,2,3,1\n")
+    with pytest.raises(DataError, match="field 'sigma_y': missing column"):
+        read_native(folder)
+
+
+def test_missing_imu_table(tmp_path):
+    folder = tmp_path / "noimu"
+    _write(folder, "wheel.csv", "t,left_speed,right_speed\n0,1,1\n")
+    with pytest.raises(DataError, match="imu.csv is missing"):
+        read_native(folder)
+
+
+def test_pose_uncertainty_forms_and_quaternion_normalisation(tmp_path):
+    folder = tmp_path / "poses"
+    _write(folder, "imu.csv", IMU_HEADER + _imu_rows([0.0]))
+    header = ",".join(POSE_COLUMNS + POSE_SIGMA_COLUMNS)
+    _write(folder, "poses.csv", header + "\n0,1,2,3,2,0,0,0,0.1,0.2,0.3,0.01,0.02,0.03\n")
+    seq = read_native(folder)
+    assert seq.poses.quaternion.tolist() == [[[1.0, 0.0, 0.0, 0.0]]]
+    expected = torch.diag(torch.tensor([0.1, 0.2, 0.3, 0.01, 0.02, 0.03]) ** 2)
+    torch.testing.assert_close(seq.poses.covariance[0, 0], expected.double())
+    # no uncertainty columns -> NaN covariance
+    _write(folder, "poses.csv", ",".join(POSE_COLUMNS) + "\n0,1,2,3,1,0,0,0\n")
+    assert torch.isnan(read_native(folder).poses.covariance).all()
+    # both forms at once is an error
+    _write(folder, "poses.csv", header + ",c00\n0,1,2,3,1,0,0,0,1,1,1,1,1,1,1\n")
+    with pytest.raises(DataError, match="one set of optional columns"):
+        read_native(folder)
+    # a zero quaternion is an error, a negative sigma too
+    _write(folder, "poses.csv", ",".join(POSE_COLUMNS) + "\n0,1,2,3,0,0,0,0\n")
+    with pytest.raises(DataError, match=r"poses.csv:2: field 'qw': quaternion"):
+        read_native(folder)
+    _write(folder, "poses.csv", header + "\n0,1,2,3,1,0,0,0,0.1,-0.2,0.3,0.01,0.02,0.03\n")
+    with pytest.raises(DataError, match="field 'sigma_y': a standard deviation"):
+        read_native(folder)
+
+
+def test_labels_and_meta_json_errors(tmp_path):
+    folder = tmp_path / "lab"
+    _write(folder, "imu.csv", IMU_HEADER + _imu_rows([0.0]))
+    _write(folder, "labels.csv", "name,t_start,t_end\nslip,1,2\nslip,3,4\nweather:rain,0,9\n")
+    seq = read_native(folder)
+    assert seq.labels["slip"].tolist() == [[[1.0, 2.0], [3.0, 4.0]]]
+    assert seq.labels["weather:rain"].shape == (1, 1, 2)
+    _write(folder, "labels.csv", "name,t_start,t_end\nslip,2,1\n")
+    with pytest.raises(DataError, match="labels.csv:2: field 't_end'"):
+        read_native(folder)
+    (folder / "labels.csv").unlink()
+    _write(folder, "meta.json", '{\n  "wheel_track_m": 0.5,\n  oops\n}\n')
+    with pytest.raises(DataError, match=r"meta.json:3: invalid JSON"):
+        read_native(folder)
+
+
+def test_npz_schema_errors(tmp_path):
+    path = tmp_path / "s.npz"
+    np.savez(
+        path, **{"imu/t": np.zeros(3), "imu/gyro": np.zeros((3, 2)), "imu/accel": np.zeros((3, 3))}
+    )
+    with pytest.raises(DataError, match=r"field 'imu/gyro': shape \(3, 2\), expected \(3, 3\)"):
+        read_native(path)
+    np.savez(path, **{"imu/t": np.zeros(3), "imu/accel": np.zeros((3, 3))})
+    with pytest.raises(DataError, match="field 'imu/gyro': missing key"):
+        read_native(path)
+    np.savez(
+        path,
+        **{
+            "imu/t": np.arange(3.0),
+            "imu/gyro": np.zeros((3, 3)),
+            "imu/accel": np.zeros((3, 3)),
+            "imu/temperature": np.zeros(3),
+        },
+    )
+    with pytest.raises(DataError, match="field 'imu/temperature': unknown key"):
+        read_native(path)
+    path.write_bytes(b"not a zip")
+    with pytest.raises(DataError, match="not a readable .npz"):
+        read_native(path)
