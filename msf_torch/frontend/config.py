@@ -8,7 +8,7 @@ sets the value explicitly.
 
 from __future__ import annotations
 
-__all__ = ["EskfConfig", "load_config", "config_for_sequence"]
+__all__ = ["EskfConfig", "load_config", "config_for_sequence", "packaged_config"]
 
 import dataclasses
 import math
@@ -181,3 +181,9 @@ def config_for_sequence(config: EskfConfig, meta: dict[str, Any], explicit: set[
             [float(s) for s in sigma] if isinstance(sigma, list) else [float(sigma)] * 3
         )
     return config.replace(**changes) if changes else config
+
+
+def packaged_config(name: str) -> Path | None:
+    """Path of the config shipped for a named dataset (``msf_torch/configs/NAME.yaml``), if any."""
+    path = Path(__file__).resolve().parent.parent / "configs" / f"{name}.yaml"
+    return path if path.is_file() else None

@@ -1,0 +1,72 @@
+"""GNSS outage experiments: withhold the fixes of a time window and score the estimate there.
+
+Drift is the largest horizontal-and-vertical position error against the withheld fixes
+divided by the distance travelled inside the window (sum of consecutive fix
+displacements), in percent.
+"""
+
+from __future__ import annotations
+
+__all__ = ["split_gnss_outage", "outage_metrics"]
+
+import dataclasses
+
+import torch
+
+from msf_torch.types import GnssFixes, Sequence, Trajectory
+
+
+def split_gnss_outage(seq: Sequence, start_s: float, end_s: float) -> tuple[Sequence, GnssFixes]:
+    """Withhold GNSS fixes with ``start_s <= t - t_first <= end_s`` (B = 1).
+
+    Args:
+        seq: one sequence with GNSS.
+        start_s, end_s: window in seconds from the sequence's first IMU sample.
+    Returns:
+        (sequence without those fixes, the withheld fixes as their own stream).
+    """
+    if seq.batch_size != 1:
+        raise ValueError(f"split_gnss_outage needs B = 1, got B = {seq.batch_size}")
+    if seq.gnss is None or not bool(seq.gnss.mask.any()):
+        raise ValueError(f"sequence '{seq.names[0]}' has no GNSS fixes to withhold")
+    if not end_s > start_s:
+        raise ValueError(f"outage window must have end > start, got {start_s}:{end_s}")
+    rel = seq.gnss.t[0] - seq.start_time[0]
+    inside = (rel >= start_s) & (rel <= end_s) & seq.gnss.mask[0]
+    if not bool(inside.any()):
+        raise ValueError(f"no GNSS fix lies inside the outage window {start_s}:{end_s} s")
+    kept = seq.gnss.map(lambda x: x[:, ~inside])
+    withheld = seq.gnss.map(lambda x: x[:, inside])
+    return dataclasses.replace(seq, gnss=kept), withheld
+
+
+def outage_metrics(estimate: Trajectory, withheld: GnssFixes) -> dict[str, float]:
+    """Score an estimate against withheld fixes (B = 1).
+
+    The estimate is linearly interpolated in position at each fix time (no alignment: the
+    outage is judged in the world frame the estimator kept).
+
+    Returns:
+        ``outage_rmse_m``, ``outage_max_error_m``, ``outage_distance_m``,
+        ``outage_drift_pct`` (= max error / distance * 100), ``outage_duration_s``,
+        ``outage_fixes``.
+    """
+    keep = estimate.mask[0]
+    t_est = estimate.t[0, keep]
+    p_est = estimate.position[0, keep]
+    t_ref = withheld.t[0, withheld.mask[0]]
+    p_ref = withheld.position[0, withheld.mask[0]]
+    idx = torch.searchsorted(t_est, t_ref).clamp(1, t_est.numel() - 1)
+    t_lo, t_hi = t_est[idx - 1], t_est[idx]
+    w = ((t_ref - t_lo) / (t_hi - t_lo).clamp_min(1e-12)).clamp(0.0, 1.0)[:, None]
+    p_at = p_est[idx - 1] * (1.0 - w) + p_est[idx] * w
+    err = (p_at - p_ref).norm(dim=-1)
+    distance = (p_ref[1:] - p_ref[:-1]).norm(dim=-1).sum()
+    return {
+        "outage_rmse_m": float(err.pow(2).mean().sqrt()),
+        "outage_max_error_m": float(err.max()),
+        "outage_distance_m": float(distance),
+        "outage_drift_pct": float(100.0 * err.max() / distance.clamp_min(1e-9)),
+        "outage_duration_s": float(t_ref[-1] - t_ref[0]),
+        "outage_fixes": int(t_ref.numel()),
+    }
