@@ -1,0 +1,207 @@
+"""Command line: ``msf run | eval | simulate``.
+
+Each command parses its arguments, calls the library and prints its result as one JSON
+line last. Errors in the input (a bad file, a bad config key) end with a one-line message
+naming the problem and exit status 2.
+"""
+
+from __future__ import annotations
+
+__all__ = ["main", "build_parser"]
+
+import argparse
+import json
+import sys
+from pathlib import Path
+from typing import Any
+
+NAMED_DATASETS = ("kitti-gtsam",)
+
+
+def _outage(text: str) -> tuple[float, float]:
+    try:
+        start, end = (float(x) for x in text.split(":"))
+    except ValueError as err:
+        raise argparse.ArgumentTypeError(f"expected T0:T1 in seconds, got {text!r}") from err
+    if end <= start:
+        raise argparse.ArgumentTypeError(f"outage end must exceed start, got {text!r}")
+    return start, end
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The ``msf`` argument parser."""
+    parser = argparse.ArgumentParser(prog="msf", description=__doc__.splitlines()[0])
+    sub = parser.add_subparsers(dest="command", required=True)
+
+    run = sub.add_parser("run", help="run the ESKF front end on a recorded sequence")
+    run.add_argument(
+        "sequence",
+        nargs="?",
+        default=None,
+        help="path (native .npz / CSV folder, EuRoC folder) or a named dataset "
+        f"({', '.join(NAMED_DATASETS)}); default: the bundled sample",
+    )
+    run.add_argument(
+        "--format",
+        dest="fmt",
+        default=None,
+        help="native | npz | csv | euroc | kitti-gtsam (default: detect)",
+    )
+    run.add_argument("--config", type=Path, default=None, help="YAML front-end config")
+    run.add_argument("--out", type=Path, default=Path("out"), help="output folder")
+    run.add_argument(
+        "--gnss-outage",
+        type=_outage,
+        default=None,
+        metavar="T0:T1",
+        help="withhold GNSS fixes between T0 and T1 s from the first sample",
+    )
+    run.add_argument(
+        "--no-slip-detection", action="store_true", help="switch the wheel slip factor off"
+    )
+    run.add_argument(
+        "--sort", action="store_true", help="sort out-of-order timestamps instead of failing"
+    )
+    run.add_argument("--no-plot", action="store_true", help="skip overview.png")
+    run.add_argument(
+        "--progress",
+        choices=("auto", "on", "off"),
+        default="auto",
+        help="progress bar on stderr (auto: when stderr is a terminal)",
+    )
+
+    ev = sub.add_parser("eval", help="ATE and RPE of an estimate against a reference (TUM)")
+    ev.add_argument("estimate", type=Path)
+    ev.add_argument("reference", type=Path)
+    ev.add_argument("--align", choices=("se3", "sim3", "none"), default="se3")
+    ev.add_argument("--max-dt", type=float, default=0.01, help="association tolerance, s")
+    ev.add_argument("--delta", type=float, default=1.0, help="RPE step")
+    ev.add_argument("--delta-unit", choices=("frames", "m", "s"), default="frames")
+
+    sim = sub.add_parser("simulate", help="write a simulated labelled wheeled-robot run")
+    sim.add_argument("--duration", type=float, default=120.0, help="seconds")
+    sim.add_argument("--seed", type=int, default=0)
+    sim.add_argument("--slip-episodes", type=int, default=3)
+    sim.add_argument("--gnss-outages", type=int, default=1)
+    sim.add_argument(
+        "--out", type=Path, required=True, help="native output: FILE.npz or a folder of CSVs"
+    )
+    return parser
+
+
+def _load(args) -> tuple[Any, Any, str]:
+    """Sequence, config and a label of the input for ``msf run``."""
+    import yaml
+
+    from msf_torch.frontend.config import config_for_sequence, load_config, packaged_config
+    from msf_torch.io import load_sequence
+    from msf_torch.runner import DEFAULT_SAMPLE
+
+    source = args.sequence
+    if source is None:
+        if not DEFAULT_SAMPLE.exists():
+            from msf_torch.io.native import write_native
+            from msf_torch.sim import sample_slip_config, simulate_run
+
+            write_native(simulate_run(sample_slip_config(), seed=7).sequence, DEFAULT_SAMPLE)
+        source = str(DEFAULT_SAMPLE)
+    seq = load_sequence(source, fmt=args.fmt, sort=args.sort)
+    config_path = args.config
+    if config_path is None and source in NAMED_DATASETS:
+        config_path = packaged_config(source)
+    overrides = {}
+    if args.no_slip_detection:
+        overrides["slip_detection"] = False
+    cfg = load_config(config_path, **overrides)
+    explicit = set(overrides)
+    if config_path is not None:
+        with open(config_path, encoding="utf-8") as handle:
+            explicit |= set(yaml.safe_load(handle) or {})
+    cfg = config_for_sequence(cfg, seq.meta, explicit)
+    return seq, cfg, source
+
+
+def _progress_factory(mode: str):
+    if mode == "off" or (mode == "auto" and not sys.stderr.isatty()):
+        return None
+
+    def factory(total: int):
+        from tqdm import tqdm
+
+        bar = tqdm(total=total, unit="epoch", file=sys.stderr, leave=False)
+
+        def update(done: int) -> None:
+            bar.total = max(bar.total, done)
+            bar.n = done
+            bar.refresh() if done % 200 == 0 else None
+
+        return update, bar.close
+
+    return factory
+
+
+def _cmd_run(args) -> dict[str, Any]:
+    from msf_torch.runner import RunOptions, run_sequence
+
+    seq, cfg, _ = _load(args)
+    options = RunOptions(
+        out_dir=args.out,
+        gnss_outage_s=args.gnss_outage,
+        plot=not args.no_plot,
+        progress=_progress_factory(args.progress),
+    )
+    return run_sequence(seq, cfg, options)
+
+
+def _cmd_eval(args) -> dict[str, Any]:
+    from msf_torch.eval.metrics import evaluate_files
+
+    return evaluate_files(
+        args.estimate,
+        args.reference,
+        align=args.align,
+        max_dt=args.max_dt,
+        delta=args.delta,
+        delta_unit=args.delta_unit,
+    )
+
+
+def _cmd_simulate(args) -> dict[str, Any]:
+    from msf_torch.io.native import write_native
+    from msf_torch.sim import default_slip_config, simulate_run
+
+    config = default_slip_config(
+        duration_s=args.duration,
+        slip_episodes=args.slip_episodes,
+        gnss_outage_count=args.gnss_outages,
+    )
+    run = simulate_run(config, seed=args.seed)
+    path = write_native(run.sequence, args.out)
+    return {
+        "out": str(path),
+        "duration_s": args.duration,
+        "seed": args.seed,
+        "imu_samples": int(run.sequence.imu.mask.sum()),
+        "slip_episodes": [
+            [round(e.t_start, 3), round(e.t_end, 3), e.kind] for e in run.slip_episodes
+        ],
+    }
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point of the ``msf`` console script; returns the exit status."""
+    from msf_torch.io.errors import DataError, MissingExtraError
+
+    args = build_parser().parse_args(argv)
+    commands = {"run": _cmd_run, "eval": _cmd_eval, "simulate": _cmd_simulate}
+    try:
+        result = commands[args.command](args)
+    except (DataError, MissingExtraError, ValueError, FileNotFoundError) as err:
+        print(f"msf {args.command}: error: {err}", file=sys.stderr)
+        return 2
+    print(json.dumps(result, default=float))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

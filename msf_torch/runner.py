@@ -1,0 +1,226 @@
+"""Run the front end on one recorded sequence and write its outputs.
+
+Used by ``msf run``. Outputs in ``out_dir`` (each written atomically: temp file + rename):
+
+- ``trajectory.tum``: estimated poses at every filter epoch (TUM: t x y z qx qy qz qw).
+- ``diagnostics.csv``: per epoch: time, error-state covariance diagonal (15 variances in
+  the order of ``geometry.conventions``), slip factor, IMU-gap flag, and per sensor whether
+  a measurement was present, whether it was accepted, and its NIS.
+- ``summary.json``: the run summary (also printed as the last line by the CLI).
+- ``overview.png``: trajectory against the reference, position error, slip factor.
+"""
+
+from __future__ import annotations
+
+__all__ = ["RunOptions", "run_sequence", "write_diagnostics", "DEFAULT_SAMPLE"]
+
+import json
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from msf_torch.eval.metrics import ate
+from msf_torch.eval.outage import outage_metrics, split_gnss_outage
+from msf_torch.eval.slip import slip_scores
+from msf_torch.frontend.config import EskfConfig
+from msf_torch.frontend.eskf import SENSORS, EskfResult, run_eskf
+from msf_torch.io.atomic import atomic_write
+from msf_torch.io.tum import write_tum
+from msf_torch.types import Sequence, Trajectory
+
+DEFAULT_SAMPLE = Path(__file__).resolve().parent.parent / "datasets" / "sample_slip.npz"
+"""The bundled sample sequence (simulated wheeled robot with slip episodes)."""
+
+_STATE_NAMES = [
+    "px",
+    "py",
+    "pz",
+    "vx",
+    "vy",
+    "vz",
+    "thx",
+    "thy",
+    "thz",
+    "bgx",
+    "bgy",
+    "bgz",
+    "bax",
+    "bay",
+    "baz",
+]
+
+
+@dataclass
+class RunOptions:
+    """What ``msf run`` does beyond the filter settings.
+
+    Attributes:
+        out_dir: output folder.
+        gnss_outage_s: optional (start, end) in s from the first IMU sample; fixes inside
+            are withheld from the estimator and used as the reference.
+        plot: write ``overview.png``.
+        progress: callback factory ``(total_epochs) -> (callback, close)`` or None.
+    """
+
+    out_dir: Path
+    gnss_outage_s: tuple[float, float] | None = None
+    plot: bool = True
+    progress: Callable[[int], tuple[Callable[[int], None], Callable[[], None]]] | None = None
+    extra: dict[str, Any] = field(default_factory=dict)
+
+
+def write_diagnostics(result: EskfResult, path: Path, index: int = 0) -> None:
+    """Write the per-epoch diagnostics table of sequence ``index`` as CSV."""
+    keep = result.mask[index]
+    t = result.t[index, keep].numpy()
+    var = torch.diagonal(result.covariance[index, keep], dim1=-2, dim2=-1).numpy()
+    cols = [
+        t[:, None],
+        var,
+        result.slip_factor[index, keep].numpy()[:, None],
+        result.gap[index, keep].numpy()[:, None].astype(float),
+    ]
+    header = ["t"] + [f"var_{n}" for n in _STATE_NAMES] + ["slip_factor", "imu_gap"]
+    for name in SENSORS:
+        cols.append(result.present[name][index, keep].numpy()[:, None].astype(float))
+        cols.append(result.accepted[name][index, keep].numpy()[:, None].astype(float))
+        cols.append(result.nis[name][index, keep].numpy()[:, None])
+        header += [f"{name}_present", f"{name}_accepted", f"{name}_nis"]
+    table = np.hstack(cols)
+    with atomic_write(path) as handle:
+        handle.write(",".join(header) + "\n")
+        np.savetxt(handle, table, delimiter=",", fmt="%.10g")
+
+
+def _duration(seq: Sequence) -> float:
+    t = seq.imu.t[0, seq.imu.mask[0]]
+    return float(t[-1] - t[0])
+
+
+def run_sequence(seq: Sequence, cfg: EskfConfig, options: RunOptions) -> dict[str, Any]:
+    """Run the front end on one sequence (B = 1), write the outputs, return the summary.
+
+    Args:
+        seq: the loaded sequence.
+        cfg: front-end settings.
+        options: outputs and experiment switches.
+    Returns:
+        The summary dict (also written to ``summary.json``).
+    """
+    out_dir = Path(options.out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    withheld = None
+    if options.gnss_outage_s is not None:
+        seq, withheld = split_gnss_outage(seq, *options.gnss_outage_s)
+    epochs_hint = int(_duration(seq) * 50)
+    callback, close = (None, None)
+    if options.progress is not None:
+        callback, close = options.progress(epochs_hint)
+    start = time.perf_counter()
+    with torch.no_grad():
+        result = run_eskf(seq, cfg, progress=callback)
+        trajectory = result.trajectory()
+    wall = time.perf_counter() - start
+    if close is not None:
+        close()
+    duration = _duration(seq)
+    summary: dict[str, Any] = {
+        "sequence": seq.names[0],
+        "source": str(seq.meta.get("source", "")),
+        "duration_s": round(duration, 3),
+        "imu_samples": int(seq.imu.mask[0].sum()),
+        "epochs": int(result.mask[0].sum()),
+        "wall_s": round(wall, 4),
+        "realtime_factor": round(duration / wall, 1) if wall > 0 else math.inf,
+    }
+    counts = result.counts()
+    summary["measurements"] = {
+        k: {n: v[0] for n, v in c.items()} for k, c in counts.items() if c["present"][0] > 0
+    }
+    dropped = seq.meta.get("dropped_nonfinite")
+    if dropped:
+        summary["dropped_nonfinite"] = dropped
+    summary["imu_gaps"] = int((result.gap[0] & result.mask[0]).sum())
+    if seq.ground_truth is not None and bool(seq.ground_truth.mask.any()):
+        stats = ate(_single(trajectory), seq.ground_truth, align="none", max_dt=0.02)
+        summary["ate_rmse_m"] = round(float(stats["rmse"]), 4)
+        summary["ate_max_m"] = round(float(stats["max"]), 4)
+    if withheld is not None:
+        metrics = outage_metrics(trajectory, withheld)
+        summary["gnss_outage_s"] = list(options.gnss_outage_s)
+        summary.update({k: round(v, 4) if isinstance(v, float) else v for k, v in metrics.items()})
+    if result.present["wheel"].any():
+        wheel_epochs = result.present["wheel"][0] & result.mask[0]
+        factor = result.slip_factor[0, wheel_epochs]
+        flagged = factor < cfg.slip_flag_below
+        summary["slip_flagged_epochs"] = int(flagged.sum())
+        summary["slip_factor_min"] = round(float(factor.min()), 4)
+        if "slip" in seq.labels and cfg.slip_detection:
+            scores = slip_scores(result.t[0, wheel_epochs], flagged, seq.labels["slip"][0])
+            summary["slip_detection"] = {
+                k: round(v, 4) if isinstance(v, float) else v for k, v in scores.items()
+            }
+    summary["slip_detection_enabled"] = bool(cfg.slip_detection)
+    write_tum(_single(trajectory), out_dir / "trajectory.tum")
+    write_diagnostics(result, out_dir / "diagnostics.csv")
+    if options.plot:
+        _plot(out_dir / "overview.png", seq, trajectory, result, withheld, options, summary)
+    with atomic_write(out_dir / "summary.json") as handle:
+        json.dump(summary, handle, indent=2)
+        handle.write("\n")
+    return summary
+
+
+def _single(traj: Trajectory) -> Trajectory:
+    return traj.select(0).compact()
+
+
+def _plot(path, seq, trajectory, result, withheld, options, summary) -> None:
+    from msf_torch.eval.metrics import position_errors
+    from msf_torch.eval.plots import overview_figure
+    from msf_torch.types import Trajectory as Traj
+
+    est = _single(trajectory)
+    reference = None
+    if seq.ground_truth is not None:
+        reference = seq.ground_truth
+    elif seq.gnss is not None or withheld is not None:
+        streams = [s for s in (seq.gnss, withheld) if s is not None]
+        t = torch.cat([s.t[0, s.mask[0]] for s in streams])
+        p = torch.cat([s.position[0, s.mask[0]] for s in streams])
+        order = torch.argsort(t)
+        quat = torch.zeros(t.numel(), 4, dtype=t.dtype)
+        quat[:, 0] = 1.0
+        reference = Traj(
+            t=t[order][None],
+            position=p[order][None],
+            quaternion=quat[None],
+            mask=torch.ones(1, t.numel(), dtype=torch.bool),
+        )
+    error_t = error = None
+    if reference is not None:
+        error_t, error = position_errors(est, reference, align="none", max_dt=0.6)
+    wheel = result.present["wheel"][0] & result.mask[0]
+    slip_t = result.t[0, wheel] if wheel.any() else None
+    slip = result.slip_factor[0, wheel] if wheel.any() else None
+    outage = None
+    if options.gnss_outage_s is not None:
+        t0 = float(seq.start_time[0])
+        outage = (t0 + options.gnss_outage_s[0], t0 + options.gnss_outage_s[1])
+    overview_figure(
+        path,
+        est,
+        reference,
+        error_t=error_t,
+        error=error,
+        slip_t=slip_t,
+        slip=slip,
+        outage=outage,
+        title=f"{summary['sequence']}",
+    )
