@@ -64,6 +64,9 @@ class EskfConfig:
     zupt_gyro_radps: float = 0.01
     zupt_accel_std_mps2: float = 0.05
     zupt_window_s: float = 0.5
+    # stationarity from the IMU alone cannot tell standing still from smooth constant-velocity
+    # driving, so it is off unless asked for; wheel-based detection is always on with zupt
+    zupt_imu_detector: bool = False
     # GNSS
     gnss_sigma_m: list[float] = field(default_factory=lambda: [0.5, 0.5, 1.0])
     gnss_lever_arm_m: list[float] = field(default_factory=lambda: [0.0, 0.0, 0.0])

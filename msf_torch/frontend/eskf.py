@@ -181,44 +181,48 @@ def _preintegrate_chunked(
     return Preintegrated(**{k: torch.cat([getattr(p, k) for p in parts], 1) for k in names})
 
 
-def _transition(rotation, d_rot, d_vel, d_pos, delta_t, jac):
-    """Phi (B, 15, 15) of one epoch; see the module docstring."""
-    batch = rotation.shape[0]
-    eye = torch.eye(3, dtype=rotation.dtype, device=rotation.device).expand(batch, 3, 3)
-    zero = torch.zeros_like(eye)
-    jac_p = rotation @ jac[:, 0:3]  # bias Jacobians of dp, dv rotated into the world
-    jac_v = rotation @ jac[:, 3:6]
-    rows = (
-        torch.cat((eye, delta_t[:, None, None] * eye, -rotation @ so3.hat(d_pos), jac_p), -1),
-        torch.cat((zero, eye, -rotation @ so3.hat(d_vel), jac_v), -1),
-        torch.cat((zero, zero, d_rot.mT, jac[:, 6:9, 0:3], zero), -1),
-    )
-    top = torch.cat(rows, -2)
-    bottom = torch.eye(ERROR_STATE_DIM, dtype=rotation.dtype, device=rotation.device)[9:]
-    return torch.cat((top, bottom.expand(batch, 6, ERROR_STATE_DIM)), -2)
+def _local_transition(pre: Preintegrated, noise: EskfNoise) -> tuple[torch.Tensor, torch.Tensor]:
+    """Transition and process noise of every epoch in the epoch-start body frame.
 
+    With ``D = blockdiag(R_i, R_i, I, I, I)`` the world-frame matrices are
+    ``Phi = D Phi_loc D^T`` and ``Q = D Q_loc D^T`` (see the module docstring), so
+    everything but ``R_i`` is computed here for all (B, E) epochs at once. The Jacobian
+    blocks use the increments at the linearisation bias (the first-order correction of the
+    increments themselves is applied to the nominal state in the loop).
 
-def _process_noise(rotation, pre_cov, delta_t, noise: EskfNoise):
-    """G Sigma_Delta G^T + bias random walk, (B, 15, 15)."""
-    batch = rotation.shape[0]
-    eye = torch.eye(3, dtype=rotation.dtype, device=rotation.device).expand(batch, 3, 3)
+    Returns:
+        Phi_loc (B, E, 15, 15) and Q_loc (B, E, 15, 15).
+    """
+    lead = pre.delta_t.shape
+    dtype, device = pre.delta_t.dtype, pre.delta_t.device
+    eye = torch.eye(3, dtype=dtype, device=device).expand(*lead, 3, 3)
     zero = torch.zeros_like(eye)
-    g = torch.cat(
+    jac = pre.bias_jacobian
+    dt = pre.delta_t[..., None, None]
+    top = torch.cat(
         (
-            torch.cat((rotation, zero, zero), -1),
-            torch.cat((zero, rotation, zero), -1),
-            torch.cat((zero, zero, eye), -1),
+            torch.cat((eye, dt * eye, -so3.hat(pre.delta_position), jac[..., 0:3, :]), -1),
+            torch.cat((zero, eye, -so3.hat(pre.delta_velocity), jac[..., 3:6, :]), -1),
+            torch.cat((zero, zero, pre.delta_rotation.mT, jac[..., 6:9, 0:3], zero), -1),
         ),
         -2,
     )
-    q_nav = g @ pre_cov @ g.mT
-    var_g = (noise.imu.gyro_bias_rw_density**2).expand(batch) * delta_t
-    var_a = (noise.imu.accel_bias_rw_density**2).expand(batch) * delta_t
-    q_bias = torch.diag_embed(
-        torch.cat((var_g[:, None].expand(batch, 3), var_a[:, None].expand(batch, 3)), -1)
-    )
-    zeros = torch.zeros(batch, 9, 6, dtype=rotation.dtype, device=rotation.device)
-    return torch.cat((torch.cat((q_nav, zeros), -1), torch.cat((zeros.mT, q_bias), -1)), -2)
+    bottom = torch.eye(ERROR_STATE_DIM, dtype=dtype, device=device)[9:].expand(*lead, 6, 15)
+    phi = torch.cat((top, bottom), -2)
+
+    def per_seq(x: torch.Tensor) -> torch.Tensor:
+        return x[:, None] if x.dim() == 1 else x
+
+    imu = noise.imu
+    nav = (per_seq(imu.gyro_noise_density) ** 2)[..., None, None] * pre.cov_unit_gyro + (
+        per_seq(imu.accel_noise_density) ** 2
+    )[..., None, None] * pre.cov_unit_accel
+    var_g = per_seq(imu.gyro_bias_rw_density) ** 2 * pre.delta_t
+    var_a = per_seq(imu.accel_bias_rw_density) ** 2 * pre.delta_t
+    bias = torch.diag_embed(torch.stack((var_g, var_g, var_g, var_a, var_a, var_a), -1))
+    zeros = torch.zeros(*lead, 9, 6, dtype=dtype, device=device)
+    q = torch.cat((torch.cat((nav, zeros), -1), torch.cat((zeros.mT, bias), -1)), -2)
+    return phi, q
 
 
 def _inject(state: NavState, dx: torch.Tensor) -> NavState:
@@ -231,12 +235,24 @@ def _inject(state: NavState, dx: torch.Tensor) -> NavState:
     )
 
 
-def _reset_jacobian(dtheta: torch.Tensor) -> torch.Tensor:
-    batch = dtheta.shape[0]
-    g = torch.eye(ERROR_STATE_DIM, dtype=dtheta.dtype, device=dtheta.device).repeat(batch, 1, 1)
-    block = torch.eye(3, dtype=dtheta.dtype, device=dtheta.device) - 0.5 * so3.hat(dtheta)
-    top = torch.cat((g[:, 6:9, 0:6], block, g[:, 6:9, 9:15]), -1)
-    return torch.cat((g[:, 0:6], top, g[:, 9:15]), -2)
+def _reset_covariance(cov: torch.Tensor, dtheta: torch.Tensor) -> torch.Tensor:
+    """``G P G^T`` with the reset Jacobian ``G = I`` except ``I - 1/2 [dtheta]x`` on the
+    attitude block, applied to the affected rows and columns only. (B, 15, 15)."""
+    block = so3.identity(dtheta.dtype, dtheta.device) - 0.5 * so3.hat(dtheta)
+    rows = block @ cov[:, 6:9, :]
+    cov = torch.cat((cov[:, 0:6], rows, cov[:, 9:15]), -2)
+    cols = cov[:, :, 6:9] @ block.mT
+    return torch.cat((cov[:, :, 0:6], cols, cov[:, :, 9:15]), -1)
+
+
+def _segment_matrix(dims: list[int], dtype, device) -> torch.Tensor:
+    """(M, K) 0/1 matrix mapping stacked measurement rows to their block."""
+    seg = torch.zeros(sum(dims), len(dims), dtype=dtype, device=device)
+    offset = 0
+    for k, d in enumerate(dims):
+        seg[offset : offset + d, k] = 1.0
+        offset += d
+    return seg
 
 
 def run_eskf(
@@ -250,10 +266,14 @@ def run_eskf(
     Args:
         seq: B sequences (IMU required; wheel, GNSS, poses optional), float64 advised.
         cfg: settings; defaults to :class:`EskfConfig()`.
-        noise: noise tensors (learnable); defaults to ``EskfNoise.from_config(cfg)``.
+        noise: noise tensors (learnable, shape () or (B,)); defaults to
+            ``EskfNoise.from_config(cfg)``.
         progress: optional callback called with the number of epochs done (progress bars).
     Returns:
         :class:`EskfResult` with (B, E + 1) per-epoch fields.
+    Raises:
+        FloatingPointError: an innovation covariance lost positive definiteness (the
+            sequence and epoch are named).
 
     Example:
         >>> from msf_torch.sim import SimConfig, simulate_run
@@ -268,19 +288,7 @@ def run_eskf(
     sched = build_schedule(seq, cfg)
     state, cov = initial_state(seq, cfg)
     pre = _preintegrate_chunked(sched, state.gyro_bias, state.accel_bias)
-    pre_cov = pre.covariance(
-        ImuNoise(
-            *(
-                x[..., None] if x.dim() == 1 else x
-                for x in (
-                    noise.imu.gyro_noise_density,
-                    noise.imu.accel_noise_density,
-                    noise.imu.gyro_bias_rw_density,
-                    noise.imu.accel_bias_rw_density,
-                )
-            )
-        )
-    )
+    phi_loc, q_loc = _local_transition(pre, noise)
     gravity = gravity_world(cfg.gravity_mps2, dtype, device)
     batch, n_epochs = sched.t_end.shape
     present = {
@@ -297,40 +305,66 @@ def run_eskf(
     thresholds = {k: chi2_threshold(dims[k], cfg.gate_probability) for k in SENSORS}
     if not cfg.gate_pseudo_measurements:
         thresholds["nhc"] = thresholds["zupt"] = math.inf
-    wheel_lever = torch.as_tensor(cfg.wheel_lever_arm_m, dtype=dtype, device=device)
-    nhc_lever = torch.as_tensor(cfg.nhc_lever_arm_m, dtype=dtype, device=device)
-    gnss_lever = torch.as_tensor(cfg.gnss_lever_arm_m, dtype=dtype, device=device)
-    ones = torch.ones(batch, dtype=dtype, device=device)
+    blocks = [dims[k] for k in active]
+    n_rows = sum(blocks)
+    segment = _segment_matrix(blocks, dtype, device)  # (M, K)
+    block_mask = segment @ segment.mT  # (M, M) 1 inside diagonal blocks
+    threshold = torch.tensor(
+        [thresholds[k] if math.isfinite(thresholds[k]) else 1e300 for k in active],
+        dtype=dtype,
+        device=device,
+    )
+    reopen = torch.tensor([k in ("gnss", "pose") for k in active], device=device)
+    present_all = torch.stack([present[k] for k in active], -1) if active else None
 
     def per_seq(x: torch.Tensor) -> torch.Tensor:
         return x.expand(batch) if x.dim() == 0 else x
 
-    slip = ones.clone()
-    streak = {k: torch.zeros(batch, dtype=torch.long, device=device) for k in ("gnss", "pose")}
-    last_wheel_t = sched.t_start.clone()
-    out = {k: [] for k in ("p", "v", "R", "bg", "ba", "P", "slip")}
-    acc_out = {k: [] for k in SENSORS}
-    nis_out = {k: [] for k in SENSORS}
+    wheel_lever = torch.as_tensor(cfg.wheel_lever_arm_m, dtype=dtype, device=device)
+    nhc_lever = torch.as_tensor(cfg.nhc_lever_arm_m, dtype=dtype, device=device)
+    gnss_lever = torch.as_tensor(cfg.gnss_lever_arm_m, dtype=dtype, device=device)
+    wheel_var = torch.stack(
+        (
+            per_seq(noise.wheel_speed_sigma) ** 2,
+            per_seq(noise.wheel_lateral_sigma) ** 2,
+            per_seq(noise.wheel_lateral_sigma) ** 2,
+            per_seq(noise.wheel_yaw_rate_sigma) ** 2,
+        ),
+        -1,
+    )
+    nhc_var = (per_seq(noise.nhc_sigma) ** 2)[:, None].expand(batch, 2)
+    zupt_var = (per_seq(noise.zupt_sigma) ** 2)[:, None].expand(batch, 3)
+    gnss_var = (sched.gnss_sigma * per_seq(noise.gnss_sigma_scale)[:, None, None]) ** 2
+    eye15 = torch.eye(ERROR_STATE_DIM, dtype=dtype, device=device)
+    frame_base = eye15.expand(batch, 15, 15)
+    zeros_b = torch.zeros(batch, dtype=dtype, device=device)
+    false_b = torch.zeros(batch, dtype=torch.bool, device=device)
 
-    def record(st: NavState, p_cov, slip_now):
+    slip = torch.ones(batch, dtype=dtype, device=device)
+    last_wheel_t = sched.t_start.clone()
+    streak = torch.zeros(batch, len(active), dtype=dtype, device=device)
+    chol_failed = torch.zeros(batch, dtype=torch.bool, device=device)
+    first_failure = torch.full((batch,), -1, dtype=torch.long, device=device)
+    out: dict[str, list[torch.Tensor]] = {k: [] for k in ("p", "v", "R", "bg", "ba", "P", "s")}
+    accepted_out: list[torch.Tensor] = []
+    nis_out: list[torch.Tensor] = []
+
+    def record(st: NavState, p_cov: torch.Tensor, slip_now: torch.Tensor) -> None:
         out["p"].append(st.position)
         out["v"].append(st.velocity)
         out["R"].append(st.rotation)
         out["bg"].append(st.gyro_bias)
         out["ba"].append(st.accel_bias)
         out["P"].append(p_cov)
-        out["slip"].append(slip_now)
+        out["s"].append(slip_now)
 
-    zeros_b = torch.zeros(batch, dtype=dtype, device=device)
-    false_b = torch.zeros(batch, dtype=torch.bool, device=device)
     record(state, cov, slip)
-    for k in SENSORS:
-        acc_out[k].append(false_b)
-        nis_out[k].append(zeros_b)
+    no_blocks = torch.zeros(batch, len(active), dtype=dtype, device=device)
+    accepted_out.append(no_blocks.bool())
+    nis_out.append(no_blocks)
 
     for e in range(n_epochs):
-        # --- propagation -------------------------------------------------------------
-        jac = pre.bias_jacobian[:, e]
+        # --- propagation: nominal with bias-corrected increments, P in the i-frame -------
         dbias = torch.cat(
             (
                 state.gyro_bias - pre.gyro_bias_lin[:, e],
@@ -338,163 +372,157 @@ def run_eskf(
             ),
             -1,
         )
-        corr = (jac @ dbias[..., None]).squeeze(-1)
+        corr = (pre.bias_jacobian[:, e] @ dbias[..., None]).squeeze(-1)
         d_rot = pre.delta_rotation[:, e] @ so3.exp(corr[:, 6:9])
-        d_vel = pre.delta_velocity[:, e] + corr[:, 3:6]
-        d_pos = pre.delta_position[:, e] + corr[:, 0:3]
-        delta_t = pre.delta_t[:, e]
-        phi = _transition(state.rotation, d_rot, d_vel, d_pos, delta_t, jac)
-        q = _process_noise(state.rotation, pre_cov[:, e], delta_t, noise)
         position, velocity, rotation = propagate_nominal(
-            state.position, state.velocity, state.rotation, delta_t, d_rot, d_vel, d_pos, gravity
+            state.position,
+            state.velocity,
+            state.rotation,
+            pre.delta_t[:, e],
+            d_rot,
+            pre.delta_velocity[:, e] + corr[:, 3:6],
+            pre.delta_position[:, e] + corr[:, 0:3],
+            gravity,
         )
+        frame = frame_base.clone()
+        frame[:, 0:3, 0:3] = state.rotation
+        frame[:, 3:6, 3:6] = state.rotation
+        phi = phi_loc[:, e]
+        cov_loc = phi @ (frame.mT @ cov @ frame) @ phi.mT + q_loc[:, e]
+        cov = frame @ cov_loc @ frame.mT
         state = NavState(position, velocity, rotation, state.gyro_bias, state.accel_bias)
-        cov = phi @ cov @ phi.mT + q
 
-        # --- measurement blocks ------------------------------------------------------
-        residuals, jacobians, noises, masks, names = [], [], [], [], []
-        gyro_end = sched.gyro_end[:, e]
-        if "wheel" in active:
-            r, h = wheel_residual(
-                state.velocity,
-                state.rotation,
-                gyro_end,
-                state.gyro_bias,
-                sched.wheel_left[:, e],
-                sched.wheel_right[:, e],
-                cfg.wheel_track_m,
-                wheel_lever,
-            )
-            var = torch.stack(
-                (
-                    per_seq(noise.wheel_speed_sigma) ** 2,
-                    per_seq(noise.wheel_lateral_sigma) ** 2,
-                    per_seq(noise.wheel_lateral_sigma) ** 2,
-                    per_seq(noise.wheel_yaw_rate_sigma) ** 2,
-                ),
-                -1,
-            )
-            here = sched.wheel_mask[:, e]
-            if cfg.slip_detection:
-                innov = torch.diagonal(h @ cov @ h.mT, dim1=-2, dim2=-1) + var
-                new_slip = slip_factor(
-                    r,
-                    innov,
-                    slip,
-                    sched.t_end[:, e] - last_wheel_t,
-                    cfg.slip_sensitivity,
-                    cfg.slip_recovery_per_s,
-                )
-                slip = torch.where(here, new_slip, slip)
-                var = var / slip[:, None].clamp_min(1e-3) ** 2
-                here = here & (slip >= cfg.slip_skip_below)
-            last_wheel_t = torch.where(sched.wheel_mask[:, e], sched.t_end[:, e], last_wheel_t)
-            rows_used = dims["wheel"]
-            r, h, var = r[:, :rows_used], h[:, :rows_used], var[:, :rows_used]
-            residuals.append(r)
-            jacobians.append(h)
-            noises.append(var)
-            masks.append(here)
-            names.append("wheel")
-        if "nhc" in active:
-            r, h = nonholonomic_residual(
-                state.velocity, state.rotation, gyro_end, state.gyro_bias, nhc_lever
-            )
-            residuals.append(r)
-            jacobians.append(h)
-            noises.append((per_seq(noise.nhc_sigma) ** 2)[:, None].expand(batch, 2))
-            masks.append(sched.nhc_mask[:, e])
-            names.append("nhc")
-        if "zupt" in active:
-            r, h = zero_velocity_residual(state.velocity)
-            residuals.append(r)
-            jacobians.append(h)
-            noises.append((per_seq(noise.zupt_sigma) ** 2)[:, None].expand(batch, 3))
-            masks.append(sched.zupt_mask[:, e])
-            names.append("zupt")
-        if "gnss" in active:
-            r, h = gnss_residual(
-                state.position, state.rotation, gnss_lever, sched.gnss_position[:, e]
-            )
-            sig = sched.gnss_sigma[:, e] * per_seq(noise.gnss_sigma_scale)[:, None]
-            residuals.append(r)
-            jacobians.append(h)
-            noises.append(sig**2)
-            masks.append(sched.gnss_mask[:, e])
-            names.append("gnss")
-        pose_block = None
-        if "pose" in active:
-            r, h = pose_residual(
-                state.position, state.rotation, sched.pose_position[:, e], sched.pose_rotation[:, e]
-            )
-            residuals.append(r)
-            jacobians.append(h)
-            noises.append(torch.zeros(batch, 6, dtype=dtype, device=device))
-            pose_block = sched.pose_covariance[:, e]
-            masks.append(sched.pose_mask[:, e])
-            names.append("pose")
-
-        candidate = torch.stack(masks, -1) if masks else None
-        if candidate is None or not bool(candidate.any()):
-            for k in SENSORS:
-                acc_out[k].append(false_b)
-                nis_out[k].append(zeros_b)
+        if present_all is None or not bool(present_all[:, e].any()):
+            accepted_out.append(no_blocks.bool())
+            nis_out.append(no_blocks)
             record(state, cov, slip)
             if progress is not None:
                 progress(e + 1)
             continue
+
+        # --- measurement blocks (residuals from sensors/, stacked) ---------------------
+        residuals, jacobians, variances = [], [], []
+        pose_cov = None
+        gyro_end = sched.gyro_end[:, e]
+        for name in active:
+            if name == "wheel":
+                r, h = wheel_residual(
+                    state.velocity,
+                    state.rotation,
+                    gyro_end,
+                    state.gyro_bias,
+                    sched.wheel_left[:, e],
+                    sched.wheel_right[:, e],
+                    cfg.wheel_track_m,
+                    wheel_lever,
+                )
+                var = wheel_var
+                here = sched.wheel_mask[:, e]
+                if cfg.slip_detection:
+                    innov = torch.diagonal(h @ cov @ h.mT, dim1=-2, dim2=-1) + var
+                    new_slip = slip_factor(
+                        r,
+                        innov,
+                        slip,
+                        sched.t_end[:, e] - last_wheel_t,
+                        cfg.slip_sensitivity,
+                        cfg.slip_recovery_per_s,
+                    )
+                    slip = torch.where(here, new_slip, slip)
+                    var = var / slip[:, None].clamp_min(1e-3) ** 2
+                last_wheel_t = torch.where(here, sched.t_end[:, e], last_wheel_t)
+                rows_used = dims["wheel"]
+                r, h, var = r[:, :rows_used], h[:, :rows_used], var[:, :rows_used]
+            elif name == "nhc":
+                r, h = nonholonomic_residual(
+                    state.velocity, state.rotation, gyro_end, state.gyro_bias, nhc_lever
+                )
+                var = nhc_var
+            elif name == "zupt":
+                r, h = zero_velocity_residual(state.velocity)
+                var = zupt_var
+            elif name == "gnss":
+                r, h = gnss_residual(
+                    state.position, state.rotation, gnss_lever, sched.gnss_position[:, e]
+                )
+                var = gnss_var[:, e]
+            else:
+                r, h = pose_residual(
+                    state.position,
+                    state.rotation,
+                    sched.pose_position[:, e],
+                    sched.pose_rotation[:, e],
+                )
+                var = zeros_b[:, None].expand(batch, 6)
+                pose_cov = sched.pose_covariance[:, e]
+            residuals.append(r)
+            jacobians.append(h)
+            variances.append(var)
         r_all = torch.cat(residuals, -1)
         h_all = torch.cat(jacobians, -2)
-        r_cov = torch.diag_embed(torch.cat(noises, -1))
-        if pose_block is not None:
+        r_cov = torch.diag_embed(torch.cat(variances, -1))
+        if pose_cov is not None:
             r_cov = r_cov.clone()
-            r_cov[:, -6:, -6:] = pose_block
+            r_cov[:, -6:, -6:] = pose_cov
         s_all = h_all @ cov @ h_all.mT + r_cov
-        row_masks, offset = [], 0
-        accepted_now = {}
-        nis_now = {}
-        for name, m in zip(names, masks, strict=True):
-            d = dims[name]
-            blk = slice(offset, offset + d)
-            s_blk = s_all[:, blk, blk]
-            s_safe = torch.where(m[:, None, None], s_blk, torch.eye(d, dtype=dtype, device=device))
-            chol = torch.linalg.cholesky(s_safe)
-            white = torch.linalg.solve_triangular(chol, r_all[:, blk, None], upper=False)
-            nis = torch.where(m, (white**2).sum((-2, -1)), zeros_b)
-            ok = m & (nis < thresholds[name]) if math.isfinite(thresholds[name]) else m
-            if name in streak:
-                # an absolute sensor rejected again and again means the state has drifted
-                # away, not that every fix is bad: let it back in rather than diverge
-                ok = ok | (m & (streak[name] >= cfg.gate_reopen_after))
-                streak[name] = torch.where(m, torch.where(ok, 0, streak[name] + 1), streak[name])
-            accepted_now[name] = ok
-            nis_now[name] = nis
-            row_masks.append(ok[:, None].expand(batch, d))
-            offset += d
-        rows = torch.cat(row_masks, -1).to(dtype)
+
+        # --- gating: NIS of every block at once through the block-diagonal part of S ----
+        here = present_all[:, e]
+        here_rows = (here.to(dtype) @ segment.mT)[..., None]
+        s_blocks = s_all * block_mask + (1.0 - here_rows) * eye15[:n_rows, :n_rows]
+        chol_b, info_b = torch.linalg.cholesky_ex(s_blocks)
+        white = torch.linalg.solve_triangular(chol_b, r_all[..., None], upper=False)
+        nis = ((white[..., 0] ** 2) @ segment) * here
+        ok = here & (nis < threshold)
+        ok = ok | (here & reopen & (streak >= cfg.gate_reopen_after))
+        if "wheel" in active and cfg.slip_detection:
+            wheel_col = active.index("wheel")
+            ok[:, wheel_col] = ok[:, wheel_col] & (slip >= cfg.slip_skip_below)
+        streak = torch.where(here, torch.where(ok, 0.0, streak + 1.0), streak)
+
+        # --- joint update over the accepted rows (Joseph form) ------------------------
+        rows = ok.to(dtype) @ segment.mT  # (B, M)
+        rows_outer = rows[:, :, None] * rows[:, None, :]
         h_m = h_all * rows[..., None]
-        r_m = r_all * rows
-        s_m = s_all * (rows[:, :, None] * rows[:, None, :]) + torch.diag_embed(1.0 - rows)
-        chol = torch.linalg.cholesky(s_m)
+        s_m = s_all * rows_outer + torch.diag_embed(1.0 - rows)
+        chol, info = torch.linalg.cholesky_ex(s_m)
+        failed = (info != 0) | (info_b != 0)
+        first_failure = torch.where(failed & ~chol_failed, e, first_failure)
+        chol_failed = chol_failed | failed
         gain = torch.cholesky_solve(h_m @ cov, chol).mT  # (B, 15, M)
-        dx = -(gain @ r_m[..., None]).squeeze(-1)
-        ikh = torch.eye(ERROR_STATE_DIM, dtype=dtype, device=device) - gain @ h_m
-        r_cov_m = r_cov * (rows[:, :, None] * rows[:, None, :])
-        cov = ikh @ cov @ ikh.mT + gain @ r_cov_m @ gain.mT
+        dx = -(gain @ (r_all * rows)[..., None]).squeeze(-1)
+        ikh = eye15 - gain @ h_m
+        cov = ikh @ cov @ ikh.mT + gain @ (r_cov * rows_outer) @ gain.mT
         state = _inject(state, dx)
-        reset = _reset_jacobian(dx[:, 6:9])
-        cov = reset @ cov @ reset.mT
+        cov = _reset_covariance(cov, dx[:, 6:9])
         cov = 0.5 * (cov + cov.mT)
-        for k in SENSORS:
-            acc_out[k].append(accepted_now.get(k, false_b))
-            nis_out[k].append(nis_now.get(k, zeros_b))
+        accepted_out.append(ok)
+        nis_out.append(nis)
         record(state, cov, slip)
         if progress is not None:
             progress(e + 1)
 
+    if bool(chol_failed.any()):
+        b = int(torch.nonzero(chol_failed)[0])
+        raise FloatingPointError(
+            f"sequence '{seq.names[b]}': innovation covariance not positive definite at "
+            f"epoch {int(first_failure[b])} (t = {float(sched.t_end[b, first_failure[b]]):.6f} s)"
+        )
     mask = torch.cat((torch.ones(batch, 1, dtype=torch.bool, device=device), sched.epoch_mask), 1)
     t = torch.cat((sched.t_start[:, None], sched.t_end), 1)
+    accepted_all = torch.stack(accepted_out, 1)  # (B, E + 1, K)
+    nis_all = torch.stack(nis_out, 1)
     present_out = {k: torch.cat((false_b[:, None], present[k]), 1) for k in SENSORS}
+    accepted = {}
+    nis = {}
+    for k in SENSORS:
+        if k in active:
+            col = active.index(k)
+            accepted[k] = accepted_all[..., col]
+            nis[k] = nis_all[..., col]
+        else:
+            accepted[k] = torch.zeros_like(present_out[k])
+            nis[k] = torch.zeros(batch, n_epochs + 1, dtype=dtype, device=device)
     gap = torch.cat((false_b[:, None], sched.gap), 1)
     return EskfResult(
         names=list(seq.names),
@@ -506,10 +534,10 @@ def run_eskf(
         gyro_bias=torch.stack(out["bg"], 1),
         accel_bias=torch.stack(out["ba"], 1),
         covariance=torch.stack(out["P"], 1),
-        slip_factor=torch.stack(out["slip"], 1),
+        slip_factor=torch.stack(out["s"], 1),
         present=present_out,
-        accepted={k: torch.stack(v, 1) for k, v in acc_out.items()},
-        nis={k: torch.stack(v, 1) for k, v in nis_out.items()},
+        accepted=accepted,
+        nis=nis,
         gap=gap,
         wheel_epoch=present_out["wheel"],
     )

@@ -43,7 +43,9 @@ class Schedule:
             gnss_mask (B, E).
         pose_position (B, E, 3), pose_rotation (B, E, 3, 3), pose_covariance (B, E, 6, 6),
             pose_mask (B, E).
-        nhc_mask, zupt_mask: (B, E) bool pseudo-measurements.
+        nhc_mask, zupt_mask: (B, E) bool pseudo-measurements. With the NHC on, every epoch
+            carries it, and epochs are added where updates are further apart than
+            ``1 / nhc_rate_hz``.
         imu_index_end: (B, E) index of the IMU sample held at each epoch end.
     """
 
@@ -83,6 +85,16 @@ def _merge_times(times: np.ndarray, tol: float) -> np.ndarray:
     times = np.sort(times)
     keep = np.concatenate(([True], np.diff(times) > tol))
     return times[keep]
+
+
+def _fill_gaps(times: np.ndarray, max_step: float) -> np.ndarray:
+    """Insert evenly spaced times wherever consecutive ``times`` are over ``max_step`` apart."""
+    gaps = np.diff(times)
+    pieces = np.maximum(np.ceil(gaps / max_step - 1e-9).astype(np.int64), 1)
+    starts = np.repeat(times[:-1], pieces)
+    frac = np.arange(pieces.sum()) - np.repeat(np.cumsum(pieces) - pieces, pieces) + 1
+    filled = starts + np.repeat(gaps / pieces, pieces) * frac
+    return np.concatenate((times[:1], filled))
 
 
 def _match(times: np.ndarray, targets: np.ndarray, tol: float) -> np.ndarray:
@@ -159,11 +171,9 @@ def build_schedule(seq: Sequence, cfg: EskfConfig) -> Schedule:
         gnss_t, gnss_src = stream_times(seq.gnss)
         pose_t, pose_src = stream_times(seq.poses)
         use_nhc = cfg.nhc == "on" or (cfg.nhc == "auto" and wheel_t.size == 0)
-        pseudo_t = np.zeros(0)
-        if use_nhc or (cfg.zupt and wheel_t.size == 0):
-            step = 1.0 / cfg.nhc_rate_hz
-            pseudo_t = t0 + step * np.arange(1, int(np.floor((t_last - t0) / step)) + 1)
-        updates = _merge_times(np.concatenate((wheel_t, gnss_t, pose_t, pseudo_t, [t_last])), tol)
+        updates = _merge_times(np.concatenate((wheel_t, gnss_t, pose_t, [t_last])), tol)
+        if use_nhc or (cfg.zupt_imu_detector and wheel_t.size == 0):
+            updates = _fill_gaps(np.concatenate(([t0], updates)), 1.0 / cfg.nhc_rate_hz)[1:]
         bounds = _merge_times(np.concatenate((imu_t, updates)), tol)
         piece_start = bounds[:-1]
         piece_dt = np.diff(bounds)
@@ -179,7 +189,7 @@ def build_schedule(seq: Sequence, cfg: EskfConfig) -> Schedule:
         wheel_idx = _match(wheel_t, updates, tol)
         gnss_idx = _match(gnss_t, updates, tol)
         pose_idx = _match(pose_t, updates, tol)
-        pseudo = _match(pseudo_t, updates, tol) >= 0
+        pseudo = np.ones(updates.size, dtype=bool)  # pseudo-measurements at every epoch
         zupt = np.zeros(updates.size, dtype=bool)
         if cfg.zupt:
             still_imu = _stationary_imu(imu_t, gyro, accel, updates, cfg)
@@ -194,7 +204,7 @@ def build_schedule(seq: Sequence, cfg: EskfConfig) -> Schedule:
                 zupt = still_wheel & (
                     np.linalg.norm(gyro[end_sample], axis=1) < cfg.zupt_gyro_radps
                 )
-            else:
+            elif cfg.zupt_imu_detector:
                 zupt = pseudo & still_imu
         per_seq.append(
             dict(

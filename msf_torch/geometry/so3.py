@@ -12,6 +12,7 @@ eq. 7.86 are Barfoot's ``J`` and ``N``); Forster et al., "On-Manifold Preintegra
 from __future__ import annotations
 
 __all__ = [
+    "identity",
     "hat",
     "vee",
     "exp",
@@ -23,24 +24,35 @@ __all__ = [
     "project",
 ]
 
+import functools
+
 import torch
 
 _SMALL_ANGLE = 1e-4
 
 
+@functools.lru_cache(maxsize=16)
+def _hat_generators(dtype: torch.dtype, device: torch.device) -> torch.Tensor:
+    """(3, 9) matrix G with ``hat(phi).reshape(9) = phi @ G``."""
+    gen = torch.zeros(3, 3, 3, dtype=dtype, device=device)
+    gen[0, 2, 1], gen[0, 1, 2] = 1.0, -1.0
+    gen[1, 0, 2], gen[1, 2, 0] = 1.0, -1.0
+    gen[2, 1, 0], gen[2, 0, 1] = 1.0, -1.0
+    return gen.reshape(3, 9)
+
+
+@functools.lru_cache(maxsize=16)
+def identity(dtype: torch.dtype, device: torch.device, size: int = 3) -> torch.Tensor:
+    """A cached identity matrix (size, size); read-only by convention (never modify it)."""
+    return torch.eye(size, dtype=dtype, device=device)
+
+
 def hat(phi: torch.Tensor) -> torch.Tensor:
     """Skew-symmetric matrix ``[phi]x`` so that ``hat(a) @ b == cross(a, b)``.
 
-    Shape: (..., 3) -> (..., 3, 3).
+    Shape: (..., 3) -> (..., 3, 3). One product with a constant generator tensor.
     """
-    x, y, z = phi.unbind(-1)
-    zero = torch.zeros_like(x)
-    rows = (
-        torch.stack((zero, -z, y), -1),
-        torch.stack((z, zero, -x), -1),
-        torch.stack((-y, x, zero), -1),
-    )
-    return torch.stack(rows, -2)
+    return (phi @ _hat_generators(phi.dtype, phi.device)).unflatten(-1, (3, 3))
 
 
 def vee(skew: torch.Tensor) -> torch.Tensor:
@@ -59,6 +71,8 @@ def _angle_terms(phi: torch.Tensor):
 def exp(phi: torch.Tensor) -> torch.Tensor:
     """Rotation matrix ``Exp(phi) = I + a [phi]x + b [phi]x^2`` (Rodrigues).
 
+    ``[phi]x^2 = phi phi^T - theta^2 I`` is formed without a matrix product.
+
     Args:
         phi: rotation vector (..., 3), rad.
     Returns:
@@ -67,9 +81,9 @@ def exp(phi: torch.Tensor) -> torch.Tensor:
     theta2, small, t2, t = _angle_terms(phi)
     a = torch.where(small, 1.0 - theta2 / 6.0 + theta2**2 / 120.0, torch.sin(t) / t)
     b = torch.where(small, 0.5 - theta2 / 24.0 + theta2**2 / 720.0, (1.0 - torch.cos(t)) / t2)
-    skew = hat(phi)
-    eye = torch.eye(3, dtype=phi.dtype, device=phi.device)
-    return eye + a * skew + b * (skew @ skew)
+    eye = identity(phi.dtype, phi.device)
+    outer = phi[..., :, None] * phi[..., None, :]
+    return (1.0 - b * theta2) * eye + a * hat(phi) + b * outer
 
 
 def gamma1(phi: torch.Tensor) -> torch.Tensor:

@@ -28,7 +28,7 @@ def gnss_residual(
     """
     arm_world = (rotation @ lever_arm[..., None]).squeeze(-1)
     residual = position + arm_world - measured
-    eye = torch.eye(3, dtype=position.dtype, device=position.device)
+    eye = so3.identity(position.dtype, position.device)
     lead = residual.shape[:-1]
     jac = error_state_jacobian(
         3,

@@ -29,7 +29,7 @@ def pose_residual(
     """
     r_theta = so3.log(measured_rotation.mT @ rotation)
     residual = torch.cat((position - measured_position, r_theta), -1)
-    eye = torch.eye(3, dtype=position.dtype, device=position.device)
+    eye = so3.identity(position.dtype, position.device)
     lead = residual.shape[:-1]
     jr_inv = torch.linalg.inv(so3.right_jacobian(r_theta))
     top = error_state_jacobian(3, [(IDX_P, eye.expand(*lead, 3, 3))], like=position)

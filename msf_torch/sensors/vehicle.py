@@ -14,6 +14,7 @@ __all__ = ["nonholonomic_residual", "zero_velocity_residual"]
 
 import torch
 
+from msf_torch.geometry import so3
 from msf_torch.geometry.conventions import IDX_V
 from msf_torch.sensors._jacobian import error_state_jacobian
 from msf_torch.sensors.wheel import body_velocity_residual
@@ -37,6 +38,6 @@ def nonholonomic_residual(
 
 def zero_velocity_residual(velocity: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """``r = v`` (..., 3) m/s with Jacobian (..., 3, 15) (identity at dv)."""
-    eye = torch.eye(3, dtype=velocity.dtype, device=velocity.device)
+    eye = so3.identity(velocity.dtype, velocity.device)
     jac = error_state_jacobian(3, [(IDX_V, eye.expand(*velocity.shape[:-1], 3, 3))], like=velocity)
     return velocity, jac

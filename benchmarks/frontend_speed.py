@@ -1,0 +1,293 @@
+"""Front-end speed on the real KITTI drive: our ESKF vs GTSAM's ISAM2 and a filterpy ESKF.
+
+What it measures
+    Input: the KITTI IMU + GPS drive that the ``gtsam`` wheel ships (471 s, 46,968 IMU
+    samples at ~100 Hz, 470 GPS fixes at 1 Hz), full GNSS, loaded once as a ``Sequence``.
+
+    * ours, single: wall time from the loaded ``Sequence`` to a finished trajectory,
+      ``run_eskf(seq, cfg).trajectory()`` under ``torch.no_grad()`` with torch's default
+      thread count; config ``msf_torch/configs/kitti-gtsam.yaml`` plus the dataset's IMU
+      noise. Realtime factor = drive duration / wall; IMU samples per second.
+    * ours, batched: B = 32 copies of the drive in one ``batch_sequences`` batch. Copy 0 is
+      the drive itself; copies 1..31 get their own GNSS noise realisation (N(0, sigma^2)
+      per axis, seeded) and a time shift of all streams, so they are 32 distinct full-length
+      sequences. Aggregate IMU samples per second vs the single run (target: >= 10x).
+      Copy 0 of the batch is checked against the single run (``batch_copy0_max_diff_m``).
+    * peer 1 (the ratio's peer): GTSAM CombinedImuFactor + GPSFactor under ISAM2
+      (``benchmarks/peers/gtsam_kitti.py``) on the same arrays; wall time of the call
+      (graph building, ISAM2 updates, estimate extraction). Target: ours below GTSAM's.
+    * peer 2: a per-IMU-sample ESKF of the same model on ``filterpy.kalman.KalmanFilter``
+      (``benchmarks/peers/filterpy_eskf.py``), timed from the same ``Sequence`` (its initial
+      state comes from ours), over the whole drive or a prefix (``--filterpy-prefix-s``).
+
+    Timings are medians over ``--repeats`` (after ``--warmup`` untimed runs of ours); peak
+    resident memory (VmHWM, reset before each part) is reported for each part. Accuracy:
+    position RMSE against the GPS fixes (which every estimator also fuses, so this is a
+    consistency figure, not ground truth), on the fixes from GTSAM's first causal state on;
+    GTSAM's smoothed RMSE for reference.
+
+    ``ratio`` = ours_wall / gtsam_wall (below 1 means ours is faster).
+
+How to run
+    .venv/bin/python benchmarks/frontend_speed.py             # ~1-3 min on a laptop CPU
+    .venv/bin/python benchmarks/frontend_speed.py --quick     # 1 repeat, B = 8
+
+    Progress goes to stderr; the last line on stdout is one JSON object.
+
+Options
+    --repeats N            timed repeats of each part (median; default 3)
+    --warmup N             untimed runs of ours before timing (default 1)
+    --batch N              batch size of the batched run (default 32)
+    --batch-repeats N      timed repeats of the batched run (default: --repeats; no warm-up,
+                           a B = 32 run is long enough that first-call costs do not matter)
+    --gnss-noise-m S       GNSS noise sigma added to copies 1..B-1, m (default 0.2)
+    --time-shift-s S       time shift of copy k is k * S, s (default 1e-3)
+    --filterpy-prefix-s S  run the filterpy peer on the first S seconds only (0 = all; default)
+    --quick                1 repeat, no warm-up, B = 8 (the 10x target is still judged)
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import sys
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+
+import numpy as np  # noqa: E402
+import torch  # noqa: E402
+
+from benchmarks._common import (  # noqa: E402
+    PeakRss,
+    emit_json,
+    kitti_config,
+    log,
+    machine_info,
+    peer_arrays,
+    time_repeats,
+    trajectory_from,
+)
+from benchmarks.peers.filterpy_eskf import inputs_from_sequence, run_filterpy_eskf  # noqa: E402
+from benchmarks.peers.gtsam_kitti import run_gtsam_kitti  # noqa: E402
+from msf_torch.eval.outage import outage_metrics  # noqa: E402
+from msf_torch.frontend.eskf import run_eskf  # noqa: E402
+from msf_torch.io import load_sequence  # noqa: E402
+from msf_torch.types import GnssFixes, Sequence, batch_sequences  # noqa: E402
+
+
+def variant(seq: Sequence, k: int, noise_m: float, shift_s: float) -> Sequence:
+    """Copy ``k`` of the drive: GNSS noise realisation ``k`` and all times shifted by k*shift."""
+    if k == 0:
+        return seq
+    gen = torch.Generator().manual_seed(1000 + k)
+    shift = k * shift_s
+    gnss = seq.gnss
+    noise = noise_m * torch.randn(gnss.position.shape, generator=gen, dtype=gnss.position.dtype)
+    gnss = dataclasses.replace(gnss, t=gnss.t + shift, position=gnss.position + noise)
+    imu = dataclasses.replace(seq.imu, t=seq.imu.t + shift)
+    return dataclasses.replace(seq, imu=imu, gnss=gnss, names=[f"{seq.names[0]}#{k}"])
+
+
+def rmse_at(traj, fixes: GnssFixes) -> float:
+    """Position RMSE of a trajectory against fixes (interpolated at the fix times)."""
+    return float(outage_metrics(traj, fixes)["outage_rmse_m"])
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--warmup", type=int, default=1)
+    parser.add_argument("--batch", type=int, default=32)
+    parser.add_argument("--batch-repeats", type=int, default=None, help="default: --repeats")
+    parser.add_argument("--gnss-noise-m", type=float, default=0.2)
+    parser.add_argument("--time-shift-s", type=float, default=1e-3)
+    parser.add_argument("--filterpy-prefix-s", type=float, default=0.0)
+    parser.add_argument("--quick", action="store_true", help="1 repeat, no warm-up, B = 8")
+    args = parser.parse_args(argv)
+    if args.quick:
+        args.repeats, args.warmup, args.batch = 1, 0, min(args.batch, 8)
+    batch_repeats = args.batch_repeats if args.batch_repeats is not None else args.repeats
+    machine = machine_info()  # before our own load shows in the load average
+
+    seq = load_sequence("kitti-gtsam")
+    cfg, explicit = kitti_config(seq)
+    arrays = peer_arrays(seq)
+    n_imu = int(seq.imu.mask.sum())
+    n_fix = int(seq.gnss.mask.sum())
+    duration = float(seq.imu.t[0, -1] - seq.imu.t[0, 0])
+    log(
+        f"kitti-gtsam: {n_imu} IMU samples, {n_fix} fixes, {duration:.1f} s; "
+        f"torch threads {torch.get_num_threads()}"
+    )
+
+    # --- ours, single sequence ------------------------------------------------------------
+    def ours_single():
+        with torch.no_grad():
+            result = run_eskf(seq, cfg)
+            return result, result.trajectory()
+
+    with PeakRss() as mem_ours:
+        ours_wall, ours_times, (ours_res, ours_traj) = time_repeats(
+            ours_single, args.repeats, args.warmup, label="ours B=1"
+        )
+    log(f"ours B=1: {ours_wall:.3f} s median, {n_imu / ours_wall:.0f} samples/s")
+
+    # --- ours, batched ----------------------------------------------------------------------
+    t_batch = time.perf_counter()
+    batch = batch_sequences(
+        [variant(seq, k, args.gnss_noise_m, args.time_shift_s) for k in range(args.batch)]
+    )
+    batch_build_s = time.perf_counter() - t_batch
+    n_batch_imu = int(batch.imu.mask.sum())
+
+    def ours_batch():
+        with torch.no_grad():
+            result = run_eskf(batch, cfg)
+            return result, result.trajectory()
+
+    with PeakRss() as mem_batch:
+        batch_wall, batch_times, (batch_res, _) = time_repeats(
+            ours_batch, batch_repeats, 0, label=f"ours B={args.batch}"
+        )
+    copy0_diff = float(
+        (batch_res.position[0, : ours_res.position.shape[1]] - ours_res.position[0]).abs().max()
+    )
+    del batch_res
+    log(f"ours B={args.batch}: {batch_wall:.3f} s median, {n_batch_imu / batch_wall:.0f} samples/s")
+
+    # --- GTSAM peer -------------------------------------------------------------------------
+    def gtsam_run():
+        return run_gtsam_kitti(**arrays)
+
+    with PeakRss() as mem_gtsam:
+        gtsam_wall, gtsam_times, gtsam_res = time_repeats(gtsam_run, args.repeats, label="gtsam")
+    log(f"gtsam: {gtsam_wall:.3f} s median (its own wall_s {gtsam_res['wall_s']:.3f} s)")
+
+    # --- filterpy peer ------------------------------------------------------------------------
+    prefix = args.filterpy_prefix_s if args.filterpy_prefix_s > 0 else None
+
+    def filterpy_run():
+        return run_filterpy_eskf(**inputs_from_sequence(seq, cfg), t_stop=prefix)
+
+    with PeakRss() as mem_fp:
+        fp_wall, fp_times, fp_res = time_repeats(filterpy_run, args.repeats, label="filterpy")
+    fp_samples = fp_res["imu_samples"]
+    log(f"filterpy: {fp_wall:.3f} s median over {fp_samples} samples")
+
+    # --- accuracy (RMSE vs GPS) on the fixes where GTSAM's estimate is causal ------------------
+    first = gtsam_res["first_gps_index"]
+    causal_idx = np.nonzero(gtsam_res["causal"])[0] + first
+    scored = seq.gnss.map(lambda x: x[:, torch.as_tensor(causal_idx)])
+    fp_traj = trajectory_from(fp_res["t"], fp_res["position"])
+    fp_scored = scored
+    if prefix is not None:
+        inside = scored.t[0] <= fp_res["t"][-1]
+        fp_scored = scored.map(lambda x: x[:, inside])
+    acc = {
+        "scored_fixes": int(causal_idx.size),
+        "ours_rmse_vs_gps_m": rmse_at(ours_traj, scored),
+        "gtsam_filter_rmse_vs_gps_m": rmse_at(
+            trajectory_from(gtsam_res["t"], gtsam_res["filter_position"]), scored
+        ),
+        "gtsam_smoothed_rmse_vs_gps_m": rmse_at(
+            trajectory_from(gtsam_res["t"], gtsam_res["smoothed_position"]), scored
+        ),
+        "filterpy_rmse_vs_gps_m": rmse_at(fp_traj, fp_scored),
+        "filterpy_scored_fixes": int(fp_scored.mask.sum()),
+        "ours_gnss_accepted": int(ours_res.accepted["gnss"].sum()),
+        "ours_gnss_rejected": int((ours_res.present["gnss"] & ~ours_res.accepted["gnss"]).sum()),
+        "filterpy_gnss_accepted": fp_res["gnss_updates"],
+        "filterpy_gnss_rejected": fp_res["gnss_rejected"],
+    }
+
+    single_sps = n_imu / ours_wall
+    batch_sps = n_batch_imu / batch_wall
+    speedup = batch_sps / single_sps
+    ratio = ours_wall / gtsam_wall
+    record = {
+        "benchmark": "frontend_speed",
+        "inputs": {
+            "dataset": "kitti-gtsam (gtsam/Data: KittiEquivBiasedImu + KittiGps_converted)",
+            "imu_samples": n_imu,
+            "gps_fixes": n_fix,
+            "duration_s": duration,
+            "gnss": "full (no outage)",
+            "ours_config": "msf_torch/configs/kitti-gtsam.yaml + dataset IMU noise",
+            "ours_config_explicit_keys": explicit,
+            "repeats": args.repeats,
+            "warmup": args.warmup,
+            "batch": args.batch,
+            "batch_repeats": batch_repeats,
+            "batch_variation": {
+                "gnss_noise_sigma_m": args.gnss_noise_m,
+                "time_shift_per_copy_s": args.time_shift_s,
+            },
+            "filterpy_prefix_s": prefix,
+            "torch_threads": torch.get_num_threads(),
+            "grad": "torch.no_grad()",
+        },
+        "ours": {
+            "wall_s": ours_wall,
+            "wall_s_repeats": ours_times,
+            "realtime_factor": duration / ours_wall,
+            "imu_samples_per_s": single_sps,
+            "memory": mem_ours.as_dict(),
+            "batched": {
+                "batch": args.batch,
+                "wall_s": batch_wall,
+                "wall_s_repeats": batch_times,
+                "imu_samples": n_batch_imu,
+                "imu_samples_per_s": batch_sps,
+                "aggregate_realtime_factor": args.batch * duration / batch_wall,
+                "speedup_vs_single": speedup,
+                "batch_build_s": batch_build_s,
+                "batch_copy0_max_diff_m": copy0_diff,
+                "memory": mem_batch.as_dict(),
+            },
+        },
+        "peer": {
+            "name": "GTSAM CombinedImuFactor + GPSFactor, ISAM2 (benchmarks/peers/gtsam_kitti.py)",
+            "wall_s": gtsam_wall,
+            "wall_s_repeats": gtsam_times,
+            "wall_s_internal_last": gtsam_res["wall_s"],
+            "realtime_factor": duration / gtsam_wall,
+            "imu_samples_per_s": n_imu / gtsam_wall,
+            "memory": mem_gtsam.as_dict(),
+        },
+        "peer_filterpy": {
+            "name": "per-sample ESKF on filterpy.kalman.KalmanFilter "
+            "(benchmarks/peers/filterpy_eskf.py)",
+            "wall_s": fp_wall,
+            "wall_s_repeats": fp_times,
+            "imu_samples": fp_samples,
+            "duration_s": fp_res["duration_s"],
+            "imu_samples_per_s": fp_samples / fp_wall,
+            "realtime_factor": fp_res["duration_s"] / fp_wall,
+            "memory": mem_fp.as_dict(),
+        },
+        "ratio": ratio,
+        "ratios": {
+            "ours_wall_over_gtsam_wall": ratio,
+            "ours_samples_per_s_over_filterpy": single_sps / (fp_samples / fp_wall),
+            "batch_speedup_vs_single": speedup,
+        },
+        "accuracy": acc,
+        "targets": {
+            "ours_below_gtsam": {"target": "ours_wall_s < gtsam_wall_s", "met": ratio < 1.0},
+            "batch_speedup": {
+                "target": f"aggregate samples/s at B={args.batch} >= 10x single",
+                "value": speedup,
+                "met": speedup >= 10.0,
+            },
+        },
+        "target_met": bool(ratio < 1.0 and speedup >= 10.0),
+        "machine": machine,
+    }
+    emit_json(record)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,257 @@
+"""GNSS-outage drift on the real KITTI drive: our ESKF vs GTSAM's ISAM2 pipeline.
+
+What it measures
+    The KITTI IMU + GPS drive that the ``gtsam`` wheel ships (471 s, 46,968 IMU samples,
+    470 GPS fixes at 1 Hz). The GPS fixes of a window are withheld from both estimators and
+    each estimate is scored against the withheld fixes
+    (``msf_torch.eval.outage.outage_metrics``, the same function for both):
+    ``outage_rmse_m``, ``outage_max_error_m``, ``outage_distance_m`` (path length of the
+    withheld fixes) and ``outage_drift_pct`` = max error / distance * 100.
+
+    * ours: ``run_eskf`` with ``msf_torch/configs/kitti-gtsam.yaml`` (IMU noise from the
+      dataset's metadata file for keys that YAML does not set), under ``torch.no_grad()``;
+    * peer: ``benchmarks/peers/gtsam_kitti.py`` (CombinedImuFactor + GPSFactor under ISAM2,
+      a port of GTSAM's IMUKittiExampleGPS), scored with its causal "filter" estimate
+      (newest state right after the ISAM2 update at each GPS time); its smoothed (final
+      ISAM2) estimate is reported for reference.
+
+    Windows (M = number of fixes; a window is the fix-index range [i0, i1)):
+    the main one, the middle 30 % (i0 = int(0.35 M), 0.3 M fixes); 30 % windows starting at
+    10 % and 60 % of the fixes; 60-second windows starting at 10, 25, 40, 55, 70 and 85 %
+    of the fixes. Each window is given to ``split_gnss_outage`` in seconds from the first
+    IMU sample and to the GTSAM peer in absolute time (both +-1 ms around the first and last
+    withheld fix), and the two withheld sets are checked to be the same fixes.
+
+    Target: our drift <= 3 % on every window (``target_met``; the worst window is named).
+
+How to run
+    .venv/bin/python benchmarks/kitti_outage.py            # all windows (~1 min)
+    .venv/bin/python benchmarks/kitti_outage.py --quick    # the main window only
+
+    Per-window lines go to stderr; the last line on stdout is one JSON object.
+
+Options
+    --quick           main window only
+    --repeats N       timed repeats of both estimators on the main window (median; default 1)
+    --target-pct X    drift target for ours, percent (default 3.0)
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+
+import numpy as np  # noqa: E402
+import torch  # noqa: E402
+
+from benchmarks._common import (  # noqa: E402
+    emit_json,
+    kitti_config,
+    log,
+    machine_info,
+    peer_arrays,
+    time_repeats,
+    trajectory_from,
+)
+from benchmarks.peers.gtsam_kitti import run_gtsam_kitti  # noqa: E402
+from msf_torch.eval.outage import outage_metrics, split_gnss_outage  # noqa: E402
+from msf_torch.frontend.config import EskfConfig  # noqa: E402
+from msf_torch.frontend.eskf import run_eskf  # noqa: E402
+from msf_torch.io import load_sequence  # noqa: E402
+from msf_torch.types import Sequence  # noqa: E402
+
+EPS_S = 1e-3  # window margin around the first / last withheld fix (fixes are ~1 s apart)
+
+
+def make_windows(n_fix: int, gps_t: np.ndarray, quick: bool) -> list[dict[str, Any]]:
+    """Fix-index windows [i0, i1) with names."""
+    windows = [{"name": "middle30%", "kind": "30%", "i0": int(0.35 * n_fix)}]
+    windows[0]["i1"] = windows[0]["i0"] + round(0.3 * n_fix)
+    if quick:
+        return windows
+    for frac in (0.10, 0.60):
+        i0 = int(frac * n_fix)
+        windows.append(
+            {"name": f"30%@{frac:.0%}", "kind": "30%", "i0": i0, "i1": i0 + round(0.3 * n_fix)}
+        )
+    for frac in (0.10, 0.25, 0.40, 0.55, 0.70, 0.85):
+        i0 = int(frac * n_fix)
+        i1 = int(np.searchsorted(gps_t, gps_t[i0] + 60.0 + EPS_S, side="right"))
+        windows.append({"name": f"60s@{frac:.0%}", "kind": "60s", "i0": i0, "i1": min(i1, n_fix)})
+    return windows
+
+
+def run_window(
+    seq: Sequence,
+    cfg: EskfConfig,
+    arrays: dict[str, Any],
+    window: dict[str, Any],
+    repeats: int = 1,
+) -> dict[str, Any]:
+    """Both estimators on one outage window; metrics of ours, GTSAM filter and smoothed."""
+    gps_t = arrays["gps_t"]
+    i0, i1 = window["i0"], window["i1"]
+    t_first = float(seq.start_time[0])
+    start_s = float(gps_t[i0]) - t_first - EPS_S
+    end_s = float(gps_t[i1 - 1]) - t_first + EPS_S
+    reduced, withheld = split_gnss_outage(seq, start_s, end_s)
+    n_withheld = int(withheld.mask.sum())
+    if n_withheld != i1 - i0:
+        raise RuntimeError(f"window {window['name']}: withheld {n_withheld}, expected {i1 - i0}")
+
+    def ours():
+        with torch.no_grad():
+            return run_eskf(reduced, cfg).trajectory()
+
+    ours_wall, ours_times, traj = time_repeats(ours, repeats)
+    ours_m = outage_metrics(traj, withheld)
+
+    outage_abs = (float(gps_t[i0]) - EPS_S, float(gps_t[i1 - 1]) + EPS_S)
+
+    def peer():
+        return run_gtsam_kitti(**arrays, outage=outage_abs)
+
+    peer_wall, peer_times, res = time_repeats(peer, repeats)
+    used = res["gps_used"]
+    first = res["first_gps_index"]
+    withheld_peer = np.nonzero(~used)[0] + first
+    if not np.array_equal(withheld_peer, np.arange(i0, i1)):
+        raise RuntimeError(f"window {window['name']}: GTSAM withheld other fixes than ours")
+    filt_m = outage_metrics(trajectory_from(res["t"], res["filter_position"]), withheld)
+    smooth_m = outage_metrics(trajectory_from(res["t"], res["smoothed_position"]), withheld)
+    causal = res["causal"][i0 - first : i1 - first]
+    return {
+        "name": window["name"],
+        "kind": window["kind"],
+        "fix_index": [i0, i1],
+        "start_s": start_s,
+        "end_s": end_s,
+        "fixes_withheld": n_withheld,
+        "ours": {**ours_m, "wall_s": ours_wall, "wall_s_repeats": ours_times},
+        "peer_filter": {**filt_m, "wall_s": peer_wall, "wall_s_repeats": peer_times},
+        "peer_smoothed": smooth_m,
+        "peer_causal_in_window": bool(np.all(causal)),
+    }
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--quick", action="store_true", help="main window only")
+    parser.add_argument("--repeats", type=int, default=1, help="timed repeats (main window)")
+    parser.add_argument("--target-pct", type=float, default=3.0, help="drift target, percent")
+    args = parser.parse_args(argv)
+    machine = machine_info()  # before our own load shows in the load average
+
+    t_load = time.perf_counter()
+    seq = load_sequence("kitti-gtsam")
+    load_s = time.perf_counter() - t_load
+    cfg, explicit = kitti_config(seq)
+    arrays = peer_arrays(seq)
+    n_fix = int(seq.gnss.mask.sum())
+    n_imu = int(seq.imu.mask.sum())
+    duration = float(seq.imu.t[0, -1] - seq.imu.t[0, 0])
+    log(
+        f"kitti-gtsam: {n_imu} IMU samples, {n_fix} GPS fixes, {duration:.1f} s "
+        f"(load {load_s:.2f} s)"
+    )
+
+    windows = make_windows(n_fix, arrays["gps_t"], args.quick)
+    results = []
+    for k, window in enumerate(windows):
+        row = run_window(seq, cfg, arrays, window, repeats=args.repeats if k == 0 else 1)
+        results.append(row)
+        o, f, s = row["ours"], row["peer_filter"], row["peer_smoothed"]
+        log(
+            f"{row['name']:>10} fixes {row['fix_index'][0]}:{row['fix_index'][1]} "
+            f"({row['fixes_withheld']} withheld, {o['outage_duration_s']:.0f} s, "
+            f"{o['outage_distance_m']:.0f} m) | ours drift {o['outage_drift_pct']:.2f}% "
+            f"max {o['outage_max_error_m']:.1f} m rmse {o['outage_rmse_m']:.1f} m | "
+            f"gtsam filter drift {f['outage_drift_pct']:.2f}% max {f['outage_max_error_m']:.1f} m"
+            f" | gtsam smoothed drift {s['outage_drift_pct']:.2f}% | "
+            f"wall ours {o['wall_s']:.2f} s gtsam {f['wall_s']:.2f} s"
+        )
+
+    main_row = results[0]
+    worst_ours = max(results, key=lambda r: r["ours"]["outage_drift_pct"])
+    worst_peer = max(results, key=lambda r: r["peer_filter"]["outage_drift_pct"])
+    target_met = all(r["ours"]["outage_drift_pct"] <= args.target_pct for r in results)
+    failing = [r["name"] for r in results if r["ours"]["outage_drift_pct"] > args.target_pct]
+    keys = ("outage_rmse_m", "outage_max_error_m", "outage_distance_m", "outage_drift_pct")
+
+    def pick(d: dict[str, Any]) -> dict[str, Any]:
+        return {k: d[k] for k in (*keys, "outage_duration_s", "outage_fixes")}
+
+    om, pm = main_row["ours"], main_row["peer_filter"]
+    record = {
+        "benchmark": "kitti_outage",
+        "inputs": {
+            "dataset": "kitti-gtsam (gtsam/Data: KittiEquivBiasedImu + KittiGps_converted)",
+            "imu_samples": n_imu,
+            "gps_fixes": n_fix,
+            "duration_s": duration,
+            "main_window": {
+                "fix_index": main_row["fix_index"],
+                "start_s_from_first_imu": main_row["start_s"],
+                "end_s_from_first_imu": main_row["end_s"],
+            },
+            "windows": [r["name"] for r in results],
+            "ours_config": "msf_torch/configs/kitti-gtsam.yaml + dataset IMU noise",
+            "ours_config_explicit_keys": explicit,
+            "peer": "GTSAM CombinedImuFactor + GPSFactor, ISAM2 (benchmarks/peers/gtsam_kitti.py)",
+            "repeats_main_window": args.repeats,
+            "quick": args.quick,
+        },
+        "ours": {**pick(om), "wall_s": om["wall_s"]},
+        "peer": {
+            "filter": {**pick(pm), "wall_s": pm["wall_s"]},
+            "smoothed_reference": pick(main_row["peer_smoothed"]),
+        },
+        "ratio": {
+            "drift_ours_over_peer_filter": om["outage_drift_pct"] / pm["outage_drift_pct"],
+            "rmse_ours_over_peer_filter": om["outage_rmse_m"] / pm["outage_rmse_m"],
+            "wall_ours_over_peer": om["wall_s"] / pm["wall_s"],
+        },
+        "accuracy": {
+            "ours_drift_pct": om["outage_drift_pct"],
+            "peer_filter_drift_pct": pm["outage_drift_pct"],
+            "peer_smoothed_drift_pct": main_row["peer_smoothed"]["outage_drift_pct"],
+            "ours_rmse_m": om["outage_rmse_m"],
+            "peer_filter_rmse_m": pm["outage_rmse_m"],
+        },
+        "windows": [
+            {
+                "name": r["name"],
+                "fix_index": r["fix_index"],
+                "duration_s": r["ours"]["outage_duration_s"],
+                "distance_m": r["ours"]["outage_distance_m"],
+                "ours": {k: r["ours"][k] for k in keys},
+                "peer_filter": {k: r["peer_filter"][k] for k in keys},
+                "peer_smoothed_drift_pct": r["peer_smoothed"]["outage_drift_pct"],
+                "peer_causal_in_window": r["peer_causal_in_window"],
+                "wall_s": {"ours": r["ours"]["wall_s"], "peer": r["peer_filter"]["wall_s"]},
+            }
+            for r in results
+        ],
+        "worst": {
+            "ours": {"window": worst_ours["name"], **pick(worst_ours["ours"])},
+            "peer_filter": {"window": worst_peer["name"], **pick(worst_peer["peer_filter"])},
+        },
+        "target": {
+            "what": "ours outage_drift_pct <= max_pct on every window",
+            "max_pct": args.target_pct,
+        },
+        "target_met": target_met,
+        "windows_over_target": failing,
+        "machine": machine,
+    }
+    emit_json(record)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
