@@ -377,3 +377,15 @@ def test_yaw_matrix_is_exp_about_z():
     yaw = torch.linspace(-math.pi, math.pi, 10, dtype=DTYPE)
     phi = torch.stack((torch.zeros_like(yaw), torch.zeros_like(yaw), yaw), -1)
     torch.testing.assert_close(quaternion.yaw_matrix(yaw), so3.exp(phi), rtol=0, atol=1e-15)
+
+
+def test_log_gradient_finite_for_nearly_equal_rotations():
+    """Log(R_a^T R_b) with R_b = R_a Exp(1e-7 n): the product's diagonal combinations round
+    to <= 0, and a NaN gradient here would poison any rotation-error loss."""
+    gen = _gen(17)
+    rot_a = so3.exp(2.0 * torch.randn(500, 3, generator=gen, dtype=DTYPE))
+    rot_b = rot_a @ so3.exp(1e-7 * torch.randn(500, 3, generator=gen, dtype=DTYPE))
+    x = (rot_a.mT @ rot_b).requires_grad_(True)
+    (grad,) = torch.autograd.grad((so3.log(x) ** 2).sum(), x)
+    bad = (~torch.isfinite(grad)).flatten(1).any(-1)
+    assert not bool(bad.any()), f"{int(bad.sum())} of 500 log gradients are NaN"

@@ -1,0 +1,160 @@
+"""ESKF against filterpy's linear KalmanFilter on a linear-Gaussian problem (acceptance, 1e-9).
+
+The gyro reads exactly 0, the attitude is level and known (zero attitude and bias variance,
+zero gyro noise and bias random walks), so the error-state filter reduces to a linear KF on
+``[p, v]`` with the world acceleration ``R0 f + g`` as control input. filterpy steps once per
+IMU sample (ZOH: ``F = [[I, dt I], [0, I]]``, ``B = [[dt^2/2 I], [dt I]]``, a sample's accel
+noise ``sigma_a^2 / dt`` held for ``dt``: ``Q = sigma_a^2 [[dt^3/4, dt^2/2], [dt^2/2, dt]]``
+per axis, the convention ``tests/sensors/test_imu_preintegration.py`` checks) and updates at
+the GNSS fixes.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+from filterpy.kalman import KalmanFilter
+
+from msf_torch.frontend.config import EskfConfig
+from msf_torch.frontend.eskf import run_eskf
+from msf_torch.frontend.init import initial_state
+from msf_torch.types import GnssFixes, ImuSamples, Sequence
+
+DTYPE = torch.float64
+G = 9.80665
+ACCEL_DENSITY = 0.02
+
+
+def _config() -> EskfConfig:
+    return EskfConfig(
+        gyro_noise_density=0.0,
+        accel_noise_density=ACCEL_DENSITY,
+        gyro_bias_rw_density=0.0,
+        accel_bias_rw_density=0.0,
+        gravity_mps2=G,
+        init_position_sigma_m=1.5,
+        init_velocity_sigma_mps=0.4,
+        init_roll_pitch_sigma_rad=0.0,
+        init_yaw_sigma_rad=0.0,
+        init_gyro_bias_sigma_radps=0.0,
+        init_accel_bias_sigma_mps2=0.0,
+        init_min_gnss_distance_m=1e9,  # yaw 0, velocity 0, position = first fix
+        nhc="off",
+        zupt=False,
+        gate_probability=1.0,
+        slip_detection=False,
+    )
+
+
+def _problem(seed: int, duration: float = 6.0, imu_rate: float = 100.0, gnss_every: int = 20):
+    """IMU with jittered sample times; GNSS fixes on every ``gnss_every``-th IMU sample."""
+    rng = np.random.default_rng(seed)
+    n = int(duration * imu_rate) + 1
+    dt = 1.0 / imu_rate * (1.0 + 0.2 * rng.uniform(-1, 1, n - 1))
+    t = np.concatenate(([0.0], np.cumsum(dt)))
+    accel_world = np.zeros((n, 3))
+    moving = t > 0.6  # level and still over the 0.5 s roll/pitch window
+    accel_world[moving] = np.cumsum(0.1 * rng.normal(size=(moving.sum(), 3)), 0)
+    accel_world[:, 2] *= 0.2
+    f = accel_world + np.array([0.0, 0.0, G])  # R0 = I: f = a - g_world
+    # a reference path (any values do; they only enter as measurements)
+    vel = np.concatenate((np.zeros((1, 3)), np.cumsum(accel_world[:-1] * dt[:, None], 0)))
+    pos = np.concatenate((np.zeros((1, 3)), np.cumsum(vel[:-1] * dt[:, None], 0)))
+    pos += np.array([3.0, -2.0, 1.0])
+    g_idx = np.arange(0, n, gnss_every)
+    sigma = rng.uniform(0.3, 1.2, (g_idx.size, 3))
+    fixes = pos[g_idx] + sigma * rng.normal(size=(g_idx.size, 3))
+    seq = Sequence(
+        names=[f"linear{seed}"],
+        imu=ImuSamples(
+            t=torch.as_tensor(t)[None],
+            gyro=torch.zeros(1, n, 3, dtype=DTYPE),
+            accel=torch.as_tensor(f)[None],
+            mask=torch.ones(1, n, dtype=torch.bool),
+        ),
+        gnss=GnssFixes(
+            t=torch.as_tensor(t[g_idx])[None],
+            position=torch.as_tensor(fixes)[None],
+            sigma=torch.as_tensor(sigma)[None],
+            mask=torch.ones(1, g_idx.size, dtype=torch.bool),
+        ),
+    )
+    seq.check()
+    return seq, t, f, g_idx, fixes, sigma
+
+
+def _filterpy_run(t, f, g_idx, fixes, sigma, x0, p0):
+    """Step filterpy per IMU sample; return {imu index: (x (6,), P (6, 6))} at the fixes."""
+    kf = KalmanFilter(dim_x=6, dim_z=3)
+    kf.x = x0.reshape(6, 1).copy()
+    kf.P = p0.copy()
+    kf.H = np.hstack((np.eye(3), np.zeros((3, 3))))
+    gravity = np.array([0.0, 0.0, -G])
+    fix_at = {int(k): i for i, k in enumerate(g_idx)}
+    eye = np.eye(3)
+    out = {}
+    for k in range(len(t) - 1):
+        dt = t[k + 1] - t[k]
+        kf.F = np.block([[eye, dt * eye], [0 * eye, eye]])
+        kf.B = np.vstack((0.5 * dt**2 * eye, dt * eye))
+        kf.Q = ACCEL_DENSITY**2 * np.block(
+            [[dt**3 / 4 * eye, dt**2 / 2 * eye], [dt**2 / 2 * eye, dt * eye]]
+        )
+        u = (f[k] + gravity).reshape(3, 1)  # world acceleration R0 f + g, R0 = I
+        kf.predict(u=u)
+        if k + 1 in fix_at:
+            i = fix_at[k + 1]
+            kf.update(fixes[i].reshape(3, 1), R=np.diag(sigma[i] ** 2))
+            out[k + 1] = (kf.x[:, 0].copy(), kf.P.copy())
+    out["last"] = (kf.x[:, 0].copy(), kf.P.copy())
+    return out
+
+
+@pytest.mark.parametrize("seed", [60, 61])
+def test_eskf_equals_filterpy_on_linear_problem(seed):
+    seq, t, f, g_idx, fixes, sigma = _problem(seed)
+    cfg = _config()
+    state0, cov0 = initial_state(seq, cfg)
+    # the initial state the reduction assumes
+    torch.testing.assert_close(state0.rotation[0], torch.eye(3, dtype=DTYPE), rtol=0, atol=0)
+    torch.testing.assert_close(state0.velocity[0], torch.zeros(3, dtype=DTYPE), rtol=0, atol=0)
+    torch.testing.assert_close(state0.position[0], torch.as_tensor(fixes[0]), rtol=0, atol=0)
+    x0 = torch.cat((state0.position[0], state0.velocity[0])).numpy()
+    p0 = cov0[0, :6, :6].numpy()
+    assert np.all(cov0[0, 6:, :].numpy() == 0) and np.all(cov0[0, :, 6:].numpy() == 0)
+
+    ref = _filterpy_run(t, f, g_idx, fixes, sigma, x0, p0)
+    res = run_eskf(seq, cfg)
+
+    times = res.t[0].numpy()
+    imu_index = {float(t[k]): k for k in g_idx[1:]}
+    compared = 0
+    max_diff = {"p": 0.0, "v": 0.0, "P": 0.0}
+    for e in range(1, times.size):
+        if not bool(res.present["gnss"][0, e]):
+            continue
+        k = imu_index[float(times[e])]
+        x_ref, p_ref = ref[k]
+        assert bool(res.accepted["gnss"][0, e])
+        diff_p = np.abs(res.position[0, e].numpy() - x_ref[:3]).max()
+        diff_v = np.abs(res.velocity[0, e].numpy() - x_ref[3:]).max()
+        diff_cov = np.abs(res.covariance[0, e, :6, :6].numpy() - p_ref).max()
+        max_diff["p"] = max(max_diff["p"], diff_p)
+        max_diff["v"] = max(max_diff["v"], diff_v)
+        max_diff["P"] = max(max_diff["P"], diff_cov)
+        compared += 1
+    assert compared == g_idx.size - 1  # every fix after the first (t0) is an update
+    assert max_diff["p"] < 1e-9 and max_diff["v"] < 1e-9 and max_diff["P"] < 1e-9, max_diff
+
+    # the last epoch (last IMU sample) too
+    x_ref, p_ref = ref["last"]
+    np.testing.assert_allclose(res.position[0, -1].numpy(), x_ref[:3], rtol=0, atol=1e-9)
+    np.testing.assert_allclose(res.velocity[0, -1].numpy(), x_ref[3:], rtol=0, atol=1e-9)
+    np.testing.assert_allclose(res.covariance[0, -1, :6, :6].numpy(), p_ref, rtol=0, atol=1e-9)
+
+    # attitude and biases untouched, their covariance blocks exactly zero
+    assert torch.equal(res.rotation[0], torch.eye(3, dtype=DTYPE).expand_as(res.rotation[0]))
+    assert float(res.gyro_bias.abs().max()) == 0.0 and float(res.accel_bias.abs().max()) == 0.0
+    assert float(res.covariance[0, :, 6:, :].abs().max()) == 0.0
+    assert float(res.covariance[0, :, :, 6:].abs().max()) == 0.0
