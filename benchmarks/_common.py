@@ -79,19 +79,38 @@ def emit_json(record: dict[str, Any]) -> None:
 
 def time_repeats(
     fn: Callable[[], Any], repeats: int, warmup: int = 0, label: str | None = None
-) -> tuple[float, list[float], Any]:
-    """Call ``fn`` ``warmup`` + ``repeats`` times; return (median s, all timed s, last result)."""
+) -> tuple[float, dict[str, Any], Any]:
+    """Call ``fn`` ``warmup`` + ``repeats`` times.
+
+    Returns:
+        (median wall s, timing dict, last result). The timing dict has ``median_s``,
+        ``min_s``, ``repeats_s`` (wall), ``cpu_median_s`` and ``cpu_repeats_s`` (process CPU
+        time over all threads: when other work shares the machine, wall time grows while CPU
+        time stays put, so the two together show contention).
+    """
     result = None
     for _ in range(warmup):
         result = fn()
-    times = []
-    for i in range(max(1, repeats)):
+    walls: list[float] = []
+    cpus: list[float] = []
+    n = max(1, repeats)
+    for i in range(n):
+        cpu0 = time.process_time()
         start = time.perf_counter()
         result = fn()
-        times.append(time.perf_counter() - start)
+        walls.append(time.perf_counter() - start)
+        cpus.append(time.process_time() - cpu0)
         if label is not None:
-            log(f"  {label}: repeat {i + 1}/{max(1, repeats)} {times[-1]:.3f} s")
-    return statistics.median(times), times, result
+            log(f"  {label}: repeat {i + 1}/{n} wall {walls[-1]:.3f} s, cpu {cpus[-1]:.3f} s")
+    median = statistics.median(walls)
+    timing = {
+        "median_s": median,
+        "min_s": min(walls),
+        "repeats_s": walls,
+        "cpu_median_s": statistics.median(cpus),
+        "cpu_repeats_s": cpus,
+    }
+    return median, timing, result
 
 
 def _status_kb(key: str) -> float | None:

@@ -132,8 +132,8 @@ def run_window(
         "start_s": start_s,
         "end_s": end_s,
         "fixes_withheld": n_withheld,
-        "ours": {**ours_m, "wall_s": ours_wall, "wall_s_repeats": ours_times},
-        "peer_filter": {**filt_m, "wall_s": peer_wall, "wall_s_repeats": peer_times},
+        "ours": {**ours_m, "wall_s": ours_wall, "timing": ours_times},
+        "peer_filter": {**filt_m, "wall_s": peer_wall, "timing": peer_times},
         "peer_smoothed": smooth_m,
         "peer_causal_in_window": bool(np.all(causal)),
     }
@@ -206,9 +206,9 @@ def main(argv: list[str] | None = None) -> int:
             "repeats_main_window": args.repeats,
             "quick": args.quick,
         },
-        "ours": {**pick(om), "wall_s": om["wall_s"]},
+        "ours": {**pick(om), "wall_s": om["wall_s"], "timing": om["timing"]},
         "peer": {
-            "filter": {**pick(pm), "wall_s": pm["wall_s"]},
+            "filter": {**pick(pm), "wall_s": pm["wall_s"], "timing": pm["timing"]},
             "smoothed_reference": pick(main_row["peer_smoothed"]),
         },
         "ratio": {
