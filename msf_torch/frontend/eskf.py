@@ -30,6 +30,7 @@ from __future__ import annotations
 
 __all__ = ["EskfNoise", "EskfResult", "run_eskf", "SENSORS"]
 
+import contextlib
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -255,6 +256,19 @@ def _segment_matrix(dims: list[int], dtype, device) -> torch.Tensor:
     return seg
 
 
+@contextlib.contextmanager
+def _intra_op_threads(count: int):
+    """Temporarily set torch's intra-op threads (the epoch loop works on tiny matrices,
+    where thread hand-offs cost more than they save, and oversubscribed cores make
+    LAPACK's spinning threads take milliseconds per call)."""
+    previous = torch.get_num_threads()
+    torch.set_num_threads(count)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(previous)
+
+
 def run_eskf(
     seq: Sequence,
     cfg: EskfConfig | None = None,
@@ -363,144 +377,145 @@ def run_eskf(
     accepted_out.append(no_blocks.bool())
     nis_out.append(no_blocks)
 
-    for e in range(n_epochs):
-        # --- propagation: nominal with bias-corrected increments, P in the i-frame -------
-        dbias = torch.cat(
-            (
-                state.gyro_bias - pre.gyro_bias_lin[:, e],
-                state.accel_bias - pre.accel_bias_lin[:, e],
-            ),
-            -1,
-        )
-        corr = (pre.bias_jacobian[:, e] @ dbias[..., None]).squeeze(-1)
-        d_rot = pre.delta_rotation[:, e] @ so3.exp(corr[:, 6:9])
-        position, velocity, rotation = propagate_nominal(
-            state.position,
-            state.velocity,
-            state.rotation,
-            pre.delta_t[:, e],
-            d_rot,
-            pre.delta_velocity[:, e] + corr[:, 3:6],
-            pre.delta_position[:, e] + corr[:, 0:3],
-            gravity,
-        )
-        frame = frame_base.clone()
-        frame[:, 0:3, 0:3] = state.rotation
-        frame[:, 3:6, 3:6] = state.rotation
-        phi = phi_loc[:, e]
-        cov_loc = phi @ (frame.mT @ cov @ frame) @ phi.mT + q_loc[:, e]
-        cov = frame @ cov_loc @ frame.mT
-        state = NavState(position, velocity, rotation, state.gyro_bias, state.accel_bias)
+    with _intra_op_threads(1):
+        for e in range(n_epochs):
+            # --- propagation: nominal with bias-corrected increments, P in the i-frame -------
+            dbias = torch.cat(
+                (
+                    state.gyro_bias - pre.gyro_bias_lin[:, e],
+                    state.accel_bias - pre.accel_bias_lin[:, e],
+                ),
+                -1,
+            )
+            corr = (pre.bias_jacobian[:, e] @ dbias[..., None]).squeeze(-1)
+            d_rot = pre.delta_rotation[:, e] @ so3.exp(corr[:, 6:9])
+            position, velocity, rotation = propagate_nominal(
+                state.position,
+                state.velocity,
+                state.rotation,
+                pre.delta_t[:, e],
+                d_rot,
+                pre.delta_velocity[:, e] + corr[:, 3:6],
+                pre.delta_position[:, e] + corr[:, 0:3],
+                gravity,
+            )
+            frame = frame_base.clone()
+            frame[:, 0:3, 0:3] = state.rotation
+            frame[:, 3:6, 3:6] = state.rotation
+            phi = phi_loc[:, e]
+            cov_loc = phi @ (frame.mT @ cov @ frame) @ phi.mT + q_loc[:, e]
+            cov = frame @ cov_loc @ frame.mT
+            state = NavState(position, velocity, rotation, state.gyro_bias, state.accel_bias)
 
-        if present_all is None or not bool(present_all[:, e].any()):
-            accepted_out.append(no_blocks.bool())
-            nis_out.append(no_blocks)
+            if present_all is None or not bool(present_all[:, e].any()):
+                accepted_out.append(no_blocks.bool())
+                nis_out.append(no_blocks)
+                record(state, cov, slip)
+                if progress is not None:
+                    progress(e + 1)
+                continue
+
+            # --- measurement blocks (residuals from sensors/, stacked) ---------------------
+            residuals, jacobians, variances = [], [], []
+            pose_cov = None
+            gyro_end = sched.gyro_end[:, e]
+            for name in active:
+                if name == "wheel":
+                    r, h = wheel_residual(
+                        state.velocity,
+                        state.rotation,
+                        gyro_end,
+                        state.gyro_bias,
+                        sched.wheel_left[:, e],
+                        sched.wheel_right[:, e],
+                        cfg.wheel_track_m,
+                        wheel_lever,
+                    )
+                    var = wheel_var
+                    here = sched.wheel_mask[:, e]
+                    if cfg.slip_detection:
+                        innov = torch.diagonal(h @ cov @ h.mT, dim1=-2, dim2=-1) + var
+                        new_slip = slip_factor(
+                            r,
+                            innov,
+                            slip,
+                            sched.t_end[:, e] - last_wheel_t,
+                            cfg.slip_sensitivity,
+                            cfg.slip_recovery_per_s,
+                        )
+                        slip = torch.where(here, new_slip, slip)
+                        var = var / slip[:, None].clamp_min(1e-3) ** 2
+                    last_wheel_t = torch.where(here, sched.t_end[:, e], last_wheel_t)
+                    rows_used = dims["wheel"]
+                    r, h, var = r[:, :rows_used], h[:, :rows_used], var[:, :rows_used]
+                elif name == "nhc":
+                    r, h = nonholonomic_residual(
+                        state.velocity, state.rotation, gyro_end, state.gyro_bias, nhc_lever
+                    )
+                    var = nhc_var
+                elif name == "zupt":
+                    r, h = zero_velocity_residual(state.velocity)
+                    var = zupt_var
+                elif name == "gnss":
+                    r, h = gnss_residual(
+                        state.position, state.rotation, gnss_lever, sched.gnss_position[:, e]
+                    )
+                    var = gnss_var[:, e]
+                else:
+                    r, h = pose_residual(
+                        state.position,
+                        state.rotation,
+                        sched.pose_position[:, e],
+                        sched.pose_rotation[:, e],
+                    )
+                    var = zeros_b[:, None].expand(batch, 6)
+                    pose_cov = sched.pose_covariance[:, e]
+                residuals.append(r)
+                jacobians.append(h)
+                variances.append(var)
+            r_all = torch.cat(residuals, -1)
+            h_all = torch.cat(jacobians, -2)
+            r_cov = torch.diag_embed(torch.cat(variances, -1))
+            if pose_cov is not None:
+                r_cov = r_cov.clone()
+                r_cov[:, -6:, -6:] = pose_cov
+            s_all = h_all @ cov @ h_all.mT + r_cov
+
+            # --- gating: NIS of every block at once through the block-diagonal part of S ----
+            here = present_all[:, e]
+            here_rows = (here.to(dtype) @ segment.mT)[..., None]
+            s_blocks = s_all * block_mask + (1.0 - here_rows) * eye15[:n_rows, :n_rows]
+            chol_b, info_b = torch.linalg.cholesky_ex(s_blocks)
+            white = torch.linalg.solve_triangular(chol_b, r_all[..., None], upper=False)
+            nis = ((white[..., 0] ** 2) @ segment) * here
+            ok = here & (nis < threshold)
+            ok = ok | (here & reopen & (streak >= cfg.gate_reopen_after))
+            if "wheel" in active and cfg.slip_detection:
+                wheel_col = active.index("wheel")
+                ok[:, wheel_col] = ok[:, wheel_col] & (slip >= cfg.slip_skip_below)
+            streak = torch.where(here, torch.where(ok, 0.0, streak + 1.0), streak)
+
+            # --- joint update over the accepted rows (Joseph form) ------------------------
+            rows = ok.to(dtype) @ segment.mT  # (B, M)
+            rows_outer = rows[:, :, None] * rows[:, None, :]
+            h_m = h_all * rows[..., None]
+            s_m = s_all * rows_outer + torch.diag_embed(1.0 - rows)
+            chol, info = torch.linalg.cholesky_ex(s_m)
+            failed = (info != 0) | (info_b != 0)
+            first_failure = torch.where(failed & ~chol_failed, e, first_failure)
+            chol_failed = chol_failed | failed
+            gain = torch.cholesky_solve(h_m @ cov, chol).mT  # (B, 15, M)
+            dx = -(gain @ (r_all * rows)[..., None]).squeeze(-1)
+            ikh = eye15 - gain @ h_m
+            cov = ikh @ cov @ ikh.mT + gain @ (r_cov * rows_outer) @ gain.mT
+            state = _inject(state, dx)
+            cov = _reset_covariance(cov, dx[:, 6:9])
+            cov = 0.5 * (cov + cov.mT)
+            accepted_out.append(ok)
+            nis_out.append(nis)
             record(state, cov, slip)
             if progress is not None:
                 progress(e + 1)
-            continue
-
-        # --- measurement blocks (residuals from sensors/, stacked) ---------------------
-        residuals, jacobians, variances = [], [], []
-        pose_cov = None
-        gyro_end = sched.gyro_end[:, e]
-        for name in active:
-            if name == "wheel":
-                r, h = wheel_residual(
-                    state.velocity,
-                    state.rotation,
-                    gyro_end,
-                    state.gyro_bias,
-                    sched.wheel_left[:, e],
-                    sched.wheel_right[:, e],
-                    cfg.wheel_track_m,
-                    wheel_lever,
-                )
-                var = wheel_var
-                here = sched.wheel_mask[:, e]
-                if cfg.slip_detection:
-                    innov = torch.diagonal(h @ cov @ h.mT, dim1=-2, dim2=-1) + var
-                    new_slip = slip_factor(
-                        r,
-                        innov,
-                        slip,
-                        sched.t_end[:, e] - last_wheel_t,
-                        cfg.slip_sensitivity,
-                        cfg.slip_recovery_per_s,
-                    )
-                    slip = torch.where(here, new_slip, slip)
-                    var = var / slip[:, None].clamp_min(1e-3) ** 2
-                last_wheel_t = torch.where(here, sched.t_end[:, e], last_wheel_t)
-                rows_used = dims["wheel"]
-                r, h, var = r[:, :rows_used], h[:, :rows_used], var[:, :rows_used]
-            elif name == "nhc":
-                r, h = nonholonomic_residual(
-                    state.velocity, state.rotation, gyro_end, state.gyro_bias, nhc_lever
-                )
-                var = nhc_var
-            elif name == "zupt":
-                r, h = zero_velocity_residual(state.velocity)
-                var = zupt_var
-            elif name == "gnss":
-                r, h = gnss_residual(
-                    state.position, state.rotation, gnss_lever, sched.gnss_position[:, e]
-                )
-                var = gnss_var[:, e]
-            else:
-                r, h = pose_residual(
-                    state.position,
-                    state.rotation,
-                    sched.pose_position[:, e],
-                    sched.pose_rotation[:, e],
-                )
-                var = zeros_b[:, None].expand(batch, 6)
-                pose_cov = sched.pose_covariance[:, e]
-            residuals.append(r)
-            jacobians.append(h)
-            variances.append(var)
-        r_all = torch.cat(residuals, -1)
-        h_all = torch.cat(jacobians, -2)
-        r_cov = torch.diag_embed(torch.cat(variances, -1))
-        if pose_cov is not None:
-            r_cov = r_cov.clone()
-            r_cov[:, -6:, -6:] = pose_cov
-        s_all = h_all @ cov @ h_all.mT + r_cov
-
-        # --- gating: NIS of every block at once through the block-diagonal part of S ----
-        here = present_all[:, e]
-        here_rows = (here.to(dtype) @ segment.mT)[..., None]
-        s_blocks = s_all * block_mask + (1.0 - here_rows) * eye15[:n_rows, :n_rows]
-        chol_b, info_b = torch.linalg.cholesky_ex(s_blocks)
-        white = torch.linalg.solve_triangular(chol_b, r_all[..., None], upper=False)
-        nis = ((white[..., 0] ** 2) @ segment) * here
-        ok = here & (nis < threshold)
-        ok = ok | (here & reopen & (streak >= cfg.gate_reopen_after))
-        if "wheel" in active and cfg.slip_detection:
-            wheel_col = active.index("wheel")
-            ok[:, wheel_col] = ok[:, wheel_col] & (slip >= cfg.slip_skip_below)
-        streak = torch.where(here, torch.where(ok, 0.0, streak + 1.0), streak)
-
-        # --- joint update over the accepted rows (Joseph form) ------------------------
-        rows = ok.to(dtype) @ segment.mT  # (B, M)
-        rows_outer = rows[:, :, None] * rows[:, None, :]
-        h_m = h_all * rows[..., None]
-        s_m = s_all * rows_outer + torch.diag_embed(1.0 - rows)
-        chol, info = torch.linalg.cholesky_ex(s_m)
-        failed = (info != 0) | (info_b != 0)
-        first_failure = torch.where(failed & ~chol_failed, e, first_failure)
-        chol_failed = chol_failed | failed
-        gain = torch.cholesky_solve(h_m @ cov, chol).mT  # (B, 15, M)
-        dx = -(gain @ (r_all * rows)[..., None]).squeeze(-1)
-        ikh = eye15 - gain @ h_m
-        cov = ikh @ cov @ ikh.mT + gain @ (r_cov * rows_outer) @ gain.mT
-        state = _inject(state, dx)
-        cov = _reset_covariance(cov, dx[:, 6:9])
-        cov = 0.5 * (cov + cov.mT)
-        accepted_out.append(ok)
-        nis_out.append(nis)
-        record(state, cov, slip)
-        if progress is not None:
-            progress(e + 1)
 
     if bool(chol_failed.any()):
         b = int(torch.nonzero(chol_failed)[0])
