@@ -9,7 +9,8 @@ Conventions of every benchmark in this folder:
   peer measured in the same process;
 * peak memory is the resident set size high-water mark (``VmHWM``), reset before each
   measured part where Linux allows it (:class:`PeakRss`), else the process-wide
-  ``ru_maxrss`` (then marked ``"resettable": false``).
+  ``ru_maxrss`` (then marked ``"resettable": false``); run it in a fresh process when
+  parts must not see each other's freed-but-kept heap.
 
 KITTI helpers (:func:`kitti_config`, :func:`peer_arrays`, :func:`trajectory_from`) give
 every script the same configuration of ours and the same numpy inputs for the peers.

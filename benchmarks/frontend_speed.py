@@ -20,8 +20,12 @@ What it measures
       (``benchmarks/peers/filterpy_eskf.py``), timed from the same ``Sequence`` (its initial
       state comes from ours), over the whole drive or a prefix (``--filterpy-prefix-s``).
 
-    Timings are medians over ``--repeats`` (after ``--warmup`` untimed runs of ours); peak
-    resident memory (VmHWM, reset before each part) is reported for each part. Accuracy:
+    Timings are medians over ``--repeats`` (after ``--warmup`` untimed runs of ours), with
+    the minimum and the process CPU time alongside (wall time grows when other work shares
+    the machine; CPU time much less). Peak resident memory: each part runs once more in a
+    fresh spawned process that has loaded the drive and built the part's input; VmHWM is
+    reset before the run and read after it (``peak_rss_mb``, ``rss_before_mb`` and
+    ``peak_minus_before_mb`` = what the run adds). Accuracy:
     position RMSE against the GPS fixes (which every estimator also fuses, so this is a
     consistency figure, not ground truth), on the fixes from GTSAM's first causal state on;
     GTSAM's smoothed RMSE for reference.
@@ -29,7 +33,7 @@ What it measures
     ``ratio`` = ours_wall / gtsam_wall (below 1 means ours is faster).
 
 How to run
-    .venv/bin/python benchmarks/frontend_speed.py             # ~1-3 min on a laptop CPU
+    .venv/bin/python benchmarks/frontend_speed.py             # ~1-3 min on a 2-core CPU
     .venv/bin/python benchmarks/frontend_speed.py --quick     # 1 repeat, B = 8
 
     Progress goes to stderr; the last line on stdout is one JSON object.
@@ -44,15 +48,20 @@ Options
     --time-shift-s S       time shift of copy k is k * S, s (default 1e-3)
     --filterpy-prefix-s S  run the filterpy peer on the first S seconds only (0 = all; default)
     --quick                1 repeat, no warm-up, B = 8 (the 10x target is still judged)
+    --no-memory            skip the four memory-measurement processes
 """
 
 from __future__ import annotations
 
 import argparse
 import dataclasses
+import gc
+import multiprocessing
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
@@ -95,6 +104,81 @@ def rmse_at(traj, fixes: GnssFixes) -> float:
     return float(outage_metrics(traj, fixes)["outage_rmse_m"])
 
 
+def part_callable(
+    name: str, seq: Sequence, cfg: Any, opts: dict[str, Any]
+) -> tuple[Callable[[], Any], dict[str, Any]]:
+    """The zero-argument callable that one timed part runs, and facts about its input.
+
+    ``name``: ``ours`` (B = 1), ``ours_batch`` (B = ``opts["batch"]`` varied copies),
+    ``gtsam`` or ``filterpy``. Timing and memory measurement run exactly these callables.
+    """
+    if name == "ours":
+
+        def ours():
+            with torch.no_grad():
+                result = run_eskf(seq, cfg)
+                return result, result.trajectory()
+
+        return ours, {"imu_samples": int(seq.imu.mask.sum())}
+    if name == "ours_batch":
+        start = time.perf_counter()
+        copies = [
+            variant(seq, k, opts["gnss_noise_m"], opts["time_shift_s"])
+            for k in range(opts["batch"])
+        ]
+        batch = batch_sequences(copies)
+        info = {"imu_samples": int(batch.imu.mask.sum()), "build_s": time.perf_counter() - start}
+
+        def ours_batch():
+            with torch.no_grad():
+                result = run_eskf(batch, cfg)
+                return result, result.trajectory()
+
+        return ours_batch, info
+    if name == "gtsam":
+        arrays = peer_arrays(seq)
+        return (lambda: run_gtsam_kitti(**arrays)), {}
+    if name == "filterpy":
+        prefix = opts["prefix"]
+        return (lambda: run_filterpy_eskf(**inputs_from_sequence(seq, cfg), t_stop=prefix)), {}
+    raise ValueError(f"unknown part {name!r}")
+
+
+def _memory_child(name: str, opts: dict[str, Any], conn: Any) -> None:
+    """Child process: load the drive, build the part's input, run it once under PeakRss."""
+    try:
+        seq = load_sequence("kitti-gtsam")
+        cfg, _ = kitti_config(seq)
+        fn, _ = part_callable(name, seq, cfg, opts)
+        gc.collect()
+        with PeakRss() as mem:
+            fn()
+        conn.send({**mem.as_dict(), "process": "fresh"})
+    except Exception as exc:  # report, do not hang the parent
+        conn.send({"error": f"{type(exc).__name__}: {exc}"})
+    finally:
+        conn.close()
+
+
+def measure_memory(name: str, opts: dict[str, Any]) -> dict[str, Any]:
+    """Peak RSS of one run of a part, in a fresh (spawned) process with the input loaded.
+
+    ``rss_before_mb`` is the process with Python, torch, the drive and the part's input
+    loaded; ``peak_minus_before_mb`` is what the run itself adds at its peak.
+    """
+    ctx = multiprocessing.get_context("spawn")
+    parent, child = ctx.Pipe(duplex=False)
+    proc = ctx.Process(target=_memory_child, args=(name, opts, child))
+    proc.start()
+    child.close()
+    try:
+        result = parent.recv()
+    except EOFError:
+        result = {"error": "the memory process ended without a result"}
+    proc.join()
+    return result
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--repeats", type=int, default=3)
@@ -105,6 +189,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--time-shift-s", type=float, default=1e-3)
     parser.add_argument("--filterpy-prefix-s", type=float, default=0.0)
     parser.add_argument("--quick", action="store_true", help="1 repeat, no warm-up, B = 8")
+    parser.add_argument("--no-memory", action="store_true", help="skip the memory processes")
     args = parser.parse_args(argv)
     if args.quick:
         args.repeats, args.warmup, args.batch = 1, 0, min(args.batch, 8)
@@ -113,7 +198,6 @@ def main(argv: list[str] | None = None) -> int:
 
     seq = load_sequence("kitti-gtsam")
     cfg, explicit = kitti_config(seq)
-    arrays = peer_arrays(seq)
     n_imu = int(seq.imu.mask.sum())
     n_fix = int(seq.gnss.mask.sum())
     duration = float(seq.imu.t[0, -1] - seq.imu.t[0, 0])
@@ -122,59 +206,50 @@ def main(argv: list[str] | None = None) -> int:
         f"torch threads {torch.get_num_threads()}"
     )
 
-    # --- ours, single sequence ------------------------------------------------------------
-    def ours_single():
-        with torch.no_grad():
-            result = run_eskf(seq, cfg)
-            return result, result.trajectory()
+    opts = {
+        "batch": args.batch,
+        "gnss_noise_m": args.gnss_noise_m,
+        "time_shift_s": args.time_shift_s,
+        "prefix": args.filterpy_prefix_s if args.filterpy_prefix_s > 0 else None,
+    }
+    prefix = opts["prefix"]
 
-    with PeakRss() as mem_ours:
-        ours_wall, ours_times, (ours_res, ours_traj) = time_repeats(
-            ours_single, args.repeats, args.warmup, label="ours B=1"
-        )
+    # --- ours, single sequence ------------------------------------------------------------
+    ours_single, _ = part_callable("ours", seq, cfg, opts)
+    ours_wall, ours_times, (ours_res, ours_traj) = time_repeats(
+        ours_single, args.repeats, args.warmup, label="ours B=1"
+    )
     log(f"ours B=1: {ours_wall:.3f} s median, {n_imu / ours_wall:.0f} samples/s")
 
     # --- ours, batched ----------------------------------------------------------------------
-    t_batch = time.perf_counter()
-    batch = batch_sequences(
-        [variant(seq, k, args.gnss_noise_m, args.time_shift_s) for k in range(args.batch)]
+    ours_batch, batch_info = part_callable("ours_batch", seq, cfg, opts)
+    n_batch_imu = batch_info["imu_samples"]
+    batch_wall, batch_times, (batch_res, _) = time_repeats(
+        ours_batch, batch_repeats, 0, label=f"ours B={args.batch}"
     )
-    batch_build_s = time.perf_counter() - t_batch
-    n_batch_imu = int(batch.imu.mask.sum())
-
-    def ours_batch():
-        with torch.no_grad():
-            result = run_eskf(batch, cfg)
-            return result, result.trajectory()
-
-    with PeakRss() as mem_batch:
-        batch_wall, batch_times, (batch_res, _) = time_repeats(
-            ours_batch, batch_repeats, 0, label=f"ours B={args.batch}"
-        )
     copy0_diff = float(
         (batch_res.position[0, : ours_res.position.shape[1]] - ours_res.position[0]).abs().max()
     )
-    del batch_res
+    del batch_res, ours_batch
     log(f"ours B={args.batch}: {batch_wall:.3f} s median, {n_batch_imu / batch_wall:.0f} samples/s")
 
     # --- GTSAM peer -------------------------------------------------------------------------
-    def gtsam_run():
-        return run_gtsam_kitti(**arrays)
-
-    with PeakRss() as mem_gtsam:
-        gtsam_wall, gtsam_times, gtsam_res = time_repeats(gtsam_run, args.repeats, label="gtsam")
+    gtsam_run, _ = part_callable("gtsam", seq, cfg, opts)
+    gtsam_wall, gtsam_times, gtsam_res = time_repeats(gtsam_run, args.repeats, label="gtsam")
     log(f"gtsam: {gtsam_wall:.3f} s median (its own wall_s {gtsam_res['wall_s']:.3f} s)")
 
     # --- filterpy peer ------------------------------------------------------------------------
-    prefix = args.filterpy_prefix_s if args.filterpy_prefix_s > 0 else None
-
-    def filterpy_run():
-        return run_filterpy_eskf(**inputs_from_sequence(seq, cfg), t_stop=prefix)
-
-    with PeakRss() as mem_fp:
-        fp_wall, fp_times, fp_res = time_repeats(filterpy_run, args.repeats, label="filterpy")
+    filterpy_run, _ = part_callable("filterpy", seq, cfg, opts)
+    fp_wall, fp_times, fp_res = time_repeats(filterpy_run, args.repeats, label="filterpy")
     fp_samples = fp_res["imu_samples"]
     log(f"filterpy: {fp_wall:.3f} s median over {fp_samples} samples")
+
+    # --- peak memory, each part once in a fresh process ----------------------------------------
+    memory: dict[str, Any] = {}
+    if not args.no_memory:
+        for name in ("ours", "ours_batch", "gtsam", "filterpy"):
+            memory[name] = measure_memory(name, opts)
+            log(f"memory {name}: {memory[name]}")
 
     # --- accuracy (RMSE vs GPS) on the fixes where GTSAM's estimate is causal ------------------
     first = gtsam_res["first_gps_index"]
@@ -233,7 +308,7 @@ def main(argv: list[str] | None = None) -> int:
             "timing": ours_times,
             "realtime_factor": duration / ours_wall,
             "imu_samples_per_s": single_sps,
-            "memory": mem_ours.as_dict(),
+            "memory": memory.get("ours"),
             "batched": {
                 "batch": args.batch,
                 "wall_s": batch_wall,
@@ -242,9 +317,9 @@ def main(argv: list[str] | None = None) -> int:
                 "imu_samples_per_s": batch_sps,
                 "aggregate_realtime_factor": args.batch * duration / batch_wall,
                 "speedup_vs_single": speedup,
-                "batch_build_s": batch_build_s,
+                "batch_build_s": batch_info["build_s"],
                 "batch_copy0_max_diff_m": copy0_diff,
-                "memory": mem_batch.as_dict(),
+                "memory": memory.get("ours_batch"),
             },
         },
         "peer": {
@@ -254,7 +329,7 @@ def main(argv: list[str] | None = None) -> int:
             "wall_s_internal_last": gtsam_res["wall_s"],
             "realtime_factor": duration / gtsam_wall,
             "imu_samples_per_s": n_imu / gtsam_wall,
-            "memory": mem_gtsam.as_dict(),
+            "memory": memory.get("gtsam"),
         },
         "peer_filterpy": {
             "name": "per-sample ESKF on filterpy.kalman.KalmanFilter "
@@ -265,7 +340,7 @@ def main(argv: list[str] | None = None) -> int:
             "duration_s": fp_res["duration_s"],
             "imu_samples_per_s": fp_samples / fp_wall,
             "realtime_factor": fp_res["duration_s"] / fp_wall,
-            "memory": mem_fp.as_dict(),
+            "memory": memory.get("filterpy"),
         },
         "ratio": ratio,
         "ratios": {

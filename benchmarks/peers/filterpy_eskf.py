@@ -9,10 +9,12 @@ Model (as ``msf_torch.frontend.eskf``; conventions of ``msf_torch.geometry.conve
 
 * nominal state ``p, v, R, b_g, b_a``; error ``dx = [dp, dv, dtheta, db_g, db_a]`` with
   ``R = R_hat Exp(dtheta)`` and world gravity ``[0, 0, -g]``;
-* time line: the IMU sample times merged with the update times (GNSS fixes after the first
-  IMU sample, NHC pseudo-measurements every ``1 / nhc_rate_hz`` s from the first sample,
-  and the last sample); each piece holds the latest IMU sample at or before its start
-  (zero-order hold), as our schedule does, so updates happen at their own time;
+* time line (the rule of ``msf_torch.frontend.schedule``): update times are the GNSS fixes
+  after the first IMU sample and the last sample; with the NHC on, every update time
+  carries an NHC pseudo-measurement and evenly spaced update times are inserted wherever
+  consecutive ones (from the first sample on) are over ``1 / nhc_rate_hz`` s apart. The
+  IMU sample times are merged with the update times; each piece holds the latest IMU
+  sample at or before its start (zero-order hold), so updates happen at their own time;
 * per piece of length ``dt`` with ``w = gyro - b_g``, ``f = accel - b_a``
   (Euler integration of the nominal state, first-order error dynamics):
 
@@ -26,9 +28,9 @@ Model (as ``msf_torch.frontend.eskf``; conventions of ``msf_torch.geometry.conve
 * GNSS update: ``H = [I 0 0 0 0]``, ``R = diag(sigma^2)``, measurement ``z - p_hat`` of
   ``dp``; chi-square gated at ``gate_probability`` with the same re-open rule as ours
   (a fix passes after ``gate_reopen_after`` consecutive rejections);
-* NHC update (2 Hz): lateral and vertical body velocity ``[R^T v + [w]x l]_{y,z} = 0``,
-  ``H`` rows ``[0, R^T, [v_b]x, [l]x, 0]_{y,z}`` (``msf_torch.sensors.vehicle``),
-  ``R = nhc_sigma^2 I``, not gated;
+* NHC update (every epoch, so at least ``nhc_rate_hz``): lateral and vertical body
+  velocity ``[R^T v + [w]x l]_{y,z} = 0``, ``H`` rows ``[0, R^T, [v_b]x, [l]x, 0]_{y,z}``
+  (``msf_torch.sensors.vehicle``), ``R = nhc_sigma^2 I``, not gated;
 * after the updates of an epoch: error injection (``p += dp``, ``v += dv``,
   ``R <- R Exp(dtheta)``, ``b += db``), covariance reset ``G P G^T`` with
   ``G = I - [dtheta]x / 2`` on the rotation block, and ``kf.x = 0``.
@@ -80,6 +82,15 @@ def _merge(times: np.ndarray, tol: float) -> np.ndarray:
         return times
     times = np.sort(times)
     return times[np.concatenate(([True], np.diff(times) > tol))]
+
+
+def _fill_gaps(times: np.ndarray, max_step: float) -> np.ndarray:
+    """Insert evenly spaced times wherever consecutive ``times`` are over ``max_step`` apart."""
+    out = [times[:1]]
+    for a, b in zip(times[:-1], times[1:], strict=True):
+        pieces = max(int(np.ceil((b - a) / max_step - 1e-9)), 1)
+        out.append(a + (b - a) / pieces * np.arange(1, pieces + 1))
+    return np.concatenate(out)
 
 
 def inputs_from_sequence(seq: Any, cfg: Any) -> dict[str, Any]:
@@ -180,11 +191,10 @@ def run_filterpy_eskf(
     gnss_t = np.asarray(gnss_t, dtype=float)
     keep = (gnss_t > t0 + tol) & (gnss_t <= t_last + tol)
     g_t, g_pos, g_sig = gnss_t[keep], np.asarray(gnss_pos)[keep], np.asarray(gnss_sigma)[keep]
-    pseudo_t = np.zeros(0)
-    if params["nhc"]:
-        step = 1.0 / float(params["nhc_rate_hz"])
-        pseudo_t = t0 + step * np.arange(1, int(np.floor((t_last - t0) / step)) + 1)
-    updates = _merge(np.concatenate((g_t, pseudo_t, [t_last])), tol)
+    updates = _merge(np.concatenate((g_t, [t_last])), tol)
+    if params["nhc"]:  # NHC at every epoch; epochs added where updates are too far apart
+        updates = _fill_gaps(np.concatenate(([t0], updates)), 1.0 / float(params["nhc_rate_hz"]))
+        updates = updates[1:]
     bounds = _merge(np.concatenate((imu_t, updates)), tol)
     piece_start = bounds[:-1]
     piece_dt = np.diff(bounds)
@@ -202,11 +212,7 @@ def run_filterpy_eskf(
         jl = np.clip(j - 1, 0, g_t.size - 1)
         best = np.where(np.abs(g_t[jl] - updates) <= np.abs(g_t[j] - updates), jl, j)
         gnss_at = np.where(np.abs(g_t[best] - updates) <= tol, best, -1)
-    nhc_at = np.zeros(updates.size, dtype=bool)
-    if pseudo_t.size:
-        j = np.clip(np.searchsorted(pseudo_t, updates), 0, pseudo_t.size - 1)
-        jl = np.clip(j - 1, 0, pseudo_t.size - 1)
-        nhc_at = (np.abs(pseudo_t[j] - updates) <= tol) | (np.abs(pseudo_t[jl] - updates) <= tol)
+    nhc_at = np.full(updates.size, bool(params["nhc"]))
 
     # --- filter ----------------------------------------------------------------------
     sg2 = float(params["gyro_noise_density"]) ** 2
