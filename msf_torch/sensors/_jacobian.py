@@ -13,8 +13,9 @@ def error_state_jacobian(
     rows: int, blocks: list[tuple[slice, torch.Tensor]], like: torch.Tensor
 ) -> torch.Tensor:
     """Build ``H`` (..., rows, 15) from ``[(conventions.IDX_*, (..., rows, 3)), ...]``;
-    columns not named are zero."""
-    lead = torch.broadcast_shapes(*(b.shape[:-2] for _, b in blocks))
+    columns not named are zero. Blocks share their leading dims (or are expanded to the
+    longest)."""
+    lead = max((b.shape[:-2] for _, b in blocks), key=len)
     by_start = {s.start: b for s, b in blocks}
     cols = []
     for start in range(0, ERROR_STATE_DIM, 3):

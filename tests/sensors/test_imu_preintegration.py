@@ -94,9 +94,15 @@ def test_constant_rate_and_force_match_closed_form(batch):
     pre = preintegrate(gyro, accel, dt, bg, ba)
     torch.testing.assert_close(pre.delta_t, torch.full((batch,), total, dtype=DTYPE))
     pos, vel, rot = propagate_nominal(
-        p0, v0, r0, pre.delta_t, pre.delta_rotation, pre.delta_velocity, pre.delta_position,
+        p0,
+        v0,
+        r0,
+        pre.delta_t,
+        pre.delta_rotation,
+        pre.delta_velocity,
+        pre.delta_position,
         GRAVITY,
-    )  # fmt: skip
+    )
     torch.testing.assert_close(pos, pos_ref, rtol=0, atol=1e-9)
     torch.testing.assert_close(vel, vel_ref, rtol=0, atol=1e-9)
     torch.testing.assert_close(rot, rot_ref, rtol=0, atol=1e-9)
@@ -125,13 +131,22 @@ def test_closed_form_matches_rk4_of_continuous_kinematics():
     # and the sampled route on the same case
     n = 400
     pre = preintegrate(
-        w.expand(n, 3), f.expand(n, 3), torch.full((n,), total / n, dtype=DTYPE),
-        torch.zeros(3, dtype=DTYPE), torch.zeros(3, dtype=DTYPE),
-    )  # fmt: skip
+        w.expand(n, 3),
+        f.expand(n, 3),
+        torch.full((n,), total / n, dtype=DTYPE),
+        torch.zeros(3, dtype=DTYPE),
+        torch.zeros(3, dtype=DTYPE),
+    )
     pos2, vel2, rot2 = propagate_nominal(
-        p0, v0, r0, pre.delta_t, pre.delta_rotation, pre.delta_velocity, pre.delta_position,
+        p0,
+        v0,
+        r0,
+        pre.delta_t,
+        pre.delta_rotation,
+        pre.delta_velocity,
+        pre.delta_position,
         GRAVITY,
-    )  # fmt: skip
+    )
     np.testing.assert_allclose(pos2.numpy(), p_rk, rtol=0, atol=1e-9)
     np.testing.assert_allclose(vel2.numpy(), v_rk, rtol=0, atol=1e-10)
     np.testing.assert_allclose(rot2.numpy(), r_rk, rtol=0, atol=1e-11)
@@ -147,9 +162,13 @@ def test_ragged_padding_is_an_exact_no_op():
     full = preintegrate(gyro, accel, dt, zero, zero)
     short = preintegrate(gyro[1:, :20], accel[1:, :20], dt[1:, :20], zero[1:], zero[1:])
     for name in ("delta_rotation", "delta_velocity", "delta_position", "bias_jacobian"):
-        torch.testing.assert_close(getattr(full, name)[1:], getattr(short, name), rtol=0, atol=1e-15)
+        torch.testing.assert_close(
+            getattr(full, name)[1:], getattr(short, name), rtol=0, atol=1e-15
+        )
     for name in ("cov_unit_gyro", "cov_unit_accel"):
-        torch.testing.assert_close(getattr(full, name)[1:], getattr(short, name), rtol=0, atol=1e-15)
+        torch.testing.assert_close(
+            getattr(full, name)[1:], getattr(short, name), rtol=0, atol=1e-15
+        )
 
 
 # --------------------------------------------------------------------------------------------
@@ -200,7 +219,9 @@ def _numeric_bias_jacobian(gyro, accel, dt, bg, ba, pre, h=1e-6):
         e[:, i] = h
         plus = preintegrate(gyro, accel, dt, bg + e[:, :3], ba + e[:, 3:])
         minus = preintegrate(gyro, accel, dt, bg - e[:, :3], ba - e[:, 3:])
-        d_plus = _increment_error(pre, plus.delta_rotation, plus.delta_velocity, plus.delta_position)
+        d_plus = _increment_error(
+            pre, plus.delta_rotation, plus.delta_velocity, plus.delta_position
+        )
         d_minus = _increment_error(
             pre, minus.delta_rotation, minus.delta_velocity, minus.delta_position
         )
@@ -283,9 +304,12 @@ def test_one_sample_accel_covariance_is_held_white_noise():
     [dt^2/2, dt]] per axis (the convention test_eskf_filterpy.py builds its Q from)."""
     dt = 0.005
     pre = preintegrate(
-        torch.zeros(1, 3, dtype=DTYPE), torch.tensor([[0.0, 0.0, 9.8]], dtype=DTYPE),
-        torch.tensor([dt], dtype=DTYPE), torch.zeros(3, dtype=DTYPE), torch.zeros(3, dtype=DTYPE),
-    )  # fmt: skip
+        torch.zeros(1, 3, dtype=DTYPE),
+        torch.tensor([[0.0, 0.0, 9.8]], dtype=DTYPE),
+        torch.tensor([dt], dtype=DTYPE),
+        torch.zeros(3, dtype=DTYPE),
+        torch.zeros(3, dtype=DTYPE),
+    )
     eye = torch.eye(3, dtype=DTYPE)
     expected = torch.zeros(9, 9, dtype=DTYPE)
     expected[:3, :3] = dt**3 / 4 * eye

@@ -167,7 +167,9 @@ def test_residual_values_and_signs():
     fwd, yaw_rate = wheel_speed_and_yaw_rate(left, right, TRACK)
     torch.testing.assert_close(fwd, speed, rtol=0, atol=1e-15)
     torch.testing.assert_close(yaw_rate, omega[:, 2], rtol=0, atol=1e-14)
-    r, _ = wheel_residual(velocity, state.rotation, gyro, state.gyro_bias, left, right, TRACK, lever)
+    r, _ = wheel_residual(
+        velocity, state.rotation, gyro, state.gyro_bias, left, right, TRACK, lever
+    )
     torch.testing.assert_close(r, torch.zeros_like(r), rtol=0, atol=1e-13)
     r, _ = nonholonomic_residual(velocity, state.rotation, gyro, state.gyro_bias, lever)
     torch.testing.assert_close(r, torch.zeros_like(r), rtol=0, atol=1e-13)
@@ -177,10 +179,11 @@ def test_residual_values_and_signs():
     torch.testing.assert_close(r[:, 0], torch.full((10,), 0.1, dtype=DTYPE), rtol=0, atol=1e-13)
 
     r, _ = pose_residual(
-        state.position, state.rotation, state.position - 2.0, state.rotation @ so3.exp(
-            torch.tensor([0.0, 0.0, -0.1], dtype=DTYPE)
-        ),
-    )  # fmt: skip
+        state.position,
+        state.rotation,
+        state.position - 2.0,
+        state.rotation @ so3.exp(torch.tensor([0.0, 0.0, -0.1], dtype=DTYPE)),
+    )
     torch.testing.assert_close(r[:, :3], torch.full((10, 3), 2.0, dtype=DTYPE))
     torch.testing.assert_close(
         r[:, 3:], torch.tensor([0.0, 0.0, 0.1], dtype=DTYPE).expand(10, 3), rtol=0, atol=1e-13
@@ -196,13 +199,19 @@ def test_jacobians_broadcast_shared_lever_arm():
     for fn in (
         lambda lv: gnss_residual(state.position, state.rotation, lv, extra["measured3"]),
         lambda lv: wheel_residual(
-            state.velocity, state.rotation, extra["gyro"], state.gyro_bias, extra["left"],
-            extra["right"], TRACK, lv,
+            state.velocity,
+            state.rotation,
+            extra["gyro"],
+            state.gyro_bias,
+            extra["left"],
+            extra["right"],
+            TRACK,
+            lv,
         ),
         lambda lv: nonholonomic_residual(
             state.velocity, state.rotation, extra["gyro"], state.gyro_bias, lv
         ),
-    ):  # fmt: skip
+    ):
         r1, j1 = fn(lever)
         r2, j2 = fn(lever.expand(10, 3))
         torch.testing.assert_close(r1, r2, rtol=0, atol=0)

@@ -1,0 +1,188 @@
+"""ESKF consistency: NEES of the 15-dim error over Monte-Carlo runs (acceptance).
+
+20 simulated runs (seeds 100..119, 40 s, IMU + wheel + GNSS) with the simulator's
+unmodelled effects switched off (no wheel scale error, ideal tachometer, no slip) and the
+filter's noise set to the simulator's (IMU densities from the run's metadata, wheel sigmas =
+``wheel_speed_noise_mps``, GNSS sigmas from the fixes). The average NEES over runs must lie
+inside the two-sided 95% chi-square interval at >= 90% of the epochs after a 5 s transient
+(the initial yaw, roll/pitch and position come from the first seconds of data).
+
+``nees_consistency`` is importable for longer studies, e.g.::
+
+    import sys; sys.path.insert(0, "tests/frontend")
+    from test_eskf_nees import nees_consistency
+    report = nees_consistency(seeds=range(100, 200), duration_s=120.0)
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from msf_torch.eval.nees import average_nees, chi2_interval, nees
+from msf_torch.frontend.config import EskfConfig, config_for_sequence
+from msf_torch.frontend.eskf import run_eskf
+from msf_torch.geometry import so3
+from msf_torch.sim.wheeled import SimConfig, simulate_run
+from msf_torch.types import batch_sequences
+
+COMPONENTS = {"position": 0, "velocity": 3, "attitude": 6, "gyro_bias": 9, "accel_bias": 12}
+
+
+def consistent_sim_config(duration_s: float = 40.0, **overrides) -> SimConfig:
+    """A simulator setting without effects the filter does not model."""
+    return SimConfig(
+        duration_s=duration_s,
+        wheel_scale_sigma=0.0,
+        encoder_ticks_per_rev=None,
+        slip_episodes=0,
+        gnss_outage_count=0,
+        **overrides,
+    )
+
+
+def matched_filter_config(sim: SimConfig, meta: dict) -> EskfConfig:
+    """The filter configuration whose noise equals the simulator's."""
+    base = EskfConfig(
+        wheel_speed_sigma_mps=sim.wheel_speed_noise_mps,
+        wheel_lateral_sigma_mps=sim.wheel_speed_noise_mps,
+        wheel_track_m=sim.wheel_track_m,
+        gnss_lever_arm_m=list(sim.gnss_lever_arm_m),
+        init_gyro_bias_sigma_radps=sim.imu_noise.gyro_bias_sigma0,
+        init_accel_bias_sigma_mps2=sim.imu_noise.accel_bias_sigma0,
+        slip_detection=False,
+        gate_probability=1.0,
+    )
+    return config_for_sequence(base, meta, explicit=set())
+
+
+@dataclass
+class NeesReport:
+    """Average NEES over runs per epoch and its test against the chi-square interval.
+
+    Attributes:
+        t: (E,) epoch times, s (common to all runs).
+        anees: (E,) average 15-dim NEES over runs.
+        components: name -> (E,) average 3-dim NEES of one block (its own marginal).
+        bounds: two-sided interval of the 15-dim average, (low, high).
+        fraction_inside: fraction of epochs after ``skip_s`` inside ``bounds``.
+        fraction_below, fraction_above: the same for below / above.
+        component_fraction: name -> fraction of epochs of the block's 3-dim ANEES inside its
+            own interval ``chi2_interval(3, n_runs)``.
+        n_runs, skip_s.
+    """
+
+    t: np.ndarray
+    anees: np.ndarray
+    components: dict[str, np.ndarray]
+    bounds: tuple[float, float]
+    fraction_inside: float
+    fraction_below: float
+    fraction_above: float
+    component_fraction: dict[str, float]
+    n_runs: int
+    skip_s: float
+
+    def summary(self) -> str:
+        after = self.t >= self.t[0] + self.skip_s
+        lines = [
+            f"{self.n_runs} runs, epochs after {self.skip_s} s: {int(after.sum())}; "
+            f"15-dim ANEES inside [{self.bounds[0]:.2f}, {self.bounds[1]:.2f}] at "
+            f"{100 * self.fraction_inside:.1f}% (below {100 * self.fraction_below:.1f}%, "
+            f"above {100 * self.fraction_above:.1f}%); median {np.median(self.anees[after]):.2f}"
+        ]
+        low3, high3 = chi2_interval(3, self.n_runs)
+        for name, values in self.components.items():
+            lines.append(
+                f"  {name:10s} 3-dim ANEES median {np.median(values[after]):7.2f} "
+                f"(interval [{low3:.2f}, {high3:.2f}], inside "
+                f"{100 * self.component_fraction[name]:.1f}%)"
+            )
+        return "\n".join(lines)
+
+
+def nees_consistency(
+    seeds: Iterable[int] = range(100, 120),
+    duration_s: float = 40.0,
+    skip_s: float = 5.0,
+    prob: float = 0.95,
+    sim_overrides: dict | None = None,
+    cfg_overrides: dict | None = None,
+) -> NeesReport:
+    """Simulate one run per seed, filter them as one batch, and score the NEES.
+
+    The error is truth minus estimate in the error-state convention: ``p_t - p``,
+    ``v_t - v``, ``Log(R^T R_t)``, ``b_t - b``; truth at the epoch times (IMU sample times).
+    """
+    seeds = list(seeds)
+    sim = consistent_sim_config(duration_s, **(sim_overrides or {}))
+    runs = [simulate_run(sim, seed=s) for s in seeds]
+    cfg = matched_filter_config(sim, runs[0].sequence.meta)
+    if cfg_overrides:
+        cfg = cfg.replace(**cfg_overrides)
+    res = run_eskf(batch_sequences([r.sequence for r in runs]), cfg)
+    if not bool(res.mask.all()):
+        raise AssertionError("runs of equal length should give equal epoch grids")
+    t = res.t[0]
+    if float((res.t - t).abs().max()) > 1e-9:
+        raise AssertionError("epoch times differ between runs")
+    idx = torch.round(t * sim.imu_rate_hz).long()
+    if float((runs[0].truth.t[0, idx] - t).abs().max()) > 1e-9:
+        raise AssertionError("epoch times are not IMU sample times")
+
+    def truth(name):
+        return torch.stack([getattr(r.truth, name)[0, idx] for r in runs])
+
+    rot_est = res.rotation
+    error = torch.cat(
+        (
+            truth("position") - res.position,
+            truth("velocity") - res.velocity,
+            so3.log(rot_est.mT @ truth("rotation")),
+            truth("gyro_bias") - res.gyro_bias,
+            truth("accel_bias") - res.accel_bias,
+        ),
+        -1,
+    )
+    cov = res.covariance
+    anees = average_nees(nees(error, cov)).numpy()
+    components = {}
+    for name, start in COMPONENTS.items():
+        blk = slice(start, start + 3)
+        components[name] = average_nees(nees(error[..., blk], cov[..., blk, blk])).numpy()
+    t_np = t.numpy()
+    after = t_np >= t_np[0] + skip_s
+    low, high = chi2_interval(15, len(seeds), prob)
+    low3, high3 = chi2_interval(3, len(seeds), prob)
+    vals = anees[after]
+    return NeesReport(
+        t=t_np,
+        anees=anees,
+        components=components,
+        bounds=(low, high),
+        fraction_inside=float(np.mean((vals >= low) & (vals <= high))),
+        fraction_below=float(np.mean(vals < low)),
+        fraction_above=float(np.mean(vals > high)),
+        component_fraction={
+            k: float(np.mean((v[after] >= low3) & (v[after] <= high3)))
+            for k, v in components.items()
+        },
+        n_runs=len(seeds),
+        skip_s=skip_s,
+    )
+
+
+def test_average_nees_inside_chi_square_bounds():
+    report = nees_consistency(seeds=range(100, 120), duration_s=40.0, skip_s=5.0)
+    assert report.fraction_inside >= 0.90, (
+        "ESKF inconsistent: 15-dim average NEES over 20 runs inside the 95% chi-square "
+        f"interval at only {100 * report.fraction_inside:.1f}% of epochs (need >= 90%)\n"
+        + report.summary()
+    )
+
+
+if __name__ == "__main__":
+    print(nees_consistency().summary())
