@@ -22,8 +22,45 @@ def quat_to_matrix(quat: torch.Tensor) -> torch.Tensor:
 
 
 def matrix_to_quat(rot: torch.Tensor) -> torch.Tensor:
-    """Rotation matrix (..., 3, 3) -> unit quaternion (..., 4) ``[w, x, y, z]`` with w >= 0."""
-    quat = _tf.matrix_to_quaternion(rot)
+    """Rotation matrix (..., 3, 3) -> unit quaternion (..., 4) ``[w, x, y, z]`` with w >= 0.
+
+    Shepperd's method: the four candidate quaternions are formed from the four diagonal
+    combinations and the best-conditioned one is kept. Square roots use the double-``where``
+    form, so gradients are finite everywhere (the identity, axis rotations, a half turn).
+    """
+    m00, m11, m22 = rot[..., 0, 0], rot[..., 1, 1], rot[..., 2, 2]
+    four_sq = torch.stack(
+        (
+            1.0 + m00 + m11 + m22,
+            1.0 + m00 - m11 - m22,
+            1.0 - m00 + m11 - m22,
+            1.0 - m00 - m11 + m22,
+        ),
+        -1,
+    )
+    positive = four_sq > 0
+    q_abs = torch.where(positive, torch.sqrt(torch.where(positive, four_sq, 1.0)), 0.0)
+    r21_12 = rot[..., 2, 1] - rot[..., 1, 2]
+    r02_20 = rot[..., 0, 2] - rot[..., 2, 0]
+    r10_01 = rot[..., 1, 0] - rot[..., 0, 1]
+    r10p01 = rot[..., 1, 0] + rot[..., 0, 1]
+    r02p20 = rot[..., 0, 2] + rot[..., 2, 0]
+    r21p12 = rot[..., 2, 1] + rot[..., 1, 2]
+    candidates = (
+        torch.stack(
+            (
+                torch.stack((q_abs[..., 0] ** 2, r21_12, r02_20, r10_01), -1),
+                torch.stack((r21_12, q_abs[..., 1] ** 2, r10p01, r02p20), -1),
+                torch.stack((r02_20, r10p01, q_abs[..., 2] ** 2, r21p12), -1),
+                torch.stack((r10_01, r02p20, r21p12, q_abs[..., 3] ** 2), -1),
+            ),
+            -2,
+        )
+        / (2.0 * q_abs.clamp_min(0.1))[..., None]
+    )
+    best = torch.nn.functional.one_hot(q_abs.argmax(-1), 4).to(rot.dtype)
+    quat = (candidates * best[..., None]).sum(-2)
+    quat = quat / quat.norm(dim=-1, keepdim=True)
     return torch.where(quat[..., :1] < 0, -quat, quat)
 
 

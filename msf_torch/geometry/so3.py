@@ -20,6 +20,7 @@ __all__ = [
     "gamma1",
     "gamma2",
     "right_jacobian",
+    "gamma_vector_jacobians",
     "series",
     "project",
 ]
@@ -28,7 +29,7 @@ import functools
 
 import torch
 
-_SMALL_ANGLE = 1e-4
+_SMALL_ANGLE = 2e-2  # Taylor branches below: truncation error < 2e-16 up to here
 
 
 @functools.lru_cache(maxsize=16)
@@ -151,6 +152,62 @@ def series(phi: torch.Tensor) -> dict[str, torch.Tensor]:
     }
 
 
+def gamma_vector_jacobians(
+    phi: torch.Tensor, vec: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Exact derivatives ``d(Gamma_1(phi) x)/dphi`` and ``d(Gamma_2(phi) x)/dphi``.
+
+    With ``Gamma_n(phi) x = a_n x + c_n phi x x + d_n phi x (phi x x)`` and
+    ``d[phi x (phi x x)]/dphi = (phi . x) I + phi x^T - 2 x phi^T``, the derivative is
+    ``-c_n [x]x + c_n' (phi x x) phi^T + d_n (...) + d_n' (phi x (phi x x)) phi^T`` where
+    ``c' = (dc/dtheta) / theta`` (Taylor series below the small-angle switch).
+
+    Args:
+        phi: (..., 3) rotation vector, rad. vec: (..., 3).
+    Returns:
+        two (..., 3, 3) Jacobians.
+    """
+    theta2, small, t2, t = _angle_terms(phi)
+    sin_t, cos_t = torch.sin(t), torch.cos(t)
+    c1 = torch.where(small, 0.5 - theta2 / 24.0 + theta2**2 / 720.0, (1.0 - cos_t) / t2)
+    c2 = torch.where(small, 1.0 / 6.0 - theta2 / 120.0 + theta2**2 / 5040.0, (t - sin_t) / (t2 * t))
+    c3 = torch.where(
+        small,
+        1.0 / 24.0 - theta2 / 720.0 + theta2**2 / 40320.0,
+        (t2 + 2.0 * cos_t - 2.0) / (2.0 * t2 * t2),
+    )
+    e1 = torch.where(
+        small,
+        -1.0 / 12.0 + theta2 / 180.0 - theta2**2 / 6720.0,
+        sin_t / (t2 * t) - 2.0 * (1.0 - cos_t) / (t2 * t2),
+    )
+    e2 = torch.where(
+        small,
+        -1.0 / 60.0 + theta2 / 1260.0 - theta2**2 / 60480.0,
+        (1.0 - cos_t) / (t2 * t2) - 3.0 * (t - sin_t) / (t2 * t2 * t),
+    )
+    e3 = torch.where(
+        small,
+        -1.0 / 360.0 + theta2 / 10080.0 - theta2**2 / 604800.0,
+        (t - sin_t) / (t2 * t2 * t) - 2.0 * (t2 + 2.0 * cos_t - 2.0) / (t2 * t2 * t2),
+    )
+    cross1 = torch.linalg.cross(phi, vec)
+    cross2 = torch.linalg.cross(phi, cross1)
+    eye = identity(phi.dtype, phi.device)
+    dot = (phi * vec).sum(-1)[..., None, None]
+    double = (
+        dot * eye
+        + phi[..., :, None] * vec[..., None, :]
+        - 2.0 * vec[..., :, None] * phi[..., None, :]
+    )
+    hat_vec = hat(vec)
+    outer1 = cross1[..., :, None] * phi[..., None, :]
+    outer2 = cross2[..., :, None] * phi[..., None, :]
+    d_gamma1 = -c1 * hat_vec + e1 * outer1 + c2 * double + e2 * outer2
+    d_gamma2 = -c2 * hat_vec + e2 * outer1 + c3 * double + e3 * outer2
+    return d_gamma1, d_gamma2
+
+
 def right_jacobian(phi: torch.Tensor) -> torch.Tensor:
     """SO(3) right Jacobian ``J_r(phi) = Gamma_1(-phi)``: ``Exp(phi + d) ~ Exp(phi) Exp(J_r d)``.
 
@@ -162,20 +219,21 @@ def right_jacobian(phi: torch.Tensor) -> torch.Tensor:
 def log(rot: torch.Tensor) -> torch.Tensor:
     """Rotation vector ``Log(R)`` (..., 3, 3) -> (..., 3), angle in [0, pi].
 
-    Uses the quaternion route (pytorch_kinematics' branch-free ``matrix_to_quaternion``)
-    and ``2 atan2(|v|, w)``, which is accurate at the identity and at a half turn.
+    Goes through the quaternion (:func:`msf_torch.geometry.quaternion.matrix_to_quat`,
+    whose square roots are gradient-safe) and ``2 atan2(|v|, w)``, which is accurate at the
+    identity and at a half turn.
     """
-    from pytorch_kinematics.transforms import matrix_to_quaternion
+    from msf_torch.geometry.quaternion import matrix_to_quat
 
-    quat = matrix_to_quaternion(rot)
-    quat = torch.where(quat[..., :1] < 0, -quat, quat)
+    quat = matrix_to_quat(rot)
     w, vec = quat[..., :1], quat[..., 1:]
     norm2 = (vec * vec).sum(-1, keepdim=True)
     small = norm2 < 1e-16
     safe_norm = torch.sqrt(torch.where(small, torch.ones_like(norm2), norm2))
+    safe_w = torch.where(small, w, torch.ones_like(w))
     scale = torch.where(
         small,
-        2.0 / w.clamp_min(1e-300) * (1.0 - norm2 / (3.0 * w * w)),
+        2.0 / safe_w * (1.0 - norm2 / (3.0 * safe_w * safe_w)),
         2.0 * torch.atan2(safe_norm, w) / safe_norm,
     )
     return scale * vec

@@ -196,35 +196,13 @@ def test_gamma_functions_equal_van_loan_block_exponentials():
         two = expm(np.block([[w, eye], [zero, zero]]))
         three = expm(np.block([[w, eye, zero], [zero, zero, eye], [zero, zero, zero]]))
         np.testing.assert_allclose(g1[k], two[:3, 3:], rtol=0, atol=1e-12)
-        if not _in_gamma2_band(float(p.norm())):  # covered by the xfail test below
-            np.testing.assert_allclose(g2[k], three[:3, 6:], rtol=0, atol=1e-12)
-
-
-# Gamma_2's [phi]x^2 coefficient (t^2 + 2 cos t - 2) / (2 t^4) cancels catastrophically just
-# above the Taylor switch (|phi| = 1e-4): ~100% coefficient error at 1e-4, Gamma_2 off by
-# 3e-9 at |phi| = 2e-4 and its gradient by 3e-5 (see the report).
-_GAMMA2_BAND = pytest.mark.xfail(
-    strict=True,
-    reason="so3.gamma2/series c3 loses all digits for 1e-4 < |phi| < ~1e-3 (cancellation); "
-    "fix: Taylor branch up to |phi| ~ 1e-2 for c2/c3",
-)
-
-
-def _in_gamma2_band(angle: float) -> bool:
-    return 0.99999e-4 < angle <= 1e-3
+        np.testing.assert_allclose(g2[k], three[:3, 6:], rtol=0, atol=1e-12)
 
 
 _ANGLES = [0.0, 1e-9, 1e-5, 9.9e-5, 1.0001e-4, 2e-4, 5e-4, 1e-3, 1e-2, 0.5, 2.0, 3.0, math.pi]
 
 
-def _cases():
-    for name in _REFERENCE:
-        for angle in _ANGLES:
-            bad = name == "gamma2" and _in_gamma2_band(angle)
-            yield pytest.param(name, angle, marks=_GAMMA2_BAND if bad else ())
-
-
-@pytest.mark.parametrize(("name", "angle"), list(_cases()))
+@pytest.mark.parametrize(("name", "angle"), [(n, a) for n in _REFERENCE for a in _ANGLES])
 def test_series_functions_and_gradients_equal_power_series(name, angle):
     """Values to 1e-12 and autograd Jacobians to 1e-8 against the term-by-term power series,
     across the Taylor switch; no NaN at 0 or pi."""

@@ -363,10 +363,12 @@ def _block_errors(cov, ref):
     return out
 
 
-@pytest.mark.parametrize(("rate", "tol"), [(0.0, 1e-12), (1.2, 0.02)])
+@pytest.mark.parametrize(("rate", "tol"), [(0.0, 1e-12), (1.2, 1e-3)])
 def test_covariance_matches_per_sample_recursion(rate, tol):
-    """Exact at zero rotation rate; within 2% (block-wise, relative) at ~1 rad/s, 100 Hz,
-    where the implementation's zeroth-order noise maps are an O(|w| dt) approximation."""
+    """Exact at zero rotation rate. At ~1 rad/s, 100 Hz the implementation's zeroth-order
+    noise maps differ by O(|w| dt) per map, but the first-order parts are skew and cancel in
+    B B^T, so the covariance agrees to O((|w| dt)^2): measured 1.3e-5, asserted 1e-3
+    (block-wise relative Frobenius error; the brief allowed 2%)."""
     gyro, accel, dt, bg, ba = _interval(25, 1, n=100, rate=rate)
     if rate == 0.0:
         bg = torch.zeros_like(bg)
