@@ -274,6 +274,7 @@ def run_eskf(
     cfg: EskfConfig | None = None,
     noise: EskfNoise | None = None,
     progress: Callable[[int], None] | None = None,
+    initial: tuple[NavState, torch.Tensor] | None = None,
 ) -> EskfResult:
     """Run the ESKF over a batch of sequences.
 
@@ -283,6 +284,8 @@ def run_eskf(
         noise: noise tensors (learnable, shape () or (B,)); defaults to
             ``EskfNoise.from_config(cfg)``.
         progress: optional callback called with the number of epochs done (progress bars).
+        initial: optional initial state (B, ...) and covariance (B, 15, 15) at each
+            sequence's first IMU sample; default: ``frontend.init.initial_state``.
     Returns:
         :class:`EskfResult` with (B, E + 1) per-epoch fields.
     Raises:
@@ -300,7 +303,7 @@ def run_eskf(
     dtype, device = seq.imu.t.dtype, seq.imu.t.device
     noise = noise or EskfNoise.from_config(cfg, dtype, device)
     sched = build_schedule(seq, cfg)
-    state, cov = initial_state(seq, cfg)
+    state, cov = initial if initial is not None else initial_state(seq, cfg)
     pre = _preintegrate_chunked(sched, state.gyro_bias, state.accel_bias)
     phi_loc, q_loc = _local_transition(pre, noise)
     gravity = gravity_world(cfg.gravity_mps2, dtype, device)

@@ -5,7 +5,12 @@ direction). Yaw, in order of preference: the first pose measurement (a heading s
 with GNSS and wheels, the 2-D rotation that best aligns the wheel/gyro dead-reckoned path
 with the GNSS track up to ``init_min_gnss_distance_m`` of travel (Procrustes); with GNSS
 only, the course of the first GNSS displacement of that length; else 0 (the world frame
-then starts aligned with the body). Biases and all uncertainties come from the config.
+then starts aligned with the body). Biases and all uncertainties come from the config;
+the initial covariance carries the correlations the initialisation creates: roll and
+pitch with the accelerometer bias (the tilt is read from the biased accelerometer;
+``init_roll_pitch_sigma_rad`` is the part from motion during the window), and a velocity
+built from a body-frame wheel speed with the attitude (``dv = -R [v_b]x dtheta``; the
+velocity sigma is then body-frame).
 """
 
 from __future__ import annotations
@@ -18,6 +23,7 @@ import numpy as np
 import torch
 
 from msf_torch.frontend.config import EskfConfig
+from msf_torch.geometry import so3
 from msf_torch.geometry.conventions import ERROR_STATE_DIM
 from msf_torch.types import NavState, Sequence
 
@@ -48,7 +54,9 @@ def _valid(stream, b: int):
     }
 
 
-def _one(seq: Sequence, b: int, cfg: EskfConfig) -> tuple[np.ndarray, ...]:
+def _one(
+    seq: Sequence, b: int, cfg: EskfConfig
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     imu = _valid(seq.imu, b)
     t0 = imu["t"][0]
     window = imu["t"] <= t0 + cfg.init_window_s
@@ -69,8 +77,8 @@ def _one(seq: Sequence, b: int, cfg: EskfConfig) -> tuple[np.ndarray, ...]:
 
         rot = quat_to_matrix(torch.as_tensor(poses["quaternion"][0])).numpy()
         position = poses["position"][0]
-        velocity = rot @ np.array([wheel_speed, 0.0, 0.0])
-        return position, velocity, rot
+        body_velocity = np.array([wheel_speed, 0.0, 0.0])
+        return position, rot @ body_velocity, rot, body_velocity
     if gnss is not None:
         g0 = gnss["position"][0]
         dist = np.linalg.norm(gnss["position"][:, :2] - g0[:2], axis=1)
@@ -107,12 +115,14 @@ def _one(seq: Sequence, b: int, cfg: EskfConfig) -> tuple[np.ndarray, ...]:
                 elapsed = max(gnss["t"][k] - gnss["t"][0], 1e-3)
                 velocity = np.array([delta[0], delta[1], 0.0]) / elapsed
     rot = _rpy_matrix(roll, pitch, yaw)
+    body_velocity = np.zeros(3)
     if wheel is not None:
-        velocity = rot @ np.array([wheel_speed, 0.0, 0.0])
+        body_velocity = np.array([wheel_speed, 0.0, 0.0])
+        velocity = rot @ body_velocity
     if gnss is not None:
         lever = rot @ np.asarray(cfg.gnss_lever_arm_m)
         position = gnss["position"][0] - lever - velocity * (gnss["t"][0] - t0)
-    return position, velocity, rot
+    return position, velocity, rot, body_velocity
 
 
 def initial_state(seq: Sequence, cfg: EskfConfig) -> tuple[NavState, torch.Tensor]:
@@ -143,4 +153,24 @@ def initial_state(seq: Sequence, cfg: EskfConfig) -> tuple[NavState, torch.Tenso
     sigmas += [cfg.init_accel_bias_sigma_mps2] * 3
     sig = torch.as_tensor(sigmas, dtype=dtype, device=device)
     cov = torch.diag_embed(sig**2).expand(batch, ERROR_STATE_DIM, ERROR_STATE_DIM).clone()
+    # roll and pitch come from the mean accelerometer, which carries the accel bias: with
+    # f = R^T (-g_w) + b_a, a bias error db_a tilts the estimate by
+    # dtheta_x = -db_a,y / g, dtheta_y = db_a,x / g (on top of the motion part)
+    tilt = torch.zeros(3, 3, dtype=dtype, device=device)
+    tilt[0, 1] = -1.0 / cfg.gravity_mps2
+    tilt[1, 0] = 1.0 / cfg.gravity_mps2
+    bias_cov = cov[:, 12:15, 12:15]
+    cov[:, 6:9, 6:9] = cov[:, 6:9, 6:9] + tilt @ bias_cov @ tilt.mT
+    cov[:, 6:9, 12:15] = tilt @ bias_cov
+    cov[:, 12:15, 6:9] = (tilt @ bias_cov).mT
+    # a velocity built from a body-frame speed inherits the attitude uncertainty:
+    # v = R v_b with R = R0 Exp(dtheta) gives dv = R0 dv_b - R0 [v_b]x dtheta
+    body_velocity = stack(3)
+    rotation = state.rotation
+    coupling = -rotation @ so3.hat(body_velocity)  # (B, 3, 3)
+    att = cov[:, 6:9, 6:9]
+    vel_body = torch.diag_embed(sig[3:6] ** 2).expand(batch, 3, 3)
+    cov[:, 3:6, 3:6] = rotation @ vel_body @ rotation.mT + coupling @ att @ coupling.mT
+    cov[:, 3:6, 6:9] = coupling @ att
+    cov[:, 6:9, 3:6] = (coupling @ att).mT
     return state, cov
