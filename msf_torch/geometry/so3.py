@@ -21,6 +21,7 @@ __all__ = [
     "gamma2",
     "right_jacobian",
     "gamma_vector_jacobians",
+    "exp_and_gammas",
     "series",
     "project",
 ]
@@ -150,6 +151,31 @@ def series(phi: torch.Tensor) -> dict[str, torch.Tensor]:
         "right_jacobian": eye - c1 * skew + c2 * skew2,
         "coef": torch.cat((c0, c1, c2, c3), -1)[..., 0, :],
     }
+
+
+def exp_and_gammas(phi: torch.Tensor) -> torch.Tensor:
+    """``Exp(phi)``, ``Gamma_1(phi)``, ``Gamma_2(phi)`` stacked: (..., 3) -> (..., 3, 3, 3).
+
+    All three are ``a I + b [phi]x + c [phi]x^2`` with ``[phi]x^2 = phi phi^T - theta^2 I``;
+    computing them together shares every intermediate (large batches of IMU samples).
+    """
+    theta2, small, t2, t = _angle_terms(phi)
+    sin_t, cos_t = torch.sin(t), torch.cos(t)
+    c0 = torch.where(small, 1.0 - theta2 / 6.0 + theta2**2 / 120.0, sin_t / t)
+    c1 = torch.where(small, 0.5 - theta2 / 24.0 + theta2**2 / 720.0, (1.0 - cos_t) / t2)
+    c2 = torch.where(small, 1.0 / 6.0 - theta2 / 120.0 + theta2**2 / 5040.0, (t - sin_t) / (t2 * t))
+    c3 = torch.where(
+        small,
+        1.0 / 24.0 - theta2 / 720.0 + theta2**2 / 40320.0,
+        (t2 + 2.0 * cos_t - 2.0) / (2.0 * t2 * t2),
+    )
+    eye = identity(phi.dtype, phi.device)
+    skew = hat(phi)[..., None, :, :]
+    skew2 = (phi[..., :, None] * phi[..., None, :] - theta2 * eye)[..., None, :, :]
+    a = torch.tensor([1.0, 1.0, 0.5], dtype=phi.dtype, device=phi.device)[:, None, None]
+    b = torch.stack((c0, c1, c2), -3)
+    c = torch.stack((c1, c2, c3), -3)
+    return a * eye + b * skew + c * skew2
 
 
 def gamma_vector_jacobians(

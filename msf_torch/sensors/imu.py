@@ -190,19 +190,21 @@ def preintegrate(
     dt_col = dt[..., None]
     dt_mat = dt_col[..., None]
     phi = omega * dt_col
-    mats = so3.series(phi)
-    step_rot = mats["exp"]
+    step_rot, gam1, gam2 = so3.exp_and_gammas(phi).unbind(-3)
+    d_gamma1, d_gamma2 = so3.gamma_vector_jacobians(phi, force)
 
-    rotations = [
-        torch.eye(3, dtype=gyro.dtype, device=gyro.device).expand_as(step_rot[..., 0, :, :])
-    ]
-    for k in range(dt.shape[-1]):
-        rotations.append(rotations[-1] @ step_rot[..., k, :, :])
+    steps_first = step_rot.movedim(-3, 0).contiguous()  # (L, ..., 3, 3): contiguous slices
+    rotations = [so3.identity(gyro.dtype, gyro.device).expand_as(steps_first[0]).contiguous()]
+    for step in steps_first:
+        rotations.append(torch.matmul(rotations[-1], step))
     prefix_rot = torch.stack(rotations, -3)  # (..., L + 1, 3, 3)
-    rot_start, rot_end = prefix_rot[..., :-1, :, :], prefix_rot[..., 1:, :, :]
+    rot_start = prefix_rot[..., :-1, :, :]
 
-    acc_v = rot_start @ (mats["gamma1"] * dt_mat)  # R_j Gamma_1 dt_j
-    acc_p = rot_start @ (mats["gamma2"] * dt_mat**2)  # R_j Gamma_2 dt_j^2
+    # one product for every per-sample map: R_j [Gamma_1 dt, Gamma_2 dt^2, dG_1 dt^2, dG_2 dt^3]
+    dt2 = dt_mat * dt_mat
+    local = torch.cat((gam1 * dt_mat, gam2 * dt2, d_gamma1 * dt2, d_gamma2 * (dt2 * dt_mat)), -1)
+    maps = rot_start @ local
+    acc_v, acc_p, in_v, in_p = maps.split(3, -1)  # acc_v = R_j Gamma_1 dt = R_{j+1} J_r dt
     vel_steps = (acc_v @ force[..., None]).squeeze(-1)  # (..., L, 3)
     pos_steps = (acc_p @ force[..., None]).squeeze(-1)
     vel_after = torch.cumsum(vel_steps, -2)  # V_{j+1}
@@ -218,17 +220,15 @@ def preintegrate(
     vel_lever = delta_velocity[..., None, :] - vel_after  # D_j
     pos_lever = delta_position[..., None, :] - pos_after - remaining[..., None] * vel_after  # C_j
 
-    gyro_in = rot_end @ (mats["right_jacobian"] * dt_mat)  # -Y_j
-    sum_gyro_in = gyro_in.sum(-3)
-    jac_theta_bg = -delta_rotation.mT @ sum_gyro_in
+    # -Y_j = R_{j+1} J_r(w dt) dt = R_j Exp(w dt) J_r(w dt) dt = R_j Gamma_1 dt = acc_v
+    levers = torch.cat((so3.hat(vel_lever), so3.hat(pos_lever)), -2) @ acc_v  # (..., L, 6, 3)
+    rem = remaining[..., None, None]
+    jac_theta_bg = -delta_rotation.mT @ acc_v.sum(-3)
     # the bias also turns the force inside each sample: d(Gamma_n(w dt) f)/db_g = -dG_n dt
-    d_gamma1, d_gamma2 = so3.gamma_vector_jacobians(phi, force)
-    in_v = -(rot_start @ d_gamma1) * dt_mat**2
-    in_p = -(rot_start @ d_gamma2) * dt_mat**3
-    jac_v_bg = (so3.hat(vel_lever) @ gyro_in + in_v).sum(-3)
-    jac_p_bg = (so3.hat(pos_lever) @ gyro_in + in_p + remaining[..., None, None] * in_v).sum(-3)
+    jac_v_bg = (levers[..., 0:3, :] - in_v).sum(-3)
+    jac_p_bg = (levers[..., 3:6, :] - in_p - rem * in_v).sum(-3)
     jac_v_ba = -acc_v.sum(-3)
-    jac_p_ba = -(remaining[..., None, None] * acc_v + acc_p).sum(-3)
+    jac_p_ba = -(rem * acc_v + acc_p).sum(-3)
     zeros = torch.zeros_like(jac_v_ba)
     jac = torch.cat(
         (
