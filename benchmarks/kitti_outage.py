@@ -139,6 +139,42 @@ def run_window(
     }
 
 
+def turn_heading_check(seq, window_s: float = 10.0, min_turn_rad: float = 0.8) -> dict[str, Any]:
+    """How well the drive's own gyro keeps heading through turns, GNSS as the reference.
+
+    For every 10-s span (5-s steps) at > 4 m/s whose GNSS course (central differences of
+    the fixes) turns by more than ``min_turn_rad``, compare the integrated gyro z rate over
+    the span with the course change. A causal IMU + NHC estimator cannot do better than
+    this heading loss while GNSS is out.
+    """
+    t = seq.imu.t[0].numpy()
+    gyro_z = seq.imu.gyro[0, :, 2].numpy()
+    gt = seq.gnss.t[0].numpy()
+    gp = seq.gnss.position[0].numpy()
+    vel = (gp[2:] - gp[:-2]) / (gt[2:] - gt[:-2])[:, None]
+    tc = gt[1:-1]
+    course = np.unwrap(np.arctan2(vel[:, 1], vel[:, 0]))
+    speed = np.linalg.norm(vel[:, :2], axis=1)
+    yaw = np.concatenate(([0.0], np.cumsum(gyro_z[:-1] * np.diff(t))))
+    yaw_at = np.interp(tc, t, yaw)
+    step = int(round(window_s))
+    ratios, losses = [], []
+    for k in range(0, len(tc) - step, 5):
+        if speed[k] > 4 and speed[k + step] > 4:
+            turn = course[k + step] - course[k]
+            if abs(turn) > min_turn_rad:
+                gyro_turn = yaw_at[k + step] - yaw_at[k]
+                ratios.append(gyro_turn / turn)
+                losses.append(abs(gyro_turn - turn))
+    return {
+        "turns": len(ratios),
+        "gyro_over_course_min": float(np.min(ratios)),
+        "gyro_over_course_max": float(np.max(ratios)),
+        "heading_loss_median_rad": float(np.median(losses)),
+        "heading_loss_max_rad": float(np.max(losses)),
+    }
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--quick", action="store_true", help="main window only")
@@ -247,6 +283,7 @@ def main(argv: list[str] | None = None) -> int:
         },
         "target_met": target_met,
         "windows_over_target": failing,
+        "data_check_turn_heading": turn_heading_check(seq),
         "machine": machine,
     }
     emit_json(record)
