@@ -15,12 +15,18 @@ Per epoch (see ``frontend.schedule``) and for all B sequences at once:
               [0, 0,     0,       I,       0     ],
               [0, 0,     0,       0,       I     ]].
 
+   The covariance is kept in right-invariant coordinates (see :func:`_invariant_maps`):
+   ``P_inv`` propagates with ``T_j^-1 Phi T_i`` and updates with ``H T_j``, so the
+   global-yaw direction that wheels and the NHC cannot observe stays unobservable
+   whatever the estimate; results report the conventional covariance ``T P_inv T^T``. The
+   transition uses the same bias-corrected increments as the nominal state.
+
 2. Update with every measurement that falls on the epoch end, stacked into one vector:
    wheel (4: body velocity + yaw rate), NHC (2), zero velocity (3), GNSS (3), pose (6),
    each a residual from ``sensors``. Each block is chi-square gated on its own innovation;
    the wheel block is also scaled by the slip factor (``frontend.slip``) and skipped below
-   a threshold. Joseph-form covariance update, then error injection and the reset
-   Jacobian ``I - 1/2 [dtheta]x``.
+   a threshold. Joseph-form covariance update, then the invariant error is injected
+   (``R <- Exp(xi_R) R``, ``v <- Exp(xi_R) v + xi_v``, ...).
 
 Everything is a differentiable torch op: gradients reach the noise parameters
 (:class:`EskfNoise`). The only Python loop on the hot path is over epochs.
@@ -226,24 +232,47 @@ def _local_transition(pre: Preintegrated, noise: EskfNoise) -> tuple[torch.Tenso
     return phi, q
 
 
-def _inject(state: NavState, dx: torch.Tensor) -> NavState:
+def _invariant_maps(
+    position: torch.Tensor, velocity: torch.Tensor, rotation: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Maps between the right-invariant error and the conventional error state.
+
+    The filter keeps its covariance in right-invariant (world-frame) coordinates
+    ``xi = [xi_p, xi_v, xi_R, db_g, db_a]`` with ``R = Exp(xi_R) R_hat``,
+    ``v = Exp(xi_R) v_hat + xi_v``, ``p = Exp(xi_R) p_hat + xi_p``. To first order the
+    conventional error of ``geometry.conventions`` is ``dx = T xi`` with
+    ``dtheta = R^T xi_R``, ``dv = xi_v - [v]x xi_R``, ``dp = xi_p - [p]x xi_R``. In these
+    coordinates the global-yaw direction, unobservable without a heading source, is a
+    constant vector whatever the estimate, so propagation and updates linearised at
+    different estimates cannot invent heading information (Barrau & Bonnabel 2017).
+
+    Args: (B, 3), (B, 3), (B, 3, 3) estimate.
+    Returns:
+        T (B, 15, 15) and its inverse.
+    """
+    batch = position.shape[0]
+    eye = torch.eye(ERROR_STATE_DIM, dtype=position.dtype, device=position.device)
+    to_conv = eye.repeat(batch, 1, 1)
+    to_conv[:, 0:3, 6:9] = -so3.hat(position)
+    to_conv[:, 3:6, 6:9] = -so3.hat(velocity)
+    to_conv[:, 6:9, 6:9] = rotation.mT
+    to_inv = eye.repeat(batch, 1, 1)
+    to_inv[:, 0:3, 6:9] = so3.hat(position) @ rotation
+    to_inv[:, 3:6, 6:9] = so3.hat(velocity) @ rotation
+    to_inv[:, 6:9, 6:9] = rotation
+    return to_conv, to_inv
+
+
+def _inject_invariant(state: NavState, xi: torch.Tensor) -> NavState:
+    """Apply a right-invariant correction ``xi`` (B, 15) to the nominal state."""
+    turn = so3.exp(xi[:, 6:9])
     return NavState(
-        position=state.position + dx[:, 0:3],
-        velocity=state.velocity + dx[:, 3:6],
-        rotation=state.rotation @ so3.exp(dx[:, 6:9]),
-        gyro_bias=state.gyro_bias + dx[:, 9:12],
-        accel_bias=state.accel_bias + dx[:, 12:15],
+        position=(turn @ state.position[..., None]).squeeze(-1) + xi[:, 0:3],
+        velocity=(turn @ state.velocity[..., None]).squeeze(-1) + xi[:, 3:6],
+        rotation=turn @ state.rotation,
+        gyro_bias=state.gyro_bias + xi[:, 9:12],
+        accel_bias=state.accel_bias + xi[:, 12:15],
     )
-
-
-def _reset_covariance(cov: torch.Tensor, dtheta: torch.Tensor) -> torch.Tensor:
-    """``G P G^T`` with the reset Jacobian ``G = I`` except ``I - 1/2 [dtheta]x`` on the
-    attitude block, applied to the affected rows and columns only. (B, 15, 15)."""
-    block = so3.identity(dtheta.dtype, dtheta.device) - 0.5 * so3.hat(dtheta)
-    rows = block @ cov[:, 6:9, :]
-    cov = torch.cat((cov[:, 0:6], rows, cov[:, 9:15]), -2)
-    cols = cov[:, :, 6:9] @ block.mT
-    return torch.cat((cov[:, :, 0:6], cols, cov[:, :, 9:15]), -1)
 
 
 def _segment_matrix(dims: list[int], dtype, device) -> torch.Tensor:
@@ -303,7 +332,9 @@ def run_eskf(
     dtype, device = seq.imu.t.dtype, seq.imu.t.device
     noise = noise or EskfNoise.from_config(cfg, dtype, device)
     sched = build_schedule(seq, cfg)
-    state, cov = initial if initial is not None else initial_state(seq, cfg)
+    state, cov_conventional = initial if initial is not None else initial_state(seq, cfg)
+    _, to_inv0 = _invariant_maps(state.position, state.velocity, state.rotation)
+    cov = to_inv0 @ cov_conventional @ to_inv0.mT  # kept in invariant coordinates
     pre = _preintegrate_chunked(sched, state.gyro_bias, state.accel_bias)
     phi_loc, q_loc = _local_transition(pre, noise)
     gravity = gravity_world(cfg.gravity_mps2, dtype, device)
@@ -392,22 +423,32 @@ def run_eskf(
             )
             corr = (pre.bias_jacobian[:, e] @ dbias[..., None]).squeeze(-1)
             d_rot = pre.delta_rotation[:, e] @ so3.exp(corr[:, 6:9])
+            d_vel = pre.delta_velocity[:, e] + corr[:, 3:6]
+            d_pos = pre.delta_position[:, e] + corr[:, 0:3]
             position, velocity, rotation = propagate_nominal(
                 state.position,
                 state.velocity,
                 state.rotation,
                 pre.delta_t[:, e],
                 d_rot,
-                pre.delta_velocity[:, e] + corr[:, 3:6],
-                pre.delta_position[:, e] + corr[:, 0:3],
+                d_vel,
+                d_pos,
                 gravity,
             )
+            # the transition must use the very increments the nominal state used, or the
+            # invariant (unobservable-yaw) direction leaks a little at every epoch
+            phi = phi_loc[:, e].clone()
+            phi[:, 0:3, 6:9] = -so3.hat(d_pos)
+            phi[:, 3:6, 6:9] = -so3.hat(d_vel)
+            phi[:, 6:9, 6:9] = d_rot.mT
             frame = frame_base.clone()
             frame[:, 0:3, 0:3] = state.rotation
             frame[:, 3:6, 3:6] = state.rotation
-            phi = phi_loc[:, e]
-            cov_loc = phi @ (frame.mT @ cov @ frame) @ phi.mT + q_loc[:, e]
-            cov = frame @ cov_loc @ frame.mT
+            to_conv_i, _ = _invariant_maps(state.position, state.velocity, state.rotation)
+            to_conv, to_inv = _invariant_maps(position, velocity, rotation)
+            out_map = to_inv @ frame
+            transition = out_map @ phi @ (frame.mT @ to_conv_i)
+            cov = transition @ cov @ transition.mT + out_map @ q_loc[:, e] @ out_map.mT
             state = NavState(position, velocity, rotation, state.gyro_bias, state.accel_bias)
 
             if present_all is None or not bool(present_all[:, e].any()):
@@ -437,7 +478,8 @@ def run_eskf(
                     var = wheel_var
                     here = sched.wheel_mask[:, e]
                     if cfg.slip_detection:
-                        innov = torch.diagonal(h @ cov @ h.mT, dim1=-2, dim2=-1) + var
+                        h_inv = h @ to_conv
+                        innov = torch.diagonal(h_inv @ cov @ h_inv.mT, dim1=-2, dim2=-1) + var
                         new_slip = slip_factor(
                             r,
                             innov,
@@ -477,7 +519,7 @@ def run_eskf(
                 jacobians.append(h)
                 variances.append(var)
             r_all = torch.cat(residuals, -1)
-            h_all = torch.cat(jacobians, -2)
+            h_all = torch.cat(jacobians, -2) @ to_conv  # w.r.t. the invariant error
             r_cov = torch.diag_embed(torch.cat(variances, -1))
             if pose_cov is not None:
                 r_cov = r_cov.clone()
@@ -511,8 +553,7 @@ def run_eskf(
             dx = -(gain @ (r_all * rows)[..., None]).squeeze(-1)
             ikh = eye15 - gain @ h_m
             cov = ikh @ cov @ ikh.mT + gain @ (r_cov * rows_outer) @ gain.mT
-            state = _inject(state, dx)
-            cov = _reset_covariance(cov, dx[:, 6:9])
+            state = _inject_invariant(state, dx)
             cov = 0.5 * (cov + cov.mT)
             accepted_out.append(ok)
             nis_out.append(nis)
@@ -528,6 +569,14 @@ def run_eskf(
         )
     mask = torch.cat((torch.ones(batch, 1, dtype=torch.bool, device=device), sched.epoch_mask), 1)
     t = torch.cat((sched.t_start[:, None], sched.t_end), 1)
+    positions = torch.stack(out["p"], 1)
+    velocities = torch.stack(out["v"], 1)
+    rotations = torch.stack(out["R"], 1)
+    to_conv_all, _ = _invariant_maps(
+        positions.flatten(0, 1), velocities.flatten(0, 1), rotations.flatten(0, 1)
+    )
+    to_conv_all = to_conv_all.unflatten(0, (batch, n_epochs + 1))
+    covariances = to_conv_all @ torch.stack(out["P"], 1) @ to_conv_all.mT
     accepted_all = torch.stack(accepted_out, 1)  # (B, E + 1, K)
     nis_all = torch.stack(nis_out, 1)
     present_out = {k: torch.cat((false_b[:, None], present[k]), 1) for k in SENSORS}
@@ -546,12 +595,12 @@ def run_eskf(
         names=list(seq.names),
         t=t,
         mask=mask,
-        position=torch.stack(out["p"], 1),
-        velocity=torch.stack(out["v"], 1),
-        rotation=torch.stack(out["R"], 1),
+        position=positions,
+        velocity=velocities,
+        rotation=rotations,
         gyro_bias=torch.stack(out["bg"], 1),
         accel_bias=torch.stack(out["ba"], 1),
-        covariance=torch.stack(out["P"], 1),
+        covariance=covariances,
         slip_factor=torch.stack(out["s"], 1),
         present=present_out,
         accepted=accepted,

@@ -189,10 +189,10 @@ def nees_consistency(
 
 @pytest.mark.xfail(
     strict=True,
-    reason="measured 0% of epochs inside (median 15-dim ANEES ~190, i.e. overconfident): the "
-    "EKF linearises at estimates carrying the initialiser's errors (yaw ~0.05-0.09 rad, "
-    "turn-on biases 0.2 deg/s and 5 mg) and gains spurious information along weakly "
-    "observable tilt / gyro-bias and yaw directions; see test_nees_from_truth_start",
+    reason="acceptance item not met: measured 30% of epochs inside over 40 s runs (58% over "
+    "120 s). The filter starts overconfident (ANEES ~116 in the first 5 s, ~20 at 10-30 s) "
+    "while the initialiser's non-Gaussian errors (yaw from a short GNSS track, tilt from a "
+    "moving accelerometer) decay, then sits inside the interval (96% over 30-40 s)",
 )
 def test_average_nees_inside_chi_square_bounds():
     report = nees_consistency(seeds=range(100, 120), duration_s=40.0, skip_s=5.0)
@@ -203,13 +203,15 @@ def test_average_nees_inside_chi_square_bounds():
     )
 
 
-def test_nees_from_truth_start_is_near_consistent():
-    """Started at the truth with the initialiser's covariance, the average NEES lies inside
-    the 95% interval at 88% of epochs (measured); guard against regressions at 80%."""
-    report = nees_consistency(
-        seeds=range(100, 120), duration_s=40.0, skip_s=5.0, start_from_truth=True
-    )
-    assert report.fraction_inside >= 0.80, report.summary()
+def test_nees_typical_epoch_consistent_on_long_runs():
+    """Over 120 s runs the median average NEES lies inside the 95% interval and the filter is
+    overconfident (above the interval) at under a quarter of the epochs (measured: median
+    13.5 in [12.7, 17.5], 15% above, 27% below)."""
+    report = nees_consistency(seeds=range(100, 120), duration_s=120.0, skip_s=5.0)
+    low, high = report.bounds
+    median = float(np.median(report.anees[report.t >= report.skip_s]))
+    assert low <= median <= high, report.summary()
+    assert report.fraction_above <= 0.25, report.summary()
 
 
 if __name__ == "__main__":
