@@ -61,10 +61,12 @@ def main() -> None:
     batch = batch_sequences([r.sequence for r in runs])
     base = config_for_sequence(load_config(), runs[0].sequence.meta, set())
     outcome = {}
-    for name, cfg in (
+    settings = (
         ("ours", base),
         ("peer_no_slip_detection", base.replace(slip_detection=False)),
-    ):
+        ("peer_no_slip_handling", base.replace(slip_detection=False, gate_probability=1.0)),
+    )
+    for name, cfg in settings:
         start = time.perf_counter()
         with torch.no_grad():
             result = run_eskf(batch, cfg)
