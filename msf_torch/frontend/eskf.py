@@ -251,15 +251,17 @@ def _invariant_maps(
         T (B, 15, 15) and its inverse.
     """
     batch = position.shape[0]
-    eye = torch.eye(ERROR_STATE_DIM, dtype=position.dtype, device=position.device)
-    to_conv = eye.repeat(batch, 1, 1)
-    to_conv[:, 0:3, 6:9] = -so3.hat(position)
-    to_conv[:, 3:6, 6:9] = -so3.hat(velocity)
-    to_conv[:, 6:9, 6:9] = rotation.mT
-    to_inv = eye.repeat(batch, 1, 1)
-    to_inv[:, 0:3, 6:9] = so3.hat(position) @ rotation
-    to_inv[:, 3:6, 6:9] = so3.hat(velocity) @ rotation
-    to_inv[:, 6:9, 6:9] = rotation
+    eye = so3.identity(position.dtype, position.device, ERROR_STATE_DIM)
+    hat_p, hat_v = so3.hat(position), so3.hat(velocity)
+    to_conv = eye.expand(batch, ERROR_STATE_DIM, ERROR_STATE_DIM).clone()
+    to_conv[:, 0:9, 6:9] = torch.cat((-hat_p, -hat_v, rotation.mT), -2)
+    to_inv = eye.expand(batch, ERROR_STATE_DIM, ERROR_STATE_DIM).clone()
+    to_inv[:, 0:9, 6:9] = (
+        torch.cat(
+            (hat_p, hat_v, so3.identity(position.dtype, position.device).expand(batch, 3, 3)), -2
+        )
+        @ rotation
+    )
     return to_conv, to_inv
 
 
