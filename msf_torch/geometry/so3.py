@@ -70,22 +70,58 @@ def _angle_terms(phi: torch.Tensor):
     return theta2, small, safe_theta2, torch.sqrt(safe_theta2)
 
 
-def exp(phi: torch.Tensor) -> torch.Tensor:
-    """Rotation matrix ``Exp(phi) = I + a [phi]x + b [phi]x^2`` (Rodrigues).
+def _coefficients(phi: torch.Tensor, derivatives: bool = False) -> dict[str, torch.Tensor]:
+    """Series coefficients of the SO(3) functions, each (..., 1, 1).
 
-    ``[phi]x^2 = phi phi^T - theta^2 I`` is formed without a matrix product.
+    ``c0 = sin t / t``, ``c1 = (1 - cos t) / t^2``, ``c2 = (t - sin t) / t^3``,
+    ``c3 = (t^2 + 2 cos t - 2) / (2 t^4)`` (Taylor series below the small-angle switch), with
+    ``theta2`` and ``skew2 = [phi]x^2 = phi phi^T - t^2 I``. With ``derivatives``, also
+    ``e_n = (dc_n / dt) / t`` for n = 1, 2, 3.
+    """
+    theta2, small, t2, t = _angle_terms(phi)
+    sin_t, cos_t = torch.sin(t), torch.cos(t)
+    th4 = theta2 * theta2
+    out = {
+        "theta2": theta2,
+        "c0": torch.where(small, 1.0 - theta2 / 6.0 + th4 / 120.0, sin_t / t),
+        "c1": torch.where(small, 0.5 - theta2 / 24.0 + th4 / 720.0, (1.0 - cos_t) / t2),
+        "c2": torch.where(small, 1.0 / 6.0 - theta2 / 120.0 + th4 / 5040.0, (t - sin_t) / (t2 * t)),
+        "c3": torch.where(
+            small,
+            1.0 / 24.0 - theta2 / 720.0 + th4 / 40320.0,
+            (t2 + 2.0 * cos_t - 2.0) / (2.0 * t2 * t2),
+        ),
+        "skew2": phi[..., :, None] * phi[..., None, :] - theta2 * identity(phi.dtype, phi.device),
+    }
+    if derivatives:
+        out["e1"] = torch.where(
+            small,
+            -1.0 / 12.0 + theta2 / 180.0 - th4 / 6720.0,
+            sin_t / (t2 * t) - 2.0 * (1.0 - cos_t) / (t2 * t2),
+        )
+        out["e2"] = torch.where(
+            small,
+            -1.0 / 60.0 + theta2 / 1260.0 - th4 / 60480.0,
+            (1.0 - cos_t) / (t2 * t2) - 3.0 * (t - sin_t) / (t2 * t2 * t),
+        )
+        out["e3"] = torch.where(
+            small,
+            -1.0 / 360.0 + theta2 / 10080.0 - th4 / 604800.0,
+            (t - sin_t) / (t2 * t2 * t) - 2.0 * (t2 + 2.0 * cos_t - 2.0) / (t2 * t2 * t2),
+        )
+    return out
+
+
+def exp(phi: torch.Tensor) -> torch.Tensor:
+    """Rotation matrix ``Exp(phi) = I + c0 [phi]x + c1 [phi]x^2`` (Rodrigues).
 
     Args:
         phi: rotation vector (..., 3), rad.
     Returns:
         (..., 3, 3) rotation matrices.
     """
-    theta2, small, t2, t = _angle_terms(phi)
-    a = torch.where(small, 1.0 - theta2 / 6.0 + theta2**2 / 120.0, torch.sin(t) / t)
-    b = torch.where(small, 0.5 - theta2 / 24.0 + theta2**2 / 720.0, (1.0 - torch.cos(t)) / t2)
-    eye = identity(phi.dtype, phi.device)
-    outer = phi[..., :, None] * phi[..., None, :]
-    return (1.0 - b * theta2) * eye + a * hat(phi) + b * outer
+    c = _coefficients(phi)
+    return identity(phi.dtype, phi.device) + c["c0"] * hat(phi) + c["c1"] * c["skew2"]
 
 
 def gamma1(phi: torch.Tensor) -> torch.Tensor:
@@ -93,14 +129,8 @@ def gamma1(phi: torch.Tensor) -> torch.Tensor:
 
     ``integral_0^1 Exp(s phi) ds = Gamma_1(phi)``. Shape (..., 3) -> (..., 3, 3).
     """
-    theta2, small, t2, t = _angle_terms(phi)
-    a = torch.where(small, 0.5 - theta2 / 24.0 + theta2**2 / 720.0, (1.0 - torch.cos(t)) / t2)
-    b = torch.where(
-        small, 1.0 / 6.0 - theta2 / 120.0 + theta2**2 / 5040.0, (t - torch.sin(t)) / (t2 * t)
-    )
-    skew = hat(phi)
-    eye = torch.eye(3, dtype=phi.dtype, device=phi.device)
-    return eye + a * skew + b * (skew @ skew)
+    c = _coefficients(phi)
+    return identity(phi.dtype, phi.device) + c["c1"] * hat(phi) + c["c2"] * c["skew2"]
 
 
 def gamma2(phi: torch.Tensor) -> torch.Tensor:
@@ -108,74 +138,41 @@ def gamma2(phi: torch.Tensor) -> torch.Tensor:
 
     ``integral_0^1 integral_0^s Exp(u phi) du ds = Gamma_2(phi)``. Shape (..., 3) -> (..., 3, 3).
     """
-    theta2, small, t2, t = _angle_terms(phi)
-    a = torch.where(
-        small, 1.0 / 6.0 - theta2 / 120.0 + theta2**2 / 5040.0, (t - torch.sin(t)) / (t2 * t)
-    )
-    b = torch.where(
-        small,
-        1.0 / 24.0 - theta2 / 720.0 + theta2**2 / 40320.0,
-        (t2 + 2.0 * torch.cos(t) - 2.0) / (2.0 * t2 * t2),
-    )
-    skew = hat(phi)
-    eye = torch.eye(3, dtype=phi.dtype, device=phi.device)
-    return 0.5 * eye + a * skew + b * (skew @ skew)
+    c = _coefficients(phi)
+    return 0.5 * identity(phi.dtype, phi.device) + c["c2"] * hat(phi) + c["c3"] * c["skew2"]
 
 
 def series(phi: torch.Tensor) -> dict[str, torch.Tensor]:
     """``Exp``, ``Gamma_1``, ``Gamma_2`` and ``J_r`` of one rotation vector, sharing work.
 
-    Uses ``[phi]x^2 = phi phi^T - theta^2 I`` so no matrix products are formed; for large
-    batches (all IMU samples of many sequences) this is several times faster than calling
-    the four functions. Shape (..., 3) -> dict of (..., 3, 3) under keys ``exp``,
-    ``gamma1``, ``gamma2``, ``right_jacobian``; also ``coef`` (..., 4) = the scalar
-    coefficients (sin t / t, (1 - cos t) / t^2, (t - sin t) / t^3, (t^2 + 2 cos t - 2) / 2t^4).
+    Shape (..., 3) -> dict of (..., 3, 3) under keys ``exp``, ``gamma1``, ``gamma2``,
+    ``right_jacobian``; also ``coef`` (..., 4) = ``(c0, c1, c2, c3)`` =
+    (sin t / t, (1 - cos t) / t^2, (t - sin t) / t^3, (t^2 + 2 cos t - 2) / 2t^4).
     """
-    theta2, small, t2, t = _angle_terms(phi)
-    sin_t, cos_t = torch.sin(t), torch.cos(t)
-    c0 = torch.where(small, 1.0 - theta2 / 6.0 + theta2**2 / 120.0, sin_t / t)
-    c1 = torch.where(small, 0.5 - theta2 / 24.0 + theta2**2 / 720.0, (1.0 - cos_t) / t2)
-    c2 = torch.where(small, 1.0 / 6.0 - theta2 / 120.0 + theta2**2 / 5040.0, (t - sin_t) / (t2 * t))
-    c3 = torch.where(
-        small,
-        1.0 / 24.0 - theta2 / 720.0 + theta2**2 / 40320.0,
-        (t2 + 2.0 * cos_t - 2.0) / (2.0 * t2 * t2),
-    )
-    skew = hat(phi)
-    eye = torch.eye(3, dtype=phi.dtype, device=phi.device)
-    skew2 = phi[..., :, None] * phi[..., None, :] - theta2 * eye
+    c = _coefficients(phi)
+    skew, skew2 = hat(phi), c["skew2"]
+    eye = identity(phi.dtype, phi.device)
     return {
-        "exp": eye + c0 * skew + c1 * skew2,
-        "gamma1": eye + c1 * skew + c2 * skew2,
-        "gamma2": 0.5 * eye + c2 * skew + c3 * skew2,
-        "right_jacobian": eye - c1 * skew + c2 * skew2,
-        "coef": torch.cat((c0, c1, c2, c3), -1)[..., 0, :],
+        "exp": eye + c["c0"] * skew + c["c1"] * skew2,
+        "gamma1": eye + c["c1"] * skew + c["c2"] * skew2,
+        "gamma2": 0.5 * eye + c["c2"] * skew + c["c3"] * skew2,
+        "right_jacobian": eye - c["c1"] * skew + c["c2"] * skew2,
+        "coef": torch.cat((c["c0"], c["c1"], c["c2"], c["c3"]), -1)[..., 0, :],
     }
 
 
 def exp_and_gammas(phi: torch.Tensor) -> torch.Tensor:
     """``Exp(phi)``, ``Gamma_1(phi)``, ``Gamma_2(phi)`` stacked: (..., 3) -> (..., 3, 3, 3).
 
-    All three are ``a I + b [phi]x + c [phi]x^2`` with ``[phi]x^2 = phi phi^T - theta^2 I``;
-    computing them together shares every intermediate (large batches of IMU samples).
+    All three are ``a I + b [phi]x + c [phi]x^2``; computing them together shares every
+    intermediate (large batches of IMU samples).
     """
-    theta2, small, t2, t = _angle_terms(phi)
-    sin_t, cos_t = torch.sin(t), torch.cos(t)
-    c0 = torch.where(small, 1.0 - theta2 / 6.0 + theta2**2 / 120.0, sin_t / t)
-    c1 = torch.where(small, 0.5 - theta2 / 24.0 + theta2**2 / 720.0, (1.0 - cos_t) / t2)
-    c2 = torch.where(small, 1.0 / 6.0 - theta2 / 120.0 + theta2**2 / 5040.0, (t - sin_t) / (t2 * t))
-    c3 = torch.where(
-        small,
-        1.0 / 24.0 - theta2 / 720.0 + theta2**2 / 40320.0,
-        (t2 + 2.0 * cos_t - 2.0) / (2.0 * t2 * t2),
-    )
+    c = _coefficients(phi)
     eye = identity(phi.dtype, phi.device)
-    skew = hat(phi)[..., None, :, :]
-    skew2 = (phi[..., :, None] * phi[..., None, :] - theta2 * eye)[..., None, :, :]
     a = torch.tensor([1.0, 1.0, 0.5], dtype=phi.dtype, device=phi.device)[:, None, None]
-    b = torch.stack((c0, c1, c2), -3)
-    c = torch.stack((c1, c2, c3), -3)
-    return a * eye + b * skew + c * skew2
+    b = torch.stack((c["c0"], c["c1"], c["c2"]), -3)
+    d = torch.stack((c["c1"], c["c2"], c["c3"]), -3)
+    return a * eye + b * hat(phi)[..., None, :, :] + d * c["skew2"][..., None, :, :]
 
 
 def gamma_vector_jacobians(
@@ -193,44 +190,20 @@ def gamma_vector_jacobians(
     Returns:
         two (..., 3, 3) Jacobians.
     """
-    theta2, small, t2, t = _angle_terms(phi)
-    sin_t, cos_t = torch.sin(t), torch.cos(t)
-    c1 = torch.where(small, 0.5 - theta2 / 24.0 + theta2**2 / 720.0, (1.0 - cos_t) / t2)
-    c2 = torch.where(small, 1.0 / 6.0 - theta2 / 120.0 + theta2**2 / 5040.0, (t - sin_t) / (t2 * t))
-    c3 = torch.where(
-        small,
-        1.0 / 24.0 - theta2 / 720.0 + theta2**2 / 40320.0,
-        (t2 + 2.0 * cos_t - 2.0) / (2.0 * t2 * t2),
-    )
-    e1 = torch.where(
-        small,
-        -1.0 / 12.0 + theta2 / 180.0 - theta2**2 / 6720.0,
-        sin_t / (t2 * t) - 2.0 * (1.0 - cos_t) / (t2 * t2),
-    )
-    e2 = torch.where(
-        small,
-        -1.0 / 60.0 + theta2 / 1260.0 - theta2**2 / 60480.0,
-        (1.0 - cos_t) / (t2 * t2) - 3.0 * (t - sin_t) / (t2 * t2 * t),
-    )
-    e3 = torch.where(
-        small,
-        -1.0 / 360.0 + theta2 / 10080.0 - theta2**2 / 604800.0,
-        (t - sin_t) / (t2 * t2 * t) - 2.0 * (t2 + 2.0 * cos_t - 2.0) / (t2 * t2 * t2),
-    )
+    c = _coefficients(phi, derivatives=True)
     cross1 = torch.linalg.cross(phi, vec)
     cross2 = torch.linalg.cross(phi, cross1)
-    eye = identity(phi.dtype, phi.device)
     dot = (phi * vec).sum(-1)[..., None, None]
     double = (
-        dot * eye
+        dot * identity(phi.dtype, phi.device)
         + phi[..., :, None] * vec[..., None, :]
         - 2.0 * vec[..., :, None] * phi[..., None, :]
     )
     hat_vec = hat(vec)
     outer1 = cross1[..., :, None] * phi[..., None, :]
     outer2 = cross2[..., :, None] * phi[..., None, :]
-    d_gamma1 = -c1 * hat_vec + e1 * outer1 + c2 * double + e2 * outer2
-    d_gamma2 = -c2 * hat_vec + e2 * outer1 + c3 * double + e3 * outer2
+    d_gamma1 = -c["c1"] * hat_vec + c["e1"] * outer1 + c["c2"] * double + c["e2"] * outer2
+    d_gamma2 = -c["c2"] * hat_vec + c["e2"] * outer1 + c["c3"] * double + c["e3"] * outer2
     return d_gamma1, d_gamma2
 
 
