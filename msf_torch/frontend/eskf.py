@@ -188,34 +188,14 @@ def _preintegrate_chunked(
     return Preintegrated(**{k: torch.cat([getattr(p, k) for p in parts], 1) for k in names})
 
 
-def _local_transition(pre: Preintegrated, noise: EskfNoise) -> tuple[torch.Tensor, torch.Tensor]:
-    """Transition and process noise of every epoch in the epoch-start body frame.
+def _local_process_noise(pre: Preintegrated, noise: EskfNoise) -> torch.Tensor:
+    """Process noise of every epoch, IMU part in the epoch-start body frame.
 
-    With ``D = blockdiag(R_i, R_i, I, I, I)`` the world-frame matrices are
-    ``Phi = D Phi_loc D^T`` and ``Q = D Q_loc D^T`` (see the module docstring), so
-    everything but ``R_i`` is computed here for all (B, E) epochs at once. The Jacobian
-    blocks use the increments at the linearisation bias (the first-order correction of the
-    increments themselves is applied to the nominal state in the loop).
-
-    Returns:
-        Phi_loc (B, E, 15, 15) and Q_loc (B, E, 15, 15).
+    ``Q_loc = blockdiag(Sigma_Delta, sigma_bg^2 dT I, sigma_ba^2 dT I)`` (B, E, 15, 15);
+    the loop maps the navigation block into invariant coordinates.
     """
     lead = pre.delta_t.shape
     dtype, device = pre.delta_t.dtype, pre.delta_t.device
-    eye = torch.eye(3, dtype=dtype, device=device).expand(*lead, 3, 3)
-    zero = torch.zeros_like(eye)
-    jac = pre.bias_jacobian
-    dt = pre.delta_t[..., None, None]
-    top = torch.cat(
-        (
-            torch.cat((eye, dt * eye, -so3.hat(pre.delta_position), jac[..., 0:3, :]), -1),
-            torch.cat((zero, eye, -so3.hat(pre.delta_velocity), jac[..., 3:6, :]), -1),
-            torch.cat((zero, zero, pre.delta_rotation.mT, jac[..., 6:9, 0:3], zero), -1),
-        ),
-        -2,
-    )
-    bottom = torch.eye(ERROR_STATE_DIM, dtype=dtype, device=device)[9:].expand(*lead, 6, 15)
-    phi = torch.cat((top, bottom), -2)
 
     def per_seq(x: torch.Tensor) -> torch.Tensor:
         return x[:, None] if x.dim() == 1 else x
@@ -228,8 +208,25 @@ def _local_transition(pre: Preintegrated, noise: EskfNoise) -> tuple[torch.Tenso
     var_a = per_seq(imu.accel_bias_rw_density) ** 2 * pre.delta_t
     bias = torch.diag_embed(torch.stack((var_g, var_g, var_g, var_a, var_a, var_a), -1))
     zeros = torch.zeros(*lead, 9, 6, dtype=dtype, device=device)
-    q = torch.cat((torch.cat((nav, zeros), -1), torch.cat((zeros.mT, bias), -1)), -2)
-    return phi, q
+    return torch.cat((torch.cat((nav, zeros), -1), torch.cat((zeros.mT, bias), -1)), -2)
+
+
+def _invariant_nav_transition(delta_t: torch.Tensor, gravity_mps2: float) -> torch.Tensor:
+    """(B, E, 15, 15) invariant-error transition without its bias columns.
+
+    With right-invariant errors the navigation block does not depend on the estimate:
+    ``xi_R' = xi_R``, ``xi_v' = xi_v + dT [g]x xi_R``,
+    ``xi_p' = xi_p + dT xi_v + dT^2 / 2 [g]x xi_R``; biases carry over.
+    """
+    dtype, device = delta_t.dtype, delta_t.device
+    hat_g = so3.hat(gravity_world(gravity_mps2, dtype, device))
+    eye3 = so3.identity(dtype, device)
+    dt = delta_t[..., None, None]
+    out = torch.eye(ERROR_STATE_DIM, dtype=dtype, device=device).repeat(*delta_t.shape, 1, 1)
+    out[..., 0:3, 3:6] = dt * eye3
+    out[..., 0:3, 6:9] = 0.5 * dt * dt * hat_g
+    out[..., 3:6, 6:9] = dt * hat_g
+    return out
 
 
 def _invariant_maps(
@@ -338,7 +335,8 @@ def run_eskf(
     _, to_inv0 = _invariant_maps(state.position, state.velocity, state.rotation)
     cov = to_inv0 @ cov_conventional @ to_inv0.mT  # kept in invariant coordinates
     pre = _preintegrate_chunked(sched, state.gyro_bias, state.accel_bias)
-    phi_loc, q_loc = _local_transition(pre, noise)
+    q_loc = _local_process_noise(pre, noise)
+    nav_transition = _invariant_nav_transition(pre.delta_t, cfg.gravity_mps2)
     gravity = gravity_world(cfg.gravity_mps2, dtype, device)
     batch, n_epochs = sched.t_end.shape
     present = {
@@ -387,6 +385,7 @@ def run_eskf(
     gnss_var = (sched.gnss_sigma * per_seq(noise.gnss_sigma_scale)[:, None, None]) ** 2
     eye15 = torch.eye(ERROR_STATE_DIM, dtype=dtype, device=device)
     frame_base = eye15.expand(batch, 15, 15)
+    nav_frame = torch.zeros(batch, 9, 9, dtype=dtype, device=device)
     zeros_b = torch.zeros(batch, dtype=dtype, device=device)
     false_b = torch.zeros(batch, dtype=torch.bool, device=device)
 
@@ -415,7 +414,7 @@ def run_eskf(
 
     with _intra_op_threads(1):
         for e in range(n_epochs):
-            # --- propagation: nominal with bias-corrected increments, P in the i-frame -------
+            # --- propagation: nominal with bias-corrected increments -----------------------
             dbias = torch.cat(
                 (
                     state.gyro_bias - pre.gyro_bias_lin[:, e],
@@ -437,20 +436,25 @@ def run_eskf(
                 d_pos,
                 gravity,
             )
-            # the transition must use the very increments the nominal state used, or the
-            # invariant (unobservable-yaw) direction leaks a little at every epoch
-            phi = phi_loc[:, e].clone()
-            phi[:, 0:3, 6:9] = -so3.hat(d_pos)
-            phi[:, 3:6, 6:9] = -so3.hat(d_vel)
-            phi[:, 6:9, 6:9] = d_rot.mT
-            frame = frame_base.clone()
-            frame[:, 0:3, 0:3] = state.rotation
-            frame[:, 3:6, 3:6] = state.rotation
-            to_conv_i, _ = _invariant_maps(state.position, state.velocity, state.rotation)
-            to_conv, to_inv = _invariant_maps(position, velocity, rotation)
-            out_map = to_inv @ frame
-            transition = out_map @ phi @ (frame.mT @ to_conv_i)
-            cov = transition @ cov @ transition.mT + out_map @ q_loc[:, e] @ out_map.mT
+            # invariant-coordinate transition: the navigation block depends on dT only
+            # (precomputed); the bias columns are T_j^-1 [R_i J_p; R_i J_v; J_t]
+            jac = pre.bias_jacobian[:, e]
+            arms = torch.cat((so3.hat(position), so3.hat(velocity)), -2)  # (B, 6, 3)
+            arm_rot = arms @ rotation
+            right = torch.cat((arm_rot, rotation), -2)  # (B, 9, 3): [[p]x R; [v]x R; R]
+            rotated = state.rotation @ torch.cat((jac[:, 0:3], jac[:, 3:6]), -1)
+            transition = nav_transition[:, e].clone()
+            transition[:, 0:9, 9:15] = right @ jac[:, 6:9]
+            transition[:, 0:6, 9:15] += torch.cat(rotated.split(6, -1), -2)
+            noise_map = nav_frame.clone()
+            noise_map[:, 0:3, 0:3] = state.rotation
+            noise_map[:, 3:6, 3:6] = state.rotation
+            noise_map[:, :, 6:9] = right
+            q = q_loc[:, e].clone()
+            q[:, 0:9, 0:9] = noise_map @ q_loc[:, e, 0:9, 0:9] @ noise_map.mT
+            cov = transition @ cov @ transition.mT + q
+            to_conv = frame_base.clone()
+            to_conv[:, 0:9, 6:9] = torch.cat((-arms, rotation.mT), -2)
             state = NavState(position, velocity, rotation, state.gyro_bias, state.accel_bias)
 
             if present_all is None or not bool(present_all[:, e].any()):
