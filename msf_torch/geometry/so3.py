@@ -70,12 +70,15 @@ def _angle_terms(phi: torch.Tensor):
     return theta2, small, safe_theta2, torch.sqrt(safe_theta2)
 
 
-def _coefficients(phi: torch.Tensor, derivatives: bool = False) -> dict[str, torch.Tensor]:
+def _coefficients(
+    phi: torch.Tensor, which: str = "0123", derivatives: bool = False
+) -> dict[str, torch.Tensor]:
     """Series coefficients of the SO(3) functions, each (..., 1, 1).
 
     ``c0 = sin t / t``, ``c1 = (1 - cos t) / t^2``, ``c2 = (t - sin t) / t^3``,
-    ``c3 = (t^2 + 2 cos t - 2) / (2 t^4)`` (Taylor series below the small-angle switch), with
-    ``theta2`` and ``skew2 = [phi]x^2 = phi phi^T - t^2 I``. With ``derivatives``, also
+    ``c3 = (t^2 + 2 cos t - 2) / (2 t^4)`` (Taylor series below the small-angle switch; only
+    the digits in ``which`` are computed), with ``theta2`` and
+    ``skew2 = [phi]x^2 = phi phi^T - t^2 I``. With ``derivatives``, also
     ``e_n = (dc_n / dt) / t`` for n = 1, 2, 3.
     """
     theta2, small, t2, t = _angle_terms(phi)
@@ -83,16 +86,22 @@ def _coefficients(phi: torch.Tensor, derivatives: bool = False) -> dict[str, tor
     th4 = theta2 * theta2
     out = {
         "theta2": theta2,
-        "c0": torch.where(small, 1.0 - theta2 / 6.0 + th4 / 120.0, sin_t / t),
-        "c1": torch.where(small, 0.5 - theta2 / 24.0 + th4 / 720.0, (1.0 - cos_t) / t2),
-        "c2": torch.where(small, 1.0 / 6.0 - theta2 / 120.0 + th4 / 5040.0, (t - sin_t) / (t2 * t)),
-        "c3": torch.where(
+        "skew2": phi[..., :, None] * phi[..., None, :] - theta2 * identity(phi.dtype, phi.device),
+    }
+    if "0" in which:
+        out["c0"] = torch.where(small, 1.0 - theta2 / 6.0 + th4 / 120.0, sin_t / t)
+    if "1" in which:
+        out["c1"] = torch.where(small, 0.5 - theta2 / 24.0 + th4 / 720.0, (1.0 - cos_t) / t2)
+    if "2" in which:
+        out["c2"] = torch.where(
+            small, 1.0 / 6.0 - theta2 / 120.0 + th4 / 5040.0, (t - sin_t) / (t2 * t)
+        )
+    if "3" in which:
+        out["c3"] = torch.where(
             small,
             1.0 / 24.0 - theta2 / 720.0 + th4 / 40320.0,
             (t2 + 2.0 * cos_t - 2.0) / (2.0 * t2 * t2),
-        ),
-        "skew2": phi[..., :, None] * phi[..., None, :] - theta2 * identity(phi.dtype, phi.device),
-    }
+        )
     if derivatives:
         out["e1"] = torch.where(
             small,
@@ -120,7 +129,7 @@ def exp(phi: torch.Tensor) -> torch.Tensor:
     Returns:
         (..., 3, 3) rotation matrices.
     """
-    c = _coefficients(phi)
+    c = _coefficients(phi, "01")
     return identity(phi.dtype, phi.device) + c["c0"] * hat(phi) + c["c1"] * c["skew2"]
 
 
@@ -129,7 +138,7 @@ def gamma1(phi: torch.Tensor) -> torch.Tensor:
 
     ``integral_0^1 Exp(s phi) ds = Gamma_1(phi)``. Shape (..., 3) -> (..., 3, 3).
     """
-    c = _coefficients(phi)
+    c = _coefficients(phi, "12")
     return identity(phi.dtype, phi.device) + c["c1"] * hat(phi) + c["c2"] * c["skew2"]
 
 
@@ -138,7 +147,7 @@ def gamma2(phi: torch.Tensor) -> torch.Tensor:
 
     ``integral_0^1 integral_0^s Exp(u phi) du ds = Gamma_2(phi)``. Shape (..., 3) -> (..., 3, 3).
     """
-    c = _coefficients(phi)
+    c = _coefficients(phi, "23")
     return 0.5 * identity(phi.dtype, phi.device) + c["c2"] * hat(phi) + c["c3"] * c["skew2"]
 
 
@@ -190,7 +199,7 @@ def gamma_vector_jacobians(
     Returns:
         two (..., 3, 3) Jacobians.
     """
-    c = _coefficients(phi, derivatives=True)
+    c = _coefficients(phi, "123", derivatives=True)
     cross1 = torch.linalg.cross(phi, vec)
     cross2 = torch.linalg.cross(phi, cross1)
     dot = (phi * vec).sum(-1)[..., None, None]
