@@ -182,7 +182,7 @@ def _single(traj: Trajectory) -> Trajectory:
 
 
 def _plot(path, seq, trajectory, result, withheld, options, summary) -> None:
-    from msf_torch.eval.metrics import position_errors
+    from msf_torch.eval.outage import interpolate_positions
     from msf_torch.eval.plots import overview_figure
     from msf_torch.types import Trajectory as Traj
 
@@ -205,7 +205,14 @@ def _plot(path, seq, trajectory, result, withheld, options, summary) -> None:
         )
     error_t = error = None
     if reference is not None:
-        error_t, error = position_errors(est, reference, align="none", max_dt=0.6)
+        # errors at the reference's own times, the estimate interpolated (no alignment:
+        # the estimator's world frame is the reference's)
+        ref_t = reference.t[0, reference.mask[0]]
+        inside = (ref_t >= est.t[0, 0]) & (ref_t <= est.t[0, -1])
+        error_t = ref_t[inside]
+        error = (
+            interpolate_positions(est, error_t) - reference.position[0, reference.mask[0]][inside]
+        ).norm(dim=-1)
     wheel = result.present["wheel"][0] & result.mask[0]
     slip_t = result.t[0, wheel] if wheel.any() else None
     slip = result.slip_factor[0, wheel] if wheel.any() else None

@@ -7,7 +7,7 @@ displacements), in percent.
 
 from __future__ import annotations
 
-__all__ = ["split_gnss_outage", "outage_metrics"]
+__all__ = ["split_gnss_outage", "outage_metrics", "interpolate_positions"]
 
 import dataclasses
 
@@ -40,6 +40,20 @@ def split_gnss_outage(seq: Sequence, start_s: float, end_s: float) -> tuple[Sequ
     return dataclasses.replace(seq, gnss=kept), withheld
 
 
+def interpolate_positions(estimate: Trajectory, times: torch.Tensor) -> torch.Tensor:
+    """Estimated positions linearly interpolated at ``times`` (N,), s -> (N, 3), m (B = 1).
+
+    Times outside the estimate's span take its first / last position.
+    """
+    keep = estimate.mask[0]
+    t_est = estimate.t[0, keep]
+    p_est = estimate.position[0, keep]
+    idx = torch.searchsorted(t_est, times).clamp(1, t_est.numel() - 1)
+    t_lo, t_hi = t_est[idx - 1], t_est[idx]
+    w = ((times - t_lo) / (t_hi - t_lo).clamp_min(1e-12)).clamp(0.0, 1.0)[:, None]
+    return p_est[idx - 1] * (1.0 - w) + p_est[idx] * w
+
+
 def outage_metrics(estimate: Trajectory, withheld: GnssFixes) -> dict[str, float]:
     """Score an estimate against withheld fixes (B = 1).
 
@@ -51,16 +65,9 @@ def outage_metrics(estimate: Trajectory, withheld: GnssFixes) -> dict[str, float
         ``outage_drift_pct`` (= max error / distance * 100), ``outage_duration_s``,
         ``outage_fixes``.
     """
-    keep = estimate.mask[0]
-    t_est = estimate.t[0, keep]
-    p_est = estimate.position[0, keep]
     t_ref = withheld.t[0, withheld.mask[0]]
     p_ref = withheld.position[0, withheld.mask[0]]
-    idx = torch.searchsorted(t_est, t_ref).clamp(1, t_est.numel() - 1)
-    t_lo, t_hi = t_est[idx - 1], t_est[idx]
-    w = ((t_ref - t_lo) / (t_hi - t_lo).clamp_min(1e-12)).clamp(0.0, 1.0)[:, None]
-    p_at = p_est[idx - 1] * (1.0 - w) + p_est[idx] * w
-    err = (p_at - p_ref).norm(dim=-1)
+    err = (interpolate_positions(estimate, t_ref) - p_ref).norm(dim=-1)
     distance = (p_ref[1:] - p_ref[:-1]).norm(dim=-1).sum()
     return {
         "outage_rmse_m": float(err.pow(2).mean().sqrt()),
