@@ -1,4 +1,4 @@
-"""Generate the bundled sample sequence ``datasets/sample_slip/`` (native CSV folder).
+"""Generate the bundled sample sequence ``datasets/sample_slip.npz`` (or a native CSV folder).
 
 The sample is a simulated wheeled-robot run (:func:`msf_torch.sim.simulate_run` with
 :func:`msf_torch.sim.sample_slip_config`, seed 7): 120 s, ADIS16470-grade IMU at 200 Hz,
@@ -12,8 +12,8 @@ the seed, the slip episodes in detail and the hidden truth the native tables do 
 
 Usage::
 
-    python datasets/make_sample.py                 # writes datasets/sample_slip/
-    python datasets/make_sample.py --out /tmp/x    # elsewhere
+    python datasets/make_sample.py                 # datasets/sample_slip.npz (+ .sim.json)
+    python datasets/make_sample.py --out /tmp/x    # a folder of CSVs elsewhere
 """
 
 from __future__ import annotations
@@ -24,24 +24,26 @@ import argparse
 import json
 from pathlib import Path
 
+from msf_torch.io.atomic import atomic_write
 from msf_torch.io.native import write_native
 from msf_torch.sim import sample_slip_config, simulate_run
 
 SAMPLE_SEED = 7
 """Seed of the bundled sample."""
 
-DEFAULT_OUT = Path(__file__).resolve().parent / "sample_slip"
+DEFAULT_OUT = Path(__file__).resolve().parent / "sample_slip.npz"
 
 
 def make_sample(out: str | Path = DEFAULT_OUT, seed: int = SAMPLE_SEED) -> Path:
-    """Simulate the sample run and write it as a native CSV folder plus ``sim.json``.
+    """Simulate the sample run and write it in the native format plus its provenance.
 
     Args:
-        out: destination folder (created if needed).
+        out: ``FILE.npz`` (provenance beside it as ``FILE.sim.json``) or a folder of CSVs
+            (provenance inside as ``sim.json``).
         seed: simulator seed (7 for the bundled sample).
 
     Returns:
-        the folder written.
+        the path written.
     """
     run = simulate_run(sample_slip_config(), seed=seed)
     folder = write_native(run.sequence, out)
@@ -59,16 +61,18 @@ def make_sample(out: str | Path = DEFAULT_OUT, seed: int = SAMPLE_SEED) -> Path:
             "accel_bias_final_m_s2": truth.accel_bias[0, -1].tolist(),
         },
     }
-    tmp = folder / "sim.json.tmp"
-    tmp.write_text(json.dumps(provenance, indent=2, sort_keys=True) + "\n")
-    tmp.replace(folder / "sim.json")
+    target = folder.with_suffix(".sim.json") if folder.suffix == ".npz" else folder / "sim.json"
+    with atomic_write(target) as handle:
+        handle.write(json.dumps(provenance, indent=2, sort_keys=True) + "\n")
     return folder
 
 
 def main(argv: list[str] | None = None) -> int:
     """Command-line entry: ``python datasets/make_sample.py [--out DIR] [--seed N]``."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--out", type=Path, default=DEFAULT_OUT, help="destination folder")
+    parser.add_argument(
+        "--out", type=Path, default=DEFAULT_OUT, help="FILE.npz or a folder of CSVs"
+    )
     parser.add_argument("--seed", type=int, default=SAMPLE_SEED, help="simulator seed")
     args = parser.parse_args(argv)
     folder = make_sample(args.out, args.seed)
