@@ -22,6 +22,7 @@ __all__ = [
     "right_jacobian",
     "gamma_vector_jacobians",
     "exp_and_gammas",
+    "coefficients",
     "series",
     "project",
 ]
@@ -121,6 +122,14 @@ def _coefficients(
     return out
 
 
+def coefficients(
+    phi: torch.Tensor, which: str = "0123", derivatives: bool = False
+) -> dict[str, torch.Tensor]:
+    """Public form of the shared series coefficients (see ``_coefficients``), for callers
+    that need several SO(3) functions of the same large batch of rotation vectors."""
+    return _coefficients(phi, which, derivatives)
+
+
 def exp(phi: torch.Tensor) -> torch.Tensor:
     """Rotation matrix ``Exp(phi) = I + c0 [phi]x + c1 [phi]x^2`` (Rodrigues).
 
@@ -170,7 +179,9 @@ def series(phi: torch.Tensor) -> dict[str, torch.Tensor]:
     }
 
 
-def exp_and_gammas(phi: torch.Tensor) -> torch.Tensor:
+def exp_and_gammas(
+    phi: torch.Tensor, coefficients: dict[str, torch.Tensor] | None = None
+) -> torch.Tensor:
     """``Exp(phi)``, ``Gamma_1(phi)``, ``Gamma_2(phi)`` stacked: (..., 3) -> (..., 3, 3, 3).
 
     All three are ``a I + b [phi]x + c [phi]x^2``; computing them together shares every
@@ -185,7 +196,7 @@ def exp_and_gammas(phi: torch.Tensor) -> torch.Tensor:
 
 
 def gamma_vector_jacobians(
-    phi: torch.Tensor, vec: torch.Tensor
+    phi: torch.Tensor, vec: torch.Tensor, coefficients: dict[str, torch.Tensor] | None = None
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Exact derivatives ``d(Gamma_1(phi) x)/dphi`` and ``d(Gamma_2(phi) x)/dphi``.
 
@@ -196,10 +207,11 @@ def gamma_vector_jacobians(
 
     Args:
         phi: (..., 3) rotation vector, rad. vec: (..., 3).
+        coefficients: optional ``coefficients(phi, derivatives=True)`` computed already.
     Returns:
         two (..., 3, 3) Jacobians.
     """
-    c = _coefficients(phi, "123", derivatives=True)
+    c = coefficients if coefficients is not None else _coefficients(phi, "123", True)
     cross1 = torch.linalg.cross(phi, vec)
     cross2 = torch.linalg.cross(phi, cross1)
     dot = (phi * vec).sum(-1)[..., None, None]

@@ -190,8 +190,9 @@ def preintegrate(
     dt_col = dt[..., None]
     dt_mat = dt_col[..., None]
     phi = omega * dt_col
-    step_rot, gam1, gam2 = so3.exp_and_gammas(phi).unbind(-3)
-    d_gamma1, d_gamma2 = so3.gamma_vector_jacobians(phi, force)
+    coef = so3.coefficients(phi, derivatives=True)
+    step_rot, gam1, gam2 = so3.exp_and_gammas(phi, coef).unbind(-3)
+    d_gamma1, d_gamma2 = so3.gamma_vector_jacobians(phi, force, coef)
 
     steps_first = step_rot.movedim(-3, 0).contiguous()  # (L, ..., 3, 3): contiguous slices
     rotations = [so3.identity(gyro.dtype, gyro.device).expand_as(steps_first[0]).contiguous()]
