@@ -125,15 +125,14 @@ def _progress_factory(mode: str):
     if mode == "off" or (mode == "auto" and not sys.stderr.isatty()):
         return None
 
-    def factory(total: int):
+    def factory():
         from tqdm import tqdm
 
-        bar = tqdm(total=total, unit="epoch", file=sys.stderr, leave=False)
+        bar = tqdm(total=None, unit="epoch", file=sys.stderr, leave=False, mininterval=0.2)
 
-        def update(done: int) -> None:
-            bar.total = max(bar.total, done)
-            bar.n = done
-            bar.refresh() if done % 200 == 0 else None
+        def update(done: int, total: int) -> None:
+            bar.total = total
+            bar.update(done - bar.n)
 
         return update, bar.close
 

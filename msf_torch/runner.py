@@ -65,13 +65,14 @@ class RunOptions:
         gnss_outage_s: optional (start, end) in s from the first IMU sample; fixes inside
             are withheld from the estimator and used as the reference.
         plot: write ``overview.png``.
-        progress: callback factory ``(total_epochs) -> (callback, close)`` or None.
+        progress: factory ``() -> (callback(done, total), close())`` for a progress bar, or
+            None.
     """
 
     out_dir: Path
     gnss_outage_s: tuple[float, float] | None = None
     plot: bool = True
-    progress: Callable[[int], tuple[Callable[[int], None], Callable[[], None]]] | None = None
+    progress: Callable[[], tuple[Callable[[int, int], None], Callable[[], None]]] | None = None
     extra: dict[str, Any] = field(default_factory=dict)
 
 
@@ -118,10 +119,9 @@ def run_sequence(seq: Sequence, cfg: EskfConfig, options: RunOptions) -> dict[st
     withheld = None
     if options.gnss_outage_s is not None:
         seq, withheld = split_gnss_outage(seq, *options.gnss_outage_s)
-    epochs_hint = int(_duration(seq) * 50)
     callback, close = (None, None)
     if options.progress is not None:
-        callback, close = options.progress(epochs_hint)
+        callback, close = options.progress()
     start = time.perf_counter()
     with torch.no_grad():
         result = run_eskf(seq, cfg, progress=callback)

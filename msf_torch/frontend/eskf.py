@@ -301,7 +301,7 @@ def run_eskf(
     seq: Sequence,
     cfg: EskfConfig | None = None,
     noise: EskfNoise | None = None,
-    progress: Callable[[int], None] | None = None,
+    progress: Callable[[int, int], None] | None = None,
     initial: tuple[NavState, torch.Tensor] | None = None,
 ) -> EskfResult:
     """Run the ESKF over a batch of sequences.
@@ -311,7 +311,7 @@ def run_eskf(
         cfg: settings; defaults to :class:`EskfConfig()`.
         noise: noise tensors (learnable, shape () or (B,)); defaults to
             ``EskfNoise.from_config(cfg)``.
-        progress: optional callback called with the number of epochs done (progress bars).
+        progress: optional callback ``(epochs_done, epochs_total)`` (progress bars).
         initial: optional initial state (B, ...) and covariance (B, 15, 15) at each
             sequence's first IMU sample; default: ``frontend.init.initial_state``.
     Returns:
@@ -462,7 +462,7 @@ def run_eskf(
                 nis_out.append(no_blocks)
                 record(state, cov, slip)
                 if progress is not None:
-                    progress(e + 1)
+                    progress(e + 1, n_epochs)
                 continue
 
             # --- measurement blocks (residuals from sensors/, stacked) ---------------------
@@ -565,7 +565,7 @@ def run_eskf(
             nis_out.append(nis)
             record(state, cov, slip)
             if progress is not None:
-                progress(e + 1)
+                progress(e + 1, n_epochs)
 
     if bool(chol_failed.any()):
         b = int(torch.nonzero(chol_failed)[0])
