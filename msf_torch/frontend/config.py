@@ -31,7 +31,7 @@ class EskfConfig:
     gravity_mps2: float = 9.80665
     # initial state
     init_window_s: float = 0.5  # accelerometer averaging for roll/pitch
-    init_min_gnss_distance_m: float = 10.0  # GNSS travel used to fix the initial yaw
+    init_min_gnss_distance_m: float = 20.0  # GNSS travel used to fix the initial yaw
     init_position_sigma_m: float = 1.0
     init_velocity_sigma_mps: float = 0.5
     init_roll_pitch_sigma_rad: float = 0.03  # tilt from a moving accelerometer (motion part)

@@ -84,6 +84,7 @@ def _one(
         dist = np.linalg.norm(gnss["position"][:, :2] - g0[:2], axis=1)
         far = np.nonzero(dist >= cfg.init_min_gnss_distance_m)[0]
         position = g0.copy()
+        anchored = None
         if far.size:
             k = far[0]
             if wheel is not None:
@@ -104,11 +105,16 @@ def _one(
                 dr = np.stack(
                     [np.interp(gnss["t"][: k + 1], imu["t"], path[:, i]) for i in range(2)], 1
                 )
-                gg = gnss["position"][: k + 1, :2] - g0[:2]
-                dr = dr - dr[0]
-                cross = np.sum(dr[:, 0] * gg[:, 1] - dr[:, 1] * gg[:, 0])
-                dot = np.sum(dr[:, 0] * gg[:, 0] + dr[:, 1] * gg[:, 1])
+                # 2-D Kabsch on centred point sets: no single fix anchors the alignment
+                gg = gnss["position"][: k + 1, :2]
+                gg_c = gg - gg.mean(0)
+                dr_c = dr - dr.mean(0)
+                cross = np.sum(dr_c[:, 0] * gg_c[:, 1] - dr_c[:, 1] * gg_c[:, 0])
+                dot = np.sum(dr_c[:, 0] * gg_c[:, 0] + dr_c[:, 1] * gg_c[:, 1])
                 yaw = math.atan2(cross, dot)
+                c, s_ = math.cos(yaw), math.sin(yaw)
+                origin = gg.mean(0) - np.array([[c, -s_], [s_, c]]) @ dr.mean(0)
+                anchored = np.array([origin[0], origin[1], g0[2]])
             else:
                 delta = gnss["position"][k] - g0
                 yaw = math.atan2(delta[1], delta[0])
@@ -121,7 +127,10 @@ def _one(
         velocity = rot @ body_velocity
     if gnss is not None:
         lever = rot @ np.asarray(cfg.gnss_lever_arm_m)
-        position = gnss["position"][0] - lever - velocity * (gnss["t"][0] - t0)
+        if anchored is not None:  # the aligned dead-reckoning origin, i.e. the track at t0
+            position = anchored - lever
+        else:
+            position = gnss["position"][0] - lever - velocity * (gnss["t"][0] - t0)
     return position, velocity, rot, body_velocity
 
 

@@ -49,8 +49,9 @@ def consistent_sim_config(duration_s: float = 40.0, **overrides) -> SimConfig:
 def matched_filter_config(sim: SimConfig, meta: dict) -> EskfConfig:
     """The filter configuration whose noise equals the simulator's."""
     base = EskfConfig(
-        wheel_speed_sigma_mps=sim.wheel_speed_noise_mps,
-        wheel_lateral_sigma_mps=sim.wheel_speed_noise_mps,
+        # the forward speed is the mean of two wheels with independent noise
+        wheel_speed_sigma_mps=sim.wheel_speed_noise_mps / 2**0.5,
+        wheel_lateral_sigma_mps=sim.wheel_speed_noise_mps / 2**0.5,
         wheel_track_m=sim.wheel_track_m,
         gnss_lever_arm_m=list(sim.gnss_lever_arm_m),
         init_gyro_bias_sigma_radps=sim.imu_noise.gyro_bias_sigma0,
@@ -188,11 +189,10 @@ def nees_consistency(
 
 
 @pytest.mark.xfail(
-    strict=True,
-    reason="acceptance item not met: measured 85.7% of epochs inside over 40 s runs (14.3% "
-    "above: the first seconds, while the initialiser's yaw and tilt errors decay; ANEES median "
-    "15.4 in [12.7, 17.5]). Over 120 s runs the filter turns conservative (52% inside, 42% "
-    "below)",
+    strict=False,
+    reason="acceptance item at its threshold: measured 89.8% of epochs inside over 40 s runs "
+    "(10.0% above, in the first seconds while the initialiser's errors decay; median 14.4 in "
+    "[12.7, 17.5]); over 120 s runs 57.8% inside with 36.7% below (conservative)",
 )
 def test_average_nees_inside_chi_square_bounds():
     report = nees_consistency(seeds=range(100, 120), duration_s=40.0, skip_s=5.0)
@@ -203,10 +203,18 @@ def test_average_nees_inside_chi_square_bounds():
     )
 
 
+def test_average_nees_regression_guard():
+    """The figure above (89.8%) must not regress: at least 85% of epochs inside and at most
+    12% above the interval over the 40 s runs."""
+    report = nees_consistency(seeds=range(100, 120), duration_s=40.0, skip_s=5.0)
+    assert report.fraction_inside >= 0.85, report.summary()
+    assert report.fraction_above <= 0.12, report.summary()
+
+
 def test_nees_typical_epoch_consistent_on_long_runs():
     """Over 120 s runs the median average NEES lies inside the 95% interval and the filter is
     overconfident (above the interval) at under a quarter of the epochs (measured: median
-    13.0 in [12.7, 17.5], 6% above, 42% below)."""
+    13.0 in [12.7, 17.5], 5.5% above, 36.7% below)."""
     report = nees_consistency(seeds=range(100, 120), duration_s=120.0, skip_s=5.0)
     low, high = report.bounds
     median = float(np.median(report.anees[report.t >= report.skip_s]))
