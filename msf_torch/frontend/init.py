@@ -3,11 +3,14 @@
 Roll and pitch come from the mean accelerometer reading over ``init_window_s`` (gravity
 direction). Yaw, in order of preference: the first pose measurement (a heading source);
 with GNSS and wheels, the 2-D rotation that best aligns the wheel/gyro dead-reckoned path
-with the GNSS track up to ``init_min_gnss_distance_m`` of travel (Procrustes); with GNSS
-only, the course of the first GNSS displacement of that length; else 0 (the world frame
-then starts aligned with the body). Biases and all uncertainties come from the config;
-the initial covariance carries the correlations the initialisation creates: roll and
-pitch with the accelerometer bias (the tilt is read from the biased accelerometer;
+with the GNSS track up to ``init_min_gnss_distance_m`` from the first fix (2-D Kabsch on
+the centred tracks; the aligned dead-reckoning origin is the initial position); with GNSS
+only, the course of the first GNSS displacement of that length; else 0 with a heading sigma
+of ``init_yaw_sigma_unknown_rad`` (pi; the world frame then starts aligned with the body).
+A track that never gets that far but reaches a quarter of it is used up to its farthest
+fix, the heading sigma scaled by the shortfall. Biases and the other uncertainties come
+from the config; the initial covariance carries the correlations the initialisation
+creates: roll and pitch with the accelerometer bias (the tilt is read from the biased accelerometer;
 ``init_roll_pitch_sigma_rad`` is the part from motion during the window), and a velocity
 built from a body-frame wheel speed with the attitude (``dv = -R [v_b]x dtheta``; the
 velocity sigma is then body-frame).
@@ -56,7 +59,7 @@ def _valid(stream, b: int):
 
 def _one(
     seq: Sequence, b: int, cfg: EskfConfig
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, float]:
     imu = _valid(seq.imu, b)
     t0 = imu["t"][0]
     window = imu["t"] <= t0 + cfg.init_window_s
@@ -64,6 +67,7 @@ def _one(
     roll = math.atan2(f[1], f[2])
     pitch = math.atan2(-f[0], math.hypot(f[1], f[2]))
     yaw = 0.0
+    yaw_sigma = cfg.init_yaw_sigma_unknown_rad  # no heading source
     position = np.zeros(3)
     velocity = np.zeros(3)
     wheel = _valid(seq.wheel, b)
@@ -78,15 +82,22 @@ def _one(
         rot = quat_to_matrix(torch.as_tensor(poses["quaternion"][0])).numpy()
         position = poses["position"][0]
         body_velocity = np.array([wheel_speed, 0.0, 0.0])
-        return position, rot @ body_velocity, rot, body_velocity
+        return position, rot @ body_velocity, rot, body_velocity, cfg.init_yaw_sigma_rad
     if gnss is not None:
         g0 = gnss["position"][0]
         dist = np.linalg.norm(gnss["position"][:, :2] - g0[:2], axis=1)
         far = np.nonzero(dist >= cfg.init_min_gnss_distance_m)[0]
         position = g0.copy()
         anchored = None
-        if far.size:
-            k = far[0]
+        # a track that never gets that far (a robot turning on the spot, a short run) is
+        # used up to its farthest fix, with the heading sigma grown in proportion
+        reach = float(dist.max())
+        usable = far.size or reach >= 0.25 * cfg.init_min_gnss_distance_m
+        if usable:
+            k = far[0] if far.size else int(np.argmax(dist))
+            yaw_sigma = cfg.init_yaw_sigma_rad * max(
+                1.0, cfg.init_min_gnss_distance_m / max(float(dist[k]), 1e-9)
+            )
             if wheel is not None:
                 # dead-reckon with wheel speed and gyro yaw rate in the initial heading frame
                 speed = np.interp(
@@ -131,7 +142,7 @@ def _one(
             position = anchored - lever
         else:
             position = gnss["position"][0] - lever - velocity * (gnss["t"][0] - t0)
-    return position, velocity, rot, body_velocity
+    return position, velocity, rot, body_velocity, yaw_sigma
 
 
 def initial_state(seq: Sequence, cfg: EskfConfig) -> tuple[NavState, torch.Tensor]:
@@ -162,6 +173,8 @@ def initial_state(seq: Sequence, cfg: EskfConfig) -> tuple[NavState, torch.Tenso
     sigmas += [cfg.init_accel_bias_sigma_mps2] * 3
     sig = torch.as_tensor(sigmas, dtype=dtype, device=device)
     cov = torch.diag_embed(sig**2).expand(batch, ERROR_STATE_DIM, ERROR_STATE_DIM).clone()
+    yaw_sigmas = torch.as_tensor([p[4] for p in parts], dtype=dtype, device=device)
+    cov[:, 8, 8] = yaw_sigmas**2
     # roll and pitch come from the mean accelerometer, which carries the accel bias: with
     # f = R^T (-g_w) + b_a, a bias error db_a tilts the estimate by
     # dtheta_x = -db_a,y / g, dtheta_y = db_a,x / g (on top of the motion part)

@@ -37,6 +37,7 @@ def _config() -> EskfConfig:
         init_velocity_sigma_mps=0.4,
         init_roll_pitch_sigma_rad=0.0,
         init_yaw_sigma_rad=0.0,
+        init_yaw_sigma_unknown_rad=0.0,  # the heading is known: level and yaw 0
         init_gyro_bias_sigma_radps=0.0,
         init_accel_bias_sigma_mps2=0.0,
         init_min_gnss_distance_m=1e9,  # yaw 0, velocity 0, position = first fix
