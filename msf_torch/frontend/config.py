@@ -32,6 +32,7 @@ class EskfConfig:
     # initial state
     init_window_s: float = 0.5  # accelerometer averaging for roll/pitch
     init_min_gnss_distance_m: float = 20.0  # GNSS travel used to fix the initial yaw
+    init_max_track_s: float = 30.0  # ... looked for in the first fixes up to this long
     init_position_sigma_m: float = 1.0
     init_velocity_sigma_mps: float = 0.5
     init_roll_pitch_sigma_rad: float = 0.03  # tilt from a moving accelerometer (motion part)

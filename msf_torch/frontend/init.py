@@ -86,6 +86,14 @@ def _one(
     if gnss is not None:
         g0 = gnss["position"][0]
         dist = np.linalg.norm(gnss["position"][:, :2] - g0[:2], axis=1)
+        # only the opening stretch of fixes: within init_max_track_s of the first and
+        # before the first outage (dead reckoning across a long gap would bend the track)
+        t_fix = gnss["t"]
+        spacing = np.diff(t_fix)
+        gaps = np.nonzero(spacing > 3.0 * np.median(spacing))[0] if spacing.size else []
+        last = min(len(t_fix) - 1, int(gaps[0]) if len(gaps) else len(t_fix) - 1)
+        last = min(last, int(np.searchsorted(t_fix, t_fix[0] + cfg.init_max_track_s, "right")) - 1)
+        dist = dist[: last + 1]
         far = np.nonzero(dist >= cfg.init_min_gnss_distance_m)[0]
         position = g0.copy()
         anchored = None
