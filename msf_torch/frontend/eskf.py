@@ -286,9 +286,10 @@ def _segment_matrix(dims: list[int], dtype, device) -> torch.Tensor:
 
 @contextlib.contextmanager
 def _intra_op_threads(count: int):
-    """Temporarily set torch's intra-op threads (the epoch loop works on tiny matrices,
-    where thread hand-offs cost more than they save, and oversubscribed cores make
-    LAPACK's spinning threads take milliseconds per call)."""
+    """Temporarily set torch's intra-op threads. The epoch loop works on tiny matrices:
+    for a few sequences thread hand-offs cost more than they save (and oversubscribed
+    cores make LAPACK's spinning threads take milliseconds per call), so it runs on one
+    thread unless the batch is large (16 or more sequences)."""
     previous = torch.get_num_threads()
     torch.set_num_threads(count)
     try:
@@ -412,7 +413,7 @@ def run_eskf(
     accepted_out.append(no_blocks.bool())
     nis_out.append(no_blocks)
 
-    with _intra_op_threads(1):
+    with _intra_op_threads(1 if batch < 16 else torch.get_num_threads()):
         for e in range(n_epochs):
             # --- propagation: nominal with bias-corrected increments -----------------------
             dbias = torch.cat(
