@@ -18,11 +18,16 @@ Per epoch (see ``frontend.schedule``) and for all B sequences at once:
    The covariance is kept in right-invariant coordinates (see :func:`_invariant_maps`):
    ``P_inv`` propagates with ``T_j^-1 Phi T_i`` and updates with ``H T_j``, so the
    global-yaw direction that wheels and the NHC cannot observe stays unobservable
-   whatever the estimate; results report the conventional covariance ``T P_inv T^T``. The
-   transition uses the same bias-corrected increments as the nominal state.
+   whatever the estimate; results report the conventional covariance ``T P_inv T^T``.
+   In these coordinates the navigation block of ``T_j^-1 Phi T_i`` depends on ``dT`` only
+   (:func:`_invariant_nav_transition`, precomputed for all epochs); the loop fills in the
+   bias columns, which use the bias Jacobians and the estimate. The nominal state uses the
+   bias-corrected increments; a transition built from other increments would leak
+   heading information at every epoch.
 
 2. Update with every measurement that falls on the epoch end, stacked into one vector:
-   wheel (4: body velocity + yaw rate), NHC (2), zero velocity (3), GNSS (3), pose (6),
+   wheel (3: body velocity; its yaw-rate row joins with ``wheel_yaw_rate_update``), NHC (2),
+   zero velocity (3), GNSS (3), pose (6),
    each a residual from ``sensors``. Each block is chi-square gated on its own innovation;
    the wheel block is also scaled by the slip factor (``frontend.slip``) and skipped below
    a threshold. Joseph-form covariance update, then the invariant error is injected
