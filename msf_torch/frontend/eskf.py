@@ -125,7 +125,6 @@ class EskfResult:
         present, accepted: sensor -> (B, E + 1) bool (a measurement was there / was fused).
         nis: sensor -> (B, E + 1) normalised innovation squared (0 where absent).
         gap: (B, E + 1) bool, an IMU gap was bridged in this epoch.
-        wheel_epoch: (B, E + 1) bool, a wheel reading arrived (slip factor evaluated).
     """
 
     names: list[str]
@@ -142,7 +141,6 @@ class EskfResult:
     accepted: dict[str, torch.Tensor] = field(default_factory=dict)
     nis: dict[str, torch.Tensor] = field(default_factory=dict)
     gap: torch.Tensor | None = None
-    wheel_epoch: torch.Tensor | None = None
 
     def trajectory(self) -> Trajectory:
         """Estimated poses as a :class:`~msf_torch.types.Trajectory` (B, E + 1)."""
@@ -206,9 +204,7 @@ def _local_process_noise(pre: Preintegrated, noise: EskfNoise) -> torch.Tensor:
         return x[:, None] if x.dim() == 1 else x
 
     imu = noise.imu
-    nav = (per_seq(imu.gyro_noise_density) ** 2)[..., None, None] * pre.cov_unit_gyro + (
-        per_seq(imu.accel_noise_density) ** 2
-    )[..., None, None] * pre.cov_unit_accel
+    nav = pre.covariance(imu)
     var_g = per_seq(imu.gyro_bias_rw_density) ** 2 * pre.delta_t
     var_a = per_seq(imu.accel_bias_rw_density) ** 2 * pre.delta_t
     bias = torch.diag_embed(torch.stack((var_g, var_g, var_g, var_a, var_a, var_a), -1))
@@ -421,17 +417,7 @@ def run_eskf(
     with _intra_op_threads(1 if batch < 16 else torch.get_num_threads()):
         for e in range(n_epochs):
             # --- propagation: nominal with bias-corrected increments -----------------------
-            dbias = torch.cat(
-                (
-                    state.gyro_bias - pre.gyro_bias_lin[:, e],
-                    state.accel_bias - pre.accel_bias_lin[:, e],
-                ),
-                -1,
-            )
-            corr = (pre.bias_jacobian[:, e] @ dbias[..., None]).squeeze(-1)
-            d_rot = pre.delta_rotation[:, e] @ so3.exp(corr[:, 6:9])
-            d_vel = pre.delta_velocity[:, e] + corr[:, 3:6]
-            d_pos = pre.delta_position[:, e] + corr[:, 0:3]
+            d_rot, d_vel, d_pos = pre.corrected(state.gyro_bias, state.accel_bias, index=e)
             position, velocity, rotation = propagate_nominal(
                 state.position,
                 state.velocity,
@@ -618,5 +604,4 @@ def run_eskf(
         accepted=accepted,
         nis=nis,
         gap=gap,
-        wheel_epoch=present_out["wheel"],
     )

@@ -24,6 +24,7 @@ import math
 
 import numpy as np
 import torch
+from pytorch_kinematics.transforms import euler_angles_to_matrix
 
 from msf_torch.frontend.config import EskfConfig
 from msf_torch.geometry import so3
@@ -32,18 +33,9 @@ from msf_torch.types import NavState, Sequence
 
 
 def _rpy_matrix(roll: float, pitch: float, yaw: float) -> np.ndarray:
-    cr, sr, cp, sp, cy, sy = (
-        math.cos(roll),
-        math.sin(roll),
-        math.cos(pitch),
-        math.sin(pitch),
-        math.cos(yaw),
-        math.sin(yaw),
-    )
-    rz = np.array([[cy, -sy, 0], [sy, cy, 0], [0, 0, 1]])
-    ry = np.array([[cp, 0, sp], [0, 1, 0], [-sp, 0, cp]])
-    rx = np.array([[1, 0, 0], [0, cr, -sr], [0, sr, cr]])
-    return rz @ ry @ rx
+    """``Rz(yaw) Ry(pitch) Rx(roll)`` (3, 3), through pytorch_kinematics."""
+    angles = torch.tensor([yaw, pitch, roll], dtype=torch.float64)
+    return euler_angles_to_matrix(angles, "ZYX").numpy()
 
 
 def _valid(stream, b: int):

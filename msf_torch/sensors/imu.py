@@ -110,28 +110,46 @@ class Preintegrated:
     accel_bias_lin: torch.Tensor
 
     def covariance(self, noise: ImuNoise) -> torch.Tensor:
-        """Increment covariance (..., 9, 9) for the given noise densities."""
-        sg = noise.gyro_noise_density[..., None, None]
-        sa = noise.accel_noise_density[..., None, None]
-        return sg**2 * self.cov_unit_gyro + sa**2 * self.cov_unit_accel
+        """Increment covariance (..., 9, 9) for the given noise densities.
+
+        The densities are scalars or tensors over the leading dims: shape (B,) with
+        increments (B, E) applies one density per sequence.
+        """
+
+        def lead(x: torch.Tensor) -> torch.Tensor:
+            x = x.reshape(*x.shape, *([1] * (self.delta_t.dim() - x.dim())))
+            return x[..., None, None]
+
+        return (
+            lead(noise.gyro_noise_density) ** 2 * self.cov_unit_gyro
+            + lead(noise.accel_noise_density) ** 2 * self.cov_unit_accel
+        )
 
     def corrected(
-        self, gyro_bias: torch.Tensor, accel_bias: torch.Tensor
+        self, gyro_bias: torch.Tensor, accel_bias: torch.Tensor, index: int | None = None
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """First-order bias correction of the increments.
 
         Args:
             gyro_bias, accel_bias: (..., 3) new bias estimates.
+            index: with increments (B, E), correct only interval ``index`` along E
+                (the filter's current epoch); the result then has leading dims (B,).
         Returns:
             delta_rotation (..., 3, 3), delta_velocity (..., 3), delta_position (..., 3).
         """
-        dbias = torch.cat((gyro_bias - self.gyro_bias_lin, accel_bias - self.accel_bias_lin), -1)
-        corr = (self.bias_jacobian @ dbias[..., None]).squeeze(-1)
-        delta_rotation = self.delta_rotation @ so3.exp(corr[..., 6:9])
+
+        def at(x: torch.Tensor) -> torch.Tensor:
+            return x if index is None else x[:, index]
+
+        dbias = torch.cat(
+            (gyro_bias - at(self.gyro_bias_lin), accel_bias - at(self.accel_bias_lin)), -1
+        )
+        corr = (at(self.bias_jacobian) @ dbias[..., None]).squeeze(-1)
+        delta_rotation = at(self.delta_rotation) @ so3.exp(corr[..., 6:9])
         return (
             delta_rotation,
-            self.delta_velocity + corr[..., 3:6],
-            self.delta_position + corr[..., 0:3],
+            at(self.delta_velocity) + corr[..., 3:6],
+            at(self.delta_position) + corr[..., 0:3],
         )
 
 
