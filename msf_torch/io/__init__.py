@@ -1,5 +1,6 @@
-"""Readers and writers: native .npz/.csv sequences, TUM trajectories, EuRoC ASL folders and
-the KITTI drive shipped with gtsam.
+"""Readers and writers: native .npz/.csv sequences, TUM trajectories, EuRoC ASL folders, the
+KITTI drive shipped with gtsam and gtsam's EuRoC EqVIO replay file (:func:`load_eqvio`, IMU +
+feature tracks; not a :class:`~msf_torch.types.Sequence`).
 
 :func:`load_sequence` is the one entry point for sequences; it dispatches on ``fmt`` or
 detects the format. Every reader returns a B = 1 :class:`~msf_torch.types.Sequence` in
@@ -14,11 +15,13 @@ from __future__ import annotations
 __all__ = [
     "FORMATS",
     "DataError",
+    "EqvioRun",
     "MissingExtraError",
     "atomic_write",
     "atomic_save_npz",
     "detect_format",
     "gtsam_data_path",
+    "load_eqvio",
     "load_kitti_gtsam",
     "load_sequence",
     "read_euroc",
@@ -32,6 +35,7 @@ import os
 from pathlib import Path
 
 from msf_torch.io.atomic import atomic_save_npz, atomic_write
+from msf_torch.io.eqvio import EqvioRun, load_eqvio
 from msf_torch.io.errors import DataError, MissingExtraError
 from msf_torch.io.euroc import find_euroc_root, read_euroc
 from msf_torch.io.kitti_gtsam import KITTI_GTSAM_NAME, gtsam_data_path, load_kitti_gtsam
