@@ -8,12 +8,19 @@ float64 and follows the same rules for bad input (see :mod:`msf_torch.io.native`
 malformed data raises :class:`DataError` naming file, line and field; non-finite samples are
 dropped and counted in ``meta``; backwards time raises unless ``sort=True``; repeated
 timestamps keep the first sample.
+
+3-D pose graphs (g2o ``VERTEX_SE3:QUAT`` / ``EDGE_SE3:QUAT``, TORO ``VERTEX3`` / ``EDGE3``) are
+read by :func:`read_pose_graph` into a :class:`PoseGraph` and written by :func:`write_g2o`
+(:mod:`msf_torch.io.g2o`; information matrices in ``[dp, dtheta]`` order, costs equal to
+GTSAM's).
 """
 
 from __future__ import annotations
 
 __all__ = [
     "FORMATS",
+    "GTSAM_POSE3_FILES",
+    "PoseGraph",
     "DataError",
     "EqvioRun",
     "MissingExtraError",
@@ -21,12 +28,15 @@ __all__ = [
     "atomic_save_npz",
     "detect_format",
     "gtsam_data_path",
+    "gtsam_pose_graph_path",
     "load_eqvio",
     "load_kitti_gtsam",
     "load_sequence",
     "read_euroc",
     "read_native",
+    "read_pose_graph",
     "read_tum",
+    "write_g2o",
     "write_native",
     "write_tum",
 ]
@@ -38,6 +48,13 @@ from msf_torch.io.atomic import atomic_save_npz, atomic_write
 from msf_torch.io.eqvio import EqvioRun, load_eqvio
 from msf_torch.io.errors import DataError, MissingExtraError
 from msf_torch.io.euroc import find_euroc_root, read_euroc
+from msf_torch.io.g2o import (
+    GTSAM_POSE3_FILES,
+    PoseGraph,
+    gtsam_pose_graph_path,
+    read_pose_graph,
+    write_g2o,
+)
 from msf_torch.io.kitti_gtsam import KITTI_GTSAM_NAME, gtsam_data_path, load_kitti_gtsam
 from msf_torch.io.native import read_native, write_native
 from msf_torch.io.tum import read_tum, write_tum
