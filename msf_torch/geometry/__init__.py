@@ -1,5 +1,5 @@
 """SO(3) geometry on plain tensors and the project's one error-state convention."""
 
-from msf_torch.geometry import conventions, quaternion, so3
+from msf_torch.geometry import conventions, quaternion, se3, so3
 
-__all__ = ["conventions", "quaternion", "so3"]
+__all__ = ["conventions", "quaternion", "se3", "so3"]

@@ -26,7 +26,14 @@ Noise: continuous white-noise densities ``sigma_g`` (rad/s/sqrt(Hz)) and ``sigma
 
 from __future__ import annotations
 
-__all__ = ["ImuNoise", "Preintegrated", "zoh_step", "preintegrate", "propagate_nominal"]
+__all__ = [
+    "ImuNoise",
+    "Preintegrated",
+    "zoh_step",
+    "preintegrate",
+    "propagate_nominal",
+    "preintegration_residual",
+]
 
 from dataclasses import dataclass
 
@@ -325,3 +332,79 @@ def propagate_nominal(
     )
     new_velocity = velocity + gravity * dtv + (rotation @ delta_velocity[..., None]).squeeze(-1)
     return new_position, new_velocity, rotation @ delta_rotation
+
+
+def preintegration_residual(
+    state_i: torch.Tensor, state_j: torch.Tensor, pre: Preintegrated, gravity: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """IMU preintegration residual between nav states i and j, with Jacobians.
+
+    With the increments bias-corrected to first order at ``b_i`` (:meth:`Preintegrated.corrected`)::
+
+        r_p  = R_i^T (p_j - p_i - v_i dT - 1/2 g dT^2) - dp(b_i)
+        r_v  = R_i^T (v_j - v_i - g dT) - dv(b_i)
+        r_th = Log(dR(b_i)^T R_i^T R_j)
+        r_bg = b_g,j - b_g,i,   r_ba = b_a,j - b_a,i
+
+    stacked ``[r_p, r_v, r_th, r_bg, r_ba]`` (15,), the error-state order of
+    :mod:`msf_torch.geometry.conventions` (Forster et al. 2017, eq. 45, reordered). The first
+    nine rows are in the frame of state i, like the increments' covariance.
+
+    Args:
+        state_i, state_j: (..., 21) flat nav states ``[p, v, R (row-major 9), b_g, b_a]``.
+        pre: increments with leading dims (...).
+        gravity: (3,) world gravity, m/s^2.
+    Returns:
+        residual (..., 15), Jacobians w.r.t. the error states of i and j (..., 15, 15).
+    """
+    p_i, v_i, b_gi, b_ai = (
+        state_i[..., 0:3],
+        state_i[..., 3:6],
+        state_i[..., 15:18],
+        state_i[..., 18:21],
+    )
+    p_j, v_j, b_gj, b_aj = (
+        state_j[..., 0:3],
+        state_j[..., 3:6],
+        state_j[..., 15:18],
+        state_j[..., 18:21],
+    )
+    rot_i = state_i[..., 6:15].reshape(*state_i.shape[:-1], 3, 3)
+    rot_j = state_j[..., 6:15].reshape(*state_j.shape[:-1], 3, 3)
+    d_t = pre.delta_t[..., None]
+    d_rot, d_vel, d_pos = pre.corrected(b_gi, b_ai)
+    world_v = v_j - v_i - gravity * d_t
+    world_p = p_j - p_i - v_i * d_t - 0.5 * gravity * d_t**2
+    local_v = (rot_i.mT @ world_v[..., None]).squeeze(-1)
+    local_p = (rot_i.mT @ world_p[..., None]).squeeze(-1)
+    rel = rot_i.mT @ rot_j
+    r_theta = so3.log(d_rot.mT @ rel)
+    residual = torch.cat((local_p - d_pos, local_v - d_vel, r_theta, b_gj - b_gi, b_aj - b_ai), -1)
+
+    lead = residual.shape[:-1]
+    jr_inv = torch.linalg.inv(so3.right_jacobian(r_theta))
+    bias_jac = pre.bias_jacobian.expand(*lead, 9, 6)
+    gyro_bias_change = b_gi - pre.gyro_bias_lin
+    theta_bias = (bias_jac[..., 6:9, 0:3] @ gyro_bias_change[..., None]).squeeze(-1)
+    d_theta_d_bg = (
+        -jr_inv @ so3.exp(r_theta).mT @ so3.right_jacobian(theta_bias) @ bias_jac[..., 6:9, 0:3]
+    )
+
+    jac_i = torch.zeros(*lead, 15, 15, dtype=residual.dtype, device=residual.device)
+    jac_j = torch.zeros_like(jac_i)
+    rot_i_t = rot_i.mT
+    jac_i[..., 0:3, 0:3] = -rot_i_t
+    jac_i[..., 0:3, 3:6] = -rot_i_t * d_t[..., None]
+    jac_i[..., 0:3, 6:9] = so3.hat(local_p)
+    jac_i[..., 0:3, 9:15] = -bias_jac[..., 0:3, :]
+    jac_i[..., 3:6, 3:6] = -rot_i_t
+    jac_i[..., 3:6, 6:9] = so3.hat(local_v)
+    jac_i[..., 3:6, 9:15] = -bias_jac[..., 3:6, :]
+    jac_i[..., 6:9, 6:9] = -jr_inv @ rel.mT
+    jac_i[..., 6:9, 9:12] = d_theta_d_bg
+    jac_i[..., 9:15, 9:15] = -torch.eye(6, dtype=residual.dtype, device=residual.device)
+    jac_j[..., 0:3, 0:3] = rot_i_t
+    jac_j[..., 3:6, 3:6] = rot_i_t
+    jac_j[..., 6:9, 6:9] = jr_inv
+    jac_j[..., 9:15, 9:15] = torch.eye(6, dtype=residual.dtype, device=residual.device)
+    return residual, jac_i, jac_j

@@ -1,0 +1,402 @@
+"""Factor types of the back end: the residuals of :mod:`msf_torch.sensors`, noise, kernel.
+
+Each class is one *type* of factor holding F factors as a struct of arrays: index tensors
+(F,) into the variable groups, measurement tensors (B or 1, F, ...), a square-root
+information matrix (B or 1, F, R, R) from a covariance (``Sigma = L L^T``, ``W = L^-1``) and
+an optional :class:`~msf_torch.backend.robust.RobustKernel`. Where the sensor module gives a
+Jacobian w.r.t. the 15-dim error state it is used directly (columns picked for pose
+variables); the others are differentiated by forward-mode autodiff on the tangent space.
+
+Variables may be ``nav_state`` (15-dim tangent [dp, dv, dtheta, db_g, db_a]) or ``pose``
+(6-dim [dp, dtheta]) where a factor only needs the pose.
+"""
+
+from __future__ import annotations
+
+__all__ = [
+    "sqrt_information",
+    "pose_of",
+    "PosePriorFactor",
+    "NavStatePriorFactor",
+    "GnssFactor",
+    "ZeroVelocityFactor",
+    "BetweenFactor",
+    "PlaneFactor",
+    "ImuPreintegrationFactor",
+    "WheelOdometryFactor",
+    "ReprojectionFactor",
+    "MarginalPriorFactor",
+]
+
+import torch
+
+from msf_torch.backend.problem import Factor
+from msf_torch.backend.robust import RobustKernel
+from msf_torch.backend.variables import VariableKind, unpack_nav_state, unpack_pose
+from msf_torch.geometry import se3, so3
+from msf_torch.geometry.conventions import IDX_P, IDX_THETA
+from msf_torch.sensors.gnss import gnss_residual
+from msf_torch.sensors.imu import Preintegrated, preintegration_residual
+from msf_torch.sensors.pose import pose_residual
+from msf_torch.sensors.vehicle import zero_velocity_residual
+
+_POSE_COLUMNS = [IDX_P.start + i for i in range(3)] + [IDX_THETA.start + i for i in range(3)]
+
+
+def sqrt_information(covariance: torch.Tensor) -> torch.Tensor:
+    """Whitening ``W = L^-1`` (..., R, R) of a covariance ``Sigma = L L^T`` (..., R, R), so
+    ``|W r|^2 = r^T Sigma^-1 r``."""
+    chol = torch.linalg.cholesky(covariance)
+    eye = torch.eye(covariance.shape[-1], dtype=covariance.dtype, device=covariance.device)
+    return torch.linalg.solve_triangular(chol, eye.expand_as(chol), upper=False)
+
+
+def pose_of(kind: VariableKind, value: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Position (..., 3) and rotation (..., 3, 3) of ``nav_state`` or ``pose`` values."""
+    if kind.name == "pose":
+        return unpack_pose(value)
+    position, _, rotation, _, _ = unpack_nav_state(value)
+    return position, rotation
+
+
+def _for_kind(jacobian: torch.Tensor, kind: VariableKind) -> torch.Tensor:
+    """Error-state Jacobian (..., R, 15) restricted to the tangent of ``kind``."""
+    if kind.name == "nav_state":
+        return jacobian
+    return jacobian[..., _POSE_COLUMNS]
+
+
+class _Unary(Factor):
+    """Factor on one variable per factor."""
+
+    def __init__(
+        self, group: str, index: torch.Tensor, covariance: torch.Tensor, kernel: RobustKernel | None
+    ) -> None:
+        self.slots = ((group, index.long()),)
+        self.sqrt_information = sqrt_information(covariance)
+        self.kernel = kernel
+
+
+class PosePriorFactor(_Unary):
+    """Prior on a pose from the front end: ``r = [p - p', Log(R'^T R)]`` (6,) with the front
+    end's 6x6 covariance in [dp, dtheta] order (:func:`msf_torch.sensors.pose.pose_residual`).
+
+    Args:
+        group, index: variables (F,) (``nav_state`` or ``pose``).
+        position: (B|1, F, 3) m. rotation: (B|1, F, 3, 3).
+        covariance: (B|1, F, 6, 6) m^2 / rad^2.
+    """
+
+    def __init__(self, group, index, position, rotation, covariance, kernel=None) -> None:
+        super().__init__(group, index, covariance, kernel)
+        self.position, self.rotation = position, rotation
+
+    def residual(self, values):
+        return self.residual_and_jacobians(values, None)[0]
+
+    def residual_and_jacobians(self, values, kinds):
+        kind = _kind_of(values[0])
+        position, rotation = pose_of(kind, values[0])
+        r, jac = pose_residual(
+            position, rotation, self.position.expand_as(position), self.rotation.expand_as(rotation)
+        )
+        return r, [_for_kind(jac, kind)]
+
+
+class NavStatePriorFactor(_Unary):
+    """Prior on a whole nav state: ``r = [p - p', v - v', Log(R'^T R), b_g - b_g', b_a - b_a']``
+    (15,) with a 15x15 covariance in the error-state order.
+
+    Args:
+        group, index: ``nav_state`` variables (F,).
+        prior: (B|1, F, 21) nav-state values (:func:`msf_torch.backend.variables.pack_nav_state`).
+        covariance: (B|1, F, 15, 15).
+    """
+
+    def __init__(self, group, index, prior, covariance, kernel=None) -> None:
+        super().__init__(group, index, covariance, kernel)
+        self.prior = prior
+
+    def residual(self, values):
+        return nav_state_local(self.prior.expand_as(values[0]), values[0])
+
+
+def nav_state_local(origin: torch.Tensor, value: torch.Tensor) -> torch.Tensor:
+    """Tangent coordinates (..., 15) of nav states ``value`` around ``origin`` (..., 21)."""
+    p0, v0, r0, bg0, ba0 = unpack_nav_state(origin)
+    p, v, r, bg, ba = unpack_nav_state(value)
+    return torch.cat((p - p0, v - v0, so3.log(r0.mT @ r), bg - bg0, ba - ba0), -1)
+
+
+class GnssFactor(_Unary):
+    """GNSS antenna position ``r = p + R l - z`` (3,) (:mod:`msf_torch.sensors.gnss`).
+
+    Args:
+        group, index: variables (F,). measured: (B|1, F, 3) m. lever_arm: (3,) or (B|1, F, 3)
+        m in the body frame. covariance: (B|1, F, 3, 3) m^2.
+    """
+
+    def __init__(self, group, index, measured, covariance, lever_arm=None, kernel=None) -> None:
+        super().__init__(group, index, covariance, kernel)
+        self.measured = measured
+        self.lever_arm = (
+            torch.zeros(3, dtype=measured.dtype, device=measured.device)
+            if lever_arm is None
+            else lever_arm
+        )
+
+    def residual(self, values):
+        return self.residual_and_jacobians(values, None)[0]
+
+    def residual_and_jacobians(self, values, kinds):
+        kind = _kind_of(values[0])
+        position, rotation = pose_of(kind, values[0])
+        arm = self.lever_arm.expand_as(position)
+        r, jac = gnss_residual(position, rotation, arm, self.measured.expand_as(position))
+        return r, [_for_kind(jac, kind)]
+
+
+class ZeroVelocityFactor(_Unary):
+    """Zero velocity ``r = v`` (3,) on ``nav_state`` variables; covariance (B|1, F, 3, 3)."""
+
+    def residual(self, values):
+        return self.residual_and_jacobians(values, None)[0]
+
+    def residual_and_jacobians(self, values, kinds):
+        _, velocity, _, _, _ = unpack_nav_state(values[0])
+        r, jac = zero_velocity_residual(velocity)
+        return r, [jac]
+
+
+class _Binary(Factor):
+    def __init__(self, group, index_i, index_j, covariance, kernel, group_j=None) -> None:
+        self.slots = ((group, index_i.long()), (group_j or group, index_j.long()))
+        self.sqrt_information = sqrt_information(covariance)
+        self.kernel = kernel
+
+
+class BetweenFactor(_Binary):
+    """Relative pose (odometry, loop closure): ``r = Log_SE3(Z^-1 T_i^-1 T_j)`` (6,), order
+    [rho, phi] (translation part first); GTSAM's ``BetweenFactor<Pose3>`` error in our order.
+
+    Args:
+        group, index_i, index_j: variables (F,). rotation: (B|1, F, 3, 3), translation:
+        (B|1, F, 3) m, the measured ``T_i^-1 T_j``. covariance: (B|1, F, 6, 6) in [rho, phi].
+    """
+
+    def __init__(
+        self, group, index_i, index_j, rotation, translation, covariance, kernel=None
+    ) -> None:
+        super().__init__(group, index_i, index_j, covariance, kernel)
+        self.rotation, self.translation = rotation, translation
+
+    def residual(self, values):
+        return self._evaluate(values, jacobians=False)[0]
+
+    def residual_and_jacobians(self, values, kinds):
+        return self._evaluate(values, jacobians=True)
+
+    def _evaluate(self, values, jacobians: bool):
+        kind = _kind_of(values[0])
+        p_i, r_i = pose_of(kind, values[0])
+        p_j, r_j = pose_of(kind, values[1])
+        rel_r, rel_t = se3.relative(r_i, p_i, r_j, p_j)
+        err_r, err_t = se3.relative(
+            self.rotation.expand_as(rel_r), self.translation.expand_as(rel_t), rel_r, rel_t
+        )
+        xi = se3.log(err_r, err_t)
+        if not jacobians:
+            return xi, None
+        # our chart moves T by exp([R^T dp, dtheta]) on the right; r = Log(E exp(.)) for j and
+        # Log(E exp(-Ad(T_ij^-1) .)) for i, with d Log(E exp(d)) = J_r^-1(xi) d
+        jr_inv = torch.linalg.inv(se3.right_jacobian(xi))
+        inv_r, inv_t = rel_r.mT, -(rel_r.mT @ rel_t[..., None]).squeeze(-1)
+        jac_j = jr_inv.clone()
+        jac_j[..., :, 0:3] = jr_inv[..., :, 0:3] @ r_j.mT
+        jac_i = -jr_inv @ se3.adjoint(inv_r, inv_t)
+        jac_i = torch.cat((jac_i[..., :, 0:3] @ r_i.mT, jac_i[..., :, 3:6]), -1)
+        return xi, [_widen(jac_i, kind), _widen(jac_j, kind)]
+
+
+class PlaneFactor(_Binary):
+    """Planar motion of a ground vehicle between poses i and j, relative to the local ground
+    plane of pose i (its body x-y plane): ``r = [phi_x, phi_y, e_z^T R_i^T (p_j - p_i)]``
+    (3,) with ``phi = Log(R_i^T R_j)``: no relative roll, pitch or height change.
+
+    Args: group, index_i, index_j (F,); covariance (B|1, F, 3, 3) rad^2, rad^2, m^2.
+    """
+
+    def residual(self, values):
+        kind = _kind_of(values[0])
+        p_i, r_i = pose_of(kind, values[0])
+        p_j, r_j = pose_of(kind, values[1])
+        phi = so3.log(r_i.mT @ r_j)
+        height = (r_i.mT @ (p_j - p_i)[..., None]).squeeze(-1)[..., 2:3]
+        return torch.cat((phi[..., 0:2], height), -1)
+
+
+class ImuPreintegrationFactor(_Binary):
+    """IMU preintegration between nav states i and j (15,): the residual of
+    :func:`msf_torch.sensors.imu.preintegration_residual` ([r_p, r_v, r_theta] and the bias
+    random walk [r_bg, r_ba]).
+
+    Args:
+        group, index_i, index_j: ``nav_state`` variables (F,).
+        preintegrated: :class:`~msf_torch.sensors.imu.Preintegrated` with leading (B|1, F).
+        covariance: (B|1, F, 15, 15) (see :func:`msf_torch.backend.preintegration.imu_covariance`).
+        gravity: (3,) m/s^2 world.
+    """
+
+    def __init__(
+        self,
+        group,
+        index_i,
+        index_j,
+        preintegrated: Preintegrated,
+        covariance,
+        gravity,
+        kernel=None,
+    ) -> None:
+        super().__init__(group, index_i, index_j, covariance, kernel)
+        self.preintegrated, self.gravity = preintegrated, gravity
+
+    def residual(self, values):
+        return self.residual_and_jacobians(values, None)[0]
+
+    def residual_and_jacobians(self, values, kinds):
+        r, jac_i, jac_j = preintegration_residual(
+            values[0], values[1], self.preintegrated, self.gravity
+        )
+        return r, [jac_i, jac_j]
+
+
+class WheelOdometryFactor(_Binary):
+    """Preintegrated differential-drive odometry between poses i and j (3,): the planar
+    increment ``[dx, dy, dyaw]`` in the body frame of i, against the states:
+    ``r = [(R_i^T (p_j - p_i))_{x,y} - (dx, dy), wrap(yaw(R_i^T R_j) - dyaw)]``. Its noise is
+    the propagated wheel-speed noise, scaled by the slip factor (see
+    :func:`msf_torch.backend.preintegration.preintegrate_wheel`).
+
+    Args: group, index_i, index_j (F,); increment (B|1, F, 3) m, m, rad; covariance
+    (B|1, F, 3, 3); lever_arm (3,) axle centre in the body frame, m.
+    """
+
+    def __init__(
+        self, group, index_i, index_j, increment, covariance, lever_arm=None, kernel=None
+    ) -> None:
+        super().__init__(group, index_i, index_j, covariance, kernel)
+        self.increment = increment
+        self.lever_arm = (
+            torch.zeros(3, dtype=increment.dtype, device=increment.device)
+            if lever_arm is None
+            else lever_arm
+        )
+
+    def residual(self, values):
+        kind = _kind_of(values[0])
+        p_i, r_i = pose_of(kind, values[0])
+        p_j, r_j = pose_of(kind, values[1])
+        arm = self.lever_arm.expand_as(p_i)
+        axle_i = p_i + (r_i @ arm[..., None]).squeeze(-1)
+        axle_j = p_j + (r_j @ arm[..., None]).squeeze(-1)
+        local = (r_i.mT @ (axle_j - axle_i)[..., None]).squeeze(-1)
+        rel = r_i.mT @ r_j
+        yaw = torch.atan2(rel[..., 1, 0], rel[..., 0, 0])
+        dyaw = yaw - self.increment[..., 2]
+        dyaw = torch.atan2(torch.sin(dyaw), torch.cos(dyaw))
+        return torch.cat((local[..., 0:2] - self.increment[..., 0:2], dyaw[..., None]), -1)
+
+
+class ReprojectionFactor(Factor):
+    """Pinhole reprojection of landmark l in camera pose i (2,).
+
+    The camera sits at ``T_body_cam = (R_bc, t_bc)`` on the body; a world point ``l`` is at
+    ``c = R_bc^T (R^T (l - p) - t_bc)`` in the camera and projects to ``(c_x/c_z, c_y/c_z)``
+    (normalized) or ``K`` of it (pixels, when ``intrinsics=(fx, fy, cx, cy)``).
+    ``r = projection - measured``.
+
+    Args:
+        pose_group, pose_index: camera-carrying variables (F,) (``nav_state`` or ``pose``).
+        point_group, point_index: ``point`` variables (F,).
+        measured: (B|1, F, 2). covariance: (B|1, F, 2, 2) (normalized units or px^2).
+        body_rotation_cam (3, 3), body_translation_cam (3,): extrinsics.
+    """
+
+    def __init__(
+        self,
+        pose_group,
+        pose_index,
+        point_group,
+        point_index,
+        measured,
+        covariance,
+        body_rotation_cam,
+        body_translation_cam,
+        intrinsics=None,
+        kernel=None,
+    ) -> None:
+        self.slots = ((pose_group, pose_index.long()), (point_group, point_index.long()))
+        self.sqrt_information = sqrt_information(covariance)
+        self.kernel = kernel
+        self.measured = measured
+        self.body_rotation_cam, self.body_translation_cam = body_rotation_cam, body_translation_cam
+        self.intrinsics = intrinsics
+
+    def camera_point(self, values) -> torch.Tensor:
+        """Landmarks in the camera frame (B, F, 3), m."""
+        kind = _kind_of(values[0])
+        position, rotation = pose_of(kind, values[0])
+        body = (rotation.mT @ (values[1] - position)[..., None]).squeeze(-1)
+        return (self.body_rotation_cam.mT @ (body - self.body_translation_cam)[..., None]).squeeze(
+            -1
+        )
+
+    def residual(self, values):
+        cam = self.camera_point(values)
+        uv = cam[..., 0:2] / cam[..., 2:3]
+        if self.intrinsics is not None:
+            fx, fy, cx, cy = self.intrinsics
+            uv = torch.stack((fx * uv[..., 0] + cx, fy * uv[..., 1] + cy), -1)
+        return uv - self.measured
+
+
+class MarginalPriorFactor(Factor):
+    """Gaussian prior left by marginalisation: ``r = S (x [-] x0) + e`` over several
+    ``nav_state`` variables (one factor per problem), where the marginal Gauss-Newton system
+    ``(H_m, g_m)`` at ``x0`` was factored as ``H_m = S^T S``, ``e = S^-T g_m``.
+
+    Args:
+        slots: ``((group, index (1,)), ...)``. origin: list of (B, 1, 21) per slot.
+        sqrt_hessian: ``S`` (B, 1, R, R). offset: ``e`` (B, 1, R).
+    """
+
+    def __init__(self, slots, origin, sqrt_hessian, offset) -> None:
+        self.slots = tuple((g, i.long()) for g, i in slots)
+        self.origin = origin
+        dim = sqrt_hessian.shape[-1]
+        self.sqrt_information = torch.eye(dim, dtype=sqrt_hessian.dtype, device=sqrt_hessian.device)
+        self.sqrt_hessian, self.offset = sqrt_hessian, offset
+        self.kernel = None
+
+    def residual(self, values):
+        local = torch.cat(
+            [nav_state_local(o.expand_as(v), v) for o, v in zip(self.origin, values, strict=True)],
+            -1,
+        )
+        return (self.sqrt_hessian @ local[..., None]).squeeze(-1) + self.offset
+
+
+def _widen(jacobian: torch.Tensor, kind: VariableKind) -> torch.Tensor:
+    """Pose Jacobian (..., R, 6) in [dp, dtheta] placed in the 15 nav-state columns when needed."""
+    if kind.name == "pose":
+        return jacobian
+    out = torch.zeros(*jacobian.shape[:-1], 15, dtype=jacobian.dtype, device=jacobian.device)
+    out[..., IDX_P] = jacobian[..., 0:3]
+    out[..., IDX_THETA] = jacobian[..., 3:6]
+    return out
+
+
+def _kind_of(value: torch.Tensor) -> VariableKind:
+    from msf_torch.backend.variables import NAV_STATE, POSE
+
+    return NAV_STATE if value.shape[-1] == NAV_STATE.storage_dim else POSE

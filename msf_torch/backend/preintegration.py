@@ -1,0 +1,252 @@
+"""IMU and wheel preintegration between keyframes, for the back end's factors.
+
+IMU: :func:`preintegrate_imu` cuts raw samples at keyframe times and calls
+:func:`msf_torch.sensors.imu.preintegrate` (the same exact zero-order-hold step the ESKF
+propagates with) for the increments and their exact bias Jacobians. The increments'
+covariance is then propagated sample by sample,
+
+    Omega_{k+1} = A_k Omega_k A_k^T + B_k (Sigma_n / dt_k) B_k^T,
+
+with ``A_k``, ``B_k`` the exact Jacobians of the ZOH step w.r.t. the increment error
+``[dp, dv, dtheta]`` and the white noise (including the noise's effect inside the sample
+through ``d Gamma_n / d phi``); ``sensors.imu.preintegrate`` itself carries a closed form at
+zeroth order in ``w dt`` used by the filter, which this recursion replaces. The bias random
+walk adds ``sigma_bw^2 dT`` to the bias rows of the 15x15 factor covariance.
+
+Wheels: :func:`preintegrate_wheel` integrates differential-drive rim speeds into a planar
+increment ``[dx, dy, dyaw]`` in the frame of keyframe i with exact arcs per sample, and
+propagates the rim-speed noise to its 3x3 covariance; the slip factor ``f`` in (0, 1] from
+the front end divides that sample's noise sigma (``f = 1``: no slip).
+"""
+
+from __future__ import annotations
+
+__all__ = [
+    "ImuIntervals",
+    "cut_imu",
+    "preintegrate_imu",
+    "recursive_covariance",
+    "imu_covariance",
+    "preintegrate_wheel",
+]
+
+from dataclasses import dataclass, replace
+
+import torch
+
+from msf_torch.geometry import so3
+from msf_torch.sensors.imu import ImuNoise, Preintegrated, preintegrate
+
+
+@dataclass
+class ImuIntervals:
+    """Raw IMU samples cut into K - 1 keyframe intervals, padded with ``dt = 0``.
+
+    Attributes:
+        gyro, accel: (..., K - 1, L, 3) rad/s, m/s^2.
+        dt: (..., K - 1, L) hold time of each (piece of a) sample, s.
+    """
+
+    gyro: torch.Tensor
+    accel: torch.Tensor
+    dt: torch.Tensor
+
+
+def cut_imu(
+    times: torch.Tensor, gyro: torch.Tensor, accel: torch.Tensor, keyframe_times: torch.Tensor
+) -> ImuIntervals:
+    """Cut one IMU stream at keyframe times (zero-order hold: sample k holds from ``t_k`` to
+    ``t_{k+1}``; a sample that straddles a keyframe time is split there).
+
+    Args:
+        times: (T,) s, increasing. gyro, accel: (T, 3).
+        keyframe_times: (K,) s, increasing, inside ``[times[0], times[-1]]``.
+    Returns:
+        :class:`ImuIntervals` with leading dim K - 1.
+    """
+    if keyframe_times[0] < times[0] or keyframe_times[-1] > times[-1]:
+        raise ValueError("keyframe times must lie inside the IMU time span")
+    knots, order = torch.sort(torch.cat((times, keyframe_times)), stable=True)
+    source = torch.cat((torch.arange(times.numel()), torch.full((keyframe_times.numel(),), -1)))[
+        order
+    ]
+    # sample index held on each piece [knots[m], knots[m+1]): the last real sample at or before
+    sample = torch.cummax(torch.where(source >= 0, source, torch.full_like(source, -1)), 0).values
+    piece_dt = knots[1:] - knots[:-1]
+    piece_sample = sample[:-1]
+    piece_start = knots[:-1]
+    interval = torch.searchsorted(keyframe_times, piece_start, right=True) - 1
+    valid = (interval >= 0) & (interval < keyframe_times.numel() - 1) & (piece_dt > 0)
+    interval, piece_sample, piece_dt = interval[valid], piece_sample[valid], piece_dt[valid]
+    count = keyframe_times.numel() - 1
+    lengths = torch.bincount(interval, minlength=count)
+    width = int(lengths.max()) if lengths.numel() else 0
+    first = torch.cumsum(lengths, 0) - lengths
+    slot = torch.arange(interval.numel()) - first[interval]
+    out_dt = torch.zeros(count, width, dtype=times.dtype)
+    out_gyro = torch.zeros(count, width, 3, dtype=gyro.dtype)
+    out_accel = torch.zeros(count, width, 3, dtype=accel.dtype)
+    out_dt[interval, slot] = piece_dt
+    out_gyro[interval, slot] = gyro[piece_sample]
+    out_accel[interval, slot] = accel[piece_sample]
+    return ImuIntervals(out_gyro, out_accel, out_dt)
+
+
+def recursive_covariance(
+    gyro: torch.Tensor,
+    accel: torch.Tensor,
+    dt: torch.Tensor,
+    gyro_bias: torch.Tensor,
+    accel_bias: torch.Tensor,
+    noise_scale: torch.Tensor | None = None,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Exact sample-by-sample covariance of ``[dp, dv, dtheta]`` for unit noise densities.
+
+    Args: as :func:`msf_torch.sensors.imu.preintegrate`.
+    Returns:
+        (cov_unit_gyro, cov_unit_accel), each (..., 9, 9).
+    """
+    omega = gyro - gyro_bias[..., None, :]
+    force = accel - accel_bias[..., None, :]
+    phi = omega * dt[..., None]
+    coef = so3.coefficients(phi, derivatives=True)
+    step_rot, gam1, gam2 = so3.exp_and_gammas(phi, coef).unbind(-3)
+    d_gamma1, d_gamma2 = so3.gamma_vector_jacobians(phi, force, coef)
+    jr = so3.right_jacobian(phi)
+    scale = torch.ones_like(dt) if noise_scale is None else noise_scale
+    lead = dt.shape[:-1]
+    eye = torch.eye(3, dtype=dt.dtype, device=dt.device)
+    cov_g = torch.zeros(*lead, 9, 9, dtype=dt.dtype, device=dt.device)
+    cov_a = torch.zeros_like(cov_g)
+    rot = eye.expand(*lead, 3, 3)
+    for k in range(dt.shape[-1]):
+        h = dt[..., k, None, None]
+        g1f = (gam1[..., k, :, :] @ force[..., k, :, None]).squeeze(-1)
+        g2f = (gam2[..., k, :, :] @ force[..., k, :, None]).squeeze(-1)
+        a = torch.zeros(*lead, 9, 9, dtype=dt.dtype, device=dt.device)
+        a[..., 0:3, 0:3] = eye
+        a[..., 0:3, 3:6] = h * eye
+        a[..., 0:3, 6:9] = -rot @ so3.hat(g2f) * h * h
+        a[..., 3:6, 3:6] = eye
+        a[..., 3:6, 6:9] = -rot @ so3.hat(g1f) * h
+        a[..., 6:9, 6:9] = step_rot[..., k, :, :].mT
+        b_g = torch.cat(
+            (
+                rot @ d_gamma2[..., k, :, :] * h**3,
+                rot @ d_gamma1[..., k, :, :] * h**2,
+                jr[..., k, :, :] * h,
+            ),
+            -2,
+        )
+        b_a = torch.cat(
+            (rot @ gam2[..., k, :, :] * h**2, rot @ gam1[..., k, :, :] * h, torch.zeros_like(rot)),
+            -2,
+        )
+        variance = (scale[..., k] / dt[..., k].clamp_min(torch.finfo(dt.dtype).tiny))[
+            ..., None, None
+        ]
+        variance = torch.where(dt[..., k, None, None] > 0, variance, torch.zeros_like(variance))
+        cov_g = a @ cov_g @ a.mT + variance * (b_g @ b_g.mT)
+        cov_a = a @ cov_a @ a.mT + variance * (b_a @ b_a.mT)
+        rot = rot @ step_rot[..., k, :, :]
+    return cov_g, cov_a
+
+
+def preintegrate_imu(
+    intervals: ImuIntervals,
+    gyro_bias: torch.Tensor,
+    accel_bias: torch.Tensor,
+    covariance: str = "recursive",
+) -> Preintegrated:
+    """Increments of every interval (leading dims of ``intervals``), linearised at the
+    given biases (..., 3); ``covariance="recursive"`` (exact, default) or ``"closed_form"``
+    (the filter's zeroth-order form)."""
+    pre = preintegrate(intervals.gyro, intervals.accel, intervals.dt, gyro_bias, accel_bias)
+    if covariance == "closed_form":
+        return pre
+    if covariance != "recursive":
+        raise ValueError(f"covariance must be 'recursive' or 'closed_form', got {covariance!r}")
+    cov_g, cov_a = recursive_covariance(
+        intervals.gyro, intervals.accel, intervals.dt, gyro_bias, accel_bias
+    )
+    return replace(pre, cov_unit_gyro=cov_g, cov_unit_accel=cov_a)
+
+
+def imu_covariance(pre: Preintegrated, noise: ImuNoise) -> torch.Tensor:
+    """15x15 covariance (..., 15, 15) of the preintegration residual ``[r_p, r_v, r_theta,
+    r_bg, r_ba]``: the increments' covariance and the bias random walk over ``dT``."""
+    nav = pre.covariance(noise)
+    lead = nav.shape[:-2]
+    eye = torch.eye(3, dtype=nav.dtype, device=nav.device)
+    d_t = pre.delta_t[..., None, None]
+
+    def density(x: torch.Tensor) -> torch.Tensor:
+        x = torch.as_tensor(x, dtype=nav.dtype, device=nav.device)
+        return x.reshape(*x.shape, *([1] * (pre.delta_t.dim() - x.dim())))[..., None, None]
+
+    out = torch.zeros(*lead, 15, 15, dtype=nav.dtype, device=nav.device)
+    out[..., 0:9, 0:9] = nav
+    out[..., 9:12, 9:12] = density(noise.gyro_bias_rw_density) ** 2 * d_t * eye
+    out[..., 12:15, 12:15] = density(noise.accel_bias_rw_density) ** 2 * d_t * eye
+    return out
+
+
+def preintegrate_wheel(
+    left_speed: torch.Tensor,
+    right_speed: torch.Tensor,
+    dt: torch.Tensor,
+    track_width: float | torch.Tensor,
+    speed_sigma: float | torch.Tensor,
+    slip: torch.Tensor | None = None,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Planar differential-drive increment and covariance over intervals.
+
+    Each sample holds forward speed ``v = (v_r + v_l)/2`` and yaw rate ``w = (v_r - v_l)/D``
+    for ``dt`` (an exact arc); the increment is ``[dx, dy, dyaw]`` in the frame of the
+    interval's start. Rim-speed noise: each speed has standard deviation ``speed_sigma /
+    f`` (m/s) over the sample, ``f`` the slip factor.
+
+    Args:
+        left_speed, right_speed: (..., L) rim speeds, m/s. dt: (..., L) s (0 = padding).
+        track_width: D, m. speed_sigma: m/s. slip: (..., L) slip factor in (0, 1] or None.
+    Returns:
+        increment (..., 3) [m, m, rad] and covariance (..., 3, 3).
+    """
+    speed = 0.5 * (right_speed + left_speed)
+    yaw_rate = (right_speed - left_speed) / track_width
+    turn = yaw_rate * dt
+    small = turn.abs() < 1e-6
+    safe = torch.where(small, torch.ones_like(turn), turn)
+    sin_ratio = torch.where(small, 1.0 - turn**2 / 6.0, torch.sin(safe) / safe)
+    cos_ratio = torch.where(small, turn / 2.0, (1.0 - torch.cos(safe)) / safe)
+    yaw_before = torch.cumsum(turn, -1) - turn
+    step_x = speed * dt * sin_ratio
+    step_y = speed * dt * cos_ratio
+    c, s = torch.cos(yaw_before), torch.sin(yaw_before)
+    dx = c * step_x - s * step_y
+    dy = s * step_x + c * step_y
+    increment = torch.stack((dx.sum(-1), dy.sum(-1), turn.sum(-1)), -1)
+
+    # first-order propagation: error in [x, y, yaw] of the running increment
+    pos_x = torch.cumsum(dx, -1) - dx
+    pos_y = torch.cumsum(dy, -1) - dy
+    lead = dt.shape[:-1]
+    cov = torch.zeros(*lead, 3, 3, dtype=dt.dtype, device=dt.device)
+    sigma = torch.as_tensor(speed_sigma, dtype=dt.dtype, device=dt.device)
+    if slip is not None:
+        sigma = sigma / slip.clamp_min(1e-3)
+    var = sigma**2 * torch.ones_like(dt)
+    total_x, total_y = increment[..., 0], increment[..., 1]
+    # sensitivity of the final increment to each sample's (v_l, v_r): through the sample's
+    # own displacement and, for the yaw rate, through the turn of all later displacements
+    later_x = total_x[..., None] - pos_x - dx
+    later_y = total_y[..., None] - pos_y - dy
+    half = 0.5 * dt
+    d_yaw = dt / track_width
+    jac_v = torch.stack((c * half, s * half, torch.zeros_like(dt)), -2)  # (..., 3, L) per speed
+    jac_w = torch.stack((-later_y - 0.5 * dy, later_x + 0.5 * dx, torch.ones_like(dt)), -2)
+    jac_left = jac_v - jac_w * d_yaw[..., None, :]
+    jac_right = jac_v + jac_w * d_yaw[..., None, :]
+    for jac in (jac_left, jac_right):
+        cov = cov + (jac * var[..., None, :]) @ jac.mT
+    return increment, cov
