@@ -52,8 +52,8 @@ def sqrt_information(covariance: torch.Tensor) -> torch.Tensor:
 
 
 def pose_of(kind: VariableKind, value: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """Position (..., 3) and rotation (..., 3, 3) of ``nav_state`` or ``pose`` values."""
-    if kind.name == "pose":
+    """Position (..., 3) and rotation (..., 3, 3) of ``nav_state``, ``pose`` or ``se3`` values."""
+    if kind.name in ("pose", "se3"):
         return unpack_pose(value)
     position, _, rotation, _, _ = unpack_nav_state(value)
     return position, rotation
@@ -63,6 +63,8 @@ def _for_kind(jacobian: torch.Tensor, kind: VariableKind) -> torch.Tensor:
     """Error-state Jacobian (..., R, 15) restricted to the tangent of ``kind``."""
     if kind.name == "nav_state":
         return jacobian
+    if kind.name == "se3":
+        raise ValueError("this factor takes nav_state or pose variables, not se3")
     return jacobian[..., _POSE_COLUMNS]
 
 
@@ -95,7 +97,7 @@ class PosePriorFactor(_Unary):
         return self.residual_and_jacobians(values, None)[0]
 
     def residual_and_jacobians(self, values, kinds):
-        kind = _kind_of(values[0])
+        kind = self.kinds[0]
         position, rotation = pose_of(kind, values[0])
         r, jac = pose_residual(
             position, rotation, self.position.expand_as(position), self.rotation.expand_as(rotation)
@@ -149,7 +151,7 @@ class GnssFactor(_Unary):
         return self.residual_and_jacobians(values, None)[0]
 
     def residual_and_jacobians(self, values, kinds):
-        kind = _kind_of(values[0])
+        kind = self.kinds[0]
         position, rotation = pose_of(kind, values[0])
         arm = self.lever_arm.expand_as(position)
         r, jac = gnss_residual(position, rotation, arm, self.measured.expand_as(position))
@@ -197,7 +199,7 @@ class BetweenFactor(_Binary):
         return self._evaluate(values, jacobians=True)
 
     def _evaluate(self, values, jacobians: bool):
-        kind = _kind_of(values[0])
+        kind = self.kinds[0]
         p_i, r_i = pose_of(kind, values[0])
         p_j, r_j = pose_of(kind, values[1])
         rel_r, rel_t = se3.relative(r_i, p_i, r_j, p_j)
@@ -211,9 +213,11 @@ class BetweenFactor(_Binary):
         # Log(E exp(-Ad(T_ij^-1) .)) for i, with d Log(E exp(d)) = J_r^-1(xi) d
         jr_inv = torch.linalg.inv(se3.right_jacobian(xi))
         inv_r, inv_t = rel_r.mT, -(rel_r.mT @ rel_t[..., None]).squeeze(-1)
-        jac_j = jr_inv.clone()
-        jac_j[..., :, 0:3] = jr_inv[..., :, 0:3] @ r_j.mT
         jac_i = -jr_inv @ se3.adjoint(inv_r, inv_t)
+        jac_j = jr_inv
+        if kind.name == "se3":
+            return xi, [jac_i, jac_j]
+        jac_j = torch.cat((jr_inv[..., :, 0:3] @ r_j.mT, jr_inv[..., :, 3:6]), -1)
         jac_i = torch.cat((jac_i[..., :, 0:3] @ r_i.mT, jac_i[..., :, 3:6]), -1)
         return xi, [_widen(jac_i, kind), _widen(jac_j, kind)]
 
@@ -227,7 +231,7 @@ class PlaneFactor(_Binary):
     """
 
     def residual(self, values):
-        kind = _kind_of(values[0])
+        kind = self.kinds[0]
         p_i, r_i = pose_of(kind, values[0])
         p_j, r_j = pose_of(kind, values[1])
         phi = so3.log(r_i.mT @ r_j)
@@ -293,7 +297,7 @@ class WheelOdometryFactor(_Binary):
         )
 
     def residual(self, values):
-        kind = _kind_of(values[0])
+        kind = self.kinds[0]
         p_i, r_i = pose_of(kind, values[0])
         p_j, r_j = pose_of(kind, values[1])
         arm = self.lever_arm.expand_as(p_i)
@@ -344,7 +348,7 @@ class ReprojectionFactor(Factor):
 
     def camera_point(self, values) -> torch.Tensor:
         """Landmarks in the camera frame (B, F, 3), m."""
-        kind = _kind_of(values[0])
+        kind = self.kinds[0]
         position, rotation = pose_of(kind, values[0])
         body = (rotation.mT @ (values[1] - position)[..., None]).squeeze(-1)
         return (self.body_rotation_cam.mT @ (body - self.body_translation_cam)[..., None]).squeeze(
@@ -394,9 +398,3 @@ def _widen(jacobian: torch.Tensor, kind: VariableKind) -> torch.Tensor:
     out[..., IDX_P] = jacobian[..., 0:3]
     out[..., IDX_THETA] = jacobian[..., 3:6]
     return out
-
-
-def _kind_of(value: torch.Tensor) -> VariableKind:
-    from msf_torch.backend.variables import NAV_STATE, POSE
-
-    return NAV_STATE if value.shape[-1] == NAV_STATE.storage_dim else POSE

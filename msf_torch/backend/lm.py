@@ -47,6 +47,8 @@ class LMConfig:
     relative_tolerance: float = 1e-10
     absolute_tolerance: float = 1e-12
     step_tolerance: float = 1e-12
+    damping_update: str = "nielsen"  # or "multiplicative" (divide / multiply by damping_factor)
+    damping_factor: float = 10.0
     linear_solver: str = "auto"  # "dense", "sparse" or "auto" (dense up to 1500 unknowns)
     eliminate: str | None = None
 
@@ -226,9 +228,14 @@ def solve(problem: Problem, config: LMConfig | None = None) -> LMResult:
                 "accepted": accept.clone(),
             }
         )
-        scale = torch.clamp(1.0 - (2.0 * gain.detach() - 1.0) ** 3, min=1.0 / 3.0)
-        damping = torch.where(accept, damping * scale, damping * growth)
-        growth = torch.where(accept, torch.full_like(growth, 2.0), growth * 2.0)
+        if config.damping_update == "multiplicative":
+            damping = torch.where(
+                accept, damping / config.damping_factor, damping * config.damping_factor
+            )
+        else:
+            scale = torch.clamp(1.0 - (2.0 * gain.detach() - 1.0) ** 3, min=1.0 / 3.0)
+            damping = torch.where(accept, damping * scale, damping * growth)
+            growth = torch.where(accept, torch.full_like(growth, 2.0), growth * 2.0)
         small_change = actual.detach().abs() <= config.relative_tolerance * lin.cost.detach().abs()
         tiny_cost = new_lin.cost.detach() <= config.absolute_tolerance
         x_norm = torch.cat([v.detach().reshape(batch, -1) for v in values.values()], -1).norm(

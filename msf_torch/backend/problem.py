@@ -43,6 +43,7 @@ class Factor:
     slots: tuple[tuple[str, torch.Tensor], ...]
     sqrt_information: torch.Tensor
     kernel: RobustKernel | None = None
+    kinds: list[VariableKind]  # set by the Problem: the kind of each slot
 
     @property
     def size(self) -> int:
@@ -144,6 +145,8 @@ class Problem:
             self.kinds[name] = kind
             self.values[name] = value
         first = next(iter(self.values.values()))
+        for factor in self.factors:
+            factor.kinds = [self.kinds[g] for g, _ in factor.slots]
         self.batch_size = first.shape[0]
         self.dtype, self.device = first.dtype, first.device
         self._build_layout()

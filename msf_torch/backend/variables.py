@@ -9,8 +9,13 @@ kind         storage (S)                             tangent (D)
 ============ ======================================= ========================================
 nav_state    [p(3), v(3), R(9, row-major), b_g, b_a] 15: [dp, dv, dtheta, db_g, db_a]
 pose         [p(3), R(9, row-major)]                 6: [dp, dtheta]
+se3          [p(3), R(9, row-major)]                 6: [rho, phi], ``T <- T exp(xi)``
 point        [x, y, z]                               3
 ============ ======================================= ========================================
+
+``se3`` is the Lie-group chart of pose graphs (GTSAM's ``Pose3`` retraction): the step is
+body-frame, ``R <- R Exp(phi)``, ``p <- p + R Gamma_1(phi) rho``. Relative-pose residuals
+are nearly linear in it, so pose-graph LM needs fewer iterations than with ``pose``.
 
 A ``nav_state`` tangent is the ESKF's error state, so the residual Jacobians in
 :mod:`msf_torch.sensors` apply to it column for column.
@@ -23,6 +28,7 @@ __all__ = [
     "NAV_STATE",
     "POSE",
     "POINT",
+    "SE3",
     "KINDS",
     "pack_nav_state",
     "unpack_nav_state",
@@ -52,6 +58,12 @@ class VariableKind:
         if self.name == "pose":
             position, rotation = unpack_pose(value)
             return pack_pose(position + step[..., 0:3], rotation @ so3.exp(step[..., 3:6]))
+        if self.name == "se3":
+            position, rotation = unpack_pose(value)
+            phi = step[..., 3:6]
+            local = (so3.gamma1(phi) @ step[..., 0:3, None]).squeeze(-1)
+            moved = position + (rotation @ local[..., None]).squeeze(-1)
+            return pack_pose(moved, rotation @ so3.exp(phi))
         position, velocity, rotation, gyro_bias, accel_bias = unpack_nav_state(value)
         return pack_nav_state(
             position + step[..., 0:3],
@@ -65,7 +77,8 @@ class VariableKind:
 NAV_STATE = VariableKind("nav_state", 21, 15)
 POSE = VariableKind("pose", 12, 6)
 POINT = VariableKind("point", 3, 3)
-KINDS = {kind.name: kind for kind in (NAV_STATE, POSE, POINT)}
+SE3 = VariableKind("se3", 12, 6)
+KINDS = {kind.name: kind for kind in (NAV_STATE, POSE, POINT, SE3)}
 
 
 def pack_nav_state(
