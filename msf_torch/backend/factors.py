@@ -211,7 +211,7 @@ class BetweenFactor(_Binary):
             return xi, None
         # our chart moves T by exp([R^T dp, dtheta]) on the right; r = Log(E exp(.)) for j and
         # Log(E exp(-Ad(T_ij^-1) .)) for i, with d Log(E exp(d)) = J_r^-1(xi) d
-        jr_inv = torch.linalg.inv(se3.right_jacobian(xi))
+        jr_inv = se3.right_jacobian_inverse(xi)
         inv_r, inv_t = rel_r.mT, -(rel_r.mT @ rel_t[..., None]).squeeze(-1)
         jac_i = -jr_inv @ se3.adjoint(inv_r, inv_t)
         jac_j = jr_inv
@@ -356,12 +356,45 @@ class ReprojectionFactor(Factor):
         )
 
     def residual(self, values):
-        cam = self.camera_point(values)
-        uv = cam[..., 0:2] / cam[..., 2:3]
+        return self._evaluate(values, jacobians=False)[0]
+
+    def residual_and_jacobians(self, values, kinds):
+        return self._evaluate(values, jacobians=True)
+
+    def _evaluate(self, values, jacobians: bool):
+        kind = self.kinds[0]
+        position, rotation = pose_of(kind, values[0])
+        body = (rotation.mT @ (values[1] - position)[..., None]).squeeze(-1)
+        to_cam = self.body_rotation_cam.mT
+        cam = (to_cam @ (body - self.body_translation_cam)[..., None]).squeeze(-1)
+        inv_z = 1.0 / cam[..., 2:3]
+        uv = cam[..., 0:2] * inv_z
+        scale = None
         if self.intrinsics is not None:
             fx, fy, cx, cy = self.intrinsics
             uv = torch.stack((fx * uv[..., 0] + cx, fy * uv[..., 1] + cy), -1)
-        return uv - self.measured
+            scale = torch.tensor([fx, fy], dtype=cam.dtype, device=cam.device)[:, None]
+        residual = uv - self.measured
+        if not jacobians:
+            return residual, None
+        # d(projection)/d(camera point), then the camera point w.r.t. landmark and pose
+        zeros = torch.zeros_like(inv_z)
+        d_proj = torch.stack(
+            (
+                torch.cat((inv_z, zeros, -uv_normalized(cam)[..., 0:1] * inv_z), -1),
+                torch.cat((zeros, inv_z, -uv_normalized(cam)[..., 1:2] * inv_z), -1),
+            ),
+            -2,
+        )
+        if scale is not None:
+            d_proj = d_proj * scale
+        d_landmark = d_proj @ to_cam @ rotation.mT
+        d_theta = d_proj @ to_cam @ so3.hat(body)
+        if kind.name == "se3":
+            pose_jac = torch.cat((-d_proj @ to_cam, d_theta), -1)
+        else:
+            pose_jac = _widen(torch.cat((-d_landmark, d_theta), -1), kind)
+        return residual, [pose_jac, d_landmark]
 
 
 class MarginalPriorFactor(Factor):
@@ -388,6 +421,11 @@ class MarginalPriorFactor(Factor):
             -1,
         )
         return (self.sqrt_hessian @ local[..., None]).squeeze(-1) + self.offset
+
+
+def uv_normalized(camera_point: torch.Tensor) -> torch.Tensor:
+    """Normalized image coordinates ``(x/z, y/z)`` (..., 2) of camera-frame points (..., 3)."""
+    return camera_point[..., 0:2] / camera_point[..., 2:3]
 
 
 def _widen(jacobian: torch.Tensor, kind: VariableKind) -> torch.Tensor:

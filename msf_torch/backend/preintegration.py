@@ -227,26 +227,35 @@ def preintegrate_wheel(
     dy = s * step_x + c * step_y
     increment = torch.stack((dx.sum(-1), dy.sum(-1), turn.sum(-1)), -1)
 
-    # first-order propagation: error in [x, y, yaw] of the running increment
-    pos_x = torch.cumsum(dx, -1) - dx
-    pos_y = torch.cumsum(dy, -1) - dy
-    lead = dt.shape[:-1]
-    cov = torch.zeros(*lead, 3, 3, dtype=dt.dtype, device=dt.device)
+    # exact first-order sensitivities of the increment to each sample's speed v_k and yaw
+    # rate w_k: through that sample's arc, and (for w_k) through the turn of all later arcs
+    sin_d = torch.where(small, -turn / 3.0, (safe * torch.cos(safe) - torch.sin(safe)) / safe**2)
+    cos_d = torch.where(
+        small, 0.5 - turn**2 / 8.0, (safe * torch.sin(safe) - 1.0 + torch.cos(safe)) / safe**2
+    )
+    total_x, total_y = increment[..., 0], increment[..., 1]
+    later_x = total_x[..., None] - torch.cumsum(dx, -1)
+    later_y = total_y[..., None] - torch.cumsum(dy, -1)
+    arc_v = (dt * sin_ratio, dt * cos_ratio)
+    arc_w = (speed * dt * dt * sin_d, speed * dt * dt * cos_d)
+    jac_v = torch.stack(
+        (c * arc_v[0] - s * arc_v[1], s * arc_v[0] + c * arc_v[1], torch.zeros_like(dt)), -2
+    )
+    jac_w = torch.stack(
+        (
+            c * arc_w[0] - s * arc_w[1] - later_y * dt,
+            s * arc_w[0] + c * arc_w[1] + later_x * dt,
+            dt,
+        ),
+        -2,
+    )  # (..., 3, L)
     sigma = torch.as_tensor(speed_sigma, dtype=dt.dtype, device=dt.device)
     if slip is not None:
         sigma = sigma / slip.clamp_min(1e-3)
     var = sigma**2 * torch.ones_like(dt)
-    total_x, total_y = increment[..., 0], increment[..., 1]
-    # sensitivity of the final increment to each sample's (v_l, v_r): through the sample's
-    # own displacement and, for the yaw rate, through the turn of all later displacements
-    later_x = total_x[..., None] - pos_x - dx
-    later_y = total_y[..., None] - pos_y - dy
-    half = 0.5 * dt
-    d_yaw = dt / track_width
-    jac_v = torch.stack((c * half, s * half, torch.zeros_like(dt)), -2)  # (..., 3, L) per speed
-    jac_w = torch.stack((-later_y - 0.5 * dy, later_x + 0.5 * dx, torch.ones_like(dt)), -2)
-    jac_left = jac_v - jac_w * d_yaw[..., None, :]
-    jac_right = jac_v + jac_w * d_yaw[..., None, :]
+    jac_left = 0.5 * jac_v - jac_w / track_width
+    jac_right = 0.5 * jac_v + jac_w / track_width
+    cov = torch.zeros(*dt.shape[:-1], 3, 3, dtype=dt.dtype, device=dt.device)
     for jac in (jac_left, jac_right):
         cov = cov + (jac * var[..., None, :]) @ jac.mT
     return increment, cov

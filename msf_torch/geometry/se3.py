@@ -8,7 +8,7 @@ the chart GTSAM's ``Pose3.Logmap`` uses (order here: translation part first, as 
 
 from __future__ import annotations
 
-__all__ = ["log", "relative", "compose", "adjoint", "right_jacobian"]
+__all__ = ["log", "relative", "compose", "adjoint", "right_jacobian", "right_jacobian_inverse"]
 
 import torch
 
@@ -60,12 +60,47 @@ def _ad(xi: torch.Tensor) -> torch.Tensor:
     return torch.cat((top, bottom), -2)
 
 
+def _q_matrix(rho: torch.Tensor, phi: torch.Tensor) -> torch.Tensor:
+    """Barfoot's ``Q(rho, phi)`` (..., 3, 3), the off-diagonal block of the SE(3) left
+    Jacobian (State Estimation for Robotics, eq. 7.86b), with Taylor series below 1e-2 rad."""
+    theta2 = (phi * phi).sum(-1)[..., None, None]
+    small = theta2 < 1e-4
+    safe2 = torch.where(small, torch.ones_like(theta2), theta2)
+    theta = torch.sqrt(safe2)
+    sin, cos = torch.sin(theta), torch.cos(theta)
+    a = torch.where(small, 1 / 6 - theta2 / 120 + theta2**2 / 5040, (theta - sin) / (safe2 * theta))
+    b = torch.where(
+        small, 1 / 24 - theta2 / 720 + theta2**2 / 40320, (safe2 + 2 * cos - 2) / (2 * safe2**2)
+    )
+    c = torch.where(
+        small,
+        1 / 120 - theta2 / 2520 + theta2**2 / 120960,
+        (2 * theta - 3 * sin + theta * cos) / (2 * safe2**2 * theta),
+    )
+    r, p = so3.hat(rho), so3.hat(phi)
+    pr, rp = p @ r, r @ p
+    prp = pr @ p
+    return 0.5 * r + a * (pr + rp + prp) + b * (p @ pr + rp @ p - 3 * prp) + c * (prp @ p + p @ prp)
+
+
+def right_jacobian_inverse(xi: torch.Tensor) -> torch.Tensor:
+    """Inverse SE(3) right Jacobian (..., 6, 6) in [rho, phi] order, closed form:
+    ``J_r(xi) = [[J_r(phi), Q(-rho, -phi)], [0, J_r(phi)]]``, so
+    ``J_r^-1 = [[J_r^-1, -J_r^-1 Q J_r^-1], [0, J_r^-1]]``."""
+    rho, phi = xi[..., 0:3], xi[..., 3:6]
+    jr_inv = torch.linalg.inv(so3.right_jacobian(phi))
+    q = _q_matrix(-rho, -phi)
+    top = torch.cat((jr_inv, -jr_inv @ q @ jr_inv), -1)
+    bottom = torch.cat((torch.zeros_like(jr_inv), jr_inv), -1)
+    return torch.cat((top, bottom), -2)
+
+
 def right_jacobian(xi: torch.Tensor) -> torch.Tensor:
     """SE(3) right Jacobian ``J_r(xi) = sum_n (-ad xi)^n / (n+1)!`` (..., 6, 6), so that
     ``exp(xi + d) ~ exp(xi) exp(J_r d)``.
 
     Computed as the top-right block of ``expm([[-ad xi, I], [0, 0]])`` (exact for every
-    angle, differentiable, no small-angle branches)."""
+    angle; a reference for :func:`right_jacobian_inverse`)."""
     ad = -_ad(xi)
     eye = torch.eye(6, dtype=xi.dtype, device=xi.device).expand_as(ad)
     zeros = torch.zeros_like(ad)
