@@ -23,6 +23,7 @@ __all__ = [
     "BetweenFactor",
     "PlaneFactor",
     "ImuPreintegrationFactor",
+    "GtsamImuFactor",
     "WheelOdometryFactor",
     "ReprojectionFactor",
     "MarginalPriorFactor",
@@ -30,6 +31,7 @@ __all__ = [
 
 import torch
 
+from msf_torch.backend.preintegration import TangentPreintegrated
 from msf_torch.backend.problem import Factor
 from msf_torch.backend.robust import RobustKernel
 from msf_torch.backend.variables import VariableKind, unpack_nav_state, unpack_pose
@@ -272,6 +274,115 @@ class ImuPreintegrationFactor(_Binary):
             values[0], values[1], self.preintegrated, self.gravity
         )
         return r, [jac_i, jac_j]
+
+
+class GtsamImuFactor(_Binary):
+    """``gtsam.ImuFactor`` (Logmap error mode) plus its bias random walk, between nav states
+    i and j (15,), on :func:`~msf_torch.backend.preintegration.preintegrate_imu_tangent`
+    increments: the option that poses GTSAM's exact problem (the default IMU factor is
+    :class:`ImuPreintegrationFactor`, exact zero-order hold with Forster's residual).
+
+    With the increment ``z = [z_p, z_v, z_theta]`` bias-corrected additively at ``b_i``, the
+    prediction ``R^ = R_i Exp(z_theta)``, ``p^ = p_i + v_i dT + 1/2 g dT^2 + R_i z_p``,
+    ``v^ = v_i + g dT + R_i z_v`` is compared with state j in its own frame:
+    ``phi = Log(R_j^T R^)``, ``dp = R_j^T (p^ - p_j)``, ``dv = R_j^T (v^ - v_j)`` and::
+
+        r = [Jl(phi)^-1 dp, Jl(phi)^-1 dv, phi, b_g,j - b_g,i, b_a,j - b_a,i]
+
+    i.e. GTSAM's ``[phi; Jl^-1 dp; Jl^-1 dv]`` (the SE_2(3) log of ``X_j^-1 X^``) in our
+    order, plus ``BetweenFactorConstantBias`` rows. Analytic Jacobians w.r.t. the nav-state
+    tangent ``[dp, dv, dtheta, db_g, db_a]`` (world-frame ``dp``, ``dv``; right-perturbed R).
+
+    Args:
+        group, index_i, index_j: ``nav_state`` variables (F,).
+        preintegrated: :class:`~msf_torch.backend.preintegration.TangentPreintegrated` with
+            leading (B|1, F).
+        covariance: (B|1, F, 15, 15): ``imu_covariance(preintegrated, noise)`` gives
+            GTSAM's ``residualCovariance`` and the random walk ``sigma_bw^2 dT``.
+        gravity: (3,) m/s^2 world (``[0, 0, -g]`` for GTSAM's ``MakeSharedU(g)``).
+    """
+
+    def __init__(
+        self,
+        group,
+        index_i,
+        index_j,
+        preintegrated: TangentPreintegrated,
+        covariance,
+        gravity,
+        kernel=None,
+    ) -> None:
+        super().__init__(group, index_i, index_j, covariance, kernel)
+        self.preintegrated, self.gravity = preintegrated, gravity
+
+    def residual(self, values):
+        return self._evaluate(values, jacobians=False)[0]
+
+    def residual_and_jacobians(self, values, kinds):
+        return self._evaluate(values, jacobians=True)
+
+    def _evaluate(self, values, jacobians: bool):
+        pre = self.preintegrated
+        p_i, v_i, r_i, bg_i, ba_i = unpack_nav_state(values[0])
+        p_j, v_j, r_j, bg_j, ba_j = unpack_nav_state(values[1])
+        d_t = pre.delta_t[..., None]
+        z = pre.corrected(bg_i, ba_i)
+        z_p, z_v, z_theta = z[..., 0:3], z[..., 3:6], z[..., 6:9]
+        exp_z = so3.exp(z_theta)
+        pred_p = p_i + v_i * d_t + 0.5 * self.gravity * d_t**2 + (r_i @ z_p[..., None]).squeeze(-1)
+        pred_v = v_i + self.gravity * d_t + (r_i @ z_v[..., None]).squeeze(-1)
+        r_j_t = r_j.mT
+        rel = r_j_t @ r_i  # R_j^T R_i
+        d_rot = rel @ exp_z
+        phi = so3.log(d_rot)
+        d_p = (r_j_t @ (pred_p - p_j)[..., None]).squeeze(-1)
+        d_v = (r_j_t @ (pred_v - v_j)[..., None]).squeeze(-1)
+        jl_inv = torch.linalg.inv(so3.gamma1(phi))
+        rho_p = (jl_inv @ d_p[..., None]).squeeze(-1)
+        rho_v = (jl_inv @ d_v[..., None]).squeeze(-1)
+        residual = torch.cat((rho_p, rho_v, phi, bg_j - bg_i, ba_j - ba_i), -1)
+        if not jacobians:
+            return residual, None
+
+        lead = residual.shape[:-1]
+        zero = torch.zeros_like(rel)
+        eye6 = so3.identity(rel.dtype, rel.device, 6)
+        jr_inv = jl_inv.mT  # J_r(phi) = J_l(phi)^T
+        bias_jac = pre.bias_jacobian.expand(*lead, 9, 6)
+        # state i columns [dp, dv, dtheta, db_g, db_a]
+        phi_i = torch.cat(
+            (
+                zero,
+                zero,
+                jr_inv @ exp_z.mT,
+                jr_inv @ so3.right_jacobian(z_theta) @ bias_jac[..., 6:9, :],
+            ),
+            -1,
+        )
+        dp_i = torch.cat(
+            (r_j_t, r_j_t * d_t[..., None], -rel @ so3.hat(z_p), rel @ bias_jac[..., 0:3, :]), -1
+        )
+        dv_i = torch.cat((zero, r_j_t, -rel @ so3.hat(z_v), rel @ bias_jac[..., 3:6, :]), -1)
+        # state j columns [dp, dv, dtheta] (its biases enter only the random-walk rows)
+        phi_j = torch.cat((zero, zero, -jr_inv @ d_rot.mT), -1)
+        dp_j = torch.cat((-r_j_t, zero, so3.hat(d_p)), -1)
+        dv_j = torch.cat((zero, -r_j_t, so3.hat(d_v)), -1)
+        # d(Jl(phi)^-1 x)/dphi = -Jl^-1 d(Jl(phi) y)/dphi at y = Jl^-1 x
+        coef = so3.coefficients(phi, "123", derivatives=True)
+        turn_p = -jl_inv @ so3.gamma_vector_jacobians(phi, rho_p, coef)[0]
+        turn_v = -jl_inv @ so3.gamma_vector_jacobians(phi, rho_v, coef)[0]
+
+        jac_i = torch.zeros(*lead, 15, 15, dtype=residual.dtype, device=residual.device)
+        jac_j = torch.zeros_like(jac_i)
+        jac_i[..., 0:3, :] = jl_inv @ dp_i + turn_p @ phi_i
+        jac_i[..., 3:6, :] = jl_inv @ dv_i + turn_v @ phi_i
+        jac_i[..., 6:9, :] = phi_i
+        jac_i[..., 9:15, 9:15] = -eye6
+        jac_j[..., 0:3, 0:9] = jl_inv @ dp_j + turn_p @ phi_j
+        jac_j[..., 3:6, 0:9] = jl_inv @ dv_j + turn_v @ phi_j
+        jac_j[..., 6:9, 0:9] = phi_j
+        jac_j[..., 9:15, 9:15] = eye6
+        return residual, [jac_i, jac_j]
 
 
 class WheelOdometryFactor(_Binary):
