@@ -72,9 +72,10 @@ def rounded(value: Any, digits: int = 6) -> Any:
     return value
 
 
-def emit_json(record: dict[str, Any]) -> None:
-    """Print ``record`` as one JSON line on stdout (the benchmark's last line)."""
-    sys.stdout.write(json.dumps(rounded(record), separators=(",", ":")) + "\n")
+def emit_json(record: dict[str, Any], digits: int = 6) -> None:
+    """Print ``record`` as one JSON line on stdout (the benchmark's last line), floats to
+    ``digits`` significant digits."""
+    sys.stdout.write(json.dumps(rounded(record, digits), separators=(",", ":")) + "\n")
     sys.stdout.flush()
 
 

@@ -1,0 +1,174 @@
+"""Pose-graph optimisation against GTSAM's LevenbergMarquardtOptimizer: the same cost at the
+start and the optimum, the same poses, robust kernels that downweight an outlier edge."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+import torch
+
+from msf_torch.backend.posegraph import optimize_pose_graph, pose_graph_config
+from msf_torch.backend.robust import RobustKernel
+from msf_torch.geometry import so3
+from msf_torch.io import PoseGraph, gtsam_pose_graph_path, read_pose_graph
+
+SWAP = [3, 4, 5, 0, 1, 2]
+"""[dp, dtheta] <-> GTSAM's [rot, trans] order of a 6-vector (its own inverse)."""
+FILES = (
+    "pose3example.txt",
+    "pose3example-grid.txt",
+    "pose3example-offdiagonal.txt",
+    "pose3example-offdiagonal-rewritten.txt",
+)
+TIGHT = pose_graph_config(relative_tolerance=1e-12, max_iterations=200)
+
+
+@pytest.fixture(scope="module")
+def gtsam():
+    return pytest.importorskip("gtsam")
+
+
+def _gtsam_lm(gtsam, factors, initial, first_id: int):
+    """GTSAM LM to a tight tolerance with the first pose held by NonlinearEquality."""
+    held = gtsam.NonlinearFactorGraph(factors)
+    held.add(gtsam.NonlinearEqualityPose3(first_id, initial.atPose3(first_id)))
+    params = gtsam.LevenbergMarquardtParams()
+    params.setRelativeErrorTol(1e-12)
+    params.setAbsoluteErrorTol(0.0)
+    params.setMaxIterations(200)
+    return gtsam.LevenbergMarquardtOptimizer(held, initial, params).optimize()
+
+
+def _gtsam_graph(gtsam, graph: PoseGraph, kernel: RobustKernel | None):
+    """GTSAM factors and initial values built from a PoseGraph (information in its order)."""
+    factors = gtsam.NonlinearFactorGraph()
+    ids = graph.vertex_ids.tolist()
+    for k, (a, b) in enumerate(graph.edge_index.tolist()):
+        info = graph.edge_information[k].numpy()[SWAP][:, SWAP]
+        noise = gtsam.noiseModel.Gaussian.Information(info)
+        if kernel is not None:
+            estimator = {
+                "cauchy": gtsam.noiseModel.mEstimator.Cauchy,
+                "huber": gtsam.noiseModel.mEstimator.Huber,
+            }
+            noise = gtsam.noiseModel.Robust.Create(
+                estimator[kernel.name].Create(kernel.scale), noise
+            )
+        measured = gtsam.Pose3(
+            gtsam.Rot3(graph.edge_rotations[k].numpy()), graph.edge_translations[k].numpy()
+        )
+        factors.add(gtsam.BetweenFactorPose3(ids[a], ids[b], measured, noise))
+    initial = gtsam.Values()
+    for k, vid in enumerate(ids):
+        pose = gtsam.Pose3(gtsam.Rot3(graph.rotations[k].numpy()), graph.positions[k].numpy())
+        initial.insert(vid, pose)
+    return factors, initial
+
+
+def _poses(values, ids: list[int]) -> tuple[np.ndarray, np.ndarray]:
+    rotations = np.stack([values.atPose3(i).rotation().matrix() for i in ids])
+    positions = np.stack([values.atPose3(i).translation() for i in ids])
+    return rotations, positions
+
+
+def _perturbed(graph: PoseGraph, seed: int) -> PoseGraph:
+    """The graph with every vertex but the first moved (0.1 rad, 0.2 m rms per axis): the
+    offdiagonal example files start at their optimum (cost 0)."""
+    gen = torch.Generator().manual_seed(seed)
+    n = graph.num_vertices
+    turn = 0.1 * torch.randn(n, 3, generator=gen, dtype=torch.float64)
+    shift = 0.2 * torch.randn(n, 3, generator=gen, dtype=torch.float64)
+    turn[0], shift[0] = 0.0, 0.0
+    return dataclasses.replace(
+        graph, rotations=graph.rotations @ so3.exp(turn), positions=graph.positions + shift
+    )
+
+
+@pytest.mark.parametrize("name", FILES)
+def test_cost_and_poses_equal_gtsam_lm(gtsam, name):
+    path = str(gtsam_pose_graph_path(name))
+    graph = _perturbed(read_pose_graph(path), seed=len(name))
+    factors, _ = gtsam.readG2o(path, True)  # GTSAM's own parse of the file's edges
+    ids = graph.vertex_ids.tolist()
+    initial = gtsam.Values()
+    for k, vid in enumerate(ids):
+        pose = gtsam.Pose3(gtsam.Rot3(graph.rotations[k].numpy()), graph.positions[k].numpy())
+        initial.insert(vid, pose)
+    solved = _gtsam_lm(gtsam, factors, initial, ids[0])
+
+    result = optimize_pose_graph(graph, config=TIGHT)
+
+    assert result.status == "converged"
+    assert result.initial_cost == pytest.approx(factors.error(initial), rel=1e-10)
+    assert result.final_cost == pytest.approx(factors.error(solved), rel=1e-6)
+    rotations, positions = _poses(solved, ids)
+    scale = max(1.0, float(np.abs(positions).max()))
+    np.testing.assert_allclose(result.graph.positions.numpy(), positions, atol=1e-5 * scale)
+    angle = so3.log(torch.as_tensor(rotations).mT @ result.graph.rotations).norm(dim=-1)
+    assert float(angle.max()) < 1e-5
+    assert torch.equal(result.graph.positions[0], graph.positions[0])  # the gauge vertex
+    assert torch.equal(result.graph.edge_information, graph.edge_information)
+
+
+def test_log_and_result_fields(gtsam):
+    graph = read_pose_graph(gtsam_pose_graph_path("pose3example-grid.txt"))
+    before = graph.positions.clone()
+    result = optimize_pose_graph(graph)
+    assert torch.equal(graph.positions, before)  # the input is not modified
+    assert result.converged and result.iterations == len(result.log) > 0
+    accepted = [entry["cost"] for entry in result.log if entry["accepted"]]
+    assert accepted[-1] == result.final_cost < result.initial_cost
+    assert all(b <= a for a, b in zip(accepted, accepted[1:], strict=False))
+    assert result.seconds > 0
+
+
+def test_other_fixed_vertex_and_bad_index(gtsam):
+    graph = read_pose_graph(gtsam_pose_graph_path("pose3example.txt"))
+    last = graph.num_vertices - 1
+    result = optimize_pose_graph(graph, config=TIGHT, fixed=[last])
+    assert torch.equal(result.graph.positions[last], graph.positions[last])
+    assert torch.equal(result.graph.rotations[last], graph.rotations[last])
+    reference = optimize_pose_graph(graph, config=TIGHT)
+    assert result.final_cost == pytest.approx(reference.final_cost, rel=1e-8)  # gauge only
+    with pytest.raises(ValueError, match="fixed vertex"):
+        optimize_pose_graph(graph, fixed=[graph.num_vertices])
+
+
+def _with_outlier(graph: PoseGraph) -> PoseGraph:
+    """The graph plus one wrong loop closure first -> last vertex (0.7 m, 0.3 rad off)."""
+    i, j = 0, graph.num_vertices - 1
+    wrong_t = torch.tensor([[0.5, 0.5, 0.0]], dtype=torch.float64)
+    wrong_r = so3.exp(torch.tensor([[0.0, 0.0, 0.3]], dtype=torch.float64))
+    return dataclasses.replace(
+        graph,
+        edge_index=torch.cat((graph.edge_index, torch.tensor([[i, j]]))),
+        edge_rotations=torch.cat((graph.edge_rotations, wrong_r)),
+        edge_translations=torch.cat((graph.edge_translations, wrong_t)),
+        edge_information=torch.cat((graph.edge_information, graph.edge_information[:1])),
+        edge_lines=None,
+    )
+
+
+@pytest.mark.parametrize(
+    ("kernel", "limit_m"),
+    [(None, None), (RobustKernel("cauchy", 1.0), 0.02), (RobustKernel("huber", 1.0), 0.15)],
+)
+def test_outlier_edge_is_downweighted(gtsam, kernel, limit_m):
+    graph = read_pose_graph(gtsam_pose_graph_path("pose3example-grid.txt"))
+    spoiled = _with_outlier(graph)
+    clean = optimize_pose_graph(graph, robust=kernel, config=TIGHT)
+    result = optimize_pose_graph(spoiled, robust=kernel, config=TIGHT)
+    moved = float((result.graph.positions - clean.graph.positions).norm(dim=-1).max())
+    if kernel is None:
+        assert moved > 1.0  # least squares follows the outlier (the graph spans ~3.5 m)
+    else:
+        assert moved < limit_m
+
+    factors, initial = _gtsam_graph(gtsam, spoiled, kernel)
+    solved = _gtsam_lm(gtsam, factors, initial, int(spoiled.vertex_ids[0]))
+    assert result.initial_cost == pytest.approx(factors.error(initial), rel=1e-10)
+    assert result.final_cost == pytest.approx(factors.error(solved), rel=1e-6)
+    _, positions = _poses(solved, spoiled.vertex_ids.tolist())
+    np.testing.assert_allclose(result.graph.positions.numpy(), positions, atol=1e-4)
