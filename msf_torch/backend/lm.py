@@ -94,7 +94,8 @@ def _solve_dense(
     """Step (B, n) and success flags (B,) of the damped dense system."""
     hessian = lin.hessian
     diag = torch.diagonal(hessian, dim1=-2, dim2=-1)
-    damped = hessian + torch.diag_embed(damping[:, None] * _damping_diagonal(diag, config))
+    damped = hessian.clone()
+    damped.diagonal(dim1=-2, dim2=-1).add_(damping[:, None] * _damping_diagonal(diag, config))
     rhs = -lin.gradient
     if config.eliminate is not None:
         return _solve_schur(problem, damped, rhs, config.eliminate)

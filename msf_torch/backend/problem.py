@@ -173,7 +173,7 @@ class Problem:
             ]
             for f in self.factors
         ]
-        self._dense_index: list[list[tuple[int, int, torch.Tensor, torch.Tensor]]] | None = None
+        self._dense_index: tuple[torch.Tensor, torch.Tensor] | None = None
         self._sparse_pattern: tuple[torch.Tensor, torch.Tensor, list] | None = None
 
     # -- evaluation ---------------------------------------------------------------------
@@ -256,49 +256,70 @@ class Problem:
         rows, cols = torch.broadcast_tensors(ra, cb)
         return rows, cols, keep
 
-    def _gradient(self, lin: list) -> torch.Tensor:
-        grad = torch.zeros(self.batch_size, self.dim, dtype=self.dtype, device=self.device)
-        for fi, (white, jacs, _) in enumerate(lin):
-            for a, jac in enumerate(jacs):
-                layout = self.slot_layouts[fi][a]
-                keep = torch.nonzero(layout.columns >= 0).squeeze(-1)
-                if keep.numel() == 0:
-                    continue
-                contrib = (jac[:, keep].mT @ white[:, keep, :, None]).squeeze(-1)  # (B, F', D)
-                index = (
-                    layout.columns[keep][:, None] + torch.arange(layout.dim, device=self.device)
-                ).reshape(-1)
-                grad = grad.index_add(1, index, contrib.reshape(self.batch_size, -1))
-        return grad
+    def _factor_columns(self, factor_index: int) -> torch.Tensor:
+        """Columns (F, sum D) of every tangent entry of each factor's variables; -1 where the
+        variable is fixed."""
+        pieces = []
+        for layout in self.slot_layouts[factor_index]:
+            offsets = torch.arange(layout.dim, device=self.device)
+            cols = layout.columns[:, None] + offsets
+            pieces.append(
+                torch.where(layout.columns[:, None] >= 0, cols, torch.full_like(cols, -1))
+            )
+        return torch.cat(pieces, -1)
+
+    def _dense_indices(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """Flat scatter indices of all gradient entries and all Hessian blocks, every factor
+        type concatenated; entries of fixed variables go to a spill slot past the end."""
+        if self._dense_index is None:
+            n = self.dim
+            grad_index, hess_index = [], []
+            for fi in range(len(self.factors)):
+                cols = self._factor_columns(fi)
+                free = cols >= 0
+                grad_index.append(torch.where(free, cols, torch.full_like(cols, n)).reshape(-1))
+                pair = cols[:, :, None] * n + cols[:, None, :]
+                pair_free = free[:, :, None] & free[:, None, :]
+                hess_index.append(
+                    torch.where(pair_free, pair, torch.full_like(pair, n * n)).reshape(-1)
+                )
+            self._dense_index = (torch.cat(grad_index), torch.cat(hess_index))
+        return self._dense_index
+
+    def _stacked(self, lin: list) -> list[torch.Tensor]:
+        """Per factor type, all slot Jacobians side by side: (B, F, R, sum D)."""
+        return [torch.cat(jacs, -1) for _, jacs, _ in lin]
+
+    def _gradient(self, lin: list, stacked: list[torch.Tensor]) -> torch.Tensor:
+        grad_index, _ = self._dense_indices()
+        contrib = torch.cat(
+            [
+                (jac.mT @ white[..., None]).reshape(self.batch_size, -1)
+                for jac, (white, _, _) in zip(stacked, lin, strict=True)
+            ],
+            1,
+        )
+        grad = torch.zeros(self.batch_size, self.dim + 1, dtype=self.dtype, device=self.device)
+        grad.index_add_(1, grad_index, contrib)
+        return grad[:, : self.dim]
 
     def linearize(self, values: dict[str, torch.Tensor], sparse: bool = False) -> Linearization:
         """Cost, gradient and Gauss-Newton Hessian ``J^T J`` (dense or sparse) at ``values``."""
         lin = self.whitened(values)
         cost = sum(loss.sum(-1) for _, _, loss in lin)
-        grad = self._gradient(lin)
+        stacked = self._stacked(lin)
+        grad = self._gradient(lin, stacked)
         if sparse:
             return Linearization(cost, grad, sparse_values=self._sparse_values(lin))
-        return Linearization(cost, grad, hessian=self._dense_hessian(lin))
+        return Linearization(cost, grad, hessian=self._dense_hessian(stacked))
 
-    def _dense_hessian(self, lin: list) -> torch.Tensor:
+    def _dense_hessian(self, stacked: list[torch.Tensor]) -> torch.Tensor:
         n = self.dim
-        if self._dense_index is None:
-            self._dense_index = []
-            for fi, factor in enumerate(self.factors):
-                entries = []
-                for a in range(len(factor.slots)):
-                    for b in range(len(factor.slots)):
-                        rows, cols, keep = self._block_entries(fi, a, b)
-                        entries.append((a, b, (rows * n + cols).reshape(-1), keep))
-                self._dense_index.append(entries)
-        hessian = torch.zeros(self.batch_size, n * n, dtype=self.dtype, device=self.device)
-        for fi, (_, jacs, _) in enumerate(lin):
-            for a, b, flat, keep in self._dense_index[fi]:
-                if keep.numel() == 0:
-                    continue
-                block = jacs[a][:, keep].mT @ jacs[b][:, keep]
-                hessian = hessian.index_add(1, flat, block.reshape(self.batch_size, -1))
-        return hessian.reshape(self.batch_size, n, n)
+        _, hess_index = self._dense_indices()
+        blocks = torch.cat([(jac.mT @ jac).reshape(self.batch_size, -1) for jac in stacked], 1)
+        hessian = torch.zeros(self.batch_size, n * n + 1, dtype=self.dtype, device=self.device)
+        hessian.index_add_(1, hess_index, blocks)
+        return hessian[:, : n * n].reshape(self.batch_size, n, n)
 
     def sparse_pattern(self) -> tuple[torch.Tensor, torch.Tensor]:
         """Rows and columns (nnz,) of the block-diagonal stack of the B Hessians (each
