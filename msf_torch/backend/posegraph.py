@@ -16,8 +16,9 @@ would add a prior.
 
 Solver defaults (:func:`pose_graph_config`) follow GTSAM's ``LevenbergMarquardtParams``:
 identity damping (``lambda I``) starting at ``lambda = 1e-5``, relative cost-decrease
-tolerance 1e-5, at most 100 iterations; the normal equations are factored by sparse
-Cholesky (CHOLMOD through cholespy). Two differences: the damping is updated by Nielsen's
+tolerance 1e-5, at most 100 iterations; the normal equations are factored by MKL
+PARDISO when ``pypardiso`` is installed (extra ``[fast]``), else by CHOLMOD through
+cholespy (:mod:`msf_torch.backend.lm`). Two differences: the damping is updated by Nielsen's
 rule (GTSAM: divide / multiply by 10), and ``iterations`` counts every linear solve,
 including rejected steps (GTSAM counts outer iterations, each of which may retry with more
 damping).
