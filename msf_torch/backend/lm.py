@@ -105,6 +105,8 @@ def _solve_dense(
         return _solve_schur(problem, damped, rhs, config.eliminate)
     chol, info = torch.linalg.cholesky_ex(damped)
     ok = info == 0
+    if bool(ok.all()):
+        return torch.cholesky_solve(rhs[..., None], chol).squeeze(-1), ok
     chol = torch.where(
         ok[:, None, None], chol, torch.eye(problem.dim, dtype=chol.dtype, device=chol.device)
     )
@@ -321,7 +323,10 @@ def solve(problem: Problem, config: LMConfig | None = None) -> LMResult:
             | (ok & flat_model & near_gauss_newton)
         )
         stall = active & ~accept & (damping > config.max_damping)
-        values = {k: _where_batch(accept, candidate[k], v) for k, v in values.items()}
+        if bool(accept.all()):
+            values = candidate
+        elif bool(accept.any()):
+            values = {k: _where_batch(accept, candidate[k], v) for k, v in values.items()}
         lin = _merge(accept, new_lin, lin)
         converged = converged | done
         stalled = stalled | stall
@@ -355,6 +360,10 @@ def _where_batch(mask: torch.Tensor, new: torch.Tensor, old: torch.Tensor) -> to
 
 def _merge(accept: torch.Tensor, new: Linearization, old: Linearization) -> Linearization:
     """Per problem, the new linearisation where the step was accepted, else the old one."""
+    if bool(accept.all()):
+        return new
+    if not bool(accept.any()):
+        return old
     hessian = None if new.hessian is None else _where_batch(accept, new.hessian, old.hessian)
     sparse_values = None
     if new.sparse_values is not None:
