@@ -20,6 +20,7 @@ __all__ = [
     "NavStatePriorFactor",
     "GnssFactor",
     "ZeroVelocityFactor",
+    "NonholonomicFactor",
     "BetweenFactor",
     "PlaneFactor",
     "ImuPreintegrationFactor",
@@ -40,7 +41,7 @@ from msf_torch.geometry.conventions import IDX_P, IDX_THETA
 from msf_torch.sensors.gnss import gnss_residual
 from msf_torch.sensors.imu import Preintegrated, preintegration_residual
 from msf_torch.sensors.pose import pose_residual
-from msf_torch.sensors.vehicle import zero_velocity_residual
+from msf_torch.sensors.vehicle import nonholonomic_residual, zero_velocity_residual
 
 _POSE_COLUMNS = [IDX_P.start + i for i in range(3)] + [IDX_THETA.start + i for i in range(3)]
 
@@ -124,12 +125,26 @@ class NavStatePriorFactor(_Unary):
     def residual(self, values):
         return nav_state_local(self.prior.expand_as(values[0]), values[0])
 
+    def residual_and_jacobians(self, values, kinds):
+        prior = self.prior.expand_as(values[0])
+        return nav_state_local(prior, values[0]), [nav_state_local_jacobian(prior, values[0])]
+
 
 def nav_state_local(origin: torch.Tensor, value: torch.Tensor) -> torch.Tensor:
     """Tangent coordinates (..., 15) of nav states ``value`` around ``origin`` (..., 21)."""
     p0, v0, r0, bg0, ba0 = unpack_nav_state(origin)
     p, v, r, bg, ba = unpack_nav_state(value)
     return torch.cat((p - p0, v - v0, so3.log(r0.mT @ r), bg - bg0, ba - ba0), -1)
+
+
+def nav_state_local_jacobian(origin: torch.Tensor, value: torch.Tensor) -> torch.Tensor:
+    """Jacobian (..., 15, 15) of :func:`nav_state_local` w.r.t. the tangent step of ``value``:
+    identity except ``J_r^-1(Log(R0^T R))`` on the rotation block."""
+    _, _, r0, _, _ = unpack_nav_state(origin)
+    _, _, r, _, _ = unpack_nav_state(value)
+    jac = torch.eye(15, dtype=value.dtype, device=value.device).repeat(*value.shape[:-1], 1, 1)
+    jac[..., 6:9, 6:9] = torch.linalg.inv(so3.right_jacobian(so3.log(r0.mT @ r)))
+    return jac
 
 
 class GnssFactor(_Unary):
@@ -169,6 +184,38 @@ class ZeroVelocityFactor(_Unary):
     def residual_and_jacobians(self, values, kinds):
         _, velocity, _, _, _ = unpack_nav_state(values[0])
         r, jac = zero_velocity_residual(velocity)
+        return r, [jac]
+
+
+class NonholonomicFactor(_Unary):
+    """Non-holonomic constraint on ``nav_state`` variables: the lateral and vertical body
+    velocity of the point at ``lever_arm``, ``r = [R^T v + [w - b_g]x l]_{y,z}`` (2,) m/s
+    (:func:`msf_torch.sensors.vehicle.nonholonomic_residual`).
+
+    Args:
+        group, index: ``nav_state`` variables (F,). gyro: (B|1, F, 3) raw gyro rate at each
+        state's time, rad/s. covariance: (B|1, F, 2, 2) (m/s)^2. lever_arm: (3,) m, body.
+    """
+
+    def __init__(self, group, index, gyro, covariance, lever_arm=None, kernel=None) -> None:
+        super().__init__(group, index, covariance, kernel)
+        self.gyro = gyro
+        self.lever_arm = (
+            torch.zeros(3, dtype=gyro.dtype, device=gyro.device) if lever_arm is None else lever_arm
+        )
+
+    def residual(self, values):
+        return self.residual_and_jacobians(values, None)[0]
+
+    def residual_and_jacobians(self, values, kinds):
+        _, velocity, rotation, gyro_bias, _ = unpack_nav_state(values[0])
+        r, jac = nonholonomic_residual(
+            velocity,
+            rotation,
+            self.gyro.expand_as(velocity),
+            gyro_bias,
+            self.lever_arm.expand_as(velocity),
+        )
         return r, [jac]
 
 
@@ -421,6 +468,48 @@ class WheelOdometryFactor(_Binary):
         dyaw = torch.atan2(torch.sin(dyaw), torch.cos(dyaw))
         return torch.cat((local[..., 0:2] - self.increment[..., 0:2], dyaw[..., None]), -1)
 
+    def residual_and_jacobians(self, values, kinds):
+        kind = self.kinds[0]
+        if kind.name == "se3":
+            return super().residual_and_jacobians(values, kinds)
+        p_i, r_i = pose_of(kind, values[0])
+        p_j, r_j = pose_of(kind, values[1])
+        arm = self.lever_arm.expand_as(p_i)
+        axle_j = p_j + (r_j @ arm[..., None]).squeeze(-1)
+        offset = (r_i.mT @ (axle_j - p_i)[..., None]).squeeze(-1)  # local + lever arm
+        rel = r_i.mT @ r_j
+        m00, m10, m20 = rel[..., 0, 0], rel[..., 1, 0], rel[..., 2, 0]
+        norm2 = (m00 * m00 + m10 * m10)[..., None]
+        # yaw = atan2(m10, m00); i turns rel by Exp(-th_i) on the left, j by Exp(th_j) on the right
+        yaw_i = torch.stack((m00 * m20, m10 * m20, -(m00 * m00 + m10 * m10)), -1) / norm2
+        yaw_j = (
+            torch.stack(
+                (
+                    torch.zeros_like(m00),
+                    m10 * rel[..., 0, 2] - m00 * rel[..., 1, 2],
+                    m00 * rel[..., 1, 1] - m10 * rel[..., 0, 1],
+                ),
+                -1,
+            )
+            / norm2
+        )
+        zeros = torch.zeros_like(p_i)
+        jac_i = torch.cat(
+            (
+                torch.cat((-r_i.mT[..., 0:2, :], so3.hat(offset)[..., 0:2, :]), -1),
+                torch.cat((zeros, yaw_i), -1)[..., None, :],
+            ),
+            -2,
+        )
+        jac_j = torch.cat(
+            (
+                torch.cat((r_i.mT[..., 0:2, :], -(rel @ so3.hat(arm))[..., 0:2, :]), -1),
+                torch.cat((zeros, yaw_j), -1)[..., None, :],
+            ),
+            -2,
+        )
+        return self.residual(values), [_widen(jac_i, kind), _widen(jac_j, kind)]
+
 
 class ReprojectionFactor(Factor):
     """Pinhole reprojection of landmark l in camera pose i (2,).
@@ -532,6 +621,16 @@ class MarginalPriorFactor(Factor):
             -1,
         )
         return (self.sqrt_hessian @ local[..., None]).squeeze(-1) + self.offset
+
+    def residual_and_jacobians(self, values, kinds):
+        origins = [o.expand_as(v) for o, v in zip(self.origin, values, strict=True)]
+        local = torch.cat([nav_state_local(o, v) for o, v in zip(origins, values, strict=True)], -1)
+        residual = (self.sqrt_hessian @ local[..., None]).squeeze(-1) + self.offset
+        jacobians = []
+        for k, (o, v) in enumerate(zip(origins, values, strict=True)):
+            block = self.sqrt_hessian[..., 15 * k : 15 * (k + 1)]
+            jacobians.append(block @ nav_state_local_jacobian(o, v))
+        return residual, jacobians
 
 
 def uv_normalized(camera_point: torch.Tensor) -> torch.Tensor:

@@ -170,17 +170,21 @@ def preintegrate_imu(
     gyro_bias: torch.Tensor,
     accel_bias: torch.Tensor,
     covariance: str = "recursive",
+    noise_scale: torch.Tensor | None = None,
 ) -> Preintegrated:
     """Increments of every interval (leading dims of ``intervals``), linearised at the
     given biases (..., 3); ``covariance="recursive"`` (exact, default) or ``"closed_form"``
-    (the filter's zeroth-order form)."""
-    pre = preintegrate(intervals.gyro, intervals.accel, intervals.dt, gyro_bias, accel_bias)
+    (the filter's zeroth-order form); ``noise_scale`` (..., L) multiplies each piece's
+    noise variance (IMU gaps), as in :func:`msf_torch.sensors.imu.preintegrate`."""
+    pre = preintegrate(
+        intervals.gyro, intervals.accel, intervals.dt, gyro_bias, accel_bias, noise_scale
+    )
     if covariance == "closed_form":
         return pre
     if covariance != "recursive":
         raise ValueError(f"covariance must be 'recursive' or 'closed_form', got {covariance!r}")
     cov_g, cov_a = recursive_covariance(
-        intervals.gyro, intervals.accel, intervals.dt, gyro_bias, accel_bias
+        intervals.gyro, intervals.accel, intervals.dt, gyro_bias, accel_bias, noise_scale
     )
     return replace(pre, cov_unit_gyro=cov_g, cov_unit_accel=cov_a)
 

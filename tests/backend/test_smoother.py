@@ -1,0 +1,354 @@
+"""Keyframe selection, the full-batch and sliding-window smoothers, and ``msf run --smooth``.
+
+References: a plain per-epoch loop for keyframe selection, ground truth of the simulator,
+the dense inverse of the full Gauss-Newton Hessian for the chain covariances, the full batch
+for marginalisation, forward-mode autodiff for the analytic factor Jacobians.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+
+import pytest
+import torch
+
+from msf_torch.backend import factors as F
+from msf_torch.backend import window as W
+from msf_torch.backend.lm import LMConfig, solve
+from msf_torch.backend.problem import Factor, Problem
+from msf_torch.backend.variables import pack_nav_state, pack_pose
+from msf_torch.cli import main
+from msf_torch.eval.metrics import ate
+from msf_torch.frontend.config import config_for_sequence, load_config
+from msf_torch.frontend.eskf import run_eskf
+from msf_torch.frontend.keyframes import KeyframeConfig, select_keyframes
+from msf_torch.geometry import so3
+from msf_torch.io.native import write_native
+from msf_torch.io.tum import read_tum
+from msf_torch.sim import SimConfig, simulate_run
+
+DTYPE = torch.float64
+
+
+@pytest.fixture(scope="module")
+def sim_run():
+    """A 30-s simulated wheeled-robot run, its front-end result and keyframe graph."""
+    run = simulate_run(SimConfig(duration_s=30.0), seed=4)
+    seq = run.sequence
+    cfg = config_for_sequence(load_config(), seq.meta, set())
+    with torch.no_grad():
+        frontend = run_eskf(seq, cfg)
+    graph = W.build_graph(seq, frontend, cfg, W.SmootherConfig())
+    return run, seq, cfg, frontend, graph
+
+
+@pytest.fixture(scope="module")
+def full_solution(sim_run):
+    *_, graph = sim_run
+    with torch.no_grad():
+        return W.smooth_full(graph, W.SmootherConfig())
+
+
+# --- keyframes ---------------------------------------------------------------------------
+
+
+def _naive_keyframes(t, position, rotation, forced, config):
+    """Per-epoch loop over the selection rule (the reference)."""
+    out, last, path = [0], 0, 0.0
+    for k in range(1, t.numel()):
+        path += float((position[k] - position[k - 1]).norm())
+        turned = float(so3.log(rotation[last].mT @ rotation[k]).norm())
+        if (
+            k == t.numel() - 1
+            or bool(forced[k])
+            or float(t[k] - t[last]) >= config.max_interval_s
+            or path >= config.max_distance_m
+            or turned >= config.max_rotation_rad
+        ):
+            out.append(k)
+            last, path = k, 0.0
+    return out
+
+
+def test_keyframe_thresholds_each_trigger():
+    count = 97  # 12 s at 8 Hz (exact binary times)
+    t = torch.arange(count, dtype=DTYPE)[None] * 0.125
+    still = torch.zeros(1, count, 3, dtype=DTYPE)
+    eye = torch.eye(3, dtype=DTYPE).expand(1, count, 3, 3)
+    mask = torch.ones(1, count, dtype=torch.bool)
+    by_time = select_keyframes(t, still, eye, mask, KeyframeConfig(0.99, math.inf, math.inf))
+    assert by_time.index[0].tolist() == list(range(0, count, 8))
+    moving = torch.zeros(1, count, 3, dtype=DTYPE)
+    moving[..., 0] = t * 1.2  # 0.15 m per epoch
+    by_distance = select_keyframes(t, moving, eye, mask, KeyframeConfig(math.inf, 0.59, math.inf))
+    assert by_distance.index[0].tolist() == list(range(0, count, 4))
+    yaw = torch.zeros(1, count, 3, dtype=DTYPE)
+    yaw[..., 2] = t * 0.4  # 0.05 rad per epoch
+    by_turn = select_keyframes(
+        t, still, so3.exp(yaw), mask, KeyframeConfig(math.inf, math.inf, 0.29)
+    )
+    assert by_turn.index[0].tolist() == list(range(0, count, 6))  # 96 = 16 * 6 is the last
+    forced = torch.zeros(1, count, dtype=torch.bool)
+    forced[0, [3, 4, 57]] = True
+    with_forced = select_keyframes(t, still, eye, mask, KeyframeConfig(0.99), force=forced)
+    expected = [0, 3, 4, 12, 20, 28, 36, 44, 52, 57, 65, 73, 81, 89, 96]
+    assert with_forced.index[0].tolist() == expected
+    assert torch.equal(with_forced.t[0], t[0, expected])
+
+
+def test_keyframes_match_a_per_epoch_loop_and_pad_batches():
+    gen = torch.Generator().manual_seed(3)
+    batch, count = 3, 400
+    t = torch.cumsum(0.02 + 0.2 * torch.rand(batch, count, generator=gen, dtype=DTYPE), 1)
+    position = torch.cumsum(0.3 * torch.randn(batch, count, 3, generator=gen, dtype=DTYPE), 1)
+    turns = 0.05 * torch.randn(batch, count, 3, generator=gen, dtype=DTYPE)
+    rotation = so3.exp(torch.cumsum(turns, 1))
+    mask = torch.ones(batch, count, dtype=torch.bool)
+    mask[1, 300:] = False  # a shorter sequence
+    forced = torch.rand(batch, count, generator=gen) < 0.02
+    config = KeyframeConfig(max_interval_s=2.0, max_distance_m=3.0, max_rotation_rad=0.3)
+    keyframes = select_keyframes(t, position, rotation, mask, config, forced)
+    lengths = []
+    for b in range(batch):
+        n = int(mask[b].sum())
+        expected = _naive_keyframes(
+            t[b, :n], position[b, :n], rotation[b, :n], forced[b, :n], config
+        )
+        assert keyframes.index[b, keyframes.mask[b]].tolist() == expected
+        lengths.append(len(expected))
+    assert keyframes.counts().tolist() == lengths
+    assert keyframes.index.shape[1] == max(lengths)
+    assert torch.equal(keyframes.t, torch.gather(t, 1, keyframes.index))
+
+
+def test_keyframe_config_rejects_bad_thresholds():
+    with pytest.raises(ValueError, match="max_distance_m"):
+        KeyframeConfig(max_distance_m=0.0).validate()
+
+
+# --- factors -----------------------------------------------------------------------------
+
+
+def _random_nav(batch, count, gen):
+    def rand(scale):
+        return scale * torch.randn(batch, count, 3, generator=gen, dtype=DTYPE)
+
+    return pack_nav_state(rand(3.0), rand(1.0), so3.exp(rand(1.0)), rand(0.01), rand(0.1))
+
+
+@pytest.mark.parametrize("kind", ["nav_state", "pose"])
+def test_analytic_jacobians_match_autodiff(kind):
+    gen = torch.Generator().manual_seed(1)
+    batch, count = 2, 5
+    i, j = torch.arange(count - 1), torch.arange(1, count)
+    eye3 = torch.eye(3, dtype=DTYPE).expand(1, count - 1, 3, 3)
+    arm = torch.tensor([0.3, -0.1, 0.2], dtype=DTYPE)
+    wheel = F.WheelOdometryFactor(
+        "x", i, j, torch.randn(1, count - 1, 3, generator=gen, dtype=DTYPE), eye3, arm
+    )
+    factors: list[Factor] = [wheel]
+    if kind == "nav_state":
+        values = _random_nav(batch, count, gen)
+        index = torch.arange(count)
+        factors += [
+            F.NavStatePriorFactor(
+                "x",
+                index,
+                _random_nav(1, count, gen),
+                torch.eye(15, dtype=DTYPE).expand(1, 5, 15, 15),
+            ),
+            F.NonholonomicFactor(
+                "x",
+                index,
+                torch.randn(1, count, 3, generator=gen, dtype=DTYPE),
+                torch.eye(2, dtype=DTYPE).expand(1, count, 2, 2),
+                arm,
+            ),
+            F.MarginalPriorFactor(
+                (("x", torch.tensor([1])), ("x", torch.tensor([3]))),
+                [_random_nav(1, 1, gen), _random_nav(1, 1, gen)],
+                torch.randn(batch, 1, 30, 30, generator=gen, dtype=DTYPE),
+                torch.randn(batch, 1, 30, generator=gen, dtype=DTYPE),
+            ),
+        ]
+    else:
+        rot = so3.exp(torch.randn(batch, count, 3, generator=gen, dtype=DTYPE))
+        values = pack_pose(torch.randn(batch, count, 3, generator=gen, dtype=DTYPE), rot)
+    problem = Problem({"x": (kind, values)}, factors)
+    for factor in factors:
+        slot_values = problem.gathered(factor, {"x": values})
+        residual, jacobians = factor.residual_and_jacobians(slot_values, factor.kinds)
+        reference, expected = Factor.residual_and_jacobians(factor, slot_values, factor.kinds)
+        torch.testing.assert_close(residual, reference, atol=1e-12, rtol=0)
+        for got, want in zip(jacobians, expected, strict=True):
+            torch.testing.assert_close(got, want, atol=1e-10, rtol=0)
+
+
+# --- full batch --------------------------------------------------------------------------
+
+
+def test_full_smoother_beats_front_end_and_is_near_truth(sim_run, full_solution):
+    run, seq, _, frontend, graph = sim_run
+    states, variance, results = full_solution
+    assert results[0].converged.all()
+    truth = seq.ground_truth
+    front = ate(frontend.trajectory().select(0).compact(), truth, align="none", max_dt=0.02)
+    output = W.densify(graph.epoch, states, frontend)
+    smoothed = ate(output, truth, align="none", max_dt=0.02)
+    assert smoothed["rmse"] < 0.75 * front["rmse"]
+    assert smoothed["rmse"] < 0.3
+    # 3-sigma consistency of the keyframe positions against the truth
+    at = torch.searchsorted(run.truth.t[0], graph.t - 1e-9)
+    error = states[0, :, 0:3] - run.truth.position[0, at]
+    normalized = error / variance[0, :, 0:3].sqrt()
+    assert float((normalized.abs() < 3.0).double().mean()) > 0.9
+
+
+def test_chain_covariance_matches_dense_inverse(sim_run, full_solution):
+    *_, graph = sim_run
+    states, variance, _ = full_solution
+    count = 25
+    problem = graph.problem(states[:, :count], 0, count)
+    values = {"state": states[:, :count]}
+    chain = W.chain_covariance(problem, values)
+    dense = torch.linalg.inv(problem.linearize(values).hessian)
+    blocks = torch.stack(
+        [dense[:, 15 * k : 15 * k + 15, 15 * k : 15 * k + 15] for k in range(count)], 1
+    )
+    scale = torch.diagonal(blocks, dim1=-2, dim2=-1).sqrt()
+    outer = scale[..., :, None] * scale[..., None, :]
+    torch.testing.assert_close(chain / outer, blocks / outer, rtol=0, atol=1e-7)
+    assert variance.shape == (1, graph.size, 15)
+
+
+# --- sliding window ----------------------------------------------------------------------
+
+
+def test_marginalisation_is_exact_to_first_order(sim_run, full_solution):
+    """Marginalise the first keyframes at a point off the optimum and solve what is left:
+    the remaining keyframes land on the full batch's solution up to the Gauss-Newton
+    model's error, which is proportional to the offset (residual times residual curvature,
+    dropped by Gauss-Newton) and vanishes at the optimum."""
+    *_, graph = sim_run
+    states, _, _ = full_solution
+    cut = 8
+    config = LMConfig(damping="identity", initial_damping=1e-9, relative_tolerance=1e-14)
+    gaps = []
+    for offset in (0.0, 1e-2, 1e-3):
+        gen = torch.Generator().manual_seed(0)
+        point = states.clone()
+        noise = torch.randn(point[..., 0:6].shape, generator=gen, dtype=DTYPE)
+        point[..., 0:6] += offset * noise
+        marginal = None
+        for k in range(cut):
+            marginal = W._marginalize(graph, point, k, k + 1, marginal, 1e-12)
+        factors = graph.factors(cut, graph.size) + [marginal]
+        problem = Problem({"state": ("nav_state", point[:, cut:])}, factors)
+        rest = solve(problem, config).values["state"]
+        gaps.append(float((rest[..., 0:6] - states[:, cut:, 0:6]).abs().max()))
+    assert gaps[0] < 1e-6
+    assert gaps[2] < 1e-4
+    assert gaps[2] < 0.2 * gaps[1]
+
+
+def test_window_covering_the_run_is_the_full_batch(sim_run, full_solution):
+    *_, graph = sim_run
+    states, variance, _ = full_solution
+    config = W.SmootherConfig(window_size=graph.size + 5)
+    window_states, window_variance, results = W.smooth_window(graph, config)
+    assert len(results) == 1
+    torch.testing.assert_close(window_states[..., 0:6], states[..., 0:6], atol=1e-6, rtol=0)
+    torch.testing.assert_close(window_variance, variance, rtol=1e-6, atol=0)
+
+
+def test_sliding_window_ends_close_to_the_full_batch(sim_run, full_solution):
+    run, seq, _, frontend, graph = sim_run
+    states, _, _ = full_solution
+    emitted = []
+    window_states, _, results = W.smooth_window(
+        graph, W.SmootherConfig(window_size=20), lambda done, total: emitted.append(done)
+    )
+    assert len(results) == graph.size - 19 and emitted[-1] == graph.size
+    assert all(bool(r.converged.all()) for r in results)
+    last_gap = float((window_states[0, -1, 0:3] - states[0, -1, 0:3]).norm())
+    assert last_gap < 0.5  # GNSS sigma 0.5 m horizontal, 1 m vertical
+    output = W.densify(graph.epoch, window_states, frontend)
+    front = ate(
+        frontend.trajectory().select(0).compact(), seq.ground_truth, align="none", max_dt=0.02
+    )
+    assert ate(output, seq.ground_truth, align="none", max_dt=0.02)["rmse"] < front["rmse"]
+
+
+# --- config and command line -------------------------------------------------------------
+
+
+def test_smoother_config_errors_name_the_key(tmp_path):
+    path = tmp_path / "c.yaml"
+    path.write_text("smoother:\n  window_size: 1\n")
+    with pytest.raises(ValueError, match="smoother.window_size"):
+        W.load_smoother_config(path)
+    path.write_text("smoother:\n  keyframe_spacing: 1\n")
+    with pytest.raises(ValueError, match="smoother.keyframe_spacing"):
+        W.load_smoother_config(path)
+    path.write_text("smoother:\n  noise:\n    gravity_mps2: 9.8\n")
+    with pytest.raises(ValueError, match="smoother.noise.gravity_mps2"):
+        W.load_smoother_config(path)
+    path.write_text("gnss_sigma_m: [1.0, 1.0, 1.0]\nsmoother:\n  noise:\n    nhc_sigma_mps: 0.2\n")
+    assert load_config(path).gnss_sigma_m == [1.0, 1.0, 1.0]
+    assert W.load_smoother_config(path).noise == {"nhc_sigma_mps": 0.2}
+
+
+@pytest.fixture(scope="module")
+def short_file(tmp_path_factory):
+    run = simulate_run(SimConfig(duration_s=20.0), seed=5)
+    return write_native(run.sequence, tmp_path_factory.mktemp("smooth") / "run.npz")
+
+
+def _summary(capsys):
+    return json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+
+
+def test_cli_run_smooth_full(short_file, tmp_path, capsys):
+    out = tmp_path / "full"
+    args = ["run", str(short_file), "--out", str(out), "--smooth", "full", "--no-plot"]
+    assert main([*args, "--progress", "off", "--gnss-outage", "8:14"]) == 0
+    summary = _summary(capsys)
+    figures = summary["smoother"]
+    assert figures["mode"] == "full" and figures["converged"]
+    assert figures["iterations"] >= 1 and figures["cost"] < figures["initial_cost"]
+    assert summary["frontend_wall_s"] <= summary["wall_s"]
+    for key in ("ate_rmse_m", "frontend_ate_rmse_m", "outage_rmse_m", "frontend_outage_rmse_m"):
+        assert key in summary
+    assert summary["outage_rmse_m"] < summary["frontend_outage_rmse_m"]
+    assert read_tum(out / "trajectory.tum").length == summary["epochs"]
+
+
+def test_cli_run_smooth_window_and_config_errors(short_file, tmp_path, capsys):
+    config = tmp_path / "c.yaml"
+    config.write_text("smoother:\n  window_size: 8\n  output: keyframes\n")
+    out = tmp_path / "window"
+    args = ["run", str(short_file), "--out", str(out), "--smooth", "window", "--no-plot"]
+    assert main([*args, "--config", str(config), "--progress", "off"]) == 0
+    summary = _summary(capsys)
+    assert summary["smoother"]["mode"] == "window"
+    assert summary["smoother"]["output_poses"] == summary["smoother"]["keyframes"]
+    config.write_text("smoother:\n  gnss_kernel: l1\n")
+    assert main([*args, "--config", str(config), "--progress", "off"]) == 2
+    assert "smoother.gnss_kernel" in capsys.readouterr().err
+
+
+def test_noise_replacement_reaches_the_factors(sim_run):
+    _, seq, cfg, frontend, _ = sim_run
+    # fixes without their own sigma take the (replaced) configured one
+    unknown = dataclasses.replace(seq.gnss, sigma=torch.full_like(seq.gnss.sigma, math.nan))
+    seq = dataclasses.replace(seq, gnss=unknown)
+    smoother = W.SmootherConfig(noise={"gnss_sigma_m": [0.25, 0.25, 0.5]})
+    other = W.build_graph(seq, frontend, cfg, smoother)
+    expected = torch.tensor([0.25, 0.25, 0.5], dtype=DTYPE) ** 2
+    torch.testing.assert_close(
+        torch.diagonal(other.gnss_covariance, dim1=-2, dim2=-1),
+        expected.expand_as(other.gnss_position),
+    )
+    assert dataclasses.asdict(W.SmootherConfig())["noise"] == {}
