@@ -72,6 +72,13 @@ def build_parser() -> argparse.ArgumentParser:
         default="auto",
         help="progress bar on stderr (auto: when stderr is a terminal)",
     )
+    run.add_argument(
+        "--smooth",
+        choices=("full", "window"),
+        default=None,
+        help="smooth the front end's keyframes (full batch or sliding window; settings from "
+        "the config's 'smoother:' section); trajectory.tum then holds the smoothed trajectory",
+    )
 
     ev = sub.add_parser("eval", help="ATE and RPE of an estimate against a reference (TUM)")
     ev.add_argument("estimate", type=Path)
@@ -184,12 +191,23 @@ def _progress_factory(mode: str):
 def _cmd_run(args) -> dict[str, Any]:
     from msf_torch.runner import RunOptions, run_sequence
 
-    seq, cfg, _ = _load(args)
+    seq, cfg, source = _load(args)
+    smoother = None
+    if args.smooth is not None:
+        from msf_torch.backend.window import load_smoother_config
+        from msf_torch.frontend.config import packaged_config
+
+        path = args.config
+        if path is None and source in NAMED_DATASETS:
+            path = packaged_config(source)
+        smoother = load_smoother_config(path)
     options = RunOptions(
         out_dir=args.out,
         gnss_outage_s=args.gnss_outage,
         plot=not args.no_plot,
         progress=_progress_factory(args.progress),
+        smooth=args.smooth,
+        smoother=smoother,
     )
     return run_sequence(seq, cfg, options)
 

@@ -2,11 +2,16 @@
 
 Used by ``msf run``. Outputs in ``out_dir`` (each written atomically: temp file + rename):
 
-- ``trajectory.tum``: estimated poses at every filter epoch (TUM: t x y z qx qy qz qw).
+- ``trajectory.tum``: estimated poses at every filter epoch (TUM: t x y z qx qy qz qw);
+  with ``smooth`` set, the smoothed trajectory instead (``msf_torch.backend.window``: at
+  every filter epoch by default, or at the keyframes with the smoother's
+  ``output: keyframes``).
 - ``diagnostics.csv``: per epoch: time, error-state covariance diagonal (15 variances in
   the order of ``geometry.conventions``), slip factor, IMU-gap flag, and per sensor whether
   a measurement was present, whether it was accepted, and its NIS.
-- ``summary.json``: the run summary (also printed as the last line by the CLI).
+- ``summary.json``: the run summary (also printed as the last line by the CLI). With
+  ``smooth`` set, ``ate_*`` and ``outage_*`` score the smoothed trajectory, the front end's
+  own figures keep a ``frontend_`` prefix, and ``smoother`` holds the smoother's figures.
 - ``overview.png``: trajectory against the reference, position error, slip factor.
 """
 
@@ -25,6 +30,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from msf_torch.backend.window import SmootherConfig, smooth
 from msf_torch.eval.metrics import ate
 from msf_torch.eval.outage import outage_metrics, split_gnss_outage
 from msf_torch.eval.slip import slip_scores
@@ -67,6 +73,8 @@ class RunOptions:
         plot: write ``overview.png``.
         progress: factory ``() -> (callback(done, total), close())`` for a progress bar, or
             None.
+        smooth: ``"full"`` or ``"window"`` to smooth after the front end, or None.
+        smoother: the smoother's settings (default :class:`SmootherConfig()`).
     """
 
     out_dir: Path
@@ -74,6 +82,8 @@ class RunOptions:
     plot: bool = True
     progress: Callable[[], tuple[Callable[[int, int], None], Callable[[], None]]] | None = None
     extra: dict[str, Any] = field(default_factory=dict)
+    smooth: str | None = None
+    smoother: SmootherConfig | None = None
 
 
 def write_diagnostics(result: EskfResult, path: Path, index: int = 0) -> None:
@@ -126,9 +136,18 @@ def run_sequence(seq: Sequence, cfg: EskfConfig, options: RunOptions) -> dict[st
     with torch.no_grad():
         result = run_eskf(seq, cfg, progress=callback)
         trajectory = result.trajectory()
-    wall = time.perf_counter() - start
+    frontend_wall = time.perf_counter() - start
     if close is not None:
         close()
+    smoothed = None
+    if options.smooth is not None:
+        callback, close = options.progress() if options.progress is not None else (None, None)
+        with torch.no_grad():
+            smoothed = smooth(seq, result, cfg, options.smoother, options.smooth, callback)
+        if close is not None:
+            close()
+    wall = time.perf_counter() - start
+    estimate = _single(trajectory) if smoothed is None else smoothed.output
     duration = _duration(seq)
     summary: dict[str, Any] = {
         "sequence": seq.names[0],
@@ -139,6 +158,11 @@ def run_sequence(seq: Sequence, cfg: EskfConfig, options: RunOptions) -> dict[st
         "wall_s": round(wall, 4),
         "realtime_factor": round(duration / wall, 1) if wall > 0 else math.inf,
     }
+    if smoothed is not None:
+        summary["frontend_wall_s"] = round(frontend_wall, 4)
+        summary["smoother"] = {
+            k: round(v, 4) if isinstance(v, float) else v for k, v in smoothed.summary().items()
+        }
     counts = result.counts()
     summary["measurements"] = {
         k: {n: v[0] for n, v in c.items()} for k, c in counts.items() if c["present"][0] > 0
@@ -147,14 +171,22 @@ def run_sequence(seq: Sequence, cfg: EskfConfig, options: RunOptions) -> dict[st
     if dropped:
         summary["dropped_nonfinite"] = dropped
     summary["imu_gaps"] = int((result.gap[0] & result.mask[0]).sum())
+    scored = [("", estimate)] + ([] if smoothed is None else [("frontend_", _single(trajectory))])
     if seq.ground_truth is not None and bool(seq.ground_truth.mask.any()):
-        stats = ate(_single(trajectory), seq.ground_truth, align="none", max_dt=0.02)
-        summary["ate_rmse_m"] = round(float(stats["rmse"]), 4)
-        summary["ate_max_m"] = round(float(stats["max"]), 4)
+        for prefix, traj in scored:
+            stats = ate(traj, seq.ground_truth, align="none", max_dt=0.02)
+            summary[f"{prefix}ate_rmse_m"] = round(float(stats["rmse"]), 4)
+            summary[f"{prefix}ate_max_m"] = round(float(stats["max"]), 4)
     if withheld is not None:
-        metrics = outage_metrics(trajectory, withheld)
         summary["gnss_outage_s"] = list(options.gnss_outage_s)
-        summary.update({k: round(v, 4) if isinstance(v, float) else v for k, v in metrics.items()})
+        for prefix, traj in scored:
+            metrics = outage_metrics(traj, withheld)
+            summary.update(
+                {
+                    f"{prefix}{k}": round(v, 4) if isinstance(v, float) else v
+                    for k, v in metrics.items()
+                }
+            )
     if result.present["wheel"].any():
         wheel_epochs = result.present["wheel"][0] & result.mask[0]
         factor = result.slip_factor[0, wheel_epochs]
@@ -167,10 +199,10 @@ def run_sequence(seq: Sequence, cfg: EskfConfig, options: RunOptions) -> dict[st
                 k: round(v, 4) if isinstance(v, float) else v for k, v in scores.items()
             }
     summary["slip_detection_enabled"] = bool(cfg.slip_detection)
-    write_tum(_single(trajectory), out_dir / "trajectory.tum")
+    write_tum(estimate, out_dir / "trajectory.tum")
     write_diagnostics(result, out_dir / "diagnostics.csv")
     if options.plot:
-        _plot(out_dir / "overview.png", seq, trajectory, result, withheld, options, summary)
+        _plot(out_dir / "overview.png", seq, estimate, result, withheld, options, summary)
     with atomic_write(out_dir / "summary.json") as handle:
         json.dump(summary, handle, indent=2)
         handle.write("\n")

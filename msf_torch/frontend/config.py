@@ -129,7 +129,9 @@ class EskfConfig:
 def load_config(path: str | Path | None = None, **overrides: Any) -> EskfConfig:
     """Read an :class:`EskfConfig` from YAML (safe loader), then apply ``overrides``.
 
-    Unknown keys raise ``ValueError`` naming the key and the file.
+    Unknown keys raise ``ValueError`` naming the key and the file. A ``smoother:`` mapping
+    belongs to the back end (``msf_torch.backend.window.load_smoother_config``) and is
+    skipped here.
     """
     values: dict[str, Any] = {}
     if path is not None:
@@ -139,6 +141,7 @@ def load_config(path: str | Path | None = None, **overrides: Any) -> EskfConfig:
             raise ValueError(f"{path}: the config must be a mapping of keys to values")
         values.update(loaded)
     values.update(overrides)
+    values.pop("smoother", None)
     known = {f.name for f in dataclasses.fields(EskfConfig)}
     for key in values:
         if key not in known:
