@@ -23,11 +23,6 @@ Wheels: :func:`preintegrate_wheel` integrates differential-drive rim speeds into
 increment ``[dx, dy, dyaw]`` in the frame of keyframe i with exact arcs per sample, and
 propagates the rim-speed noise to its 3x3 covariance; the slip factor ``f`` in (0, 1] from
 the front end divides that sample's noise sigma (``f = 1``: no slip).
-
-Wheels: :func:`preintegrate_wheel` integrates differential-drive rim speeds into a planar
-increment ``[dx, dy, dyaw]`` in the frame of keyframe i with exact arcs per sample, and
-propagates the rim-speed noise to its 3x3 covariance; the slip factor ``f`` in (0, 1] from
-the front end divides that sample's noise sigma (``f = 1``: no slip).
 """
 
 from __future__ import annotations

@@ -13,8 +13,7 @@ factors are
   keyframes (increments of :func:`~msf_torch.backend.preintegration.preintegrate_imu`, the
   exact recursive covariance and the bias random walk of
   :func:`~msf_torch.backend.preintegration.imu_covariance`);
-* a :class:`~msf_torch.backend.factors.NavStatePriorFactor` (with an analytic Jacobian
-  here) on the first keyframe that fixes
+* a :class:`~msf_torch.backend.factors.NavStatePriorFactor` on the first keyframe that fixes
   the gauge (position and yaw; gravity makes roll and pitch observable, so they are left
   free) and gives the biases a weak prior (:func:`first_state_prior`).
 
@@ -514,7 +513,7 @@ def build_vio_problem(
     feature_cov = (feature_sigma**2 * eye2).expand(1, count, 2, 2)
     index = torch.arange(num, device=device)
     factors = [
-        _NavStatePrior(
+        NavStatePriorFactor(
             "state",
             index[:1],
             prior_state.reshape(-1, 1, 21),
@@ -539,19 +538,6 @@ def build_vio_problem(
         factors=factors,
         fixed=fixed,
     )
-
-
-class _NavStatePrior(NavStatePriorFactor):
-    """:class:`~msf_torch.backend.factors.NavStatePriorFactor` with its analytic Jacobian:
-    the identity but for the attitude block ``J_r^-1(r_theta)``, since
-    ``Log(R_0^T R Exp(d)) = r_theta + J_r^-1(r_theta) d + O(d^2)``."""
-
-    def residual_and_jacobians(self, values, kinds):
-        residual = self.residual(values)
-        eye = torch.eye(15, dtype=residual.dtype, device=residual.device)
-        jacobian = eye.expand(*residual.shape[:-1], 15, 15).clone()
-        jacobian[..., 6:9, 6:9] = torch.linalg.inv(so3.right_jacobian(residual[..., 6:9]))
-        return residual, [jacobian]
 
 
 def _lead(pre: Preintegrated) -> Preintegrated:

@@ -133,7 +133,14 @@ def test_nav_state_factor_jacobians():
         sqrt_h,
         torch.randn(B, 1, 30, generator=gen, dtype=DTYPE),
     )
-    problem = Problem({"x": ("nav_state", values)}, [prior, zero, marginal])
+    nhc = F.NonholonomicFactor(
+        "x",
+        torch.tensor([0, 5]),
+        torch.randn(1, 2, 3, generator=gen, dtype=DTYPE),
+        _spd(gen, 2, 2),
+        lever_arm=torch.tensor([-0.8, 0.1, -0.3], dtype=DTYPE),
+    )
+    problem = Problem({"x": ("nav_state", values)}, [prior, zero, marginal, nhc])
     for factor in problem.factors:
         _check_jacobians(problem, factor)
 
