@@ -1,5 +1,21 @@
-"""Labelled-run simulators with known truth (wheeled robot with slip and GNSS outages)."""
+"""Labelled-run simulators with known truth (wheeled robot with slip and GNSS outages; weather)."""
 
+from msf_torch.sim.weather import (
+    CONDITIONS,
+    DEFAULT_CONDITIONS,
+    CameraModel,
+    Environment,
+    GnssModel,
+    LidarModel,
+    PoseSourceTruth,
+    WeatherCondition,
+    WeatherRun,
+    WeatherSchedule,
+    WeatherSegment,
+    WheelModel,
+    apply_weather,
+    weather_slip_config,
+)
 from msf_torch.sim.wheeled import (
     SLIP_TYPES,
     GroundPath,
@@ -16,16 +32,30 @@ from msf_torch.sim.wheeled import (
 )
 
 __all__ = [
+    "CONDITIONS",
+    "DEFAULT_CONDITIONS",
     "SLIP_TYPES",
+    "CameraModel",
+    "Environment",
+    "GnssModel",
     "GroundPath",
     "ImuNoiseSpec",
+    "LidarModel",
     "PathState",
+    "PoseSourceTruth",
     "SimConfig",
     "SimTruth",
     "SimulatedRun",
     "SlipEpisode",
+    "WeatherCondition",
+    "WeatherRun",
+    "WeatherSchedule",
+    "WeatherSegment",
+    "WheelModel",
+    "apply_weather",
     "default_slip_config",
     "gnss_denied_slip_config",
     "sample_slip_config",
     "simulate_run",
+    "weather_slip_config",
 ]

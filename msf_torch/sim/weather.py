@@ -588,9 +588,10 @@ class WeatherRun:
     """A simulated run with weather applied.
 
     Attributes:
-        sequence: copy of ``truth.sequence`` with GNSS degraded, ``poses`` the chosen source
-            (or None), labels extended with ``"weather:<c>"``, ``"env:corridor"``,
-            ``"env:urban"`` and the merged ``"gnss_outage"``, and ``meta["weather"]``.
+        sequence: shallow copy of ``truth.sequence`` (unchanged streams share tensors) with
+            GNSS degraded, ``poses`` the chosen source (or None), labels extended with
+            ``"weather:<c>"``, ``"env:corridor"``, ``"env:urban"`` and the merged
+            ``"gnss_outage"``, and ``meta["weather"]``.
         pose_sources: ``"vo"`` and ``"lidar"`` streams (B = 1), dropped samples masked False
             and zero-filled.
         source_truth: per source, counts, drift and white noise (:class:`PoseSourceTruth`).
@@ -907,7 +908,8 @@ def weather_slip_config(
 
     The episode count is ``Poisson(sum_k lambda(mu_k) T_k / 60)`` over the segments (capped at
     the number that fits ``config``'s margins, gaps and longest duration). The slip-ratio range
-    is the 10 %-90 % quantile band at the rate-weighted friction ``mu_eff``
+    is the 10 %-90 % quantile band at the rate-weighted friction ``mu_eff`` (duration-weighted
+    when no slip is expected)
     (``SimConfig`` draws ratios uniformly in it); lock ratios stay as configured. Episodes are
     placed by :func:`~msf_torch.sim.simulate_run` uniformly over the run, not per segment.
 
@@ -933,6 +935,7 @@ def weather_slip_config(
     room = config.duration_s - sum(config.slip_margin_s) + config.slip_min_gap_s
     fits = int(room // (config.slip_duration_s[1] + config.slip_min_gap_s))
     count = min(count, max(fits, 0))
-    mu_eff = float((expected * mus).sum() / expected.sum())
+    weights = expected if expected.sum() > 0 else lengths
+    mu_eff = float((weights * mus).sum() / weights.sum())
     band = (wheel.slip_ratio_quantile(mu_eff, 0.1), wheel.slip_ratio_quantile(mu_eff, 0.9))
     return dataclasses.replace(config, slip_episodes=count, slip_ratio=band)
