@@ -327,9 +327,18 @@ def test_wheel_slip_rate_and_ratio_distribution():
     counts = [weather_slip_config(config, schedule, s).slip_episodes for s in range(300)]
     assert abs(np.mean(counts) - lam) < 4.0 * math.sqrt(lam / 300)
     slip = weather_slip_config(config, schedule, 0)
-    low, high = slip.slip_ratio
-    assert 0.0 < low < high < 1.0
-    slip.validate()
+    rates = np.array([2.0 * math.exp(-0.2 / 0.15), 2.0 * math.exp(-0.5 / 0.15)])
+    mu_eff = (rates * [0.2, 0.5]).sum() / rates.sum()
+    band = [-0.15 * math.log(1 - p) for p in (0.1, 0.9)]
+    np.testing.assert_allclose(slip.slip_ratio, [y / (y + mu_eff) for y in band], rtol=1e-12)
+    short = SimConfig(duration_s=60.0, slip_duration_s=(2.0, 3.0))
+    busy = WheelModel(traction_event_rate_per_min=20.0)
+    snowy = weather_slip_config(short, WeatherSchedule.constant("snow", 60.0), 3, wheel=busy)
+    assert snowy.slip_episodes > 0
+    episodes = simulate_run(snowy, 0).slip_episodes
+    assert len(episodes) == snowy.slip_episodes
+    spin_skid = [ep.ratio for ep in episodes if ep.kind != "lock"]
+    assert all(snowy.slip_ratio[0] <= r <= snowy.slip_ratio[1] for r in spin_skid)
 
 
 def test_deterministic_with_seed_and_sequence_contract(run):
