@@ -72,6 +72,10 @@ from __future__ import annotations
 
 __all__ = [
     "CONDITIONS",
+    "KOSCHMIEDER_CONSTANT",
+    "VISIBLE_WAVELENGTH_NM",
+    "CARBONNEAU_RAIN_DB_PER_KM",
+    "CARBONNEAU_RAIN_EXPONENT",
     "DEFAULT_CONDITIONS",
     "WeatherCondition",
     "WeatherSegment",
@@ -543,6 +547,12 @@ class GnssModel:
     urban_outage_rate_per_min: float = 0.5
     urban_outage_mean_s: float = 8.0
 
+    def __post_init__(self) -> None:
+        if not self.urban_dof > 2.0:
+            raise ValueError(
+                f"GnssModel.urban_dof must be > 2 (finite covariance), got {self.urban_dof!r}"
+            )
+
     def urban_sigma(self) -> np.ndarray:
         """(3,) per-axis standard deviation ``s sqrt(nu / (nu - 2))``, m."""
         scale = np.array(
@@ -568,7 +578,7 @@ class PoseSourceTruth:
         t: (N,) s.
         condition: (N,) segment index into the schedule.
         expected_count: (N,) expected features (VO) or valid points (LiDAR).
-        count: (N,) realised features (Poisson) or valid points.
+        count: (N,) realised features (Poisson) or valid points (Binomial).
         drift: (N, 6) ``[dp (world, m), dtheta (body, rad)]`` of the odometry frame.
         noise: (N, 6) white error, same layout; the emitted error is ``drift + noise``.
         corridor: (N,) bool, inside a corridor (LiDAR; all False for VO).

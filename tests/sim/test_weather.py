@@ -364,5 +364,7 @@ def test_deterministic_with_seed_and_sequence_contract(run):
     assert apply_weather(run, _schedule(), 9, pose_source=None).sequence.poses is None
     with pytest.raises(ValueError, match="schedule covers"):
         apply_weather(run, WeatherSchedule.constant("rain", 30.0), 0)
+    with pytest.raises(ValueError, match="urban_dof"):
+        GnssModel(urban_dof=2.0)
     with pytest.raises(ValueError, match="no WeatherCondition"):
         apply_weather(run, WeatherSchedule.constant("hail", 60.0), 0)
