@@ -10,6 +10,11 @@ What it measures
     the device is synchronised inside the timed call. Target: >= 10,000 windows/s on the
     CPU for L = 100 (1 s at 100 Hz).
 
+    Measured on the 2-core AMD EPYC dev box: ~95k windows/s with 2 threads on an idle
+    machine, ~65k with ``--threads 1``. With 2 threads and another busy process on the two
+    cores the median falls to ~7.5k (OpenMP threads wait for a descheduled peer); the load
+    average is in the JSON line, and ``--threads 1`` is the robust figure on a shared box.
+
 How to run
     .venv/bin/python benchmarks/covnet_speed.py                  # B = 4096, L = 100
     .venv/bin/python benchmarks/covnet_speed.py --threads 1

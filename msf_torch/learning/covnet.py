@@ -26,15 +26,14 @@ Outliers cannot blow up the activations: the normalised signals are clipped to
 ``+-CovNetConfig.input_clip`` and the residual features pass through ``asinh`` (the identity
 near 0, logarithmic beyond), so the outputs stay finite and bounded for any finite input.
 
-Architecture (29,292 parameters with the default config): a 1-D convolution encoder over
+Architecture (29,389 parameters with the default config): a 1-D convolution encoder over
 the 9 signal channels (IMU, wheel, wheel presence; a patch convolution with kernel = stride
 = ``patch``, then two stride-2 convolutions) with mean and max pooling over time -> signal
-embedding (E); a per-source MLP on the residual features
-plus a learned source embedding, mean-pooled over S -> residual embedding (E); a weather
-head on both embeddings -> weather logits (W); a weather embedding, the label's when known
-and the softmax of the weather logits mixed over the class embeddings when unknown; a trunk
-MLP on the three embeddings -> the log-scale head and, with each source's embedding, the
-fusion-weight head.
+embedding (E); a per-source MLP on the residual features plus a learned source embedding,
+mean-pooled over S -> residual embedding (E); a weather head on both embeddings -> weather
+logits (W); a weather embedding, the label's when known and the softmax of the weather
+logits mixed over the class embeddings when unknown; a trunk MLP on the three embeddings ->
+the log-scale head and, with each source's embedding, the fusion-weight head.
 
 Outputs (:class:`CovNetOutput`):
 
@@ -49,10 +48,10 @@ Outputs (:class:`CovNetOutput`):
 * ``weather_logits`` (B, W): always produced, so a caller can train the head on labelled
   windows and report its accuracy.
 
-Mapping onto the filter: :func:`scaled_noise` scales an :class:`~msf_torch.frontend.eskf.
-EskfNoise` (wheel, NHC, GNSS, gyro and accelerometer noise; sigmas by ``exp(log_scale /
-2)``), :func:`scaled_pose_covariance` scales a VO or LiDAR pose stream's covariances. The
-frontend never imports this module (ARCHITECTURE.md, contract 3).
+Mapping onto the filter: :func:`scaled_noise` scales an
+:class:`~msf_torch.frontend.eskf.EskfNoise` (wheel, NHC, GNSS, gyro and accelerometer noise;
+sigmas by ``exp(log_scale / 2)``), :func:`scaled_pose_covariance` scales a VO or LiDAR pose
+stream's covariances. The frontend never imports this module (ARCHITECTURE.md, contract 3).
 
 Throughput: ``benchmarks/covnet_speed.py`` (one JSON line).
 """
@@ -106,7 +105,8 @@ class CovNetConfig:
         hidden: H, width of the trunk and head MLPs.
         patch: samples per patch of the first convolution (kernel = stride = patch).
         pose_sources: names of the S pose sources, each one of :data:`LOG_SCALE_SENSORS`.
-        weather_classes: names of the W weather classes; index W means unknown.
+        weather_classes: names of the W weather classes (default: the simulator's
+            conditions); index W means unknown.
         log_scale_bounds: bound b of each of the 7 log-variance scales (natural log).
         fusion_logit_bound: bound of the fusion-weight logits.
         gyro_scale_radps, accel_scale_mps2, wheel_scale_mps: input divisors, rad/s, m/s^2,
@@ -121,7 +121,7 @@ class CovNetConfig:
     hidden: int = 64
     patch: int = 4
     pose_sources: tuple[str, ...] = ("gnss", "vo", "lidar")
-    weather_classes: tuple[str, ...] = ("clear", "rain", "snow", "fog")
+    weather_classes: tuple[str, ...] = ("sunny", "rain", "fog", "night", "snow")
     log_scale_bounds: tuple[float, ...] = (3.0,) * len(LOG_SCALE_SENSORS)
     fusion_logit_bound: float = 6.0
     gyro_scale_radps: float = 1.0
@@ -298,6 +298,11 @@ class CovNet(nn.Module):
         if weather is not None:
             if tuple(weather.shape) != (batch,):
                 raise ValueError(f"CovNet input weather must be ({batch},), got {weather.shape}")
+            if bool(((weather < 0) | (weather > cfg.unknown_weather)).any()):
+                raise ValueError(
+                    f"CovNet input weather must lie in [0, {cfg.unknown_weather}] "
+                    f"({cfg.unknown_weather} = unknown)"
+                )
             known = weather != cfg.unknown_weather
             one_hot = nn.functional.one_hot(
                 torch.where(known, weather, 0), len(cfg.weather_classes)

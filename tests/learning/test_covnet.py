@@ -97,6 +97,8 @@ def test_bad_shapes_raise_naming_the_input():
         model(imu, wheel, present, stats[:, :2])
     with pytest.raises(ValueError, match="wheel_present"):
         model(imu, wheel, present[:2], stats)
+    with pytest.raises(ValueError, match="weather"):
+        model(imu, wheel, present, stats, weather + CFG.unknown_weather + 1)
     with pytest.raises(ValueError, match="pose_sources"):
         CovNetConfig(pose_sources=("gnss", "radar")).validate()
 
@@ -105,8 +107,9 @@ def test_gradient_reaches_every_parameter():
     torch.manual_seed(0)
     model = CovNet()
     imu, wheel, present, stats, weather = _inputs(32, seed=3)
-    weather[:4] = torch.arange(4)
-    weather[4:8] = CFG.unknown_weather
+    n_classes = len(CFG.weather_classes)
+    weather[:n_classes] = torch.arange(n_classes)
+    weather[n_classes : 2 * n_classes] = CFG.unknown_weather
     out = model(imu, wheel, present, stats, weather)
     loss = (out.log_scales**2).sum() + out.fusion_weights.sum() + out.weather_logits.square().sum()
     loss.backward()
