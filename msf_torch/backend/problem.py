@@ -174,6 +174,7 @@ class Problem:
             for f in self.factors
         ]
         self._dense_index: tuple[torch.Tensor, torch.Tensor] | None = None
+        self._block_size: int | None = None
         self._sparse_pattern: tuple[torch.Tensor, torch.Tensor, list] | None = None
 
     # -- evaluation ---------------------------------------------------------------------
@@ -285,6 +286,23 @@ class Problem:
                 )
             self._dense_index = (torch.cat(grad_index), torch.cat(hess_index))
         return self._dense_index
+
+    def block_tridiagonal_size(self) -> int | None:
+        """Block size ``d`` when every variable has tangent size ``d`` and the Hessian only
+        couples neighbouring variables in column order (chains of keyframes: IMU windows),
+        else None. Such systems are solved in O(n d^2) instead of O(n^3)."""
+        if self._block_size is None:
+            dims = {self.kinds[g].tangent_dim for g in self.values}
+            size = 0
+            if len(dims) == 1 and self.dim > 0:
+                d = dims.pop()
+                _, hess_index = self._dense_indices()
+                used = hess_index[hess_index < self.dim * self.dim]
+                rows, cols = used // self.dim // d, used % self.dim // d
+                if used.numel() == 0 or int((rows - cols).abs().max()) <= 1:
+                    size = d
+            self._block_size = size
+        return self._block_size or None
 
     def _stacked(self, lin: list) -> list[torch.Tensor]:
         """Per factor type, all slot Jacobians side by side: (B, F, R, sum D)."""

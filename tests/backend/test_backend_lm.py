@@ -237,3 +237,54 @@ def test_sparse_backends_agree():
         results[0].values["pose"], results[1].values["pose"], rtol=0, atol=1e-8
     )
     torch.testing.assert_close(results[0].cost, results[1].cost, rtol=1e-10, atol=0)
+
+
+def test_block_tridiagonal_solve_equals_dense_cholesky():
+    """A chain of nav states (priors, GNSS, between factors only on neighbours) is detected
+    as block-tridiagonal; its block Cholesky step equals the full dense Cholesky step."""
+    from msf_torch.backend.lm import _solve_block_tridiagonal
+    from msf_torch.backend.variables import pack_nav_state
+
+    gen = torch.Generator().manual_seed(8)
+    batch, count = 3, 6
+    values = pack_nav_state(
+        torch.randn(batch, count, 3, generator=gen, dtype=DTYPE),
+        torch.randn(batch, count, 3, generator=gen, dtype=DTYPE),
+        so3.exp(torch.randn(batch, count, 3, generator=gen, dtype=DTYPE)),
+        0.01 * torch.randn(batch, count, 3, generator=gen, dtype=DTYPE),
+        0.1 * torch.randn(batch, count, 3, generator=gen, dtype=DTYPE),
+    )
+    index = torch.arange(count - 1)
+    between = F.BetweenFactor(
+        "x",
+        index,
+        index + 1,
+        so3.exp(torch.randn(1, count - 1, 3, generator=gen, dtype=DTYPE)),
+        torch.randn(1, count - 1, 3, generator=gen, dtype=DTYPE),
+        torch.eye(6, dtype=DTYPE).expand(1, count - 1, 6, 6),
+    )
+    prior = F.NavStatePriorFactor(
+        "x", torch.arange(count), values[:1], torch.eye(15, dtype=DTYPE).expand(1, count, 15, 15)
+    )
+    problem = Problem({"x": ("nav_state", values)}, [between, prior])
+    assert problem.block_tridiagonal_size() == 15
+    lin = problem.linearize(problem.values)
+    step, ok = _solve_block_tridiagonal(lin.hessian, -lin.gradient, 15)
+    expect = torch.linalg.solve(lin.hessian, -lin.gradient[..., None]).squeeze(-1)
+    assert bool(ok.all())
+    torch.testing.assert_close(step, expect, rtol=1e-9, atol=1e-10)
+    loop = Problem(
+        {"x": ("nav_state", values)},
+        [
+            F.BetweenFactor(
+                "x",
+                torch.tensor([0]),
+                torch.tensor([count - 1]),
+                between.rotation[:, :1],
+                between.translation[:, :1],
+                torch.eye(6, dtype=DTYPE).expand(1, 1, 6, 6),
+            ),
+            prior,
+        ],
+    )
+    assert loop.block_tridiagonal_size() is None
