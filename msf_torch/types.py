@@ -213,6 +213,9 @@ class Sequence:
             ``"slip"`` or ``"weather:rain"``.
         meta: per-batch metadata (sensor noise from a dataset's files, counts of dropped
             samples, source paths). Plain Python values.
+        pose_sources: named pose streams besides ``poses``, e.g. ``"vo"`` (visual odometry)
+            and ``"lidar"`` (LiDAR odometry), each (B, N_name, ...) like ``poses``; empty when
+            a sequence has none.
     """
 
     names: list[str]
@@ -223,6 +226,7 @@ class Sequence:
     ground_truth: Trajectory | None = None
     labels: dict[str, torch.Tensor] = field(default_factory=dict)
     meta: dict[str, Any] = field(default_factory=dict)
+    pose_sources: dict[str, PoseMeasurements] = field(default_factory=dict)
 
     _STREAMS = ("imu", "wheel", "gnss", "poses", "ground_truth")
 
@@ -232,7 +236,7 @@ class Sequence:
         return self.imu.batch_size
 
     def streams(self) -> dict[str, _Stream]:
-        """The streams that are present, by field name."""
+        """The streams that are present, by field name (``pose_sources`` not included)."""
         out = {}
         for key in self._STREAMS:
             value = getattr(self, key)
@@ -249,22 +253,36 @@ class Sequence:
             stream.check(key)
             if stream.batch_size != batch:
                 raise ValueError(f"{key} has B = {stream.batch_size}, imu has B = {batch}")
+        for name, source in self.pose_sources.items():
+            key = f"pose_sources[{name!r}]"
+            if not isinstance(source, PoseMeasurements):
+                raise ValueError(f"{key} must be PoseMeasurements, got {type(source).__name__}")
+            source.check(key)
+            if source.batch_size != batch:
+                raise ValueError(f"{key} has B = {source.batch_size}, imu has B = {batch}")
         for key, value in self.labels.items():
             if value.dim() != 3 or value.shape[0] != batch or value.shape[2] != 2:
                 raise ValueError(f"labels[{key!r}] must be (B, K, 2), got {tuple(value.shape)}")
 
     def to(self, device=None, dtype: torch.dtype | None = None) -> Sequence:
-        """Move every stream (and labels) to ``device`` / ``dtype``."""
+        """Move every stream (pose sources and labels too) to ``device`` / ``dtype``."""
         moved = {k: s.to(device, dtype) for k, s in self.streams().items()}
         labels = {k: v.to(device=device) for k, v in self.labels.items()}
-        return dataclasses.replace(self, labels=labels, **moved)
+        sources = {k: s.to(device, dtype) for k, s in self.pose_sources.items()}
+        return dataclasses.replace(self, labels=labels, pose_sources=sources, **moved)
 
     def select(self, index: int) -> Sequence:
         """Sequence ``index`` of the batch, as a batch of one."""
         picked = {k: s.select(index) for k, s in self.streams().items()}
         labels = {k: v[index : index + 1] for k, v in self.labels.items()}
+        sources = {k: s.select(index) for k, s in self.pose_sources.items()}
         return dataclasses.replace(
-            self, names=[self.names[index]], labels=labels, meta=dict(self.meta), **picked
+            self,
+            names=[self.names[index]],
+            labels=labels,
+            meta=dict(self.meta),
+            pose_sources=sources,
+            **picked,
         )
 
     @property
@@ -321,7 +339,8 @@ def batch_sequences(sequences: list[Sequence]) -> Sequence:
     """Stack sequences along B, padding every stream to its longest length with masks.
 
     A stream present in some sequences and absent in others is kept, with zero real samples
-    for those that lack it. Labels are padded with NaN intervals. ``meta`` becomes
+    for those that lack it; so is a named pose source (``pose_sources``, union of the names).
+    Labels are padded with NaN intervals. ``meta`` becomes
     ``{"per_sequence": [meta_0, meta_1, ...]}`` merged over the inputs' keys.
     """
     if not sequences:
@@ -343,6 +362,19 @@ def batch_sequences(sequences: list[Sequence]) -> Sequence:
             continue
         filled = [p if p is not None else _empty_like_stream(kind, template) for p in present]
         streams[key] = _batch_streams(filled, kind)
+    source_names = sorted({k for s in singles for k in s.pose_sources})
+    pose_sources = {
+        name: _batch_streams(
+            [
+                s.pose_sources[name]
+                if name in s.pose_sources
+                else _empty_like_stream(PoseMeasurements, template)
+                for s in singles
+            ],
+            PoseMeasurements,
+        )
+        for name in source_names
+    }
     label_keys = sorted({k for s in singles for k in s.labels})
     labels = {}
     for key in label_keys:
@@ -350,5 +382,9 @@ def batch_sequences(sequences: list[Sequence]) -> Sequence:
         labels[key] = _pad_cat(parts, float("nan"))
     meta: dict[str, Any] = {"per_sequence": [s.meta for s in singles]}
     return Sequence(
-        names=[n for s in singles for n in s.names], labels=labels, meta=meta, **streams
+        names=[n for s in singles for n in s.names],
+        labels=labels,
+        meta=meta,
+        pose_sources=pose_sources,
+        **streams,
     )

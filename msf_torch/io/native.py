@@ -25,9 +25,15 @@ file                 columns
                      21 covariance entries ``c00, c01, ..., c05, c11, ..., c55`` (the upper
                      triangle, row-major, ``cIJ`` with I <= J; m^2, m rad, rad^2).
                      The covariance is over ``[dp (world, m), dtheta (body, rad)]``.
+``poses_<name>.csv``  a named pose source, e.g. ``poses_vo.csv`` (visual odometry),
+                     ``poses_lidar.csv`` (LiDAR odometry): the columns of ``poses.csv``;
+                     read into ``Sequence.pose_sources[<name>]``. ``<name>`` matches
+                     :data:`SOURCE_NAME_PATTERN` (letters, digits, ``_``, ``-``).
 ``ground_truth.csv`` ``t, x, y, z, qw, qx, qy, qz``
 ``labels.csv``       ``name, t_start, t_end`` (s); e.g. ``slip`` or ``weather:rain``; a
-                     name may appear on many rows (one interval each)
+                     name may appear on many rows (one interval each); a name with no
+                     interval (e.g. a weather condition that never occurs) has no row, so
+                     it is absent after a CSV round trip (the npz keeps it as (0, 2))
 ``meta.json``        optional JSON object describing the sensors, e.g.
                      ``{"wheel_track_m": 0.5, "imu_noise": {...}}``
 ==================== =================================================================
@@ -41,6 +47,8 @@ Arrays keyed ``<stream>/<field>``, float64, N samples per stream:
 ``gnss/t`` (N,), ``gnss/position`` (N, 3), optional ``gnss/sigma`` (N, 3);
 ``poses/t`` (N,), ``poses/position`` (N, 3), ``poses/quaternion`` (N, 4) ``[w,x,y,z]``,
 optional ``poses/covariance`` (N, 6, 6);
+``poses/<name>/t``, ``poses/<name>/position``, ``poses/<name>/quaternion``, optional
+``poses/<name>/covariance``: the named pose source ``<name>`` (same shapes as ``poses``);
 ``ground_truth/t``, ``ground_truth/position``, ``ground_truth/quaternion``;
 ``labels/<name>`` (K, 2) ``[t_start, t_end]`` rows; ``meta_json`` a 0-d string holding the
 same JSON object as ``meta.json``. Unknown keys are an error.
@@ -59,6 +67,8 @@ Rules on read (every format in ``msf_torch.io`` follows them)
   each stream is stably sorted and ``meta["sorted"][stream]`` counts the backwards steps.
 * A sample whose timestamp exactly repeats the previous one is dropped (the first is kept),
   counted in ``meta["dropped_duplicates"][stream]``.
+* The rules apply to each named pose source as a stream keyed ``"poses/<name>"`` in the
+  ``meta`` counts. A source stream with no samples left is kept (N = 0).
 * ``meta["source"]`` is the path read, ``meta["format"]`` is ``"native-csv"`` or
   ``"native-npz"``, ``meta["sensor"]`` is the ``meta.json`` object, and its ``"imu_noise"``
   entry (if any) is also put at ``meta["imu_noise"]``, where every reader puts IMU noise.
@@ -76,6 +86,8 @@ __all__ = [
     "POSE_COVARIANCE_COLUMNS",
     "LABEL_COLUMNS",
     "TABLE_FILES",
+    "SOURCE_NAME_PATTERN",
+    "pose_source_file",
     "read_native",
     "write_native",
 ]
@@ -84,6 +96,7 @@ import contextlib
 import csv
 import json
 import os
+import re
 import zipfile
 from pathlib import Path
 from typing import Any
@@ -121,6 +134,32 @@ TABLE_FILES = {
     "ground_truth": "ground_truth.csv",
 }
 """Stream name -> CSV file name in a native folder."""
+
+SOURCE_NAME_PATTERN = r"[A-Za-z0-9][A-Za-z0-9_-]*"
+"""Names allowed for a named pose source (``Sequence.pose_sources`` keys)."""
+
+_SOURCE_NAME = re.compile(SOURCE_NAME_PATTERN)
+_SOURCE_FILE = re.compile(rf"poses_({SOURCE_NAME_PATTERN})\.csv")
+_SOURCE_PREFIX = "poses/"
+
+
+def pose_source_file(name: str) -> str:
+    """CSV file name of the named pose source ``name`` in a native folder (``poses_<name>.csv``).
+
+    Raises:
+        ValueError: ``name`` does not match :data:`SOURCE_NAME_PATTERN`.
+    """
+    if not isinstance(name, str) or not _SOURCE_NAME.fullmatch(name):
+        raise ValueError(
+            f"pose source name {name!r} cannot be stored (allowed: {SOURCE_NAME_PATTERN})"
+        )
+    return f"poses_{name}.csv"
+
+
+def _base(stream: str) -> str:
+    """Kind of a stream key: ``"poses/<name>"`` (a named pose source) -> ``"poses"``."""
+    return stream.partition("/")[0]
+
 
 _LABELS_FILE = "labels.csv"
 _META_FILE = "meta.json"
@@ -190,6 +229,14 @@ def _read_folder(folder: Path, sort: bool) -> Sequence:
             continue
         table = _tables.read_table(file)
         raw[stream] = _arrays_from_table(stream, table)
+        where[stream] = (str(file), table.lines, "")
+    for file in sorted(folder.glob("poses_*.csv")):
+        match = _SOURCE_FILE.fullmatch(file.name)
+        if match is None:
+            continue
+        stream = _SOURCE_PREFIX + match.group(1)
+        table = _tables.read_table(file)
+        raw[stream] = _arrays_from_table("poses", table)
         where[stream] = (str(file), table.lines, "")
     labels = _read_labels_csv(folder / _LABELS_FILE)
     sensor = _read_meta_json(folder / _META_FILE)
@@ -327,20 +374,29 @@ def _read_npz(path: Path, sort: bool) -> Sequence:
     where: dict[str, tuple[str, np.ndarray | None, str]] = {}
     labels: dict[str, list[tuple[float, float]]] = {}
     sensor: dict[str, Any] = {}
+    npz_streams = dict(_NPZ_FIELDS)
     for key in contents:
         stream, _, fname = key.partition("/")
         if key == "meta_json" or (stream == "labels" and fname):
+            continue
+        name, _, source_field = fname.partition("/")
+        if (
+            stream == "poses"
+            and _SOURCE_NAME.fullmatch(name)
+            and source_field in _NPZ_FIELDS["poses"]
+        ):
+            npz_streams[_SOURCE_PREFIX + name] = _NPZ_FIELDS["poses"]
             continue
         if stream not in _NPZ_FIELDS or fname not in _NPZ_FIELDS[stream]:
             raise DataError(
                 path,
                 "unknown key (expected <stream>/<field> with stream in "
-                f"{', '.join(_NPZ_FIELDS)}, labels/<name> or meta_json)",
+                f"{', '.join(_NPZ_FIELDS)}, poses/<name>/<field>, labels/<name> or meta_json)",
                 field=key,
             )
     if not any(k.startswith("imu/") for k in contents):
         raise DataError(path, "missing key: the imu stream is required", field="imu/t")
-    for stream, fields in _NPZ_FIELDS.items():
+    for stream, fields in npz_streams.items():
         if not any(f"{stream}/{f}" in contents for f in fields):
             continue
         arrays: dict[str, np.ndarray] = {}
@@ -348,9 +404,11 @@ def _read_npz(path: Path, sort: bool) -> Sequence:
         for fname, trailing in fields.items():
             key = f"{stream}/{fname}"
             if key not in contents:
-                if (stream, fname) in _OPTIONAL:
+                if (_base(stream), fname) in _OPTIONAL:
                     continue
-                needed = ", ".join(f"{stream}/{f}" for f in fields if (stream, f) not in _OPTIONAL)
+                needed = ", ".join(
+                    f"{stream}/{f}" for f in fields if (_base(stream), f) not in _OPTIONAL
+                )
                 raise DataError(
                     path, f"missing key (the {stream} stream needs {needed})", field=key
                 )
@@ -406,9 +464,11 @@ def _assemble(
     """Apply the cleaning rules to raw streams and build the Sequence (B = 1)."""
     report = CleanReport()
     streams: dict[str, Any] = {}
+    sources: dict[str, PoseMeasurements] = {}
     for stream, arrays in raw.items():
         file, lines, prefix = where[stream]
-        if stream in _QUAT_STREAMS:
+        kind = _base(stream)
+        if kind in _QUAT_STREAMS:
             _tables.check_quaternions(
                 file,
                 arrays["quaternion"],
@@ -423,12 +483,16 @@ def _assemble(
             arrays,
             lines=lines,
             sort=sort,
-            nan_ok=_NAN_OK.get(stream, ()),
+            nan_ok=_NAN_OK.get(kind, ()),
             field_prefix=prefix,
         )
-        if stream in _QUAT_STREAMS:
+        if kind in _QUAT_STREAMS:
             cleaned["quaternion"] = _tables.normalise_quaternions(cleaned["quaternion"])
-        streams[stream] = _tables.stream_from_arrays(_KINDS[stream], cleaned)
+        value = _tables.stream_from_arrays(_KINDS[kind], cleaned)
+        if stream.startswith(_SOURCE_PREFIX):
+            sources[stream[len(_SOURCE_PREFIX) :]] = value
+        else:
+            streams[stream] = value
     if streams["imu"].length == 0:
         raise DataError(where["imu"][0], "no IMU samples (after dropping non-finite rows)")
     meta: dict[str, Any] = {"source": str(path), "format": fmt, **report.to_meta()}
@@ -440,7 +504,13 @@ def _assemble(
         name: torch.tensor(spans, dtype=torch.float64).reshape(1, -1, 2)
         for name, spans in labels.items()
     }
-    seq = Sequence(names=[_tables.path_name(path)], labels=label_tensors, meta=meta, **streams)
+    seq = Sequence(
+        names=[_tables.path_name(path)],
+        labels=label_tensors,
+        meta=meta,
+        pose_sources=dict(sorted(sources.items())),
+        **streams,
+    )
     seq.check()
     return seq
 
@@ -453,9 +523,13 @@ def _np(x: torch.Tensor) -> np.ndarray:
 
 
 def _stream_arrays(seq: Sequence) -> dict[str, dict[str, np.ndarray]]:
-    """Stream -> field -> (N, ...) float64 arrays of the real (masked-in) samples."""
+    """Stream -> field -> (N, ...) float64 arrays of the real (masked-in) samples; named pose
+    sources under ``"poses/<name>"``."""
     out: dict[str, dict[str, np.ndarray]] = {}
-    for stream, value in seq.streams().items():
+    named = {_SOURCE_PREFIX + name: value for name, value in seq.pose_sources.items()}
+    for name in seq.pose_sources:
+        pose_source_file(name)
+    for stream, value in {**seq.streams(), **named}.items():
         compact = value.compact()
         out[stream] = {k: _np(v[0]) for k, v in compact.tensors().items() if k != "mask"}
     return out
@@ -487,10 +561,11 @@ def write_native(seq: Sequence, path: str | os.PathLike[str]) -> Path:
     """Write a B = 1 sequence in the native format (module docstring), atomically.
 
     A path ending in ``.npz`` gives one npz file; any other path is a folder (created if
-    needed) that receives one CSV per stream plus ``labels.csv`` and ``meta.json``. Each
-    file is written through a temporary file and renamed into place, so a failure never
-    leaves a truncated file. In a folder, native tables of streams the sequence lacks are
-    removed (so reading back gives exactly ``seq``); other files are left alone.
+    needed) that receives one CSV per stream (``poses_<name>.csv`` per named pose source)
+    plus ``labels.csv`` and ``meta.json``. Each file is written through a temporary file and
+    renamed into place, so a failure never leaves a truncated file. In a folder, native
+    tables of streams the sequence lacks are removed (so reading back gives exactly ``seq``);
+    other files are left alone.
 
     Only real samples (mask True) are written. Numbers are written with ``repr`` (the
     shortest string that reads back to the same float64), so a round trip is exact up to
@@ -506,7 +581,8 @@ def write_native(seq: Sequence, path: str | os.PathLike[str]) -> Path:
         the path written, as a ``Path``.
 
     Raises:
-        ValueError: B != 1, a non-JSON sensor meta, a label name that cannot be stored.
+        ValueError: B != 1, a non-JSON sensor meta, a label or pose source name that cannot
+            be stored.
     """
     if seq.batch_size != 1:
         raise ValueError(f"write_native writes one sequence, got B = {seq.batch_size}")
@@ -519,7 +595,7 @@ def write_native(seq: Sequence, path: str | os.PathLike[str]) -> Path:
         arrays: dict[str, np.ndarray] = {}
         for stream, fields in streams.items():
             for fname, value in fields.items():
-                if (stream, fname) in _OPTIONAL and np.isnan(value).all():
+                if (_base(stream), fname) in _OPTIONAL and np.isnan(value).all():
                     continue
                 arrays[f"{stream}/{fname}"] = value
         for name, spans in labels.items():
@@ -537,10 +613,15 @@ def write_native(seq: Sequence, path: str | os.PathLike[str]) -> Path:
             with contextlib.suppress(FileNotFoundError):
                 file.unlink()
             continue
-        header, matrix = _table_for(stream, streams[stream])
-        with atomic_write(file, newline="") as handle:
-            handle.write(",".join(header) + "\n")
-            handle.write(_format_rows(matrix))
+        _write_table(file, *_table_for(stream, streams[stream]))
+    for stale in target.glob("poses_*.csv"):
+        match = _SOURCE_FILE.fullmatch(stale.name)
+        if match is not None and match.group(1) not in seq.pose_sources:
+            stale.unlink()
+    for name in seq.pose_sources:
+        _write_table(
+            target / pose_source_file(name), *_table_for("poses", streams[_SOURCE_PREFIX + name])
+        )
     labels_file = target / _LABELS_FILE
     if labels:
         with atomic_write(labels_file, newline="") as handle:
@@ -580,6 +661,13 @@ def _table_for(stream: str, a: dict[str, np.ndarray]) -> tuple[list[str], np.nda
             (base, a["covariance"][:, rows, cols])
         )
     return POSE_COLUMNS, base
+
+
+def _write_table(file: Path, header: list[str], matrix: np.ndarray) -> None:
+    """Write one native CSV table (header row, then ``matrix`` (N, C) rows) atomically."""
+    with atomic_write(file, newline="") as handle:
+        handle.write(",".join(header) + "\n")
+        handle.write(_format_rows(matrix))
 
 
 def _format_rows(matrix: np.ndarray) -> str:

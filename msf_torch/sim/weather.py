@@ -599,7 +599,8 @@ class WeatherRun:
 
     Attributes:
         sequence: shallow copy of ``truth.sequence`` (unchanged streams share tensors) with
-            GNSS degraded, ``poses`` the chosen source (or None), labels extended with
+            GNSS degraded, ``poses`` the chosen source (or None), ``pose_sources`` both
+            sources (the same tensors as :attr:`pose_sources`), labels extended with
             ``"weather:<c>"``, ``"env:corridor"``, ``"env:urban"`` and the merged
             ``"gnss_outage"``, and ``meta["weather"]``.
         pose_sources: ``"vo"`` and ``"lidar"`` streams (B = 1), dropped samples masked False
@@ -893,6 +894,7 @@ def apply_weather(
         poses=sources[pose_source] if pose_source else None,
         labels=labels,
         meta=meta,
+        pose_sources=dict(sources),
     )
     sequence.check()
     return WeatherRun(
