@@ -91,8 +91,25 @@ def build_parser() -> argparse.ArgumentParser:
     sim = sub.add_parser("simulate", help="write a simulated labelled wheeled-robot run")
     sim.add_argument("--duration", type=float, default=120.0, help="seconds")
     sim.add_argument("--seed", type=int, default=0)
-    sim.add_argument("--slip-episodes", type=int, default=3)
+    sim.add_argument(
+        "--slip-episodes",
+        type=int,
+        default=None,
+        help="default 3; with --weather, drawn from the ground friction of the schedule",
+    )
     sim.add_argument("--gnss-outages", type=int, default=1)
+    sim.add_argument(
+        "--weather",
+        action="store_true",
+        help="apply a random weather schedule (labels weather:<condition>; VO and LiDAR "
+        "pose sources, written as poses_vo / poses_lidar)",
+    )
+    sim.add_argument(
+        "--weather-seed",
+        type=int,
+        default=None,
+        help="seed of the weather schedule, slip draw and degradation (default: --seed)",
+    )
     sim.add_argument(
         "--out", type=Path, required=True, help="native output: FILE.npz or a folder of CSVs"
     )
@@ -226,25 +243,55 @@ def _cmd_eval(args) -> dict[str, Any]:
 
 
 def _cmd_simulate(args) -> dict[str, Any]:
-    from msf_torch.io.native import write_native
-    from msf_torch.sim import default_slip_config, simulate_run
+    import dataclasses
 
+    import numpy as np
+
+    from msf_torch.io.native import write_native
+    from msf_torch.sim import (
+        WeatherSchedule,
+        apply_weather,
+        default_slip_config,
+        simulate_run,
+        weather_slip_config,
+    )
+
+    slip_episodes = 3 if args.slip_episodes is None else args.slip_episodes
     config = default_slip_config(
         duration_s=args.duration,
-        slip_episodes=args.slip_episodes,
+        slip_episodes=slip_episodes,
         gnss_outage_count=args.gnss_outages,
     )
+    summary: dict[str, Any] = {"out": None, "duration_s": args.duration, "seed": args.seed}
+    schedule = None
+    if args.weather:
+        weather_seed = args.seed if args.weather_seed is None else args.weather_seed
+        if weather_seed < 0:
+            raise ValueError(f"--weather-seed must be >= 0, got {weather_seed}")
+        # three independent seeds: schedule, slip draw, degradation
+        seeds = [int(x) for x in np.random.SeedSequence([weather_seed, 1]).generate_state(3)]
+        schedule = WeatherSchedule.random(args.duration, seeds[0])
+        config = weather_slip_config(config, schedule, seeds[1])
+        if args.slip_episodes is not None:
+            config = dataclasses.replace(config, slip_episodes=args.slip_episodes)
+        summary["weather_seed"] = weather_seed
     run = simulate_run(config, seed=args.seed)
-    path = write_native(run.sequence, args.out)
-    return {
-        "out": str(path),
-        "duration_s": args.duration,
-        "seed": args.seed,
-        "imu_samples": int(run.sequence.imu.mask.sum()),
-        "slip_episodes": [
-            [round(e.t_start, 3), round(e.t_end, 3), e.kind] for e in run.slip_episodes
-        ],
-    }
+    sequence = run.sequence
+    if schedule is not None:
+        wet = apply_weather(run, schedule, seeds[2], pose_source=None)
+        sequence = wet.sequence
+        summary["weather"] = [
+            [round(s.t_start, 3), round(s.t_end, 3), s.condition] for s in schedule.segments
+        ]
+        summary["pose_sources"] = {
+            name: int(stream.mask.sum()) for name, stream in sorted(wet.pose_sources.items())
+        }
+    summary["out"] = str(write_native(sequence, args.out))
+    summary["imu_samples"] = int(sequence.imu.mask.sum())
+    summary["slip_episodes"] = [
+        [round(e.t_start, 3), round(e.t_end, 3), e.kind] for e in run.slip_episodes
+    ]
+    return summary
 
 
 def _cmd_posegraph(args) -> dict[str, Any]:

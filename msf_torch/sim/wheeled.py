@@ -915,7 +915,7 @@ def _tensor(x: np.ndarray) -> torch.Tensor:
     return torch.from_numpy(np.ascontiguousarray(x, dtype=np.float64))[None]
 
 
-def simulate_run(config: SimConfig, seed: int) -> SimulatedRun:
+def simulate_run(config: SimConfig, seed: int, *, path_seed: int | None = None) -> SimulatedRun:
     """Simulate one labelled wheeled-robot run.
 
     Independent random streams (``numpy.random.SeedSequence(seed).spawn``) drive the path,
@@ -934,6 +934,12 @@ def simulate_run(config: SimConfig, seed: int) -> SimulatedRun:
     Args:
         config: the run's settings (validated here).
         seed: non-negative int.
+        path_seed: non-negative int or None. When given, the path (route and terrain: the
+            "map") is drawn from this seed's path stream instead of ``seed``'s, so
+            ``simulate_run(c, s, path_seed=m)`` drives the path of ``simulate_run(c, m)`` with
+            the sensor noise, slip and GNSS of seed ``s`` (the path does not depend on
+            ``duration_s``: a shorter run drives a prefix of it). Recorded as
+            ``meta["sim"]["path_seed"]``.
 
     Returns:
         :class:`SimulatedRun` with float64 CPU tensors, B = 1.
@@ -944,7 +950,13 @@ def simulate_run(config: SimConfig, seed: int) -> SimulatedRun:
     config.validate()
     if not isinstance(seed, (int, np.integer)) or seed < 0:
         raise ValueError(f"simulate_run: seed must be a non-negative int, got {seed!r}")
+    if path_seed is not None and (not isinstance(path_seed, (int, np.integer)) or path_seed < 0):
+        raise ValueError(
+            f"simulate_run: path_seed must be a non-negative int or None, got {path_seed!r}"
+        )
     streams = np.random.SeedSequence(int(seed)).spawn(5)
+    if path_seed is not None:
+        streams[0] = np.random.SeedSequence(int(path_seed)).spawn(5)[0]
     rng_path, rng_imu, rng_wheel, rng_slip, rng_gnss = (
         np.random.Generator(np.random.PCG64(s)) for s in streams
     )
@@ -1067,7 +1079,11 @@ def simulate_run(config: SimConfig, seed: int) -> SimulatedRun:
             "gnss_lever_arm_m": [float(x) for x in lever],
             "slip_types": [ep.kind for ep in episodes],
         },
-        "sim": {**config.to_dict(), "seed": int(seed)},
+        "sim": {
+            **config.to_dict(),
+            "seed": int(seed),
+            **({} if path_seed is None else {"path_seed": int(path_seed)}),
+        },
         "slip_episodes": [ep.to_dict() for ep in episodes],
         "truth": {"wheel_scale_error": [float(x) for x in scale - 1.0]},
     }
