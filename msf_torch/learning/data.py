@@ -1,0 +1,378 @@
+"""LightningDataModule over labelled runs: simulated on the fly or loaded from files.
+
+Each split (train / val / test) holds runs from its list of files (any format
+:func:`msf_torch.io.load_sequence` reads, e.g. native ``.npz``) or, when the list is empty,
+``<split>_runs`` runs simulated with :func:`msf_torch.sim.simulate_run` under a random
+:class:`~msf_torch.sim.WeatherSchedule` (:func:`~msf_torch.sim.weather_slip_config`,
+:func:`~msf_torch.sim.apply_weather`). Simulated runs of split ``k`` (train 0, val 1,
+test 2) use the seeds ``seed + k * SPLIT_SEED_STRIDE + i``, so the splits are disjoint by
+construction and every rank of a distributed job builds the same runs.
+
+A batch (:class:`RunBatch`) holds B runs (:func:`msf_torch.types.batch_sequences`) cropped
+to a common length of ``W * L + 1`` IMU samples (W windows of L = ``window_length``
+samples, plus the end sample), and the per-window CovNet inputs
+(:class:`msf_torch.learning.covnet.CovNet`):
+
+* ``imu`` (B, W, L, 6): ``[gyro rad/s, accel m/s^2]``, window ``w`` = IMU samples
+  ``[w L, (w + 1) L)``;
+* ``wheel`` (B, W, L, 2): left / right rim speeds held (zero-order) at the IMU times, m/s;
+  ``wheel_present`` (B, W, L) bool: a wheel sample lies within ``wheel_hold_s`` before;
+* ``residual_stats`` (B, W, S, 4): per pose source of ``CovNetConfig.pose_sources``. Only
+  ``dropout_fraction`` is measured here (the fraction of the source's expected samples
+  missing in the window, from its median sample interval over the run; 1 for a source the
+  run lacks). The innovation features (mean |innovation|, NIS, rejected fraction) need the
+  filter and are zero placeholders;
+* ``weather`` (B, W) int64: the index in ``CovNetConfig.weather_classes`` of the
+  ``"weather:<c>"`` label interval holding the window's centre, or the unknown index.
+"""
+
+from __future__ import annotations
+
+__all__ = [
+    "SPLITS",
+    "SPLIT_SEED_STRIDE",
+    "RunBatch",
+    "RunFeatures",
+    "run_features",
+    "simulate_labelled_run",
+    "collate_runs",
+    "RunDataModule",
+]
+
+import dataclasses
+import functools
+from dataclasses import dataclass
+from typing import Any
+
+import lightning as L
+import numpy as np
+import torch
+from torch.utils.data import DataLoader
+
+from msf_torch.io import load_sequence
+from msf_torch.learning.covnet import RESIDUAL_FEATURES
+from msf_torch.sim import (
+    SimConfig,
+    WeatherSchedule,
+    apply_weather,
+    simulate_run,
+    weather_slip_config,
+)
+from msf_torch.types import Sequence, batch_sequences
+
+SPLITS = ("train", "val", "test")
+SPLIT_SEED_STRIDE = 1_000_000
+"""Seed offset between splits; a split may hold at most this many simulated runs."""
+
+_DROPOUT = RESIDUAL_FEATURES.index("dropout_fraction")
+
+
+@dataclass
+class RunFeatures:
+    """CovNet inputs of one run (B dropped), W windows of L IMU samples.
+
+    Attributes:
+        imu: (W, L, 6) gyro rad/s, accel m/s^2.
+        wheel: (W, L, 2) rim speeds, m/s.
+        wheel_present: (W, L) bool.
+        residual_stats: (W, S, 4) :data:`~msf_torch.learning.covnet.RESIDUAL_FEATURES`.
+        weather: (W,) int64 weather class index (``len(weather_classes)`` = unknown).
+    """
+
+    imu: torch.Tensor
+    wheel: torch.Tensor
+    wheel_present: torch.Tensor
+    residual_stats: torch.Tensor
+    weather: torch.Tensor
+
+
+@dataclass
+class RunBatch:
+    """B runs and their per-window CovNet inputs.
+
+    Attributes:
+        sequence: B runs, IMU cropped to ``W * L + 1`` samples each (float64).
+        imu: (B, W, L, 6); wheel (B, W, L, 2); wheel_present (B, W, L) bool;
+            residual_stats (B, W, S, 4); weather (B, W) int64 (see :class:`RunFeatures`).
+        pose_source: per run, the source of ``sequence.poses`` (``"vo"``, ``"lidar"``) or
+            None.
+    """
+
+    sequence: Sequence
+    imu: torch.Tensor
+    wheel: torch.Tensor
+    wheel_present: torch.Tensor
+    residual_stats: torch.Tensor
+    weather: torch.Tensor
+    pose_source: list[str | None]
+
+    @property
+    def windows(self) -> int:
+        """W, windows per run."""
+        return self.imu.shape[1]
+
+    def to(self, device: Any = None, **_: Any) -> RunBatch:
+        """Move every tensor to ``device`` (Lightning calls this; extra options ignored)."""
+        moved = {
+            f.name: getattr(self, f.name).to(device)
+            for f in dataclasses.fields(self)
+            if isinstance(getattr(self, f.name), torch.Tensor)
+        }
+        return dataclasses.replace(self, sequence=self.sequence.to(device), **moved)
+
+
+def _pose_source_of(seq: Sequence) -> str | None:
+    """The source name of a B = 1 sequence's pose stream (simulator meta), or None."""
+    if seq.poses is None or not bool(seq.poses.mask.any()):
+        return None
+    return seq.meta.get("weather", {}).get("pose_source") or "vo"
+
+
+def _dropout(t_stream: np.ndarray, starts: np.ndarray, ends: np.ndarray) -> np.ndarray:
+    """Fraction (W,) of a stream's expected samples missing in windows ``[start, end)`` s."""
+    if t_stream.size < 2:
+        return np.ones(starts.shape)
+    interval = float(np.median(np.diff(t_stream)))
+    expected = np.maximum((ends - starts) / max(interval, 1e-9), 1.0)
+    count = np.searchsorted(t_stream, ends, side="left") - np.searchsorted(
+        t_stream, starts, side="left"
+    )
+    return np.clip(1.0 - count / expected, 0.0, 1.0)
+
+
+def run_features(
+    seq: Sequence,
+    window_length: int,
+    pose_sources: tuple[str, ...],
+    weather_classes: tuple[str, ...],
+    wheel_hold_s: float = 0.2,
+) -> RunFeatures:
+    """Per-window CovNet inputs of a B = 1 sequence (see the module docstring).
+
+    Args:
+        seq: one run (B = 1) with at least ``window_length + 1`` IMU samples.
+        window_length: L, IMU samples per window.
+        pose_sources: the S sources of ``CovNetConfig.pose_sources``.
+        weather_classes: ``CovNetConfig.weather_classes``.
+        wheel_hold_s: a wheel reading counts as present for this long after its stamp, s.
+
+    Returns:
+        :class:`RunFeatures` with W = ``(N_imu - 1) // L`` windows, float32 signals.
+
+    Raises:
+        ValueError: the run is too short for one window (the message names it).
+    """
+    imu = seq.imu.compact()
+    t = imu.t[0].numpy()
+    windows = (t.size - 1) // window_length
+    if windows < 1:
+        raise ValueError(
+            f"run '{seq.names[0]}': {t.size} IMU samples, need > {window_length} for one window"
+        )
+    used = windows * window_length
+    t_used = t[:used]
+    signals = torch.cat((imu.gyro[0, :used], imu.accel[0, :used]), -1).float()
+    wheel = torch.zeros(used, 2)
+    present = torch.zeros(used, dtype=torch.bool)
+    if seq.wheel is not None and bool(seq.wheel.mask.any()):
+        wh = seq.wheel.compact()
+        t_w = wh.t[0].numpy()
+        last = np.searchsorted(t_w, t_used, side="right") - 1
+        valid = last >= 0
+        held = np.clip(last, 0, None)
+        speeds = torch.stack((wh.left_speed[0], wh.right_speed[0]), -1).float()
+        wheel = speeds[torch.from_numpy(held)] * torch.from_numpy(valid)[:, None]
+        present = torch.from_numpy(valid & (t_used - t_w[held] <= wheel_hold_s))
+    starts, ends = t[0:used:window_length], t[window_length : used + 1 : window_length]
+    stats = torch.zeros(windows, len(pose_sources), len(RESIDUAL_FEATURES))
+    source = _pose_source_of(seq)
+    streams = {"gnss": seq.gnss}
+    if source is not None:
+        streams[source] = seq.poses
+    for s, name in enumerate(pose_sources):
+        stream = streams.get(name)
+        if stream is None or not bool(stream.mask.any()):
+            stats[:, s, _DROPOUT] = 1.0
+        else:
+            t_s = stream.compact().t[0].numpy()
+            stats[:, s, _DROPOUT] = torch.from_numpy(_dropout(t_s, starts, ends)).float()
+    centres = 0.5 * (starts + ends)
+    weather = np.full(windows, len(weather_classes), dtype=np.int64)
+    for k, name in enumerate(weather_classes):
+        intervals = seq.labels.get(f"weather:{name}")
+        if intervals is None:
+            continue
+        for lo, hi in intervals[0].numpy():
+            if np.isfinite(lo):
+                weather[(centres >= lo) & (centres <= hi)] = k
+    shape = (windows, window_length)
+    return RunFeatures(
+        imu=signals.reshape(*shape, 6),
+        wheel=wheel.reshape(*shape, 2),
+        wheel_present=present.reshape(shape),
+        residual_stats=stats,
+        weather=torch.from_numpy(weather),
+    )
+
+
+def simulate_labelled_run(
+    seed: int,
+    duration_s: float,
+    imu_rate_hz: float = 100.0,
+    pose_source: str | None = "lidar",
+    mean_segment_s: float = 15.0,
+    min_segment_s: float = 5.0,
+) -> Sequence:
+    """One simulated run (B = 1) with a random weather schedule, weather-driven slip
+    episodes and degraded GNSS / pose streams; labels ``"weather:<c>"``, ``"slip"``, ...
+
+    Args:
+        seed: non-negative int; the schedule, slip, path and weather draws use seeds
+            derived from it (``numpy.random.SeedSequence(seed)``).
+        duration_s: run length, s.
+        imu_rate_hz: IMU and ground-truth rate, Hz.
+        pose_source: ``"vo"``, ``"lidar"`` or None (see :func:`~msf_torch.sim.apply_weather`).
+        mean_segment_s, min_segment_s: weather segment lengths, s
+            (:meth:`~msf_torch.sim.WeatherSchedule.random`).
+    """
+    s_schedule, s_slip, s_run, s_weather = (
+        int(x) for x in np.random.SeedSequence(int(seed)).generate_state(4)
+    )
+    schedule = WeatherSchedule.random(
+        duration_s, s_schedule, mean_segment_s=mean_segment_s, min_segment_s=min_segment_s
+    )
+    base = SimConfig(duration_s=duration_s, imu_rate_hz=imu_rate_hz)
+    run = simulate_run(weather_slip_config(base, schedule, s_slip), s_run)
+    wet = apply_weather(run, schedule, s_weather, pose_source=pose_source)
+    return dataclasses.replace(wet.sequence, names=[f"sim-{seed}"])
+
+
+def _crop_imu(seq: Sequence, samples: int) -> Sequence:
+    """A B = 1 sequence with only its first ``samples`` real IMU samples."""
+    return dataclasses.replace(seq, imu=seq.imu.compact().map(lambda x: x[:, :samples]))
+
+
+def collate_runs(items: list[tuple[Sequence, RunFeatures]], window_length: int) -> RunBatch:
+    """Stack runs into a :class:`RunBatch`, cropping all to the shortest run's windows."""
+    windows = min(f.imu.shape[0] for _, f in items)
+    sequence = batch_sequences([_crop_imu(s, windows * window_length + 1) for s, _ in items])
+    return RunBatch(
+        sequence=sequence,
+        imu=torch.stack([f.imu[:windows] for _, f in items]),
+        wheel=torch.stack([f.wheel[:windows] for _, f in items]),
+        wheel_present=torch.stack([f.wheel_present[:windows] for _, f in items]),
+        residual_stats=torch.stack([f.residual_stats[:windows] for _, f in items]),
+        weather=torch.stack([f.weather[:windows] for _, f in items]),
+        pose_source=[_pose_source_of(s) for s, _ in items],
+    )
+
+
+class RunDataModule(L.LightningDataModule):
+    """Train / val / test runs (files or simulated) as :class:`RunBatch` batches.
+
+    Args:
+        train_files, val_files, test_files: runs to load per split; an empty list means
+            simulated runs for that split.
+        train_runs, val_runs, test_runs: simulated runs per split (< ``SPLIT_SEED_STRIDE``).
+        duration_s: simulated run length, s.
+        imu_rate_hz: simulated IMU rate, Hz.
+        pose_source: simulated pose stream fed to the filter (``"vo"``, ``"lidar"``, None).
+        seed: base seed of the simulated runs.
+        batch_size: runs per batch.
+        window_length: L, IMU samples per CovNet window (``CovNetConfig.window_length``).
+        pose_sources, weather_classes: as in :class:`~msf_torch.learning.CovNetConfig`.
+        num_workers: DataLoader workers (runs are built in ``setup``, so 0 is fine).
+    """
+
+    def __init__(
+        self,
+        train_files: list[str] | None = None,
+        val_files: list[str] | None = None,
+        test_files: list[str] | None = None,
+        train_runs: int = 8,
+        val_runs: int = 2,
+        test_runs: int = 2,
+        duration_s: float = 30.0,
+        imu_rate_hz: float = 100.0,
+        pose_source: str | None = "lidar",
+        seed: int = 0,
+        batch_size: int = 2,
+        window_length: int = 100,
+        pose_sources: tuple[str, ...] = ("gnss", "vo", "lidar"),
+        weather_classes: tuple[str, ...] = ("sunny", "rain", "fog", "night", "snow"),
+        num_workers: int = 0,
+    ) -> None:
+        super().__init__()
+        files = {"train": train_files, "val": val_files, "test": test_files}
+        counts = {"train": train_runs, "val": val_runs, "test": test_runs}
+        for split in SPLITS:
+            if not 0 <= counts[split] < SPLIT_SEED_STRIDE:
+                raise ValueError(
+                    f"RunDataModule: {split}_runs must lie in [0, {SPLIT_SEED_STRIDE}), "
+                    f"got {counts[split]}"
+                )
+        if batch_size < 1:
+            raise ValueError(f"RunDataModule: batch_size must be >= 1, got {batch_size}")
+        self.files = {k: list(v or []) for k, v in files.items()}
+        self.counts = counts
+        self.duration_s = duration_s
+        self.imu_rate_hz = imu_rate_hz
+        self.pose_source = pose_source
+        self.seed = seed
+        self.batch_size = batch_size
+        self.window_length = window_length
+        self.pose_sources = tuple(pose_sources)
+        self.weather_classes = tuple(weather_classes)
+        self.num_workers = num_workers
+        self.runs: dict[str, list[tuple[Sequence, RunFeatures]]] = {}
+
+    def split_seeds(self, split: str) -> list[int]:
+        """Simulator seeds of a split (empty when the split reads files)."""
+        if self.files[split]:
+            return []
+        offset = self.seed + SPLITS.index(split) * SPLIT_SEED_STRIDE
+        return [offset + i for i in range(self.counts[split])]
+
+    def _build(self, split: str) -> list[tuple[Sequence, RunFeatures]]:
+        if self.files[split]:
+            sequences = [load_sequence(path) for path in self.files[split]]
+        else:
+            sequences = [
+                simulate_labelled_run(s, self.duration_s, self.imu_rate_hz, self.pose_source)
+                for s in self.split_seeds(split)
+            ]
+        return [
+            (
+                seq,
+                run_features(seq, self.window_length, self.pose_sources, self.weather_classes),
+            )
+            for seq in sequences
+        ]
+
+    def setup(self, stage: str | None = None) -> None:
+        """Build (once) the runs of the splits that ``stage`` needs."""
+        needed = {"fit": ("train", "val"), "validate": ("val",), "test": ("test",)}
+        for split in needed.get(stage or "", SPLITS):
+            if split not in self.runs:
+                self.runs[split] = self._build(split)
+
+    def _loader(self, split: str, shuffle: bool) -> DataLoader:
+        return DataLoader(
+            self.runs[split],
+            batch_size=self.batch_size,
+            shuffle=shuffle,
+            num_workers=self.num_workers,
+            collate_fn=functools.partial(collate_runs, window_length=self.window_length),
+        )
+
+    def train_dataloader(self) -> DataLoader:
+        """Shuffled training batches."""
+        return self._loader("train", shuffle=True)
+
+    def val_dataloader(self) -> DataLoader:
+        """Validation batches, in order."""
+        return self._loader("val", shuffle=False)
+
+    def test_dataloader(self) -> DataLoader:
+        """Test batches, in order."""
+        return self._loader("test", shuffle=False)

@@ -1,0 +1,197 @@
+"""Training: the CLI's smoke fit and its TensorBoard tags, DDP on two CPU processes, the
+loss going down on a fixed problem, the data module's seeds, windows and labels."""
+
+from __future__ import annotations
+
+import importlib.util
+import math
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+from msf_torch.learning import LOG_SCALE_SENSORS, CovNetConfig, load_checkpoint
+from msf_torch.learning.data import (
+    SPLIT_SEED_STRIDE,
+    RunDataModule,
+    collate_runs,
+    run_features,
+    simulate_labelled_run,
+)
+from msf_torch.learning.module import CovNetModule, truth_at
+from msf_torch.types import Trajectory
+
+ROOT = Path(__file__).resolve().parents[2]
+SMOKE = ROOT / "training" / "configs" / "smoke.yaml"
+TRAIN = ROOT / "training" / "train.py"
+WEATHER = ("sunny", "rain", "fog", "night", "snow")
+
+
+def _events(log_dir: Path) -> EventAccumulator:
+    """All scalars and images of a TensorBoard log folder."""
+    accumulator = EventAccumulator(str(log_dir), size_guidance={"scalars": 0, "images": 0})
+    accumulator.Reload()
+    return accumulator
+
+
+def _version_dir(save_dir: Path, name: str) -> Path:
+    (version,) = sorted((save_dir / name).iterdir())
+    return version
+
+
+def test_smoke_fit_through_cli_logs_expected_tags(tmp_path: Path) -> None:
+    spec = importlib.util.spec_from_file_location("train_script", TRAIN)
+    train = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(train)
+    train.main(
+        [
+            "fit",
+            "--config",
+            str(SMOKE),
+            f"--trainer.logger.init_args.save_dir={tmp_path}",
+            f"--trainer.default_root_dir={tmp_path}",
+        ]
+    )
+    log_dir = _version_dir(tmp_path, "smoke")
+    events = _events(log_dir)
+    scalars = set(events.Tags()["scalars"])
+    expected = {
+        f"{split}/{term}"
+        for split in ("train", "val")
+        for term in ("loss", "position", "orientation", "nll", "weather_ce")
+    }
+    expected |= {"train/slip_factor_mean", "val/slip_factor_mean", "val/slip_flagged_fraction"}
+    assert expected <= scalars, expected - scalars
+    seen = {tag.split("/")[2] for tag in scalars if tag.startswith("sigma/")}
+    assert seen and seen <= {*WEATHER, "unknown"}
+    for weather in seen:
+        for sensor in LOG_SCALE_SENSORS:
+            assert f"sigma/{sensor}/{weather}" in scalars
+        for source in ("gnss", "vo", "lidar"):
+            assert f"fusion/{source}/{weather}" in scalars
+    for tag in scalars:
+        values = [e.value for e in events.Scalars(tag)]
+        assert values and all(math.isfinite(v) for v in values), tag
+    # base sigmas times a bounded scale: e^-1.5 .. e^1.5 of the config's 0.05 m/s
+    for weather in seen:
+        (wheel,) = [e.value for e in events.Scalars(f"sigma/wheel/{weather}")]
+        assert 0.05 * math.exp(-1.5) <= wheel <= 0.05 * math.exp(1.5)
+    images = events.Tags()["images"]
+    assert len(images) == 1 and images[0].startswith("val_trajectory/sim-")
+    model = load_checkpoint(log_dir / "covnet.pt")
+    assert model.config.window_length == 100
+
+
+def test_ddp_two_cpu_processes_one_step(tmp_path: Path) -> None:
+    command = [
+        sys.executable,
+        str(TRAIN),
+        "fit",
+        "--config",
+        str(SMOKE),
+        "--trainer.strategy=ddp",
+        "--trainer.devices=2",
+        "--trainer.accelerator=cpu",
+        "--trainer.max_steps=1",
+        f"--trainer.logger.init_args.save_dir={tmp_path}",
+        f"--trainer.default_root_dir={tmp_path}",
+    ]
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": str(ROOT)}
+    done = subprocess.run(
+        command, cwd=tmp_path, env=env, capture_output=True, text=True, timeout=300
+    )
+    assert done.returncode == 0, done.stderr[-4000:]
+    assert "Starting with 2 processes" in done.stderr + done.stdout
+    events = _events(_version_dir(tmp_path, "smoke"))
+    (loss,) = [e.value for e in events.Scalars("train/loss")]
+    assert math.isfinite(loss)
+    assert math.isfinite(events.Scalars("val/loss")[0].value)
+
+
+@pytest.fixture(scope="module")
+def tiny_batch():
+    """One fixed 6 s run as a batch (windows of 100 IMU samples at 100 Hz)."""
+    seq = simulate_labelled_run(7, 6.0)
+    features = run_features(seq, 100, ("gnss", "vo", "lidar"), WEATHER)
+    return collate_runs([(seq, features)], window_length=100)
+
+
+def test_loss_decreases_on_a_fixed_problem(tiny_batch) -> None:
+    torch.manual_seed(0)
+    module = CovNetModule(CovNetConfig(), chunk_windows=3)
+    optimizer = torch.optim.Adam(module.parameters(), lr=1e-2)
+    losses = []
+    for _ in range(6):
+        terms, _ = module._losses(tiny_batch)
+        optimizer.zero_grad()
+        terms["loss"].backward()
+        grads = [p.grad for p in module.parameters() if p.grad is not None]
+        assert grads and all(bool(torch.isfinite(g).all()) for g in grads)
+        optimizer.step()
+        losses.append(float(terms["loss"].detach()))
+    assert losses[-1] < losses[0], losses
+
+
+def test_chunks_cover_the_run_and_detach_between_them(tiny_batch) -> None:
+    module = CovNetModule(CovNetConfig(), chunk_windows=2)
+    log_scales = torch.zeros(1, tiny_batch.windows, 7, requires_grad=True)
+    totals, results = module.run_chunks(tiny_batch, log_scales)
+    assert len(results) == math.ceil(tiny_batch.windows / 2)
+    t_imu = tiny_batch.sequence.imu.t[0]
+    assert float(results[0].t[0, 0]) == float(t_imu[0])
+    assert float(results[-1].t[0, -1]) == float(t_imu[-1])
+    for before, after in zip(results, results[1:], strict=False):
+        assert float(before.t[0, -1]) == float(after.t[0, 0])
+        assert torch.equal(before.position[0, -1].detach(), after.position[0, 0])
+    # the last chunk's loss reaches only the last chunk's scales
+    (grad,) = torch.autograd.grad(
+        (results[-1].position[..., :2] ** 2).sum(), log_scales, allow_unused=True
+    )
+    last_start = 2 * (len(results) - 1)
+    assert grad is not None and bool((grad[0, :last_start] == 0).all())
+    assert bool((grad[0, last_start:] != 0).any())
+    assert float(totals["count"]) == sum(int(r.mask[:, 1:].sum()) for r in results)
+
+
+def test_data_module_splits_are_disjoint_and_windows_labelled() -> None:
+    dm = RunDataModule(train_runs=2, val_runs=1, test_runs=1, duration_s=6.0, batch_size=2)
+    seeds = {split: dm.split_seeds(split) for split in ("train", "val", "test")}
+    assert seeds == {"train": [0, 1], "val": [SPLIT_SEED_STRIDE], "test": [2 * SPLIT_SEED_STRIDE]}
+    dm.setup("fit")
+    assert set(dm.runs) == {"train", "val"}
+    (batch,) = list(dm.train_dataloader())
+    assert batch.imu.shape == (2, 6, 100, 6)  # 601 samples at 100 Hz: 6 windows + end
+    assert batch.sequence.imu.t.shape == (2, 601)
+    assert batch.wheel.shape == (2, 6, 100, 2) and bool(batch.wheel_present[:, 1:].all())
+    assert batch.residual_stats.shape == (2, 6, 3, 4)
+    assert bool((batch.residual_stats[..., :3] == 0).all())  # filter features: placeholders
+    # the simulator feeds LiDAR: VO absent (dropout 1), GNSS at 1 Hz mostly present
+    assert bool((batch.residual_stats[:, :, 1, 3] == 1).all())
+    assert bool((batch.residual_stats[:, :, 0, 3] < 1).all())
+    assert batch.weather.shape == (2, 6) and bool((batch.weather < len(WEATHER)).all())
+    names = batch.sequence.names
+    for b in range(2):
+        centre = 0.5 + torch.arange(6, dtype=torch.float64)
+        label = batch.sequence.labels[f"weather:{WEATHER[int(batch.weather[b, 0])]}"][b]
+        inside = (label[:, 0] <= centre[0]) & (centre[0] <= label[:, 1])
+        assert bool(inside.any()), names[b]
+
+
+def test_truth_at_interpolates_position_and_picks_nearer_rotation() -> None:
+    t = torch.tensor([[0.0, 1.0, 2.0, 0.0]], dtype=torch.float64)
+    position = torch.tensor([[[0.0, 0, 0], [1, 0, 0], [3, 0, 0], [0, 0, 0]]], dtype=torch.float64)
+    half = math.sqrt(0.5)
+    quat = torch.tensor(
+        [[[1.0, 0, 0, 0], [half, 0, 0, half], [0, 0, 0, 1], [1, 0, 0, 0]]], dtype=torch.float64
+    )
+    mask = torch.tensor([[True, True, True, False]])
+    truth = Trajectory(t=t, position=position, quaternion=quat, mask=mask)
+    pos, rot = truth_at(truth, torch.tensor([[0.25, 1.5, 1.75, 5.0]], dtype=torch.float64))
+    assert torch.allclose(pos[0, :, 0], torch.tensor([0.25, 2.0, 2.5, 3.0], dtype=torch.float64))
+    yaw = torch.atan2(rot[0, :, 1, 0], rot[0, :, 0, 0])
+    expected = torch.tensor([0.0, math.pi, math.pi, math.pi], dtype=torch.float64)
+    assert torch.allclose(yaw.abs(), expected, atol=1e-12)

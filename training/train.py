@@ -1,0 +1,34 @@
+"""Train the covariance network through the differentiable ESKF (LightningCLI).
+
+Usage::
+
+    python training/train.py fit --config training/configs/default.yaml
+    python training/train.py fit --config training/configs/smoke.yaml --trainer.max_epochs 2
+
+Any ``--model.*``, ``--data.*`` or ``--trainer.*`` argument overrides the config
+(:class:`msf_torch.learning.module.CovNetModule`,
+:class:`msf_torch.learning.data.RunDataModule`, ``lightning.Trainer``). TensorBoard logs go
+to ``runs/`` (``tensorboard --logdir runs``); the trained network is written to
+``<log_dir>/covnet.pt`` (:func:`msf_torch.learning.load_checkpoint`).
+"""
+
+from __future__ import annotations
+
+from lightning.pytorch.cli import LightningCLI
+
+from msf_torch.learning.data import RunDataModule
+from msf_torch.learning.module import CovNetModule
+
+
+def main(args: list[str] | None = None) -> LightningCLI:
+    """Run the CLI on ``args`` (default: ``sys.argv[1:]``) and return it."""
+    return LightningCLI(
+        CovNetModule,
+        RunDataModule,
+        args=args,
+        save_config_kwargs={"overwrite": True},
+    )
+
+
+if __name__ == "__main__":
+    main()
