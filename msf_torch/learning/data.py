@@ -17,11 +17,15 @@ samples, plus the end sample), and the per-window CovNet inputs
   ``[w L, (w + 1) L)``;
 * ``wheel`` (B, W, L, 2): left / right rim speeds held (zero-order) at the IMU times, m/s;
   ``wheel_present`` (B, W, L) bool: a wheel sample lies within ``wheel_hold_s`` before;
-* ``residual_stats`` (B, W, S, 4): per pose source of ``CovNetConfig.pose_sources``. Only
+* ``residual_stats`` (B, W, S, 4): per pose source of ``CovNetConfig.pose_sources``
+  (``"gnss"`` is ``Sequence.gnss``, other names ``Sequence.pose_sources[name]`` or the
+  ``poses`` stream of that source). Only
   ``dropout_fraction`` is measured here (the fraction of the source's expected samples
-  missing in the window, from its median sample interval over the run; 1 for a source the
-  run lacks). The innovation features (mean |innovation|, NIS, rejected fraction) need the
-  filter and are zero placeholders;
+  missing in the window, widened to two sample intervals for slow streams, from its median
+  sample interval over the run; 1 for a source the run lacks). The innovation features
+  (mean |innovation|, NIS, rejected fraction) need the filter and are zero placeholders.
+  The pose stream's source is ``meta["weather"]["pose_source"]`` (simulated runs), else
+  ``"vo"``;
 * ``weather`` (B, W) int64: the index in ``CovNetConfig.weather_classes`` of the
   ``"weather:<c>"`` label interval holding the window's centre, or the unknown index.
 """
@@ -129,15 +133,19 @@ def _pose_source_of(seq: Sequence) -> str | None:
 
 
 def _dropout(t_stream: np.ndarray, starts: np.ndarray, ends: np.ndarray) -> np.ndarray:
-    """Fraction (W,) of a stream's expected samples missing in windows ``[start, end)`` s."""
+    """Fraction (W,) of a stream's expected samples missing around windows ``[start, end)`` s.
+
+    The count is taken over the window widened (about its centre) to at least two of the
+    stream's median sample intervals, so that a slow stream (GNSS at 1 Hz in 0.5 s windows)
+    does not read as alternately present and absent.
+    """
     if t_stream.size < 2:
         return np.ones(starts.shape)
-    interval = float(np.median(np.diff(t_stream)))
-    expected = np.maximum((ends - starts) / max(interval, 1e-9), 1.0)
-    count = np.searchsorted(t_stream, ends, side="left") - np.searchsorted(
-        t_stream, starts, side="left"
-    )
-    return np.clip(1.0 - count / expected, 0.0, 1.0)
+    interval = max(float(np.median(np.diff(t_stream))), 1e-9)
+    centre, half = 0.5 * (starts + ends), np.maximum(0.5 * (ends - starts), interval)
+    lo, hi = centre - half, centre + half
+    count = np.searchsorted(t_stream, hi, side="left") - np.searchsorted(t_stream, lo, side="left")
+    return np.clip(1.0 - count / (2.0 * half / interval), 0.0, 1.0)
 
 
 def run_features(
@@ -185,10 +193,10 @@ def run_features(
         present = torch.from_numpy(valid & (t_used - t_w[held] <= wheel_hold_s))
     starts, ends = t[0:used:window_length], t[window_length : used + 1 : window_length]
     stats = torch.zeros(windows, len(pose_sources), len(RESIDUAL_FEATURES))
+    streams = {"gnss": seq.gnss, **seq.pose_sources}
     source = _pose_source_of(seq)
-    streams = {"gnss": seq.gnss}
     if source is not None:
-        streams[source] = seq.poses
+        streams.setdefault(source, seq.poses)
     for s, name in enumerate(pose_sources):
         stream = streams.get(name)
         if stream is None or not bool(stream.mask.any()):
