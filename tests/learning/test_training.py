@@ -135,7 +135,7 @@ def test_loss_decreases_on_a_fixed_problem(tiny_batch) -> None:
         assert grads and all(bool(torch.isfinite(g).all()) for g in grads)
         optimizer.step()
         losses.append(float(terms["loss"].detach()))
-    assert losses[-1] < losses[0], losses
+    assert losses[-1] < losses[0] - 0.05, losses  # seeds 0-2 drop by 0.13-0.17
 
 
 def test_chunks_cover_the_run_and_detach_between_them(tiny_batch) -> None:
