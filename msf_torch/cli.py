@@ -79,6 +79,19 @@ def build_parser() -> argparse.ArgumentParser:
         help="smooth the front end's keyframes (full batch or sliding window; settings from "
         "the config's 'smoother:' section); trajectory.tum then holds the smoothed trajectory",
     )
+    learned = run.add_mutually_exclusive_group()
+    learned.add_argument(
+        "--checkpoint",
+        type=Path,
+        default=None,
+        help="CovNet checkpoint that sets the filter's noise (default: "
+        "checkpoints/covnet_default.pt when it exists)",
+    )
+    learned.add_argument(
+        "--no-learned",
+        action="store_true",
+        help="use the config's noise, not the shipped covariance network",
+    )
 
     ev = sub.add_parser("eval", help="ATE and RPE of an estimate against a reference (TUM)")
     ev.add_argument("estimate", type=Path)
@@ -225,8 +238,23 @@ def _cmd_run(args) -> dict[str, Any]:
         progress=_progress_factory(args.progress),
         smooth=args.smooth,
         smoother=smoother,
+        learned=_learned(args),
     )
     return run_sequence(seq, cfg, options)
+
+
+def _learned(args) -> Any:
+    """The CovNet for ``msf run``: ``--checkpoint``, else the shipped one if present."""
+    if args.no_learned:
+        return None
+    from msf_torch.learning.inference import DEFAULT_CHECKPOINT, load_learned
+
+    path = args.checkpoint
+    if path is None:
+        if not DEFAULT_CHECKPOINT.is_file():
+            return None
+        path = DEFAULT_CHECKPOINT
+    return load_learned(path)
 
 
 def _cmd_eval(args) -> dict[str, Any]:

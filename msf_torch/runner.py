@@ -13,6 +13,11 @@ Used by ``msf run``. Outputs in ``out_dir`` (each written atomically: temp file 
   ``smooth`` set, ``ate_*`` and ``outage_*`` score the smoothed trajectory, the front end's
   own figures keep a ``frontend_`` prefix, and ``smoother`` holds the smoother's figures.
 - ``overview.png``: trajectory against the reference, position error, slip factor.
+
+With ``RunOptions.learned`` set, the filter's noise comes from a trained CovNet, per chunk
+of windows (:mod:`msf_torch.learning.inference`); ``summary.json`` then has ``"noise":
+"learned"`` and a ``learned`` entry (checkpoint path and sha256, mean log-variance scales,
+inferred weather), else ``"noise": "config"``.
 """
 
 from __future__ import annotations
@@ -25,7 +30,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import torch
@@ -39,6 +44,9 @@ from msf_torch.frontend.eskf import SENSORS, EskfResult, run_eskf
 from msf_torch.io.atomic import atomic_write
 from msf_torch.io.tum import write_tum
 from msf_torch.types import Sequence, Trajectory
+
+if TYPE_CHECKING:
+    from msf_torch.learning.inference import LearnedModel
 
 DEFAULT_SAMPLE = Path(__file__).resolve().parent.parent / "datasets" / "sample_slip.npz"
 """The bundled sample sequence (simulated wheeled robot with slip episodes)."""
@@ -75,6 +83,7 @@ class RunOptions:
             None.
         smooth: ``"full"`` or ``"window"`` to smooth after the front end, or None.
         smoother: the smoother's settings (default :class:`SmootherConfig()`).
+        learned: a trained CovNet that sets the filter's noise, or None (the config's).
     """
 
     out_dir: Path
@@ -84,6 +93,7 @@ class RunOptions:
     extra: dict[str, Any] = field(default_factory=dict)
     smooth: str | None = None
     smoother: SmootherConfig | None = None
+    learned: LearnedModel | None = None
 
 
 def write_diagnostics(result: EskfResult, path: Path, index: int = 0) -> None:
@@ -133,8 +143,18 @@ def run_sequence(seq: Sequence, cfg: EskfConfig, options: RunOptions) -> dict[st
     if options.progress is not None:
         callback, close = options.progress()
     start = time.perf_counter()
+    learned = None
     with torch.no_grad():
-        result = run_eskf(seq, cfg, progress=callback)
+        if options.learned is None:
+            result = run_eskf(seq, cfg, progress=callback)
+        else:
+            from msf_torch.learning.inference import run_piecewise, scales_summary, window_scales
+
+            scales = window_scales(seq, options.learned.model)
+            result = run_piecewise(
+                seq, cfg, scales.log_scales, scales.window_length, scales.pose_source, callback
+            )
+            learned = scales_summary(scales, options.learned)
         trajectory = result.trajectory()
     frontend_wall = time.perf_counter() - start
     if close is not None:
@@ -157,7 +177,10 @@ def run_sequence(seq: Sequence, cfg: EskfConfig, options: RunOptions) -> dict[st
         "epochs": int(result.mask[0].sum()),
         "wall_s": round(wall, 4),
         "realtime_factor": round(duration / wall, 1) if wall > 0 else math.inf,
+        "noise": "config" if learned is None else "learned",
     }
+    if learned is not None:
+        summary["learned"] = learned
     if smoothed is not None:
         summary["frontend_wall_s"] = round(frontend_wall, 4)
         summary["smoother"] = {

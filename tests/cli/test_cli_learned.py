@@ -1,0 +1,135 @@
+"""``msf run`` with a CovNet checkpoint: ``--checkpoint``, ``--no-learned``, bad files."""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+
+import pytest
+import torch
+
+from msf_torch.cli import main
+from msf_torch.frontend.config import config_for_sequence, load_config
+from msf_torch.frontend.eskf import EskfNoise, run_eskf
+from msf_torch.io import load_sequence
+from msf_torch.io.native import write_native
+from msf_torch.io.tum import write_tum
+from msf_torch.learning import (
+    LOG_SCALE_SENSORS,
+    CovNet,
+    CovNetConfig,
+    apply_fusion_weights,
+    save_checkpoint,
+    scaled_noise,
+    scaled_pose_covariance,
+)
+from msf_torch.learning.data import simulate_labelled_run
+from msf_torch.learning.inference import run_piecewise
+
+SCALES = (0.8, -0.6, 1.2, 0.3, -0.9, 0.5, -0.4)
+"""Pre-bound log scales the test network outputs for every window."""
+
+
+@pytest.fixture(scope="module")
+def weather_run(tmp_path_factory):
+    """A 6 s labelled weather run with a LiDAR pose stream, as a native file."""
+    folder = tmp_path_factory.mktemp("learned")
+    return write_native(simulate_labelled_run(3, 6.0), folder / "run.npz")
+
+
+@pytest.fixture(scope="module")
+def constant_checkpoint(tmp_path_factory):
+    """A small random-init CovNet whose heads are set to constant outputs (SCALES)."""
+    torch.manual_seed(0)
+    net = CovNet(CovNetConfig(window_length=50, channels=4, embedding=4, hidden=8))
+    with torch.no_grad():
+        net.log_scale_head.weight.zero_()
+        net.log_scale_head.bias.copy_(torch.tensor(SCALES))
+        net.fusion_head[-1].weight.zero_()
+        net.fusion_head[-1].bias.fill_(2.0)
+    path = tmp_path_factory.mktemp("ckpt") / "tiny.pt"
+    save_checkpoint(path, net)
+    return path, net
+
+
+def _run(args, capsys):
+    code = main(["run", *map(str, args), "--no-plot", "--progress", "off"])
+    captured = capsys.readouterr()
+    return code, captured
+
+
+def _cfg(seq):
+    return config_for_sequence(load_config(None), seq.meta, set())
+
+
+def test_checkpoint_sets_noise_as_the_scales_say(
+    weather_run, constant_checkpoint, tmp_path, capsys
+):
+    path, net = constant_checkpoint
+    code, captured = _run([weather_run, "--out", tmp_path, "--checkpoint", path], capsys)
+    assert code == 0, captured.err
+    summary = json.loads(captured.out.strip().splitlines()[-1])
+    assert summary["noise"] == "learned"
+    learned = summary["learned"]
+    assert learned["checkpoint"] == str(path)
+    assert learned["sha256"] == hashlib.sha256(path.read_bytes()).hexdigest()
+    assert learned["weather_from_labels"] is True
+    assert set(learned["inferred_weather"]) == set(net.config.weather_classes)
+    bound = torch.tensor(net.config.log_scale_bounds)
+    raw = bound * torch.tanh(torch.tensor(SCALES) / bound)
+    weight = torch.sigmoid(6.0 * torch.tanh(torch.tensor(2.0) / 6.0))
+    expected = apply_fusion_weights(
+        raw[None], weight.expand(1, len(net.config.pose_sources)), net.config.pose_sources
+    )[0].double()
+    for sensor, value in zip(LOG_SCALE_SENSORS, expected, strict=True):
+        assert learned["mean_log_scales"][sensor] == pytest.approx(float(value), abs=1e-4)
+
+    # the same filter, run directly with the scaled noise and LiDAR covariances
+    seq = load_sequence(weather_run)
+    cfg = _cfg(seq)
+    base = EskfNoise.from_config(cfg)
+    poses = dataclasses.replace(
+        seq.poses, covariance=scaled_pose_covariance(seq.poses.covariance, expected[None], "lidar")
+    )
+    with torch.no_grad():
+        direct = run_eskf(dataclasses.replace(seq, poses=poses), cfg, scaled_noise(base, expected))
+    write_tum(direct.trajectory().select(0).compact(), tmp_path / "direct.tum")
+    assert (tmp_path / "trajectory.tum").read_text() == (tmp_path / "direct.tum").read_text()
+
+
+def test_no_learned_is_the_plain_filter(weather_run, tmp_path, capsys):
+    code, captured = _run([weather_run, "--out", tmp_path, "--no-learned"], capsys)
+    assert code == 0, captured.err
+    assert json.loads(captured.out.strip().splitlines()[-1])["noise"] == "config"
+    seq = load_sequence(weather_run)
+    with torch.no_grad():
+        plain = run_eskf(seq, _cfg(seq))
+    write_tum(plain.trajectory().select(0).compact(), tmp_path / "plain.tum")
+    assert (tmp_path / "trajectory.tum").read_bytes() == (tmp_path / "plain.tum").read_bytes()
+
+
+def test_piecewise_chunks_cover_the_run(weather_run):
+    seq = load_sequence(weather_run)
+    cfg = _cfg(seq)
+    scales = torch.zeros(6, 7, dtype=torch.float64)
+    scales[3:, LOG_SCALE_SENSORS.index("gnss")] = 2.0
+    with torch.no_grad():
+        plain = run_eskf(seq, cfg)
+        pieces = run_piecewise(seq, cfg, scales, 100, "lidar")
+    assert torch.equal(pieces.t, plain.t[:, plain.mask[0]])
+    same = pieces.t[0] <= float(seq.imu.t[0, 300])
+    assert torch.equal(pieces.position[0, same], plain.position[0, same])
+    assert not torch.equal(pieces.covariance[0, ~same], plain.covariance[0, ~same])
+
+
+@pytest.mark.parametrize("kind", ["missing", "garbage", "not_covnet"])
+def test_bad_checkpoint_names_the_file(weather_run, tmp_path, capsys, kind):
+    path = tmp_path / f"{kind}.pt"
+    if kind == "garbage":
+        path.write_bytes(b"not a torch file")
+    elif kind == "not_covnet":
+        torch.save({"weights": torch.zeros(3)}, path)
+    code, captured = _run([weather_run, "--out", tmp_path / "o", "--checkpoint", path], capsys)
+    assert code == 2
+    assert str(path) in captured.err and "checkpoint" in captured.err
