@@ -46,7 +46,8 @@ from msf_torch.eval.nees import fraction_inside, nees
 from msf_torch.frontend.config import EskfConfig, config_for_sequence, load_config
 from msf_torch.frontend.eskf import EskfNoise, EskfResult, run_eskf
 from msf_torch.learning.covnet import LOG_SCALE_SENSORS, scaled_noise
-from msf_torch.learning.data import SPLIT_SEED_STRIDE, run_features, simulate_labelled_run
+from msf_torch.learning.data import SPLIT_SEED_STRIDE, simulate_labelled_run
+from msf_torch.learning.features import run_features
 from msf_torch.learning.inference import (
     DEFAULT_CHECKPOINT,
     load_learned,

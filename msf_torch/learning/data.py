@@ -54,7 +54,7 @@ import torch
 from torch.utils.data import DataLoader
 
 from msf_torch.io import load_sequence
-from msf_torch.learning.covnet import RESIDUAL_FEATURES
+from msf_torch.learning.features import RunFeatures, pose_source_of, run_features
 from msf_torch.sim import (
     SimConfig,
     WeatherSchedule,
@@ -67,27 +67,6 @@ from msf_torch.types import Sequence, batch_sequences
 SPLITS = ("train", "val", "test")
 SPLIT_SEED_STRIDE = 1_000_000
 """Seed offset between splits; a split may hold at most this many simulated runs."""
-
-_DROPOUT = RESIDUAL_FEATURES.index("dropout_fraction")
-
-
-@dataclass
-class RunFeatures:
-    """CovNet inputs of one run (B dropped), W windows of L IMU samples.
-
-    Attributes:
-        imu: (W, L, 6) gyro rad/s, accel m/s^2.
-        wheel: (W, L, 2) rim speeds, m/s.
-        wheel_present: (W, L) bool.
-        residual_stats: (W, S, 4) :data:`~msf_torch.learning.covnet.RESIDUAL_FEATURES`.
-        weather: (W,) int64 weather class index (``len(weather_classes)`` = unknown).
-    """
-
-    imu: torch.Tensor
-    wheel: torch.Tensor
-    wheel_present: torch.Tensor
-    residual_stats: torch.Tensor
-    weather: torch.Tensor
 
 
 @dataclass
@@ -123,104 +102,6 @@ class RunBatch:
             if isinstance(getattr(self, f.name), torch.Tensor)
         }
         return dataclasses.replace(self, sequence=self.sequence.to(device), **moved)
-
-
-def _pose_source_of(seq: Sequence) -> str | None:
-    """The source name of a B = 1 sequence's pose stream (simulator meta), or None."""
-    if seq.poses is None or not bool(seq.poses.mask.any()):
-        return None
-    return seq.meta.get("weather", {}).get("pose_source") or "vo"
-
-
-def _dropout(t_stream: np.ndarray, starts: np.ndarray, ends: np.ndarray) -> np.ndarray:
-    """Fraction (W,) of a stream's expected samples missing around windows ``[start, end)`` s.
-
-    The count is taken over the window widened (about its centre) to at least two of the
-    stream's median sample intervals, so that a slow stream (GNSS at 1 Hz in 0.5 s windows)
-    does not read as alternately present and absent.
-    """
-    if t_stream.size < 2:
-        return np.ones(starts.shape)
-    interval = max(float(np.median(np.diff(t_stream))), 1e-9)
-    centre, half = 0.5 * (starts + ends), np.maximum(0.5 * (ends - starts), interval)
-    lo, hi = centre - half, centre + half
-    count = np.searchsorted(t_stream, hi, side="left") - np.searchsorted(t_stream, lo, side="left")
-    return np.clip(1.0 - count / (2.0 * half / interval), 0.0, 1.0)
-
-
-def run_features(
-    seq: Sequence,
-    window_length: int,
-    pose_sources: tuple[str, ...],
-    weather_classes: tuple[str, ...],
-    wheel_hold_s: float = 0.2,
-) -> RunFeatures:
-    """Per-window CovNet inputs of a B = 1 sequence (see the module docstring).
-
-    Args:
-        seq: one run (B = 1) with at least ``window_length + 1`` IMU samples.
-        window_length: L, IMU samples per window.
-        pose_sources: the S sources of ``CovNetConfig.pose_sources``.
-        weather_classes: ``CovNetConfig.weather_classes``.
-        wheel_hold_s: a wheel reading counts as present for this long after its stamp, s.
-
-    Returns:
-        :class:`RunFeatures` with W = ``(N_imu - 1) // L`` windows, float32 signals.
-
-    Raises:
-        ValueError: the run is too short for one window (the message names it).
-    """
-    imu = seq.imu.compact()
-    t = imu.t[0].numpy()
-    windows = (t.size - 1) // window_length
-    if windows < 1:
-        raise ValueError(
-            f"run '{seq.names[0]}': {t.size} IMU samples, need > {window_length} for one window"
-        )
-    used = windows * window_length
-    t_used = t[:used]
-    signals = torch.cat((imu.gyro[0, :used], imu.accel[0, :used]), -1).float()
-    wheel = torch.zeros(used, 2)
-    present = torch.zeros(used, dtype=torch.bool)
-    if seq.wheel is not None and bool(seq.wheel.mask.any()):
-        wh = seq.wheel.compact()
-        t_w = wh.t[0].numpy()
-        last = np.searchsorted(t_w, t_used, side="right") - 1
-        valid = last >= 0
-        held = np.clip(last, 0, None)
-        speeds = torch.stack((wh.left_speed[0], wh.right_speed[0]), -1).float()
-        wheel = speeds[torch.from_numpy(held)] * torch.from_numpy(valid)[:, None]
-        present = torch.from_numpy(valid & (t_used - t_w[held] <= wheel_hold_s))
-    starts, ends = t[0:used:window_length], t[window_length : used + 1 : window_length]
-    stats = torch.zeros(windows, len(pose_sources), len(RESIDUAL_FEATURES))
-    streams = {"gnss": seq.gnss, **seq.pose_sources}
-    source = _pose_source_of(seq)
-    if source is not None:
-        streams.setdefault(source, seq.poses)
-    for s, name in enumerate(pose_sources):
-        stream = streams.get(name)
-        if stream is None or not bool(stream.mask.any()):
-            stats[:, s, _DROPOUT] = 1.0
-        else:
-            t_s = stream.compact().t[0].numpy()
-            stats[:, s, _DROPOUT] = torch.from_numpy(_dropout(t_s, starts, ends)).float()
-    centres = 0.5 * (starts + ends)
-    weather = np.full(windows, len(weather_classes), dtype=np.int64)
-    for k, name in enumerate(weather_classes):
-        intervals = seq.labels.get(f"weather:{name}")
-        if intervals is None:
-            continue
-        for lo, hi in intervals[0].numpy():
-            if np.isfinite(lo):
-                weather[(centres >= lo) & (centres <= hi)] = k
-    shape = (windows, window_length)
-    return RunFeatures(
-        imu=signals.reshape(*shape, 6),
-        wheel=wheel.reshape(*shape, 2),
-        wheel_present=present.reshape(shape),
-        residual_stats=stats,
-        weather=torch.from_numpy(weather),
-    )
 
 
 def simulate_labelled_run(
@@ -271,7 +152,7 @@ def collate_runs(items: list[tuple[Sequence, RunFeatures]], window_length: int) 
         wheel_present=torch.stack([f.wheel_present[:windows] for _, f in items]),
         residual_stats=torch.stack([f.residual_stats[:windows] for _, f in items]),
         weather=torch.stack([f.weather[:windows] for _, f in items]),
-        pose_source=[_pose_source_of(s) for s, _ in items],
+        pose_source=[pose_source_of(s) for s, _ in items],
     )
 
 

@@ -1,6 +1,6 @@
 """Run the filter with a trained CovNet's noise (``msf run``, ``benchmarks/learned.py``).
 
-The network sees the sequence window by window (:func:`~msf_torch.learning.data.run_features`,
+The network sees the sequence window by window (:func:`~msf_torch.learning.features.run_features`,
 ``CovNetConfig.window_length`` IMU samples each), as in training. Its log-variance scales
 (fusion weights folded in, :func:`~msf_torch.learning.covnet.apply_fusion_weights`) are
 averaged per chunk of ``chunk_windows`` windows (``granularity="chunk"``) or over the whole
@@ -47,7 +47,7 @@ from msf_torch.learning.covnet import (
     scaled_noise,
     scaled_pose_covariance,
 )
-from msf_torch.learning.data import _pose_source_of, run_features
+from msf_torch.learning.features import pose_source_of, run_features
 from msf_torch.types import NavState, Sequence
 
 DEFAULT_CHECKPOINT = (
@@ -167,7 +167,7 @@ def window_scales(
 def _pose_source(seq: Sequence) -> str | None:
     """The source of a B = 1 sequence's ``poses`` stream: the simulator's metadata, else the
     named stream of ``Sequence.pose_sources`` it equals (files keep no metadata), else
-    :func:`~msf_torch.learning.data.run_features`' default."""
+    :func:`~msf_torch.learning.features.run_features`' default."""
     if seq.poses is not None and "weather" not in seq.meta:
         for name, stream in seq.pose_sources.items():
             if stream.t.shape == seq.poses.t.shape and bool(
@@ -175,7 +175,7 @@ def _pose_source(seq: Sequence) -> str | None:
                 and torch.equal(stream.position, seq.poses.position)
             ):
                 return name
-    return _pose_source_of(seq)
+    return pose_source_of(seq)
 
 
 def _last(result: EskfResult) -> tuple[NavState, torch.Tensor]:
