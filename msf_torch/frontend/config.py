@@ -72,10 +72,22 @@ class EskfConfig:
     # GNSS
     gnss_sigma_m: list[float] = field(default_factory=lambda: [0.5, 0.5, 1.0])
     gnss_lever_arm_m: list[float] = field(default_factory=lambda: [0.0, 0.0, 0.0])
+    # named pose sources (Sequence.pose_sources: VO, LiDAR odometry) fused as odometry: the
+    # body-frame mean velocity between consecutive valid samples of a source (see
+    # frontend.schedule); "auto" = every source present, a list = those names, [] = none
+    pose_sources: str | list[str] = "auto"
+    # bound on the acceleration a that makes the interval's mean velocity differ from the
+    # velocity at its end: (a dt / 2)^2 joins the variance of each velocity row
+    pose_source_accel_sigma_mps2: float = 1.0
+    pose_source_max_gap_s: float = 0.5  # consecutive samples further apart are not paired
+    # also fuse the mean body rate of the relative rotation against the mean gyro rate (it
+    # observes the gyro bias, hence bounds the heading drift)
+    pose_source_rate_update: bool = True
     # chi-square gating (probability of the acceptance region; 1.0 disables)
     gate_probability: float = 0.9999
     gate_pseudo_measurements: bool = False  # also gate NHC and zero-velocity updates
-    gate_reopen_after: int = 3  # absolute sensors (GNSS, pose) pass after this many rejections
+    # absolute sensors (GNSS, pose) and pose sources pass after this many rejections in a row
+    gate_reopen_after: int = 3
     # wheel slip factor
     slip_detection: bool = True
     slip_sensitivity: float = 3.0  # factor = exp(-q / (2 k^2)), q = normalised disagreement
@@ -104,6 +116,7 @@ class EskfConfig:
             "zupt_sigma_mps",
             "imu_gap_s",
             "slip_sensitivity",
+            "pose_source_max_gap_s",
         ]
         for key in positive:
             value = getattr(self, key)
@@ -111,6 +124,22 @@ class EskfConfig:
                 raise ValueError(f"config key '{key}' must be a positive number, got {value!r}")
         if self.nhc not in ("auto", "on", "off"):
             raise ValueError(f"config key 'nhc' must be auto, on or off, got {self.nhc!r}")
+        accel = self.pose_source_accel_sigma_mps2
+        if not (isinstance(accel, (int, float)) and math.isfinite(accel) and accel >= 0):
+            raise ValueError(
+                f"config key 'pose_source_accel_sigma_mps2' must be a non-negative number, "
+                f"got {accel!r}"
+            )
+        names = self.pose_sources
+        if names != "auto" and not (
+            isinstance(names, list)
+            and all(isinstance(n, str) and n for n in names)
+            and len(set(names)) == len(names)
+        ):
+            raise ValueError(
+                f"config key 'pose_sources' must be 'auto' or a list of distinct source names, "
+                f"got {names!r}"
+            )
         if not 0.0 < self.gate_probability <= 1.0:
             raise ValueError("config key 'gate_probability' must lie in (0, 1]")
         for key in (

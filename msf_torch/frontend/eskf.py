@@ -27,11 +27,29 @@ Per epoch (see ``frontend.schedule``) and for all B sequences at once:
 
 2. Update with every measurement that falls on the epoch end, stacked into one vector:
    wheel (3: body velocity; its yaw-rate row joins with ``wheel_yaw_rate_update``), NHC (2),
-   zero velocity (3), GNSS (3), pose (6),
-   each a residual from ``sensors``. Each block is chi-square gated on its own innovation;
-   the wheel block is also scaled by the slip factor (``frontend.slip``) and skipped below
-   a threshold. Joseph-form covariance update, then the invariant error is injected
-   (``R <- Exp(xi_R) R``, ``v <- Exp(xi_R) v + xi_v``, ...).
+   zero velocity (3), GNSS (3), pose (6), then one block per pose source (6, or 3 without
+   ``pose_source_rate_update``; key ``"pose:<name>"``), each a residual from ``sensors``.
+   Each block is chi-square gated on its own innovation; the wheel block is also scaled by
+   the slip factor (``frontend.slip``) and skipped below a threshold. Joseph-form covariance
+   update, then the invariant error is injected (``R <- Exp(xi_R) R``,
+   ``v <- Exp(xi_R) v + xi_v``, ...).
+
+Pose sources (VO, LiDAR odometry) drift, so they are fused as odometry: the body-frame mean
+velocity ``z_v`` of a pair of consecutive samples (``frontend.schedule``) goes through the
+wheels' residual (``sensors.wheel.body_velocity_residual``, lever arm 0: a source measures
+the body pose) at the pair's later time ``t_k``, with covariance
+
+    R_v = s C_v + (a dt / 2)^2 I
+
+``C_v`` the pair's declared covariance, ``s`` the source's variance scale
+(``EskfNoise.pose_source_scale``) and ``a = pose_source_accel_sigma_mps2``: under an
+acceleration ``a`` the interval's mean velocity differs from the velocity at its end by
+``a dt / 2``, treated as zero-mean noise of that size. With ``pose_source_rate_update`` the
+mean body rate of the relative rotation is compared with the mean gyro rate over the same
+interval (``sensors.pose.mean_rate_residual``; it observes the gyro bias, so the heading
+stops drifting with it), covariance ``R_w = s C_w + sigma_g^2 / dt I`` (``sigma_g`` the gyro
+noise density). Only relative motion enters, so the source's drift stays out, up to its
+increment over ``dt``.
 
 Everything is a differentiable torch op: gradients reach the noise parameters
 (:class:`EskfNoise`). The only Python loop on the hot path is over epochs.
@@ -58,13 +76,14 @@ from msf_torch.geometry.conventions import ERROR_STATE_DIM, gravity_world
 from msf_torch.geometry.quaternion import matrix_to_quat
 from msf_torch.sensors.gnss import gnss_residual
 from msf_torch.sensors.imu import ImuNoise, Preintegrated, preintegrate, propagate_nominal
-from msf_torch.sensors.pose import pose_residual
+from msf_torch.sensors.pose import mean_rate_residual, pose_residual
 from msf_torch.sensors.vehicle import nonholonomic_residual, zero_velocity_residual
-from msf_torch.sensors.wheel import wheel_residual
+from msf_torch.sensors.wheel import body_velocity_residual, wheel_residual
 from msf_torch.types import NavState, Sequence, Trajectory
 
 SENSORS = ("wheel", "nhc", "zupt", "gnss", "pose")
 _DIMS = {"wheel": 4, "nhc": 2, "zupt": 3, "gnss": 3, "pose": 6}
+_SOURCE_PREFIX = "pose:"  # result key of a pose source: "pose:vo", "pose:lidar"
 
 
 @dataclass
@@ -76,6 +95,9 @@ class EskfNoise:
         wheel_speed_sigma, wheel_lateral_sigma, wheel_yaw_rate_sigma: m/s, m/s, rad/s.
         nhc_sigma, zupt_sigma: m/s.
         gnss_sigma_scale: multiplier on each fix's sigma (1 = as given).
+        pose_source_scale: pose-source name -> multiplier on the declared variances of its
+            velocity and rate rows, () or (B,) (missing names: 1; names not fused are
+            ignored).
     """
 
     imu: ImuNoise
@@ -85,6 +107,7 @@ class EskfNoise:
     nhc_sigma: torch.Tensor
     zupt_sigma: torch.Tensor
     gnss_sigma_scale: torch.Tensor
+    pose_source_scale: dict[str, torch.Tensor] = field(default_factory=dict)
 
     @classmethod
     def from_config(cls, cfg: EskfConfig, dtype=torch.float64, device=None) -> EskfNoise:
@@ -122,7 +145,8 @@ class EskfResult:
         gyro_bias, accel_bias: (B, E + 1, 3).
         covariance: (B, E + 1, 15, 15) error-state covariance.
         slip_factor: (B, E + 1) in [0, 1], held between wheel epochs.
-        present, accepted: sensor -> (B, E + 1) bool (a measurement was there / was fused).
+        present, accepted: sensor -> (B, E + 1) bool (a measurement was there / was fused);
+            sensors are :data:`SENSORS` and ``"pose:<name>"`` per fused pose source.
         nis: sensor -> (B, E + 1) normalised innovation squared (0 where absent).
         gap: (B, E + 1) bool, an IMU gap was bridged in this epoch.
     """
@@ -275,6 +299,37 @@ def _inject_invariant(state: NavState, xi: torch.Tensor) -> NavState:
     )
 
 
+def _source_covariance(
+    sched: Schedule,
+    noise: EskfNoise,
+    cfg: EskfConfig,
+    per_seq: Callable[[torch.Tensor], torch.Tensor],
+) -> torch.Tensor:
+    """Pose-source block covariances (B, E, S, d, d): ``R_v = s C_v + (a dt / 2)^2 I``,
+    (m/s)^2, and with ``pose_source_rate_update`` (d = 6) ``R_w = s C_w + sigma_g^2 / dt I``,
+    (rad/s)^2, on the diagonal; ``s`` from ``noise.pose_source_scale`` (default 1)."""
+    batch = sched.t_end.shape[0]
+    ones = torch.ones(batch, dtype=sched.t_end.dtype, device=sched.t_end.device)
+    scale = [
+        per_seq(noise.pose_source_scale[n]) if n in noise.pose_source_scale else ones
+        for n in sched.source_names
+    ]
+    if not scale:
+        return sched.source_covariance
+    scale = torch.stack(scale, -1)[:, None, :, None, None]
+    eye = torch.eye(3, dtype=ones.dtype, device=ones.device)
+    accel_var = (0.5 * cfg.pose_source_accel_sigma_mps2 * sched.source_dt) ** 2
+    velocity = scale * sched.source_covariance + accel_var[..., None, None] * eye
+    if not cfg.pose_source_rate_update:
+        return velocity
+    gyro_var = per_seq(noise.imu.gyro_noise_density)[:, None, None] ** 2 / sched.source_dt.where(
+        sched.source_mask, 1.0
+    )
+    rate = scale * sched.source_rate_covariance + gyro_var[..., None, None] * eye
+    zeros = torch.zeros_like(rate)
+    return torch.cat((torch.cat((velocity, zeros), -1), torch.cat((zeros, rate), -1)), -2)
+
+
 def _segment_matrix(dims: list[int], dtype, device) -> torch.Tensor:
     """(M, K) 0/1 matrix mapping stacked measurement rows to their block."""
     seg = torch.zeros(sum(dims), len(dims), dtype=dtype, device=device)
@@ -348,23 +403,27 @@ def run_eskf(
         "gnss": sched.gnss_mask,
         "pose": sched.pose_mask,
     }
-    active = [k for k in SENSORS if bool(present[k].any())]
-    dims = dict(_DIMS)
+    source_col = {_SOURCE_PREFIX + n: s for s, n in enumerate(sched.source_names)}
+    present.update({k: sched.source_mask[..., s] for k, s in source_col.items()})
+    sensors = SENSORS + tuple(source_col)
+    active = [k for k in sensors if bool(present[k].any())]
+    dims = dict(_DIMS) | dict.fromkeys(source_col, 6 if cfg.pose_source_rate_update else 3)
     if not cfg.wheel_yaw_rate_update:
         dims["wheel"] = 3  # the yaw-rate row then only feeds the slip factor
-    thresholds = {k: chi2_threshold(dims[k], cfg.gate_probability) for k in SENSORS}
+    thresholds = {k: chi2_threshold(dims[k], cfg.gate_probability) for k in sensors}
     if not cfg.gate_pseudo_measurements:
         thresholds["nhc"] = thresholds["zupt"] = math.inf
     blocks = [dims[k] for k in active]
     n_rows = sum(blocks)
     segment = _segment_matrix(blocks, dtype, device)  # (M, K)
     block_mask = segment @ segment.mT  # (M, M) 1 inside diagonal blocks
+    eye_rows = torch.eye(n_rows, dtype=dtype, device=device)
     threshold = torch.tensor(
         [thresholds[k] if math.isfinite(thresholds[k]) else 1e300 for k in active],
         dtype=dtype,
         device=device,
     )
-    reopen = torch.tensor([k in ("gnss", "pose") for k in active], device=device)
+    reopen = torch.tensor([k in ("gnss", "pose") or k in source_col for k in active], device=device)
     present_all = torch.stack([present[k] for k in active], -1) if active else None
 
     def per_seq(x: torch.Tensor) -> torch.Tensor:
@@ -385,6 +444,8 @@ def run_eskf(
     nhc_var = (per_seq(noise.nhc_sigma) ** 2)[:, None].expand(batch, 2)
     zupt_var = (per_seq(noise.zupt_sigma) ** 2)[:, None].expand(batch, 3)
     gnss_var = (sched.gnss_sigma * per_seq(noise.gnss_sigma_scale)[:, None, None]) ** 2
+    source_cov = _source_covariance(sched, noise, cfg, per_seq)
+    source_lever = torch.zeros(3, dtype=dtype, device=device)
     eye15 = torch.eye(ERROR_STATE_DIM, dtype=dtype, device=device)
     frame_base = eye15.expand(batch, 15, 15)
     nav_frame = torch.zeros(batch, 9, 9, dtype=dtype, device=device)
@@ -459,7 +520,8 @@ def run_eskf(
 
             # --- measurement blocks (residuals from sensors/, stacked) ---------------------
             residuals, jacobians, variances = [], [], []
-            pose_cov = None
+            full_cov = []  # (row offset, (B, d, d) covariance) of blocks with full covariances
+            offset = 0
             gyro_end = sched.gyro_end[:, e]
             for name in active:
                 if name == "wheel":
@@ -504,7 +566,7 @@ def run_eskf(
                         state.position, state.rotation, gnss_lever, sched.gnss_position[:, e]
                     )
                     var = gnss_var[:, e]
-                else:
+                elif name == "pose":
                     r, h = pose_residual(
                         state.position,
                         state.rotation,
@@ -512,22 +574,44 @@ def run_eskf(
                         sched.pose_rotation[:, e],
                     )
                     var = zeros_b[:, None].expand(batch, 6)
-                    pose_cov = sched.pose_covariance[:, e]
+                    full_cov.append((offset, sched.pose_covariance[:, e]))
+                else:
+                    col = source_col[name]
+                    r, h = body_velocity_residual(
+                        state.velocity,
+                        state.rotation,
+                        gyro_end,
+                        state.gyro_bias,
+                        source_lever,
+                        sched.source_velocity[:, e, col],
+                    )
+                    if cfg.pose_source_rate_update:
+                        r_w, h_w = mean_rate_residual(
+                            sched.source_gyro_mean[:, e, col],
+                            state.gyro_bias,
+                            sched.source_rate[:, e, col],
+                        )
+                        r, h = torch.cat((r, r_w), -1), torch.cat((h, h_w), -2)
+                    var = zeros_b[:, None].expand(batch, r.shape[-1])
+                    full_cov.append((offset, source_cov[:, e, col]))
+                offset += r.shape[-1]
                 residuals.append(r)
                 jacobians.append(h)
                 variances.append(var)
             r_all = torch.cat(residuals, -1)
             h_all = torch.cat(jacobians, -2) @ to_conv  # w.r.t. the invariant error
             r_cov = torch.diag_embed(torch.cat(variances, -1))
-            if pose_cov is not None:
+            if full_cov:
                 r_cov = r_cov.clone()
-                r_cov[:, -6:, -6:] = pose_cov
+                for start, block in full_cov:
+                    size = block.shape[-1]
+                    r_cov[:, start : start + size, start : start + size] = block
             s_all = h_all @ cov @ h_all.mT + r_cov
 
             # --- gating: NIS of every block at once through the block-diagonal part of S ----
             here = present_all[:, e]
             here_rows = (here.to(dtype) @ segment.mT)[..., None]
-            s_blocks = s_all * block_mask + (1.0 - here_rows) * eye15[:n_rows, :n_rows]
+            s_blocks = s_all * block_mask + (1.0 - here_rows) * eye_rows
             chol_b, info_b = torch.linalg.cholesky_ex(s_blocks)
             white = torch.linalg.solve_triangular(chol_b, r_all[..., None], upper=False)
             nis = ((white[..., 0] ** 2) @ segment) * here
@@ -577,10 +661,10 @@ def run_eskf(
     covariances = to_conv_all @ torch.stack(out["P"], 1) @ to_conv_all.mT
     accepted_all = torch.stack(accepted_out, 1)  # (B, E + 1, K)
     nis_all = torch.stack(nis_out, 1)
-    present_out = {k: torch.cat((false_b[:, None], present[k]), 1) for k in SENSORS}
+    present_out = {k: torch.cat((false_b[:, None], present[k]), 1) for k in sensors}
     accepted = {}
     nis = {}
-    for k in SENSORS:
+    for k in sensors:
         if k in active:
             col = active.index(k)
             accepted[k] = accepted_all[..., col]

@@ -1,12 +1,29 @@
 """Cut a batch of sequences into filter epochs: IMU samples between update times.
 
-An *epoch* ends at an update time (a wheel, GNSS or pose measurement, an NHC/ZUPT
-pseudo-measurement time, or the last IMU sample). The IMU timeline is split at every update
-time; each piece is held at the value of the latest IMU sample at or before its start
-(zero-order hold), so a measurement that falls between two IMU samples is fused at its own
-time with no interpolation error. The result is a set of dense, padded ``(B, E, L)``
-tensors: the filter then loops over E only, and everything inside an epoch is vectorised
-(``sensors.imu.preintegrate``). Padding has ``dt = 0``, an exact no-op.
+An *epoch* ends at an update time (a wheel, GNSS or pose measurement, the later sample of a
+pose-source pair, an NHC/ZUPT pseudo-measurement time, or the last IMU sample). The IMU
+timeline is split at every update time; each piece is held at the value of the latest IMU
+sample at or before its start (zero-order hold), so a measurement that falls between two IMU
+samples is fused at its own time with no interpolation error. The result is a set of dense,
+padded ``(B, E, L)`` tensors: the filter then loops over E only, and everything inside an
+epoch is vectorised (``sensors.imu.preintegrate``). Padding has ``dt = 0``, an exact no-op.
+
+Pose sources (``Sequence.pose_sources``, chosen by ``EskfConfig.pose_sources``) drift, so
+they enter as odometry. Consecutive valid samples ``k - 1``, ``k`` of a source,
+``0 < dt = t_k - t_k-1 <= pose_source_max_gap_s``, give the body-frame mean velocity over the
+interval, fused at ``t_k``:
+
+    z_v = R_m^T (p_k - p_k-1) / dt,    R_m = R_k-1 Exp(Log(R_k-1^T R_k) / 2),
+    C_v = R_m^T (C_p,k + C_p,k-1) R_m / dt^2
+
+with ``C_p`` the samples' declared (world-frame) position covariances. The chord of a
+constant-rate turn points along the mid-interval heading, so ``R_m`` (not ``R_k-1``) removes
+the first-order turn error; a constant drift of the source's frame cancels in the
+difference. The filter adds the mean-versus-end-velocity term (``frontend.eskf``). The
+relative rotation gives the mean body rate ``z_w = Log(dR) / dt``, ``dR = R_k-1^T R_k``, with
+covariance ``(dR^T C_r,k-1 dR + C_r,k) / dt^2`` (``C_r`` the declared rotation blocks), to
+compare with the mean raw gyro rate ``w_bar`` over the same interval (exact integral of the
+zero-order-held samples). Pairs that start before the first IMU sample are not used.
 
 Building the schedule is preprocessing with numpy (one pass per sequence, vectorised over
 its samples); the hot path never loops over B.
@@ -14,7 +31,7 @@ its samples); the hot path never loops over B.
 
 from __future__ import annotations
 
-__all__ = ["Schedule", "build_schedule"]
+__all__ = ["Schedule", "build_schedule", "source_names"]
 
 from dataclasses import dataclass
 
@@ -22,7 +39,9 @@ import numpy as np
 import torch
 
 from msf_torch.frontend.config import EskfConfig
-from msf_torch.types import Sequence
+from msf_torch.geometry import so3
+from msf_torch.geometry.quaternion import quat_to_matrix
+from msf_torch.types import PoseMeasurements, Sequence
 
 
 @dataclass
@@ -43,6 +62,15 @@ class Schedule:
             gnss_mask (B, E).
         pose_position (B, E, 3), pose_rotation (B, E, 3, 3), pose_covariance (B, E, 6, 6),
             pose_mask (B, E).
+        source_names: the S fused pose sources, in this order along the S axes below.
+        source_velocity: (B, E, S, 3) body-frame mean velocity ``z_v``, m/s (0 where absent).
+        source_covariance: (B, E, S, 3, 3) declared part ``C_v``, m^2/s^2 (I where absent).
+        source_rate: (B, E, S, 3) mean body rate ``z_w``, rad/s (0 where absent).
+        source_rate_covariance: (B, E, S, 3, 3) its declared covariance, rad^2/s^2 (I where
+            absent).
+        source_gyro_mean: (B, E, S, 3) mean raw gyro rate ``w_bar`` over the pair, rad/s.
+        source_dt: (B, E, S) pair interval ``dt``, s (0 where absent).
+        source_mask: (B, E, S) bool, a pair of the source ends at the epoch.
         nhc_mask, zupt_mask: (B, E) bool pseudo-measurements. With the NHC on, every epoch
             carries it, and epochs are added where updates are further apart than
             ``1 / nhc_rate_hz``.
@@ -71,6 +99,14 @@ class Schedule:
     nhc_mask: torch.Tensor
     zupt_mask: torch.Tensor
     imu_index_end: torch.Tensor
+    source_names: tuple[str, ...]
+    source_velocity: torch.Tensor
+    source_covariance: torch.Tensor
+    source_rate: torch.Tensor
+    source_rate_covariance: torch.Tensor
+    source_gyro_mean: torch.Tensor
+    source_dt: torch.Tensor
+    source_mask: torch.Tensor
 
     @property
     def num_epochs(self) -> int:
@@ -138,6 +174,86 @@ def _np(x: torch.Tensor) -> np.ndarray:
     return x.detach().cpu().numpy()
 
 
+def source_names(seq: Sequence, cfg: EskfConfig) -> tuple[str, ...]:
+    """The pose sources to fuse: all of ``seq.pose_sources`` (sorted) for ``"auto"``, else
+    ``cfg.pose_sources`` in its order.
+
+    Raises:
+        ValueError: a configured name is not a source of the sequence (names the key).
+    """
+    if cfg.pose_sources == "auto":
+        return tuple(sorted(seq.pose_sources))
+    missing = [n for n in cfg.pose_sources if n not in seq.pose_sources]
+    if missing:
+        raise ValueError(
+            f"config key 'pose_sources' names {missing}, not in the sequence's pose sources "
+            f"{sorted(seq.pose_sources)}"
+        )
+    return tuple(cfg.pose_sources)
+
+
+def _source_pairs(
+    stream: PoseMeasurements, b: int, t0: float, t_last: float, cfg: EskfConfig
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Consecutive valid sample pairs of a pose source in sequence ``b`` inside
+    ``[t0, t_last]``: end times (P,) s, start times (P,) s and the sample indices of the pair
+    ends and starts (P,)."""
+    tol = cfg.time_tolerance_s
+    valid = np.nonzero(_np(stream.mask[b]))[0]
+    t = _np(stream.t[b])[valid]
+    gap = np.diff(t)
+    ok = (gap > tol) & (gap <= cfg.pose_source_max_gap_s)
+    ok &= (t[:-1] >= t0 - tol) & (t[1:] <= t_last + tol)
+    return t[1:][ok], t[:-1][ok], valid[1:][ok], valid[:-1][ok]
+
+
+def _gyro_integral(imu_t: np.ndarray, gyro: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """Integral (P, 3) rad of the zero-order-held gyro from ``imu_t[0]`` to each ``t`` (P,)."""
+    cum = np.concatenate((np.zeros((1, 3)), np.cumsum(gyro[:-1] * np.diff(imu_t)[:, None], 0)))
+    i = np.clip(np.searchsorted(imu_t, t, side="right") - 1, 0, imu_t.size - 1)
+    return cum[i] + gyro[i] * (t - imu_t[i])[:, None]
+
+
+def _source_velocities(
+    stream: PoseMeasurements,
+    rows: torch.Tensor,
+    end: torch.Tensor,
+    start: torch.Tensor,
+    mask: torch.Tensor,
+) -> tuple[torch.Tensor, ...]:
+    """Mean body velocity (B, E, 3) and rate (B, E, 3), their declared covariances
+    (B, E, 3, 3) each, and ``dt`` (B, E) of the pairs ``(start, end)`` (sample indices,
+    (B, E)) where ``mask`` (B, E)."""
+    f64 = dict(dtype=stream.position.dtype, device=stream.position.device)
+    unit = torch.tensor([1.0, 0.0, 0.0, 0.0], **f64)
+    m3 = mask[..., None]
+    rot_end = quat_to_matrix(
+        torch.where(m3.expand(*mask.shape, 4), stream.quaternion[rows, end], unit)
+    )
+    rot_start = quat_to_matrix(
+        torch.where(m3.expand(*mask.shape, 4), stream.quaternion[rows, start], unit)
+    )
+    turn = rot_start.mT @ rot_end
+    angle = so3.log(turn)
+    rot_mid = rot_start @ so3.exp(0.5 * angle)
+    dt = torch.where(mask, stream.t[rows, end] - stream.t[rows, start], 1.0)
+    step = torch.where(m3, stream.position[rows, end] - stream.position[rows, start], 0.0)
+    velocity = (rot_mid.mT @ step[..., None]).squeeze(-1) / dt[..., None]
+    pos_cov = (stream.covariance[rows, end] + stream.covariance[rows, start])[..., :3, :3]
+    cov = rot_mid.mT @ pos_cov @ rot_mid / (dt * dt)[..., None, None]
+    rate_cov = turn.mT @ stream.covariance[rows, start][..., 3:, 3:] @ turn
+    rate_cov = (rate_cov + stream.covariance[rows, end][..., 3:, 3:]) / (dt * dt)[..., None, None]
+    eye = torch.eye(3, **f64)
+    keep = mask[..., None, None]
+    return (
+        velocity,
+        torch.where(keep, cov, eye),
+        angle / dt[..., None],
+        torch.where(keep, rate_cov, eye),
+        torch.where(mask, dt, 0.0),
+    )
+
+
 def build_schedule(seq: Sequence, cfg: EskfConfig) -> Schedule:
     """Build the padded epoch schedule of a batch.
 
@@ -149,6 +265,7 @@ def build_schedule(seq: Sequence, cfg: EskfConfig) -> Schedule:
     """
     tol = cfg.time_tolerance_s
     dtype, device = seq.imu.t.dtype, seq.imu.t.device
+    names = source_names(seq, cfg)
     per_seq = []
     for b in range(seq.batch_size):
         imu_mask = _np(seq.imu.mask[b])
@@ -170,8 +287,11 @@ def build_schedule(seq: Sequence, cfg: EskfConfig) -> Schedule:
         wheel_t, wheel_src = stream_times(seq.wheel)
         gnss_t, gnss_src = stream_times(seq.gnss)
         pose_t, pose_src = stream_times(seq.poses)
+        pairs = [_source_pairs(seq.pose_sources[n], b, t0, t_last, cfg) for n in names]
         use_nhc = cfg.nhc == "on" or (cfg.nhc == "auto" and wheel_t.size == 0)
-        updates = _merge_times(np.concatenate((wheel_t, gnss_t, pose_t, [t_last])), tol)
+        updates = _merge_times(
+            np.concatenate((wheel_t, gnss_t, pose_t, *[p[0] for p in pairs], [t_last])), tol
+        )
         if use_nhc or (cfg.zupt_imu_detector and wheel_t.size == 0):
             updates = _fill_gaps(np.concatenate(([t0], updates)), 1.0 / cfg.nhc_rate_hz)[1:]
         bounds = _merge_times(np.concatenate((imu_t, updates)), tol)
@@ -189,6 +309,16 @@ def build_schedule(seq: Sequence, cfg: EskfConfig) -> Schedule:
         wheel_idx = _match(wheel_t, updates, tol)
         gnss_idx = _match(gnss_t, updates, tol)
         pose_idx = _match(pose_t, updates, tol)
+        source_idx = [
+            (
+                _match(p[0], updates, tol),
+                p[2],
+                p[3],
+                (_gyro_integral(imu_t, gyro, p[0]) - _gyro_integral(imu_t, gyro, p[1]))
+                / (p[0] - p[1])[:, None],
+            )
+            for p in pairs
+        ]
         pseudo = np.ones(updates.size, dtype=bool)  # pseudo-measurements at every epoch
         zupt = np.zeros(updates.size, dtype=bool)
         if cfg.zupt:
@@ -222,6 +352,7 @@ def build_schedule(seq: Sequence, cfg: EskfConfig) -> Schedule:
                 pose=(pose_idx, pose_src),
                 nhc=pseudo & use_nhc,
                 zupt=zupt,
+                sources=source_idx,
             )
         )
 
@@ -247,6 +378,11 @@ def build_schedule(seq: Sequence, cfg: EskfConfig) -> Schedule:
         k: torch.zeros(batch, n_epochs, dtype=torch.long, device=device)
         for k in ("wheel", "gnss", "pose")
     }
+    n_src = len(names)
+    source_mask = zeros(batch, n_epochs, n_src, dt=torch.bool)
+    source_end = torch.zeros(batch, n_epochs, n_src, dtype=torch.long, device=device)
+    source_start = torch.zeros(batch, n_epochs, n_src, dtype=torch.long, device=device)
+    source_gyro_mean = zeros(batch, n_epochs, n_src, 3)
     t_start = torch.zeros(batch, **f64)
     for b, p in enumerate(per_seq):
         n_e = p["updates"].size
@@ -272,6 +408,12 @@ def build_schedule(seq: Sequence, cfg: EskfConfig) -> Schedule:
             )
         masks["nhc"][b, :n_e] = torch.as_tensor(p["nhc"], device=device)
         masks["zupt"][b, :n_e] = torch.as_tensor(p["zupt"], device=device)
+        for s, (idx, end, start, gyro_mean) in enumerate(p["sources"]):
+            has = np.nonzero(idx >= 0)[0]
+            source_mask[b, has, s] = True
+            source_end[b, has, s] = torch.as_tensor(end[idx[has]], device=device)
+            source_start[b, has, s] = torch.as_tensor(start[idx[has]], device=device)
+            source_gyro_mean[b, has, s] = torch.as_tensor(gyro_mean[idx[has]], **f64)
 
     rows = torch.arange(batch, device=device)[:, None]
     gyro = seq.imu.gyro[rows[..., None], sample_index]
@@ -296,8 +438,6 @@ def build_schedule(seq: Sequence, cfg: EskfConfig) -> Schedule:
         pose_rotation = torch.eye(3, **f64).expand(batch, n_epochs, 3, 3).clone()
         pose_covariance = torch.eye(6, **f64).expand(batch, n_epochs, 6, 6).clone()
     else:
-        from msf_torch.geometry.quaternion import quat_to_matrix
-
         pose_quat = seq.poses.quaternion[rows, src["pose"]]
         pose_quat = torch.where(
             masks["pose"][..., None], pose_quat, torch.tensor([1.0, 0, 0, 0], **f64)
@@ -308,6 +448,17 @@ def build_schedule(seq: Sequence, cfg: EskfConfig) -> Schedule:
             seq.poses.covariance[rows, src["pose"]],
             torch.eye(6, **f64),
         )
+    parts = [
+        _source_velocities(
+            seq.pose_sources[n], rows, source_end[..., s], source_start[..., s], source_mask[..., s]
+        )
+        for s, n in enumerate(names)
+    ]
+    if parts:
+        stacked = [torch.stack(x, 2) for x in zip(*parts, strict=True)]
+    else:
+        stacked = [zeros(batch, n_epochs, 0, *shape) for shape in ((3,), (3, 3)) * 2 + ((),)]
+    source_velocity, source_covariance, source_rate, source_rate_cov, source_dt = stacked
     return Schedule(
         t_start=t_start,
         t_end=t_end,
@@ -331,4 +482,12 @@ def build_schedule(seq: Sequence, cfg: EskfConfig) -> Schedule:
         nhc_mask=masks["nhc"],
         zupt_mask=masks["zupt"],
         imu_index_end=end_index,
+        source_names=names,
+        source_velocity=source_velocity,
+        source_covariance=source_covariance,
+        source_rate=source_rate,
+        source_rate_covariance=source_rate_cov,
+        source_gyro_mean=source_gyro_mean,
+        source_dt=source_dt,
+        source_mask=source_mask,
     )

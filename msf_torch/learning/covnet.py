@@ -330,7 +330,9 @@ def scaled_noise(base: EskfNoise, log_scales: torch.Tensor) -> EskfNoise:
     lateral and yaw-rate sigmas, ``nhc`` the NHC sigma, ``gnss`` the GNSS sigma scale,
     ``imu_gyro`` / ``imu_accel`` the gyro / accelerometer white-noise densities. Bias random
     walks and the zero-velocity sigma are kept; ``vo`` and ``lidar`` apply to pose streams
-    (:func:`scaled_pose_covariance`).
+    (:func:`scaled_pose_covariance`) and multiply the variance scales of the ESKF's pose
+    sources of those names (``EskfNoise.pose_source_scale``, fused as odometry), so a fusion
+    weight folded in by :func:`apply_fusion_weights` reaches the odometry rows too.
 
     Args:
         base: noise tensors of shape () or (B,) (``EskfNoise.from_config``).
@@ -357,6 +359,12 @@ def scaled_noise(base: EskfNoise, log_scales: torch.Tensor) -> EskfNoise:
         wheel_yaw_rate_sigma=scale(base.wheel_yaw_rate_sigma, "wheel"),
         nhc_sigma=scale(base.nhc_sigma, "nhc"),
         gnss_sigma_scale=scale(base.gnss_sigma_scale, "gnss"),
+        pose_source_scale=base.pose_source_scale
+        | {
+            source: base.pose_source_scale.get(source, 1.0)
+            * torch.exp(_column(log_scales, source, base.gnss_sigma_scale))
+            for source in ("vo", "lidar")
+        },
     )
 
 

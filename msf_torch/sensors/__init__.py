@@ -4,7 +4,7 @@ noise. The ESKF front end and the LM back end both call these."""
 from msf_torch.sensors.gnss import gnss_residual
 from msf_torch.sensors.imu import ImuNoise, Preintegrated, preintegrate, propagate_nominal, zoh_step
 from msf_torch.sensors.noise import GaussianNoise
-from msf_torch.sensors.pose import pose_residual
+from msf_torch.sensors.pose import mean_rate_residual, pose_residual
 from msf_torch.sensors.vehicle import nonholonomic_residual, zero_velocity_residual
 from msf_torch.sensors.wheel import body_velocity_residual, wheel_residual, wheel_speed_and_yaw_rate
 
@@ -14,6 +14,7 @@ __all__ = [
     "Preintegrated",
     "body_velocity_residual",
     "gnss_residual",
+    "mean_rate_residual",
     "nonholonomic_residual",
     "pose_residual",
     "preintegrate",
