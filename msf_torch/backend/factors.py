@@ -71,6 +71,16 @@ def _for_kind(jacobian: torch.Tensor, kind: VariableKind) -> torch.Tensor:
     return jacobian[..., _POSE_COLUMNS]
 
 
+class _Evaluated:
+    """Factors whose residual and Jacobians come from one ``_evaluate(values, jacobians)``."""
+
+    def residual(self, values):
+        return self._evaluate(values, jacobians=False)[0]
+
+    def residual_and_jacobians(self, values, kinds):
+        return self._evaluate(values, jacobians=True)
+
+
 class _Unary(Factor):
     """Factor on one variable per factor."""
 
@@ -226,7 +236,7 @@ class _Binary(Factor):
         self.kernel = kernel
 
 
-class BetweenFactor(_Binary):
+class BetweenFactor(_Evaluated, _Binary):
     """Relative pose (odometry, loop closure): ``r = Log_SE3(Z^-1 T_i^-1 T_j)`` (6,), order
     [rho, phi] (translation part first); GTSAM's ``BetweenFactor<Pose3>`` error in our order.
 
@@ -240,12 +250,6 @@ class BetweenFactor(_Binary):
     ) -> None:
         super().__init__(group, index_i, index_j, covariance, kernel)
         self.rotation, self.translation = rotation, translation
-
-    def residual(self, values):
-        return self._evaluate(values, jacobians=False)[0]
-
-    def residual_and_jacobians(self, values, kinds):
-        return self._evaluate(values, jacobians=True)
 
     def _evaluate(self, values, jacobians: bool):
         kind = self.kinds[0]
@@ -323,7 +327,7 @@ class ImuPreintegrationFactor(_Binary):
         return r, [jac_i, jac_j]
 
 
-class GtsamImuFactor(_Binary):
+class GtsamImuFactor(_Evaluated, _Binary):
     """``gtsam.ImuFactor`` (Logmap error mode) plus its bias random walk, between nav states
     i and j (15,), on :func:`~msf_torch.backend.preintegration.preintegrate_imu_tangent`
     increments: the option that poses GTSAM's exact problem (the default IMU factor is
@@ -361,12 +365,6 @@ class GtsamImuFactor(_Binary):
     ) -> None:
         super().__init__(group, index_i, index_j, covariance, kernel)
         self.preintegrated, self.gravity = preintegrated, gravity
-
-    def residual(self, values):
-        return self._evaluate(values, jacobians=False)[0]
-
-    def residual_and_jacobians(self, values, kinds):
-        return self._evaluate(values, jacobians=True)
 
     def _evaluate(self, values, jacobians: bool):
         pre = self.preintegrated
@@ -511,7 +509,7 @@ class WheelOdometryFactor(_Binary):
         return self.residual(values), [_widen(jac_i, kind), _widen(jac_j, kind)]
 
 
-class ReprojectionFactor(Factor):
+class ReprojectionFactor(_Evaluated, Factor):
     """Pinhole reprojection of landmark l in camera pose i (2,).
 
     The camera sits at ``T_body_cam = (R_bc, t_bc)`` on the body; a world point ``l`` is at
@@ -554,12 +552,6 @@ class ReprojectionFactor(Factor):
         return (self.body_rotation_cam.mT @ (body - self.body_translation_cam)[..., None]).squeeze(
             -1
         )
-
-    def residual(self, values):
-        return self._evaluate(values, jacobians=False)[0]
-
-    def residual_and_jacobians(self, values, kinds):
-        return self._evaluate(values, jacobians=True)
 
     def _evaluate(self, values, jacobians: bool):
         kind = self.kinds[0]
