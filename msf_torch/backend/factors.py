@@ -168,11 +168,7 @@ class GnssFactor(_Unary):
     def __init__(self, group, index, measured, covariance, lever_arm=None, kernel=None) -> None:
         super().__init__(group, index, covariance, kernel)
         self.measured = measured
-        self.lever_arm = (
-            torch.zeros(3, dtype=measured.dtype, device=measured.device)
-            if lever_arm is None
-            else lever_arm
-        )
+        self.lever_arm = _lever_arm_or_zero(lever_arm, measured)
 
     def residual(self, values):
         return self.residual_and_jacobians(values, None)[0]
@@ -210,9 +206,7 @@ class NonholonomicFactor(_Unary):
     def __init__(self, group, index, gyro, covariance, lever_arm=None, kernel=None) -> None:
         super().__init__(group, index, covariance, kernel)
         self.gyro = gyro
-        self.lever_arm = (
-            torch.zeros(3, dtype=gyro.dtype, device=gyro.device) if lever_arm is None else lever_arm
-        )
+        self.lever_arm = _lever_arm_or_zero(lever_arm, gyro)
 
     def residual(self, values):
         return self.residual_and_jacobians(values, None)[0]
@@ -446,11 +440,7 @@ class WheelOdometryFactor(_Binary):
     ) -> None:
         super().__init__(group, index_i, index_j, covariance, kernel)
         self.increment = increment
-        self.lever_arm = (
-            torch.zeros(3, dtype=increment.dtype, device=increment.device)
-            if lever_arm is None
-            else lever_arm
-        )
+        self.lever_arm = _lever_arm_or_zero(lever_arm, increment)
 
     def residual(self, values):
         kind = self.kinds[0]
@@ -560,7 +550,8 @@ class ReprojectionFactor(_Evaluated, Factor):
         to_cam = self.body_rotation_cam.mT
         cam = (to_cam @ (body - self.body_translation_cam)[..., None]).squeeze(-1)
         inv_z = 1.0 / cam[..., 2:3]
-        uv = cam[..., 0:2] * inv_z
+        normalized = cam[..., 0:2] * inv_z
+        uv = normalized
         scale = None
         if self.intrinsics is not None:
             fx, fy, cx, cy = self.intrinsics
@@ -573,8 +564,8 @@ class ReprojectionFactor(_Evaluated, Factor):
         zeros = torch.zeros_like(inv_z)
         d_proj = torch.stack(
             (
-                torch.cat((inv_z, zeros, -uv_normalized(cam)[..., 0:1] * inv_z), -1),
-                torch.cat((zeros, inv_z, -uv_normalized(cam)[..., 1:2] * inv_z), -1),
+                torch.cat((inv_z, zeros, -normalized[..., 0:1] * inv_z), -1),
+                torch.cat((zeros, inv_z, -normalized[..., 1:2] * inv_z), -1),
             ),
             -2,
         )
@@ -625,9 +616,11 @@ class MarginalPriorFactor(Factor):
         return residual, jacobians
 
 
-def uv_normalized(camera_point: torch.Tensor) -> torch.Tensor:
-    """Normalized image coordinates ``(x/z, y/z)`` (..., 2) of camera-frame points (..., 3)."""
-    return camera_point[..., 0:2] / camera_point[..., 2:3]
+def _lever_arm_or_zero(lever_arm: torch.Tensor | None, like: torch.Tensor) -> torch.Tensor:
+    """The given lever arm, or a zero (3,) vector in ``like``'s dtype and device."""
+    if lever_arm is None:
+        return torch.zeros(3, dtype=like.dtype, device=like.device)
+    return lever_arm
 
 
 def _widen(jacobian: torch.Tensor, kind: VariableKind) -> torch.Tensor:
