@@ -38,6 +38,7 @@ from msf_torch.backend.robust import RobustKernel
 from msf_torch.backend.variables import VariableKind, unpack_nav_state, unpack_pose
 from msf_torch.geometry import se3, so3
 from msf_torch.geometry.conventions import IDX_P, IDX_THETA
+from msf_torch.sensors.camera import reprojection_residual
 from msf_torch.sensors.gnss import gnss_residual
 from msf_torch.sensors.imu import Preintegrated, preintegration_residual
 from msf_torch.sensors.pose import pose_residual
@@ -500,12 +501,9 @@ class WheelOdometryFactor(_Binary):
 
 
 class ReprojectionFactor(_Evaluated, Factor):
-    """Pinhole reprojection of landmark l in camera pose i (2,).
-
-    The camera sits at ``T_body_cam = (R_bc, t_bc)`` on the body; a world point ``l`` is at
-    ``c = R_bc^T (R^T (l - p) - t_bc)`` in the camera and projects to ``(c_x/c_z, c_y/c_z)``
-    (normalized) or ``K`` of it (pixels, when ``intrinsics=(fx, fy, cx, cy)``).
-    ``r = projection - measured``.
+    """Pinhole reprojection of landmark l in camera pose i (2,): the residual of
+    :func:`msf_torch.sensors.camera.reprojection_residual` (normalized coordinates, or
+    pixels when ``intrinsics=(fx, fy, cx, cy)``).
 
     Args:
         pose_group, pose_index: camera-carrying variables (F,) (``nav_state`` or ``pose``).
@@ -534,49 +532,24 @@ class ReprojectionFactor(_Evaluated, Factor):
         self.body_rotation_cam, self.body_translation_cam = body_rotation_cam, body_translation_cam
         self.intrinsics = intrinsics
 
-    def camera_point(self, values) -> torch.Tensor:
-        """Landmarks in the camera frame (B, F, 3), m."""
-        kind = self.kinds[0]
-        position, rotation = pose_of(kind, values[0])
-        body = (rotation.mT @ (values[1] - position)[..., None]).squeeze(-1)
-        return (self.body_rotation_cam.mT @ (body - self.body_translation_cam)[..., None]).squeeze(
-            -1
-        )
-
     def _evaluate(self, values, jacobians: bool):
         kind = self.kinds[0]
         position, rotation = pose_of(kind, values[0])
-        body = (rotation.mT @ (values[1] - position)[..., None]).squeeze(-1)
-        to_cam = self.body_rotation_cam.mT
-        cam = (to_cam @ (body - self.body_translation_cam)[..., None]).squeeze(-1)
-        inv_z = 1.0 / cam[..., 2:3]
-        normalized = cam[..., 0:2] * inv_z
-        uv = normalized
-        scale = None
-        if self.intrinsics is not None:
-            fx, fy, cx, cy = self.intrinsics
-            uv = torch.stack((fx * uv[..., 0] + cx, fy * uv[..., 1] + cy), -1)
-            scale = torch.tensor([fx, fy], dtype=cam.dtype, device=cam.device)[:, None]
-        residual = uv - self.measured
+        residual, jac, d_landmark = reprojection_residual(
+            position,
+            rotation,
+            values[1],
+            self.body_rotation_cam,
+            self.body_translation_cam,
+            self.measured.expand(*position.shape[:-1], 2),
+            self.intrinsics,
+        )
         if not jacobians:
             return residual, None
-        # d(projection)/d(camera point), then the camera point w.r.t. landmark and pose
-        zeros = torch.zeros_like(inv_z)
-        d_proj = torch.stack(
-            (
-                torch.cat((inv_z, zeros, -normalized[..., 0:1] * inv_z), -1),
-                torch.cat((zeros, inv_z, -normalized[..., 1:2] * inv_z), -1),
-            ),
-            -2,
-        )
-        if scale is not None:
-            d_proj = d_proj * scale
-        d_landmark = d_proj @ to_cam @ rotation.mT
-        d_theta = d_proj @ to_cam @ so3.hat(body)
-        if kind.name == "se3":
-            pose_jac = torch.cat((-d_proj @ to_cam, d_theta), -1)
+        if kind.name == "se3":  # the se3 step moves the position by R rho
+            pose_jac = torch.cat((jac[..., IDX_P] @ rotation, jac[..., IDX_THETA]), -1)
         else:
-            pose_jac = _widen(torch.cat((-d_landmark, d_theta), -1), kind)
+            pose_jac = _for_kind(jac, kind)
         return residual, [pose_jac, d_landmark]
 
 

@@ -1,6 +1,7 @@
 """Measurement models: one residual ``r = h(x) - z`` per sensor, its error-state Jacobian and
 noise. The ESKF front end and the LM back end both call these."""
 
+from msf_torch.sensors.camera import reprojection_residual
 from msf_torch.sensors.gnss import gnss_residual
 from msf_torch.sensors.imu import ImuNoise, Preintegrated, preintegrate, propagate_nominal, zoh_step
 from msf_torch.sensors.noise import GaussianNoise
@@ -19,6 +20,7 @@ __all__ = [
     "pose_residual",
     "preintegrate",
     "propagate_nominal",
+    "reprojection_residual",
     "wheel_residual",
     "wheel_speed_and_yaw_rate",
     "zero_velocity_residual",
