@@ -41,6 +41,7 @@ from msf_torch.geometry.conventions import IDX_P, IDX_THETA
 from msf_torch.sensors.camera import reprojection_residual
 from msf_torch.sensors.gnss import gnss_residual
 from msf_torch.sensors.imu import Preintegrated, preintegration_residual
+from msf_torch.sensors.plane import plane_residual
 from msf_torch.sensors.pose import pose_residual
 from msf_torch.sensors.vehicle import nonholonomic_residual, zero_velocity_residual
 
@@ -271,20 +272,16 @@ class BetweenFactor(_Evaluated, _Binary):
 
 
 class PlaneFactor(_Binary):
-    """Planar motion of a ground vehicle between poses i and j, relative to the local ground
-    plane of pose i (its body x-y plane): ``r = [phi_x, phi_y, e_z^T R_i^T (p_j - p_i)]``
-    (3,) with ``phi = Log(R_i^T R_j)``: no relative roll, pitch or height change.
+    """Planar motion of a ground vehicle between poses i and j (3,): the residual of
+    :func:`msf_torch.sensors.plane.plane_residual` (no relative roll, pitch or height change
+    in the ground plane of pose i).
 
     Args: group, index_i, index_j (F,); covariance (B|1, F, 3, 3) rad^2, rad^2, m^2.
     """
 
     def residual(self, values):
         kind = self.kinds[0]
-        p_i, r_i = pose_of(kind, values[0])
-        p_j, r_j = pose_of(kind, values[1])
-        phi = so3.log(r_i.mT @ r_j)
-        height = (r_i.mT @ (p_j - p_i)[..., None]).squeeze(-1)[..., 2:3]
-        return torch.cat((phi[..., 0:2], height), -1)
+        return plane_residual(*pose_of(kind, values[0]), *pose_of(kind, values[1]))
 
 
 class ImuPreintegrationFactor(_Binary):

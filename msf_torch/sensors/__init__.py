@@ -5,6 +5,7 @@ from msf_torch.sensors.camera import reprojection_residual
 from msf_torch.sensors.gnss import gnss_residual
 from msf_torch.sensors.imu import ImuNoise, Preintegrated, preintegrate, propagate_nominal, zoh_step
 from msf_torch.sensors.noise import GaussianNoise
+from msf_torch.sensors.plane import plane_residual
 from msf_torch.sensors.pose import mean_rate_residual, pose_residual
 from msf_torch.sensors.vehicle import nonholonomic_residual, zero_velocity_residual
 from msf_torch.sensors.wheel import body_velocity_residual, wheel_residual, wheel_speed_and_yaw_rate
@@ -17,6 +18,7 @@ __all__ = [
     "gnss_residual",
     "mean_rate_residual",
     "nonholonomic_residual",
+    "plane_residual",
     "pose_residual",
     "preintegrate",
     "propagate_nominal",
