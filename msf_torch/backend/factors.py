@@ -44,6 +44,7 @@ from msf_torch.sensors.imu import Preintegrated, preintegration_residual
 from msf_torch.sensors.plane import plane_residual
 from msf_torch.sensors.pose import pose_residual
 from msf_torch.sensors.vehicle import nonholonomic_residual, zero_velocity_residual
+from msf_torch.sensors.wheel import wheel_increment_residual
 
 _POSE_COLUMNS = [IDX_P.start + i for i in range(3)] + [IDX_THETA.start + i for i in range(3)]
 
@@ -442,59 +443,18 @@ class WheelOdometryFactor(_Binary):
 
     def residual(self, values):
         kind = self.kinds[0]
-        p_i, r_i = pose_of(kind, values[0])
-        p_j, r_j = pose_of(kind, values[1])
-        arm = self.lever_arm.expand_as(p_i)
-        axle_i = p_i + (r_i @ arm[..., None]).squeeze(-1)
-        axle_j = p_j + (r_j @ arm[..., None]).squeeze(-1)
-        local = (r_i.mT @ (axle_j - axle_i)[..., None]).squeeze(-1)
-        rel = r_i.mT @ r_j
-        yaw = torch.atan2(rel[..., 1, 0], rel[..., 0, 0])
-        dyaw = yaw - self.increment[..., 2]
-        dyaw = torch.atan2(torch.sin(dyaw), torch.cos(dyaw))
-        return torch.cat((local[..., 0:2] - self.increment[..., 0:2], dyaw[..., None]), -1)
+        return wheel_increment_residual(
+            *pose_of(kind, values[0]), *pose_of(kind, values[1]), self.increment, self.lever_arm
+        )[0]
 
     def residual_and_jacobians(self, values, kinds):
         kind = self.kinds[0]
         if kind.name == "se3":
             return super().residual_and_jacobians(values, kinds)
-        p_i, r_i = pose_of(kind, values[0])
-        p_j, r_j = pose_of(kind, values[1])
-        arm = self.lever_arm.expand_as(p_i)
-        axle_j = p_j + (r_j @ arm[..., None]).squeeze(-1)
-        offset = (r_i.mT @ (axle_j - p_i)[..., None]).squeeze(-1)  # local + lever arm
-        rel = r_i.mT @ r_j
-        m00, m10, m20 = rel[..., 0, 0], rel[..., 1, 0], rel[..., 2, 0]
-        norm2 = (m00 * m00 + m10 * m10)[..., None]
-        # yaw = atan2(m10, m00); i turns rel by Exp(-th_i) on the left, j by Exp(th_j) on the right
-        yaw_i = torch.stack((m00 * m20, m10 * m20, -(m00 * m00 + m10 * m10)), -1) / norm2
-        yaw_j = (
-            torch.stack(
-                (
-                    torch.zeros_like(m00),
-                    m10 * rel[..., 0, 2] - m00 * rel[..., 1, 2],
-                    m00 * rel[..., 1, 1] - m10 * rel[..., 0, 1],
-                ),
-                -1,
-            )
-            / norm2
+        residual, jac_i, jac_j = wheel_increment_residual(
+            *pose_of(kind, values[0]), *pose_of(kind, values[1]), self.increment, self.lever_arm
         )
-        zeros = torch.zeros_like(p_i)
-        jac_i = torch.cat(
-            (
-                torch.cat((-r_i.mT[..., 0:2, :], so3.hat(offset)[..., 0:2, :]), -1),
-                torch.cat((zeros, yaw_i), -1)[..., None, :],
-            ),
-            -2,
-        )
-        jac_j = torch.cat(
-            (
-                torch.cat((r_i.mT[..., 0:2, :], -(rel @ so3.hat(arm))[..., 0:2, :]), -1),
-                torch.cat((zeros, yaw_j), -1)[..., None, :],
-            ),
-            -2,
-        )
-        return self.residual(values), [_widen(jac_i, kind), _widen(jac_j, kind)]
+        return residual, [_widen(jac_i, kind), _widen(jac_j, kind)]
 
 
 class ReprojectionFactor(_Evaluated, Factor):

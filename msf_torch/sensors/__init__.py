@@ -8,7 +8,12 @@ from msf_torch.sensors.noise import GaussianNoise
 from msf_torch.sensors.plane import plane_residual
 from msf_torch.sensors.pose import mean_rate_residual, pose_residual
 from msf_torch.sensors.vehicle import nonholonomic_residual, zero_velocity_residual
-from msf_torch.sensors.wheel import body_velocity_residual, wheel_residual, wheel_speed_and_yaw_rate
+from msf_torch.sensors.wheel import (
+    body_velocity_residual,
+    wheel_increment_residual,
+    wheel_residual,
+    wheel_speed_and_yaw_rate,
+)
 
 __all__ = [
     "GaussianNoise",
@@ -23,6 +28,7 @@ __all__ = [
     "preintegrate",
     "propagate_nominal",
     "reprojection_residual",
+    "wheel_increment_residual",
     "wheel_residual",
     "wheel_speed_and_yaw_rate",
     "zero_velocity_residual",

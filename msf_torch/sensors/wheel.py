@@ -16,7 +16,12 @@ Sign convention ``r = h(x) - z``; Jacobian w.r.t. ``[dp, dv, dtheta, db_g, db_a]
 
 from __future__ import annotations
 
-__all__ = ["wheel_speed_and_yaw_rate", "body_velocity_residual", "wheel_residual"]
+__all__ = [
+    "wheel_speed_and_yaw_rate",
+    "body_velocity_residual",
+    "wheel_residual",
+    "wheel_increment_residual",
+]
 
 import torch
 
@@ -97,3 +102,67 @@ def _yaw_rate_jacobian(like: torch.Tensor) -> torch.Tensor:
     row = torch.zeros(like.shape[-1], dtype=like.dtype, device=like.device)
     row[IDX_BG.start + 2] = -1.0
     return row.expand(*like.shape[:-2], 1, like.shape[-1])
+
+
+def wheel_increment_residual(
+    position_i: torch.Tensor,
+    rotation_i: torch.Tensor,
+    position_j: torch.Tensor,
+    rotation_j: torch.Tensor,
+    increment: torch.Tensor,
+    lever_arm: torch.Tensor,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Preintegrated planar wheel odometry between poses i and j (back-end keyframes).
+
+    ``r = [(R_i^T (a_j - a_i))_{x,y} - (dx, dy), wrap(yaw(R_i^T R_j) - dyaw)]`` (..., 3),
+    with ``a = p + R l`` the axle centre and ``[dx, dy, dyaw]`` the increment in the body
+    frame of i (m, m, rad).
+
+    Args:
+        position_i, position_j: (..., 3) m. rotation_i, rotation_j: (..., 3, 3).
+        increment: (..., 3). lever_arm: (3,) axle centre in the body frame, m.
+    Returns:
+        residual (..., 3) and Jacobians w.r.t. ``[dp, dtheta]`` of i and of j (..., 3, 6).
+    """
+    arm = lever_arm.expand_as(position_i)
+    axle_i = position_i + (rotation_i @ arm[..., None]).squeeze(-1)
+    axle_j = position_j + (rotation_j @ arm[..., None]).squeeze(-1)
+    local = (rotation_i.mT @ (axle_j - axle_i)[..., None]).squeeze(-1)
+    rel = rotation_i.mT @ rotation_j
+    yaw = torch.atan2(rel[..., 1, 0], rel[..., 0, 0])
+    dyaw = yaw - increment[..., 2]
+    dyaw = torch.atan2(torch.sin(dyaw), torch.cos(dyaw))
+    residual = torch.cat((local[..., 0:2] - increment[..., 0:2], dyaw[..., None]), -1)
+
+    offset = (rotation_i.mT @ (axle_j - position_i)[..., None]).squeeze(-1)  # local + arm
+    m00, m10, m20 = rel[..., 0, 0], rel[..., 1, 0], rel[..., 2, 0]
+    norm2 = (m00 * m00 + m10 * m10)[..., None]
+    # yaw = atan2(m10, m00); i turns rel by Exp(-th_i) on the left, j by Exp(th_j) on the right
+    yaw_i = torch.stack((m00 * m20, m10 * m20, -(m00 * m00 + m10 * m10)), -1) / norm2
+    yaw_j = (
+        torch.stack(
+            (
+                torch.zeros_like(m00),
+                m10 * rel[..., 0, 2] - m00 * rel[..., 1, 2],
+                m00 * rel[..., 1, 1] - m10 * rel[..., 0, 1],
+            ),
+            -1,
+        )
+        / norm2
+    )
+    zeros = torch.zeros_like(position_i)
+    jac_i = torch.cat(
+        (
+            torch.cat((-rotation_i.mT[..., 0:2, :], so3.hat(offset)[..., 0:2, :]), -1),
+            torch.cat((zeros, yaw_i), -1)[..., None, :],
+        ),
+        -2,
+    )
+    jac_j = torch.cat(
+        (
+            torch.cat((rotation_i.mT[..., 0:2, :], -(rel @ so3.hat(arm))[..., 0:2, :]), -1),
+            torch.cat((zeros, yaw_j), -1)[..., None, :],
+        ),
+        -2,
+    )
+    return residual, jac_i, jac_j
