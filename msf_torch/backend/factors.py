@@ -36,13 +36,13 @@ from msf_torch.backend.preintegration import TangentPreintegrated
 from msf_torch.backend.problem import Factor
 from msf_torch.backend.robust import RobustKernel
 from msf_torch.backend.variables import VariableKind, unpack_nav_state, unpack_pose
-from msf_torch.geometry import se3, so3
+from msf_torch.geometry import so3
 from msf_torch.geometry.conventions import IDX_P, IDX_THETA
 from msf_torch.sensors.camera import reprojection_residual
 from msf_torch.sensors.gnss import gnss_residual
 from msf_torch.sensors.imu import Preintegrated, preintegration_residual
 from msf_torch.sensors.plane import plane_residual
-from msf_torch.sensors.pose import pose_residual
+from msf_torch.sensors.pose import pose_residual, relative_pose_residual
 from msf_torch.sensors.vehicle import nonholonomic_residual, zero_velocity_residual
 from msf_torch.sensors.wheel import wheel_increment_residual
 
@@ -235,7 +235,8 @@ class _Binary(Factor):
 
 class BetweenFactor(_Evaluated, _Binary):
     """Relative pose (odometry, loop closure): ``r = Log_SE3(Z^-1 T_i^-1 T_j)`` (6,), order
-    [rho, phi] (translation part first); GTSAM's ``BetweenFactor<Pose3>`` error in our order.
+    [rho, phi] (translation part first): :func:`msf_torch.sensors.pose.relative_pose_residual`,
+    GTSAM's ``BetweenFactor<Pose3>`` error in our order.
 
     Args:
         group, index_i, index_j: variables (F,). rotation: (B|1, F, 3, 3), translation:
@@ -252,22 +253,13 @@ class BetweenFactor(_Evaluated, _Binary):
         kind = self.kinds[0]
         p_i, r_i = pose_of(kind, values[0])
         p_j, r_j = pose_of(kind, values[1])
-        rel_r, rel_t = se3.relative(r_i, p_i, r_j, p_j)
-        err_r, err_t = se3.relative(
-            self.rotation.expand_as(rel_r), self.translation.expand_as(rel_t), rel_r, rel_t
+        xi, jac_i, jac_j = relative_pose_residual(
+            p_i, r_i, p_j, r_j, self.rotation.expand_as(r_i), self.translation.expand_as(p_i)
         )
-        xi = se3.log(err_r, err_t)
-        if not jacobians:
-            return xi, None
-        # our chart moves T by exp([R^T dp, dtheta]) on the right; r = Log(E exp(.)) for j and
-        # Log(E exp(-Ad(T_ij^-1) .)) for i, with d Log(E exp(d)) = J_r^-1(xi) d
-        jr_inv = se3.right_jacobian_inverse(xi)
-        inv_r, inv_t = rel_r.mT, -(rel_r.mT @ rel_t[..., None]).squeeze(-1)
-        jac_i = -jr_inv @ se3.adjoint(inv_r, inv_t)
-        jac_j = jr_inv
-        if kind.name == "se3":
-            return xi, [jac_i, jac_j]
-        jac_j = torch.cat((jr_inv[..., :, 0:3] @ r_j.mT, jr_inv[..., :, 3:6]), -1)
+        if not jacobians or kind.name == "se3":
+            return xi, [jac_i, jac_j] if jacobians else None
+        # our chart moves p by dp = R rho (world), so d/d(dp) = d/d(rho) R^T
+        jac_j = torch.cat((jac_j[..., :, 0:3] @ r_j.mT, jac_j[..., :, 3:6]), -1)
         jac_i = torch.cat((jac_i[..., :, 0:3] @ r_i.mT, jac_i[..., :, 3:6]), -1)
         return xi, [_widen(jac_i, kind), _widen(jac_j, kind)]
 

@@ -6,7 +6,7 @@ from msf_torch.sensors.gnss import gnss_residual
 from msf_torch.sensors.imu import ImuNoise, Preintegrated, preintegrate, propagate_nominal, zoh_step
 from msf_torch.sensors.noise import GaussianNoise
 from msf_torch.sensors.plane import plane_residual
-from msf_torch.sensors.pose import mean_rate_residual, pose_residual
+from msf_torch.sensors.pose import mean_rate_residual, pose_residual, relative_pose_residual
 from msf_torch.sensors.vehicle import nonholonomic_residual, zero_velocity_residual
 from msf_torch.sensors.wheel import (
     body_velocity_residual,
@@ -27,6 +27,7 @@ __all__ = [
     "pose_residual",
     "preintegrate",
     "propagate_nominal",
+    "relative_pose_residual",
     "reprojection_residual",
     "wheel_increment_residual",
     "wheel_residual",

@@ -13,11 +13,11 @@ relative rotation gives ``z_w = Log(R_k-1^T R_k) / dt``, the gyro its bias-corre
 
 from __future__ import annotations
 
-__all__ = ["pose_residual", "mean_rate_residual"]
+__all__ = ["pose_residual", "mean_rate_residual", "relative_pose_residual"]
 
 import torch
 
-from msf_torch.geometry import so3
+from msf_torch.geometry import se3, so3
 from msf_torch.geometry.conventions import IDX_BG, IDX_P, IDX_THETA
 from msf_torch.sensors._jacobian import error_state_jacobian
 
@@ -60,3 +60,30 @@ def mean_rate_residual(
         3, [(IDX_BG, -eye.expand(*residual.shape[:-1], 3, 3))], like=residual
     )
     return residual, jac
+
+
+def relative_pose_residual(
+    position_i: torch.Tensor,
+    rotation_i: torch.Tensor,
+    position_j: torch.Tensor,
+    rotation_j: torch.Tensor,
+    measured_rotation: torch.Tensor,
+    measured_translation: torch.Tensor,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Relative pose (odometry, loop closure): ``r = Log_SE3(Z^-1 T_i^-1 T_j)`` (..., 6) in
+    [rho, phi] order (translation part first; GTSAM's ``BetweenFactor<Pose3>`` error).
+
+    Args:
+        position_i, position_j: (..., 3) m. rotation_i, rotation_j: (..., 3, 3).
+        measured_rotation: (..., 3, 3), measured_translation: (..., 3) m: ``Z = T_i^-1 T_j``.
+    Returns:
+        residual (..., 6) and Jacobians (..., 6, 6) w.r.t. the body-frame SE(3) steps
+        ``T <- T exp([rho, phi])`` of i and of j: ``-J_r^-1(r) Ad(T_j^-1 T_i)`` and
+        ``J_r^-1(r)``.
+    """
+    rel_r, rel_t = se3.relative(rotation_i, position_i, rotation_j, position_j)
+    err_r, err_t = se3.relative(measured_rotation, measured_translation, rel_r, rel_t)
+    xi = se3.log(err_r, err_t)
+    jr_inv = se3.right_jacobian_inverse(xi)
+    inv_r, inv_t = rel_r.mT, -(rel_r.mT @ rel_t[..., None]).squeeze(-1)
+    return xi, -jr_inv @ se3.adjoint(inv_r, inv_t), jr_inv
