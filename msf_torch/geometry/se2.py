@@ -1,0 +1,58 @@
+"""Planar rigid motions SE(2) as ``(..., 3)`` tensors ``[x, y, theta]`` (m, m, rad).
+
+A pose ``a = [x, y, theta]`` maps a point ``p`` of its own frame to the parent frame as
+``R(theta) p + [x, y]``. Composition ``compose(a, b)`` is the pose of frame ``b`` expressed in
+``a``'s parent (``a`` then ``b``); ``between(a, b) = compose(inverse(a), b)`` is ``b`` seen
+from ``a``. Angles are wrapped to ``(-pi, pi]``. Batch dimensions broadcast.
+
+Example:
+    >>> import torch
+    >>> a = torch.tensor([1.0, 0.0, 1.5707963267948966], dtype=torch.float64)
+    >>> compose(a, torch.tensor([1.0, 0.0, 0.0], dtype=torch.float64)).round(decimals=6)
+    tensor([1.0000, 1.0000, 1.5708], dtype=torch.float64)
+"""
+
+from __future__ import annotations
+
+__all__ = ["wrap_angle", "rotation", "compose", "inverse", "between", "transform_points"]
+
+import math
+
+import torch
+
+
+def wrap_angle(angle: torch.Tensor) -> torch.Tensor:
+    """Angle (...) rad wrapped to ``(-pi, pi]``."""
+    return angle - 2.0 * math.pi * torch.ceil((angle - math.pi) / (2.0 * math.pi))
+
+
+def rotation(theta: torch.Tensor) -> torch.Tensor:
+    """Rotation matrices (..., 2, 2) of angles (...) rad."""
+    c, s = torch.cos(theta), torch.sin(theta)
+    return torch.stack((torch.stack((c, -s), -1), torch.stack((s, c), -1)), -2)
+
+
+def compose(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """``a (+) b``: poses (..., 3) -> (..., 3)."""
+    c, s = torch.cos(a[..., 2]), torch.sin(a[..., 2])
+    x = a[..., 0] + c * b[..., 0] - s * b[..., 1]
+    y = a[..., 1] + s * b[..., 0] + c * b[..., 1]
+    return torch.stack((x, y, wrap_angle(a[..., 2] + b[..., 2])), -1)
+
+
+def inverse(a: torch.Tensor) -> torch.Tensor:
+    """``a^-1``: poses (..., 3) -> (..., 3)."""
+    c, s = torch.cos(a[..., 2]), torch.sin(a[..., 2])
+    x = -c * a[..., 0] - s * a[..., 1]
+    y = s * a[..., 0] - c * a[..., 1]
+    return torch.stack((x, y, wrap_angle(-a[..., 2])), -1)
+
+
+def between(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """``a^-1 (+) b``, the pose of ``b`` in the frame of ``a``: (..., 3) -> (..., 3)."""
+    return compose(inverse(a), b)
+
+
+def transform_points(pose: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
+    """Points (..., N, 2) of a frame mapped by its pose (..., 3) into the parent frame."""
+    return points @ rotation(pose[..., 2]).mT + pose[..., None, :2]
