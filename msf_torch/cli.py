@@ -145,6 +145,26 @@ def build_parser() -> argparse.ArgumentParser:
         default=1e-5,
         help="stop when a step lowers the cost by at most this fraction (GTSAM's relativeErrorTol)",
     )
+
+    lm = sub.add_parser(
+        "lidar-map", help="2D LiDAR scan odometry (PLICP) and an occupancy map (PNG + YAML)"
+    )
+    lm.add_argument("scans", nargs="?", type=Path, default=None, help="scan file (.npz)")
+    lm.add_argument("--out", type=Path, required=True, help="output folder")
+    lm.add_argument(
+        "--simulate",
+        choices=("corridor", "warehouse"),
+        default=None,
+        help="simulate a run in this map instead (written to OUT/scans.npz)",
+    )
+    lm.add_argument("--seed", type=int, default=0, help="seed of --simulate")
+    lm.add_argument("--duration", type=float, default=None, help="seconds of --simulate")
+    lm.add_argument("--resolution", type=float, default=0.05, help="map cell size, m")
+    lm.add_argument(
+        "--identity-guess",
+        action="store_true",
+        help="start PLICP from identity, not from the scans' wheel odometry",
+    )
     return parser
 
 
@@ -355,6 +375,31 @@ def _cmd_posegraph(args) -> dict[str, Any]:
     return summary
 
 
+def _cmd_lidar_map(args) -> dict[str, Any]:
+    from msf_torch.io.scans import read_scans, write_scans
+    from msf_torch.lidar.grid import GridConfig
+    from msf_torch.lidar.mapping import map_from_scans
+
+    if (args.scans is None) == (args.simulate is None):
+        raise ValueError("give a scan file or --simulate MAP (one of the two)")
+    path = args.scans
+    if args.simulate is not None:
+        from msf_torch.sim.lidar2d import corridor_map, simulate_lidar_run, warehouse_map
+
+        builder = corridor_map if args.simulate == "corridor" else warehouse_map
+        run = simulate_lidar_run(builder(), seed=args.seed, duration_s=args.duration)
+        path = write_scans(
+            args.out / "scans.npz", run.t, run.angles, run.ranges, run.odometry, run.truth
+        )
+    summary = map_from_scans(
+        read_scans(path),
+        args.out,
+        GridConfig(resolution_m=args.resolution),
+        use_odometry=not args.identity_guess,
+    )
+    return {"scans_file": str(path), **summary}
+
+
 def main(argv: list[str] | None = None) -> int:
     """Entry point of the ``msf`` console script; returns the exit status."""
     from msf_torch.io.errors import DataError, MissingExtraError
@@ -365,6 +410,7 @@ def main(argv: list[str] | None = None) -> int:
         "eval": _cmd_eval,
         "simulate": _cmd_simulate,
         "posegraph": _cmd_posegraph,
+        "lidar-map": _cmd_lidar_map,
     }
     try:
         result = commands[args.command](args)

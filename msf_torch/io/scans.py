@@ -1,0 +1,102 @@
+"""2D LiDAR scan files (``.npz``): ranges per beam, beam angles, optional odometry and truth.
+
+Keys (float64):
+
+* ``t`` (N,): scan times, s, strictly increasing;
+* ``angles`` (K,): beam angles in the sensor frame, rad, evenly spaced and increasing
+  (0 = sensor x axis, counter-clockwise);
+* ``ranges`` (N, K): ranges, m; NaN (or inf) where a beam returned nothing;
+* ``odometry`` (N, 3), optional: wheel-odometry pose ``[x, y, yaw]`` at each scan (m, rad),
+  used as PLICP's initial guesses;
+* ``truth`` (N, 3), optional: true pose at each scan, for evaluation.
+
+Example:
+    >>> from msf_torch.io.scans import read_scans, write_scans
+    >>> from msf_torch.sim.lidar2d import corridor_map, simulate_lidar_run
+    >>> run = simulate_lidar_run(corridor_map(), seed=0, duration_s=1.0)
+    >>> path = write_scans("/tmp/scans_doctest.npz", run.t, run.angles, run.ranges,
+    ...                    odometry=run.odometry, truth=run.truth)
+    >>> read_scans(path)["ranges"].shape
+    torch.Size([11, 541])
+"""
+
+from __future__ import annotations
+
+__all__ = ["read_scans", "write_scans"]
+
+import os
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from msf_torch.io.atomic import atomic_save_npz
+from msf_torch.io.errors import DataError
+
+
+def write_scans(
+    path: str | os.PathLike[str],
+    t: torch.Tensor,
+    angles: torch.Tensor,
+    ranges: torch.Tensor,
+    odometry: torch.Tensor | None = None,
+    truth: torch.Tensor | None = None,
+) -> Path:
+    """Write a scan file (see the module docstring); returns its path."""
+    arrays = {
+        "t": t.detach().cpu().numpy(),
+        "angles": angles.detach().cpu().numpy(),
+        "ranges": ranges.detach().cpu().numpy(),
+    }
+    if odometry is not None:
+        arrays["odometry"] = odometry.detach().cpu().numpy()
+    if truth is not None:
+        arrays["truth"] = truth.detach().cpu().numpy()
+    target = Path(path)
+    target.parent.mkdir(parents=True, exist_ok=True)
+    atomic_save_npz(target, **arrays)
+    return target
+
+
+def read_scans(path: str | os.PathLike[str]) -> dict[str, torch.Tensor]:
+    """Read and check a scan file; returns float64 tensors by key (``ranges`` with NaN where
+    there is no return).
+
+    Raises:
+        DataError: naming the file and key when a key is missing or a shape or value is bad.
+    """
+    source = Path(path)
+    try:
+        with np.load(source) as data:
+            arrays = {key: np.asarray(data[key], dtype=np.float64) for key in data.files}
+    except (OSError, ValueError) as err:
+        raise DataError(source, f"cannot read as .npz: {err}") from err
+    for key in ("t", "angles", "ranges"):
+        if key not in arrays:
+            raise DataError(source, "missing key", field=key)
+    t, angles, ranges = arrays["t"], arrays["angles"], arrays["ranges"]
+    if t.ndim != 1 or angles.ndim != 1 or ranges.shape != (t.shape[0], angles.shape[0]):
+        raise DataError(
+            source,
+            f"expected t (N,), angles (K,), ranges (N, K); got {t.shape}, {angles.shape}, "
+            f"{ranges.shape}",
+            field="ranges",
+        )
+    if not np.all(np.isfinite(t)) or np.any(np.diff(t) <= 0):
+        bad = int(np.argmax(~np.isfinite(t[1:]) | (np.diff(t) <= 0))) + 1
+        raise DataError(source, f"times must be finite and increasing (scan {bad})", field="t")
+    step = np.diff(angles)
+    if len(angles) < 2 or not np.all(step > 0) or np.ptp(step) > 1e-6 * abs(step.mean()):
+        raise DataError(source, "beam angles must be evenly spaced and increasing", field="angles")
+    with np.errstate(invalid="ignore"):
+        negative = np.isfinite(ranges) & (ranges < 0)
+    if negative.any():
+        scan, beam = np.argwhere(negative)[0]
+        raise DataError(source, f"negative range at scan {scan}, beam {beam}", field="ranges")
+    arrays["ranges"] = np.where(np.isfinite(ranges), ranges, np.nan)
+    for key in ("odometry", "truth"):
+        if key in arrays and arrays[key].shape != (t.shape[0], 3):
+            raise DataError(
+                source, f"expected ({t.shape[0]}, 3), got {arrays[key].shape}", field=key
+            )
+    return {key: torch.as_tensor(value) for key, value in arrays.items()}

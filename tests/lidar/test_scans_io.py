@@ -1,0 +1,58 @@
+"""Scan files and ``msf lidar-map``."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from msf_torch.cli import main
+from msf_torch.io.errors import DataError
+from msf_torch.io.scans import read_scans, write_scans
+from msf_torch.lidar.grid import read_map
+from msf_torch.sim.lidar2d import corridor_map, simulate_lidar_run
+
+
+def test_round_trip(tmp_path):
+    run = simulate_lidar_run(corridor_map(), seed=1, duration_s=0.5)
+    path = write_scans(tmp_path / "s.npz", run.t, run.angles, run.ranges, run.odometry)
+    back = read_scans(path)
+    assert set(back) == {"t", "angles", "ranges", "odometry"}
+    assert torch.equal(back["t"], run.t) and torch.equal(back["odometry"], run.odometry)
+    assert torch.equal(torch.isnan(back["ranges"]), torch.isnan(run.ranges))
+    assert torch.equal(back["ranges"].nan_to_num(), run.ranges.nan_to_num())
+
+
+@pytest.mark.parametrize(
+    ("change", "field"),
+    [
+        ({"t": np.array([0.0, 0.2, 0.1])}, "t"),
+        ({"angles": np.array([0.0, 0.1, 0.3])}, "angles"),
+        ({"ranges": np.array([[1.0, -2.0, 1.0]] * 3)}, "ranges"),
+        ({"odometry": np.zeros((2, 3))}, "odometry"),
+    ],
+)
+def test_bad_files_name_the_key(tmp_path, change, field):
+    arrays = {"t": np.array([0.0, 0.1, 0.2]), "angles": np.array([0.0, 0.1, 0.2]),
+              "ranges": np.ones((3, 3))}  # fmt: skip
+    arrays.update(change)
+    path = tmp_path / "bad.npz"
+    np.savez(path, **arrays)
+    with pytest.raises(DataError, match=field):
+        read_scans(path)
+
+
+def test_cli_lidar_map(tmp_path, capsys):
+    out = tmp_path / "map"
+    status = main(["lidar-map", "--simulate", "corridor", "--duration", "2", "--out", str(out)])
+    assert status == 0
+    summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert summary["scans"] == 21 and summary["initial_guess"] == "odometry"
+    assert summary["failed_pairs"] == 0
+    assert summary["lidar_error"]["final_m"] < 0.05
+    grid = read_map(out / "map.yaml")
+    assert (grid.trinary == 1).sum() == summary["occupied_cells"]
+    assert (out / "lidar_odometry.tum").read_text().count("\n") == 22  # header + 21 poses
+    assert main(["lidar-map", "--out", str(out)]) == 2
