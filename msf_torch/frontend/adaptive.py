@@ -23,6 +23,15 @@ When the filter's model matches, ``E[V] = H P^- H^T + R`` and lambda stays near 
 model mismatch (an unmodelled manoeuvre, a jump) makes the innovations larger than the
 filter believes, and lambda > 1 makes it forget the past faster.
 
+Multiplying all of ``Phi P Phi^T`` also inflates the directions the measurement does not
+see (an INS's biases, an attitude filter's yaw): repeated at every epoch they grow
+geometrically (covariance wind-up, as in recursive least squares without directional
+forgetting). :func:`inflate_along_measurements` adds ``(lambda - 1)`` times only the part
+of ``Phi P Phi^T`` that the measurement explains, ``A M^-1 A^T`` with
+``A = Phi P Phi^T H^T``: in the measurement space it is the same as full fading
+(``H P^- H^T = lambda M + H Q H^T``, cross covariance ``lambda A``, hence the same gain),
+and states uncorrelated with the measurement keep their covariance.
+
 Sage-Husa (Sage & Husa 1969) estimates the measurement-noise covariance from
 ``E[nu nu^T] = H P^- H^T + R``:
 
@@ -41,7 +50,8 @@ geometrically, by up to a factor ``1 + d (max_nis / m - 1)`` per sample.
 
 Everything is batched over leading dims, float64-ready and differentiable (the max and the
 clip are piecewise smooth; the projection differentiates through ``eigh`` only where it
-acts).
+acts). :class:`BlockAdaptation` applies both to a filter's stacked measurement vector
+made of named blocks (the ESKF's wheel / GNSS / pose / ... blocks).
 """
 
 from __future__ import annotations
@@ -51,11 +61,18 @@ __all__ = [
     "clipped_outer",
     "update_innovation_covariance",
     "fading_factor",
+    "inflate_along_measurements",
     "project_positive_definite",
     "sage_husa_update",
+    "BlockAdaptation",
 ]
 
+import math
+from collections.abc import Sequence
+
 import torch
+
+from msf_torch.frontend.gating import chi2_threshold
 
 
 def _check_forgetting(forgetting: float) -> None:
@@ -89,6 +106,8 @@ def clipped_outer(
 ) -> torch.Tensor:
     """``s nu nu^T`` with ``s = min(1, max_nis / (nu^T S^-1 nu))`` (``s = 1`` without a clip).
 
+    Where S is not positive definite nothing is clipped.
+
     Args:
         innovation: (..., m).
         innovation_cov: (..., m, m) S, needed when ``max_nis`` is given.
@@ -101,10 +120,13 @@ def clipped_outer(
         return outer
     if innovation_cov is None:
         raise ValueError("clipped_outer: max_nis needs innovation_cov")
-    chol = torch.linalg.cholesky(innovation_cov)
+    chol, info = torch.linalg.cholesky_ex(innovation_cov)
+    eye = torch.eye(innovation.shape[-1], dtype=innovation.dtype, device=innovation.device)
+    chol = torch.where((info == 0)[..., None, None], chol, eye)
     white = torch.linalg.solve_triangular(chol, innovation[..., None], upper=False)
     nis = (white**2).sum((-2, -1))
-    scale = torch.where(nis > max_nis, max_nis / nis.clamp_min(max_nis), 1.0)
+    clip = (nis > max_nis) & (info == 0)
+    scale = torch.where(clip, max_nis / nis.clamp_min(max_nis), 1.0)
     return outer * scale[..., None, None]
 
 
@@ -140,8 +162,9 @@ def fading_factor(
     measurement_cov: torch.Tensor,
     process_in_measurement: torch.Tensor | None = None,
     softening: float = 1.0,
+    max_factor: float | None = None,
 ) -> torch.Tensor:
-    """Strong-tracking fading factor ``lambda = max(1, tr N / tr M)``.
+    """Strong-tracking fading factor ``lambda = max(1, tr N / tr M)``, optionally capped.
 
     ``N = V - H Q H^T - beta R``, ``M = H Phi P Phi^T H^T``.
 
@@ -153,8 +176,9 @@ def fading_factor(
         process_in_measurement: (..., m, m) ``H Q H^T`` or None (0: e.g. a UKF whose
             ``M`` already contains Q).
         softening: beta >= 1 makes the factor less eager.
+        max_factor: upper bound on lambda, or None.
     Returns:
-        (...) lambda >= 1; 1 where ``tr M`` is 0.
+        (...) lambda in [1, max_factor]; 1 where ``tr M`` is 0.
     """
     diff = innovation_estimate - softening * measurement_cov
     if process_in_measurement is not None:
@@ -163,7 +187,42 @@ def fading_factor(
     denominator = torch.diagonal(predicted, dim1=-2, dim2=-1).sum(-1)
     positive = denominator > 0
     ratio = numerator / torch.where(positive, denominator, 1.0)
-    return torch.where(positive, ratio, 1.0).clamp_min(1.0)
+    return torch.where(positive, ratio, 1.0).clamp(1.0, max_factor)
+
+
+def inflate_along_measurements(
+    propagated: torch.Tensor,
+    jacobian: torch.Tensor,
+    factor: torch.Tensor,
+    row_mask: torch.Tensor | None = None,
+) -> torch.Tensor:
+    """Directional fading ``Phi P Phi^T + (lambda - 1) A M^-1 A^T``.
+
+    ``A = Phi P Phi^T H^T``, ``M = H Phi P Phi^T H^T`` over the rows in ``row_mask``.
+    With ``H = I`` this is ``lambda Phi P Phi^T``, the classic full fading.
+
+    Args:
+        propagated: (..., n, n) ``Phi P Phi^T``.
+        jacobian: (..., m, n) H.
+        factor: (...) lambda >= 1.
+        row_mask: (..., m) 1/0 (or bool), the rows that count; None = all.
+    Returns:
+        (..., n, n); ``propagated`` unchanged where M is singular (no inflation there).
+    """
+    if row_mask is not None:
+        mask = row_mask.to(jacobian.dtype)
+        jacobian = jacobian * mask[..., :, None]
+    cross = propagated @ jacobian.mT  # (..., n, m)
+    seen = jacobian @ cross
+    if row_mask is not None:
+        seen = seen + torch.diag_embed(1.0 - mask)
+    chol, info = torch.linalg.cholesky_ex(seen)
+    ok = info == 0
+    eye = torch.eye(seen.shape[-1], dtype=seen.dtype, device=seen.device)
+    chol = torch.where(ok[..., None, None], chol, eye)
+    explained = cross @ torch.cholesky_solve(cross.mT, chol)
+    extra = (factor - 1.0).where(ok, 0.0)[..., None, None] * explained
+    return propagated + 0.5 * (extra + extra.mT)
 
 
 def project_positive_definite(matrix: torch.Tensor, min_eigenvalue: torch.Tensor) -> torch.Tensor:
@@ -225,3 +284,193 @@ def sage_husa_update(
     weight = forgetting_weight(count, forgetting, prior_count)[..., None, None]
     sample = clipped_outer(innovation, innovation_cov, max_nis) - predicted_measurement_cov
     return project_positive_definite((1.0 - weight) * previous + weight * sample, min_eigenvalue)
+
+
+class BlockAdaptation:
+    """Sage-Husa R and strong tracking over a stacked measurement vector of named blocks.
+
+    Per epoch, for each block present in a sequence (all B at once):
+
+    1. Sage-Husa blocks: ``R_hat`` is updated with the block's innovation and
+       ``H P^- H^T`` (``P^- = Phi P Phi^T + Q``, before fading; the nominal R of the
+       block's first measurement is the prior, worth ``prior_samples`` samples; floor
+       ``noise_floor`` x the nominal R's smallest eigenvalue) and replaces the block's R.
+    2. Strong-tracking blocks: ``V`` is updated with the innovation; each present block
+       gives ``lambda_k`` (:func:`fading_factor`, with the R of step 1);
+       ``lambda = max_k lambda_k`` (1 where none), at most ``max_factor``, inflates
+       ``Phi P Phi^T`` along the rows of the present strong-tracking blocks
+       (:func:`inflate_along_measurements`), then ``P^- = ... + Q``. Full fading of the
+       15-state ESKF covariance at every GNSS epoch made the bias covariance grow
+       geometrically and the filter diverge on simulated runs; the cap keeps a filter
+       whose R is too small from chasing its measurements without bound.
+
+    Innovations are clipped at the chi-square quantile ``clip_probability`` of the block's
+    dimension against the block's innovation covariance before adaptation.
+
+    Args:
+        names, dims: the blocks of the stacked vector, in order, and their row counts.
+        noise_blocks, tracking_blocks: names of the blocks to adapt (others are ignored).
+        batch: B.
+        forgetting: b in (0, 1).
+        prior_samples, noise_floor, softening, clip_probability, max_factor: see above.
+    """
+
+    def __init__(
+        self,
+        names: Sequence[str],
+        dims: Sequence[int],
+        noise_blocks: Sequence[str],
+        tracking_blocks: Sequence[str],
+        batch: int,
+        forgetting: float,
+        prior_samples: float = 10.0,
+        noise_floor: float = 0.1,
+        softening: float = 1.0,
+        clip_probability: float = 0.9999,
+        max_factor: float | None = None,
+        dtype: torch.dtype = torch.float64,
+        device: torch.device | str | None = None,
+    ) -> None:
+        _check_forgetting(forgetting)
+        offsets = [sum(dims[:k]) for k in range(len(dims))]
+        self._slices = {n: slice(o, o + d) for n, o, d in zip(names, offsets, dims, strict=True)}
+        self._column = {n: k for k, n in enumerate(names)}
+        self.noise_blocks = [n for n in names if n in noise_blocks]
+        self.tracking_blocks = [n for n in names if n in tracking_blocks]
+        self._forgetting = forgetting
+        self._prior_samples = prior_samples
+        self._noise_floor = noise_floor
+        self._softening = softening
+        self._max_factor = max_factor
+        self._clip = {}
+        for n, d in zip(names, dims, strict=True):
+            level = chi2_threshold(d, clip_probability)
+            self._clip[n] = level if math.isfinite(level) else None
+        self._batch, self._dtype, self._device = batch, dtype, device
+
+        def zeros(*shape: int) -> torch.Tensor:
+            return torch.zeros(*shape, dtype=dtype, device=device)
+
+        size = {n: d for n, d in zip(names, dims, strict=True)}
+        self._r_hat = {n: zeros(batch, size[n], size[n]) for n in self.noise_blocks}
+        self._r_count = {n: zeros(batch) for n in self.noise_blocks}
+        self._v = {n: zeros(batch, size[n], size[n]) for n in self.tracking_blocks}
+        self._v_count = {n: zeros(batch) for n in self.tracking_blocks}
+        self._fading: dict[int, torch.Tensor] = {}
+        self._noise: dict[int, dict[str, torch.Tensor]] = {}
+
+    @property
+    def enabled(self) -> bool:
+        """Whether any block is adapted."""
+        return bool(self.noise_blocks or self.tracking_blocks)
+
+    def step(
+        self,
+        epoch: int,
+        propagated: torch.Tensor,
+        process: torch.Tensor,
+        jacobian: torch.Tensor,
+        residual: torch.Tensor,
+        measurement_cov: torch.Tensor,
+        present: torch.Tensor,
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Adapt one epoch.
+
+        Args:
+            epoch: index, for :meth:`history`.
+            propagated: (B, n, n) ``Phi P Phi^T``.
+            process: (B, n, n) Q.
+            jacobian: (B, M, n) stacked H.
+            residual: (B, M) stacked innovations (either sign).
+            measurement_cov: (B, M, M) stacked nominal R.
+            present: (B, K) bool, block k has a measurement.
+        Returns:
+            ``P^-`` (B, n, n) and the stacked R to use (B, M, M).
+        """
+        predicted = propagated + process
+        r_cov = measurement_cov.clone() if self.noise_blocks else measurement_cov
+        for name in self.noise_blocks:
+            rows = self._slices[name]
+            here = present[:, self._column[name]]
+            h = jacobian[:, rows]
+            nominal = measurement_cov[:, rows, rows]
+            eye = torch.eye(nominal.shape[-1], dtype=self._dtype, device=self._device)
+            nominal = torch.where(here[:, None, None], nominal, eye)
+            count = self._r_count[name]
+            previous = torch.where((count > 0)[:, None, None], self._r_hat[name], nominal)
+            h_p_ht = h @ predicted @ h.mT
+            floor = self._noise_floor * torch.linalg.eigvalsh(nominal)[:, 0]
+            updated = sage_husa_update(
+                previous,
+                residual[:, rows],
+                h_p_ht,
+                count,
+                self._forgetting,
+                floor,
+                self._prior_samples,
+                h_p_ht + previous,
+                self._clip[name],
+            )
+            self._r_hat[name] = torch.where(here[:, None, None], updated, self._r_hat[name])
+            self._r_count[name] = count + here.to(self._dtype)
+            r_cov[:, rows, rows] = torch.where(
+                here[:, None, None], self._r_hat[name], measurement_cov[:, rows, rows]
+            )
+        fading = torch.ones(self._batch, dtype=self._dtype, device=self._device)
+        row_mask = torch.zeros_like(residual)
+        for name in self.tracking_blocks:
+            rows = self._slices[name]
+            here = present[:, self._column[name]]
+            h = jacobian[:, rows]
+            block_r = r_cov[:, rows, rows]
+            eye = torch.eye(block_r.shape[-1], dtype=self._dtype, device=self._device)
+            block_r = torch.where(here[:, None, None], block_r, eye)
+            count = self._v_count[name]
+            innovation_cov = h @ predicted @ h.mT + block_r
+            v = update_innovation_covariance(
+                self._v[name],
+                residual[:, rows],
+                count,
+                self._forgetting,
+                innovation_cov,
+                self._clip[name],
+            )
+            self._v[name] = torch.where(here[:, None, None], v, self._v[name])
+            self._v_count[name] = count + here.to(self._dtype)
+            lam = fading_factor(
+                self._v[name],
+                h @ propagated @ h.mT,
+                block_r,
+                h @ process @ h.mT,
+                self._softening,
+                self._max_factor,
+            )
+            fading = torch.maximum(fading, torch.where(here, lam, 1.0))
+            row_mask[:, rows] = here.to(self._dtype)[:, None]
+        if self.tracking_blocks:
+            faded = inflate_along_measurements(propagated, jacobian, fading, row_mask)
+            predicted = faded + process
+        self._fading[epoch] = fading
+        self._noise[epoch] = dict(self._r_hat)
+        return predicted, r_cov
+
+    def history(self, n_epochs: int) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+        """Per-epoch record, index 0 the initial state (as the filter's results).
+
+        Returns:
+            fading (B, E + 1), 1 where nothing was adapted; and per Sage-Husa block the
+            ``R_hat`` in force after each epoch (B, E + 1, d, d), carried over epochs
+            without the block, zeros before its first measurement.
+        """
+        ones = torch.ones(self._batch, dtype=self._dtype, device=self._device)
+        fading = [ones] + [self._fading.get(e, ones) for e in range(n_epochs)]
+        noise = {}
+        for name in self.noise_blocks:
+            current = torch.zeros_like(self._r_hat[name])
+            steps = [current]
+            for e in range(n_epochs):
+                if e in self._noise:
+                    current = self._noise[e][name]
+                steps.append(current)
+            noise[name] = torch.stack(steps, 1)
+        return torch.stack(fading, 1), noise

@@ -96,6 +96,21 @@ class EskfConfig:
     slip_flag_below: float = 0.5  # a wheel epoch counts as slipping below this factor
     # time tolerance when merging measurement times, s
     time_tolerance_s: float = 1e-6
+    # adaptive noise (frontend.adaptive); both lists empty = off, results as without
+    # Sage-Husa estimate of the measurement noise R of these blocks: "gnss", "pose",
+    # "pose:<name>" (not wheel/NHC/ZUPT: the slip factor and the pseudo-measurements set
+    # their own noise)
+    adaptive_noise_sensors: list[str] = field(default_factory=list)
+    # strong tracking: a fading factor from the innovations of these blocks (any sensor key)
+    # inflates the predicted covariance
+    strong_tracking_sensors: list[str] = field(default_factory=list)
+    adaptive_forgetting: float = 0.95  # b of the exponential fading, 0.95-0.99 in practice
+    adaptive_prior_samples: float = 10.0  # what the nominal R is worth, in samples
+    adaptive_noise_floor: float = 0.1  # R_hat eigenvalues >= this x the nominal R's smallest
+    strong_tracking_softening: float = 1.0  # beta in N = V - H Q H^T - beta R
+    strong_tracking_max_factor: float = 10.0  # cap on the fading factor
+    # one innovation moves R_hat or V by at most this chi-square quantile (1.0: no clip)
+    adaptive_clip_probability: float = 0.9999
 
     def replace(self, **changes: Any) -> EskfConfig:
         """A copy with ``changes`` applied (names are checked)."""
@@ -142,6 +157,7 @@ class EskfConfig:
             )
         if not 0.0 < self.gate_probability <= 1.0:
             raise ValueError("config key 'gate_probability' must lie in (0, 1]")
+        self._validate_adaptive()
         for key in (
             "wheel_lever_arm_m",
             "nhc_lever_arm_m",
@@ -153,6 +169,38 @@ class EskfConfig:
             value = getattr(self, key)
             if len(value) != 3:
                 raise ValueError(f"config key '{key}' must have 3 entries, got {value!r}")
+
+    def _validate_adaptive(self) -> None:
+        """Raise ``ValueError`` naming the first bad adaptive-noise key."""
+        blocks = ("wheel", "nhc", "zupt", "gnss", "pose")
+        for key, allowed in (
+            ("adaptive_noise_sensors", ("gnss", "pose")),
+            ("strong_tracking_sensors", blocks),
+        ):
+            names = getattr(self, key)
+            if not isinstance(names, list) or not all(
+                isinstance(n, str) and (n in allowed or (n.startswith("pose:") and len(n) > 5))
+                for n in names
+            ):
+                raise ValueError(
+                    f"config key '{key}' must be a list of {', '.join(allowed)} or "
+                    f"'pose:<name>', got {names!r}"
+                )
+        if not 0.0 < self.adaptive_forgetting < 1.0:
+            raise ValueError("config key 'adaptive_forgetting' must lie in (0, 1)")
+        if not 0.0 < self.adaptive_clip_probability <= 1.0:
+            raise ValueError("config key 'adaptive_clip_probability' must lie in (0, 1]")
+        if not self.strong_tracking_max_factor >= 1.0:
+            raise ValueError("config key 'strong_tracking_max_factor' must be >= 1")
+        for key in ("adaptive_noise_floor", "strong_tracking_softening"):
+            value = getattr(self, key)
+            if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
+                raise ValueError(f"config key '{key}' must be a positive number, got {value!r}")
+        prior = self.adaptive_prior_samples
+        if not (isinstance(prior, (int, float)) and math.isfinite(prior) and prior >= 0):
+            raise ValueError(
+                f"config key 'adaptive_prior_samples' must be a non-negative number, got {prior!r}"
+            )
 
 
 def load_config(path: str | Path | None = None, **overrides: Any) -> EskfConfig:

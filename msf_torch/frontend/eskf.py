@@ -66,6 +66,7 @@ from dataclasses import dataclass, field
 
 import torch
 
+from msf_torch.frontend.adaptive import BlockAdaptation
 from msf_torch.frontend.config import EskfConfig
 from msf_torch.frontend.gating import chi2_threshold
 from msf_torch.frontend.init import initial_state
@@ -149,6 +150,11 @@ class EskfResult:
             sensors are :data:`SENSORS` and ``"pose:<name>"`` per fused pose source.
         nis: sensor -> (B, E + 1) normalised innovation squared (0 where absent).
         gap: (B, E + 1) bool, an IMU gap was bridged in this epoch.
+        fading_factor: (B, E + 1) strong-tracking factor on the predicted covariance (1 =
+            none; all 1 without ``strong_tracking_sensors``).
+        noise_estimate: Sage-Husa block (``adaptive_noise_sensors``) -> (B, E + 1, d, d)
+            the estimated measurement covariance in force after each epoch (zeros before
+            the block's first measurement).
     """
 
     names: list[str]
@@ -165,6 +171,8 @@ class EskfResult:
     accepted: dict[str, torch.Tensor] = field(default_factory=dict)
     nis: dict[str, torch.Tensor] = field(default_factory=dict)
     gap: torch.Tensor | None = None
+    fading_factor: torch.Tensor | None = None
+    noise_estimate: dict[str, torch.Tensor] = field(default_factory=dict)
 
     def trajectory(self) -> Trajectory:
         """Estimated poses as a :class:`~msf_torch.types.Trajectory` (B, E + 1)."""
@@ -425,6 +433,21 @@ def run_eskf(
     )
     reopen = torch.tensor([k in ("gnss", "pose") or k in source_col for k in active], device=device)
     present_all = torch.stack([present[k] for k in active], -1) if active else None
+    adaptation = BlockAdaptation(
+        active,
+        blocks,
+        cfg.adaptive_noise_sensors,
+        cfg.strong_tracking_sensors,
+        batch,
+        cfg.adaptive_forgetting,
+        cfg.adaptive_prior_samples,
+        cfg.adaptive_noise_floor,
+        cfg.strong_tracking_softening,
+        cfg.adaptive_clip_probability,
+        cfg.strong_tracking_max_factor,
+        dtype,
+        device,
+    )
 
     def per_seq(x: torch.Tensor) -> torch.Tensor:
         return x.expand(batch) if x.dim() == 0 else x
@@ -606,6 +629,8 @@ def run_eskf(
                 for start, block in full_cov:
                     size = block.shape[-1]
                     r_cov[:, start : start + size, start : start + size] = block
+            if adaptation.enabled:  # frontend.adaptive: Sage-Husa R, strong tracking
+                cov, r_cov = adaptation.step(e, cov - q, q, h_all, r_all, r_cov, present_all[:, e])
             s_all = h_all @ cov @ h_all.mT + r_cov
 
             # --- gating: NIS of every block at once through the block-diagonal part of S ----
@@ -673,6 +698,7 @@ def run_eskf(
             accepted[k] = torch.zeros_like(present_out[k])
             nis[k] = torch.zeros(batch, n_epochs + 1, dtype=dtype, device=device)
     gap = torch.cat((false_b[:, None], sched.gap), 1)
+    fading, noise_estimate = adaptation.history(n_epochs)
     return EskfResult(
         names=list(seq.names),
         t=t,
@@ -688,4 +714,6 @@ def run_eskf(
         accepted=accepted,
         nis=nis,
         gap=gap,
+        fading_factor=fading,
+        noise_estimate=noise_estimate,
     )
