@@ -150,7 +150,7 @@ def run_sequence(seq: Sequence, cfg: EskfConfig, options: RunOptions) -> dict[st
         else:
             from msf_torch.learning.inference import run_piecewise, scales_summary, window_scales
 
-            scales = window_scales(seq, options.learned.model)
+            scales = window_scales(seq, options.learned.model, cfg)
             result = run_piecewise(
                 seq, cfg, scales.log_scales, scales.window_length, scales.pose_source, callback
             )

@@ -8,15 +8,16 @@ Inputs, per window of ``L`` IMU samples (default ``L = 100`` at 100 Hz, i.e. 1 s
   divided inside by ``wheel_scale_mps``; with ``wheel_present`` (B,) or (B, L) bool. Where
   the wheels are absent the speeds are zeroed inside, so any placeholder value will do.
 * ``residual_stats`` (B, S, K): per pose source (``CovNetConfig.pose_sources``, default
-  ``("gnss", "vo", "lidar")``) the K = 4 features of :data:`RESIDUAL_FEATURES`, measured by
-  the filter over the window:
+  ``("gnss", "vo", "lidar")``) the K = 4 features of :data:`RESIDUAL_FEATURES`, measured over
+  the window by a reference pass of the filter with the configured (unlearned) noise
+  (:func:`msf_torch.learning.features.run_features`):
 
-  0. ``mean_abs_innovation_m``: mean |innovation| of the position rows, m;
-  1. ``nis_per_dof``: mean normalised innovation squared divided by the measurement
-     dimension (about 1 for a consistent filter);
+  0. ``nis_per_dof``: mean normalised innovation squared of the source's measurements
+     divided by the measurement dimension (about 1 for a consistent filter);
+  1. ``nis_max_per_dof``: the largest of them in the window;
   2. ``rejected_fraction``: fraction of the source's measurements the gate rejected, [0, 1];
   3. ``dropout_fraction``: fraction of the source's expected epochs without a measurement,
-     [0, 1] (1 = the source is absent; set the other three to 0 then).
+     [0, 1] (1 = the source is absent; the other three are 0 then).
 
 * ``weather`` (B,) int64, optional: an index into ``CovNetConfig.weather_classes`` or
   ``CovNetConfig.unknown_weather`` (= the number of classes) when unknown. ``None`` means
@@ -85,8 +86,8 @@ from msf_torch.sensors.imu import ImuNoise
 
 LOG_SCALE_SENSORS = ("wheel", "nhc", "gnss", "vo", "lidar", "imu_gyro", "imu_accel")
 RESIDUAL_FEATURES = (
-    "mean_abs_innovation_m",
     "nis_per_dof",
+    "nis_max_per_dof",
     "rejected_fraction",
     "dropout_fraction",
 )

@@ -19,13 +19,12 @@ samples, plus the end sample), and the per-window CovNet inputs
   ``wheel_present`` (B, W, L) bool: a wheel sample lies within ``wheel_hold_s`` before;
 * ``residual_stats`` (B, W, S, 4): per pose source of ``CovNetConfig.pose_sources``
   (``"gnss"`` is ``Sequence.gnss``, other names ``Sequence.pose_sources[name]`` or the
-  ``poses`` stream of that source). Only
-  ``dropout_fraction`` is measured here (the fraction of the source's expected samples
-  missing in the window, widened to two sample intervals for slow streams, from its median
-  sample interval over the run; 1 for a source the run lacks). The innovation features
-  (mean |innovation|, NIS, rejected fraction) need the filter and are zero placeholders.
-  The pose stream's source is ``meta["weather"]["pose_source"]`` (simulated runs), else
-  ``"vo"``;
+  ``poses`` stream of that source): the mean and largest NIS per degree of freedom and the
+  gate-rejected fraction of the source's measurements in a reference pass of the filter with
+  the configured noise, and the ``dropout_fraction`` (the fraction of the source's expected
+  samples missing in the window, widened to two sample intervals for slow streams, from its
+  median sample interval over the run; 1 for a source the run lacks)
+  (:func:`~msf_torch.learning.features.run_features`);
 * ``weather`` (B, W) int64: the index in ``CovNetConfig.weather_classes`` of the
   ``"weather:<c>"`` label interval holding the window's centre, or the unknown index.
 """
@@ -53,6 +52,7 @@ import numpy as np
 import torch
 from torch.utils.data import DataLoader
 
+from msf_torch.frontend.config import config_for_sequence, load_config
 from msf_torch.io import load_sequence
 from msf_torch.learning.features import RunFeatures, pose_source_of, run_features
 from msf_torch.sim import (
@@ -108,9 +108,11 @@ def simulate_labelled_run(
     seed: int,
     duration_s: float,
     imu_rate_hz: float = 100.0,
-    pose_source: str | None = "lidar",
+    pose_source: str | None = None,
     mean_segment_s: float = 15.0,
     min_segment_s: float = 5.0,
+    gnss_outage_count: int = 0,
+    gnss_outage_duration_s: tuple[float, float] = (10.0, 20.0),
 ) -> Sequence:
     """One simulated run (B = 1) with a random weather schedule, weather-driven slip
     episodes and degraded GNSS / pose streams; labels ``"weather:<c>"``, ``"slip"``, ...
@@ -130,7 +132,12 @@ def simulate_labelled_run(
     schedule = WeatherSchedule.random(
         duration_s, s_schedule, mean_segment_s=mean_segment_s, min_segment_s=min_segment_s
     )
-    base = SimConfig(duration_s=duration_s, imu_rate_hz=imu_rate_hz)
+    base = SimConfig(
+        duration_s=duration_s,
+        imu_rate_hz=imu_rate_hz,
+        gnss_outage_count=gnss_outage_count,
+        gnss_outage_duration_s=gnss_outage_duration_s,
+    )
     run = simulate_run(weather_slip_config(base, schedule, s_slip), s_run)
     wet = apply_weather(run, schedule, s_weather, pose_source=pose_source)
     return dataclasses.replace(wet.sequence, names=[f"sim-{seed}"])
@@ -165,7 +172,13 @@ class RunDataModule(L.LightningDataModule):
         train_runs, val_runs, test_runs: simulated runs per split (< ``SPLIT_SEED_STRIDE``).
         duration_s: simulated run length, s.
         imu_rate_hz: simulated IMU rate, Hz.
-        pose_source: simulated pose stream fed to the filter (``"vo"``, ``"lidar"``, None).
+        pose_source: simulated stream also put in ``Sequence.poses`` as absolute poses
+            (``"vo"``, ``"lidar"``; default None: both sources are fused as odometry from
+            ``Sequence.pose_sources``).
+        gnss_outage_count, gnss_outage_duration_s: random GNSS outages per simulated run
+            (:func:`simulate_labelled_run`).
+        eskf_config: YAML of filter settings for the reference pass that gives the
+            innovation features (as the module's ``eskf_config``; None = defaults).
         seed: base seed of the simulated runs.
         batch_size: runs per batch.
         window_length: L, IMU samples per CovNet window (``CovNetConfig.window_length``).
@@ -183,7 +196,10 @@ class RunDataModule(L.LightningDataModule):
         test_runs: int = 2,
         duration_s: float = 30.0,
         imu_rate_hz: float = 100.0,
-        pose_source: str | None = "lidar",
+        pose_source: str | None = None,
+        gnss_outage_count: int = 0,
+        gnss_outage_duration_s: tuple[float, float] = (10.0, 20.0),
+        eskf_config: str | None = None,
         seed: int = 0,
         batch_size: int = 2,
         window_length: int = 100,
@@ -207,6 +223,9 @@ class RunDataModule(L.LightningDataModule):
         self.duration_s = duration_s
         self.imu_rate_hz = imu_rate_hz
         self.pose_source = pose_source
+        self.gnss_outage_count = gnss_outage_count
+        self.gnss_outage_duration_s = tuple(gnss_outage_duration_s)
+        self.eskf_base = load_config(eskf_config)
         self.seed = seed
         self.batch_size = batch_size
         self.window_length = window_length
@@ -227,13 +246,26 @@ class RunDataModule(L.LightningDataModule):
             sequences = [load_sequence(path) for path in self.files[split]]
         else:
             sequences = [
-                simulate_labelled_run(s, self.duration_s, self.imu_rate_hz, self.pose_source)
+                simulate_labelled_run(
+                    s,
+                    self.duration_s,
+                    self.imu_rate_hz,
+                    self.pose_source,
+                    gnss_outage_count=self.gnss_outage_count,
+                    gnss_outage_duration_s=self.gnss_outage_duration_s,
+                )
                 for s in self.split_seeds(split)
             ]
         return [
             (
                 seq,
-                run_features(seq, self.window_length, self.pose_sources, self.weather_classes),
+                run_features(
+                    seq,
+                    self.window_length,
+                    self.pose_sources,
+                    self.weather_classes,
+                    cfg=config_for_sequence(self.eskf_base, seq.meta, set()),
+                ),
             )
             for seq in sequences
         ]

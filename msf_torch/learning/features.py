@@ -8,17 +8,22 @@ for training, :mod:`msf_torch.learning.inference` feeds them to a trained networ
 
 from __future__ import annotations
 
-__all__ = ["RunFeatures", "run_features", "pose_source_of"]
+__all__ = ["RunFeatures", "run_features", "reference_filter", "pose_source_of"]
 
 from dataclasses import dataclass
 
 import numpy as np
 import torch
 
+from msf_torch.frontend.config import EskfConfig
+from msf_torch.frontend.eskf import EskfResult, run_eskf
 from msf_torch.learning.covnet import RESIDUAL_FEATURES
 from msf_torch.types import Sequence
 
 _DROPOUT = RESIDUAL_FEATURES.index("dropout_fraction")
+_INNOVATION = [RESIDUAL_FEATURES.index(k) for k in ("nis_per_dof", "nis_max_per_dof")]
+_REJECTED = RESIDUAL_FEATURES.index("rejected_fraction")
+_NIS_CLIP = 1.0e4  # NIS / dof beyond this (a 1 km jump) carries no more information
 
 
 @dataclass
@@ -63,11 +68,40 @@ def _dropout(t_stream: np.ndarray, starts: np.ndarray, ends: np.ndarray) -> np.n
     return np.clip(1.0 - count / (2.0 * half / interval), 0.0, 1.0)
 
 
+def _innovation_stats(
+    result: EskfResult, cfg: EskfConfig, name: str, starts: np.ndarray, ends: np.ndarray
+) -> np.ndarray:
+    """(W, 3) ``[nis_per_dof, nis_max_per_dof, rejected_fraction]`` of one source over the
+    windows ``[start, end)`` s from a B = 1 filter result (zeros where it has no measurement)."""
+    key = name if name == "gnss" else f"pose:{name}"
+    out = np.zeros((starts.size, 3))
+    if key not in result.present:
+        return out
+    dof = 3 if name == "gnss" or not cfg.pose_source_rate_update else 6
+    present = result.present[key][0].numpy()
+    t = result.t[0].numpy()[present]
+    nis = np.minimum(result.nis[key][0].numpy()[present] / dof, _NIS_CLIP)
+    rejected = ~result.accepted[key][0].numpy()[present]
+    lo, hi = np.searchsorted(t, starts, "left"), np.searchsorted(t, ends, "left")
+    for w in np.nonzero(hi > lo)[0]:
+        part = slice(lo[w], hi[w])
+        out[w] = nis[part].mean(), nis[part].max(), rejected[part].mean()
+    return out
+
+
+def reference_filter(seq: Sequence, cfg: EskfConfig) -> EskfResult:
+    """The filter over a B = 1 sequence with the configured noise, no gradient: the pass
+    whose innovations :func:`run_features` summarises."""
+    with torch.no_grad():
+        return run_eskf(seq, cfg)
+
+
 def run_features(
     seq: Sequence,
     window_length: int,
     pose_sources: tuple[str, ...],
     weather_classes: tuple[str, ...],
+    cfg: EskfConfig | None = None,
     wheel_hold_s: float = 0.2,
 ) -> RunFeatures:
     """Per-window CovNet inputs of a B = 1 sequence (see the module docstring).
@@ -77,6 +111,8 @@ def run_features(
         window_length: L, IMU samples per window.
         pose_sources: the S sources of ``CovNetConfig.pose_sources``.
         weather_classes: ``CovNetConfig.weather_classes``.
+        cfg: filter settings of the reference pass (:func:`reference_filter`) that gives the
+            innovation features; None leaves them zero (only the dropout fraction is set).
         wheel_hold_s: a wheel reading counts as present for this long after its stamp, s.
 
     Returns:
@@ -112,13 +148,18 @@ def run_features(
     source = pose_source_of(seq)
     if source is not None:
         streams.setdefault(source, seq.poses)
+    reference = None if cfg is None else reference_filter(seq, cfg)
     for s, name in enumerate(pose_sources):
         stream = streams.get(name)
         if stream is None or not bool(stream.mask.any()):
             stats[:, s, _DROPOUT] = 1.0
-        else:
-            t_s = stream.compact().t[0].numpy()
-            stats[:, s, _DROPOUT] = torch.from_numpy(_dropout(t_s, starts, ends)).float()
+            continue
+        t_s = stream.compact().t[0].numpy()
+        stats[:, s, _DROPOUT] = torch.from_numpy(_dropout(t_s, starts, ends)).float()
+        if reference is not None:
+            innovation = _innovation_stats(reference, cfg, name, starts, ends)
+            stats[:, s, _INNOVATION] = torch.from_numpy(innovation[:, :2]).float()
+            stats[:, s, _REJECTED] = torch.from_numpy(innovation[:, 2]).float()
     centres = 0.5 * (starts + ends)
     weather = np.full(windows, len(weather_classes), dtype=np.int64)
     for k, name in enumerate(weather_classes):

@@ -39,6 +39,7 @@ import torch
 
 from msf_torch.frontend.config import EskfConfig
 from msf_torch.frontend.eskf import EskfNoise, EskfResult, run_eskf
+from msf_torch.frontend.init import initial_state
 from msf_torch.learning.covnet import (
     LOG_SCALE_SENSORS,
     CovNet,
@@ -120,6 +121,7 @@ def load_learned(path: str | Path) -> LearnedModel:
 def window_scales(
     seq: Sequence,
     model: CovNet,
+    cfg: EskfConfig | None,
     chunk_windows: int = DEFAULT_CHUNK_WINDOWS,
     granularity: Literal["chunk", "run"] = "chunk",
     use_labels: bool = True,
@@ -129,6 +131,9 @@ def window_scales(
     Args:
         seq: one run (B = 1).
         model: the CovNet.
+        cfg: filter settings of the reference pass whose innovations feed the network
+            (:func:`~msf_torch.learning.features.run_features`; the base noise the learned
+            scales multiply); None leaves the innovation features zero.
         chunk_windows: windows per chunk (``granularity="chunk"``).
         granularity: ``"chunk"``: scales averaged over each chunk; ``"run"``: over the run.
         use_labels: condition on the ``weather:<c>`` labels where present (otherwise, and
@@ -139,15 +144,15 @@ def window_scales(
     """
     if chunk_windows < 1:
         raise ValueError(f"chunk_windows must be >= 1, got {chunk_windows}")
-    cfg = model.config
-    features = run_features(seq, cfg.window_length, cfg.pose_sources, cfg.weather_classes)
+    net = model.config
+    features = run_features(seq, net.window_length, net.pose_sources, net.weather_classes, cfg)
     labels = features.weather
-    weather = labels if use_labels else torch.full_like(labels, cfg.unknown_weather)
+    weather = labels if use_labels else torch.full_like(labels, net.unknown_weather)
     with torch.no_grad():
         out = model(
             features.imu, features.wheel, features.wheel_present, features.residual_stats, weather
         )
-        scales = apply_fusion_weights(out.log_scales, out.fusion_weights, cfg.pose_sources)
+        scales = apply_fusion_weights(out.log_scales, out.fusion_weights, net.pose_sources)
     scales = scales.double()
     windows = scales.shape[0]
     step = chunk_windows if granularity == "chunk" else windows
@@ -155,11 +160,11 @@ def window_scales(
         scales[w0 : w0 + step] = scales[w0 : w0 + step].mean(0)
     return WindowScales(
         log_scales=scales,
-        window_length=cfg.window_length,
+        window_length=net.window_length,
         pose_source=_pose_source(seq),
         chunk_windows=step,
         labels=labels,
-        from_labels=use_labels and bool((labels != cfg.unknown_weather).any()),
+        from_labels=use_labels and bool((labels != net.unknown_weather).any()),
         inferred=out.weather_logits.argmax(-1),
     )
 
@@ -264,7 +269,7 @@ def run_piecewise(
     bounds = list(zip(change, change[1:] + [None], strict=True))
     results: list[EskfResult] = []
     done = 0
-    initial = None
+    initial = initial_state(seq, cfg)  # from the whole run, as run_eskf(seq) starts
     pose_column = LOG_SCALE_SENSORS.index(pose_source or "vo")
     for w0, w1 in bounds:
         scales = log_scales[w0].to(imu.t)

@@ -740,7 +740,7 @@ def apply_weather(
     camera: CameraModel | None = None,
     lidar: LidarModel | None = None,
     gnss: GnssModel | None = None,
-    pose_source: str | None = "lidar",
+    pose_source: str | None = None,
 ) -> WeatherRun:
     """Degrade a simulated run under ``schedule``: VO and LiDAR pose streams, GNSS, labels.
 
@@ -759,7 +759,10 @@ def apply_weather(
         conditions: condition name -> :class:`WeatherCondition` (default
             :data:`DEFAULT_CONDITIONS`); must hold every condition in the schedule.
         camera, lidar, gnss: models (defaults as documented on each class).
-        pose_source: ``"vo"``, ``"lidar"`` or None, the stream put in ``sequence.poses``.
+        pose_source: ``"vo"``, ``"lidar"`` or None (default): the stream also put in
+            ``sequence.poses``, where the filter fuses it as absolute poses. Both streams are
+            always in ``sequence.pose_sources``, fused as odometry; name one here only for a
+            filter configured with ``pose_sources`` that excludes it, or it is used twice.
 
     Returns:
         :class:`WeatherRun`, float64 CPU tensors, B = 1.

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import dataclasses
 import hashlib
 import json
 
@@ -22,7 +21,6 @@ from msf_torch.learning import (
     apply_fusion_weights,
     save_checkpoint,
     scaled_noise,
-    scaled_pose_covariance,
 )
 from msf_torch.learning.data import simulate_labelled_run
 from msf_torch.learning.inference import run_piecewise
@@ -33,7 +31,7 @@ SCALES = (0.8, -0.6, 1.2, 0.3, -0.9, 0.5, -0.4)
 
 @pytest.fixture(scope="module")
 def weather_run(tmp_path_factory):
-    """A 6 s labelled weather run with a LiDAR pose stream, as a native file."""
+    """A 6 s labelled weather run with VO and LiDAR odometry sources, as a native file."""
     folder = tmp_path_factory.mktemp("learned")
     return write_native(simulate_labelled_run(3, 6.0), folder / "run.npz")
 
@@ -85,15 +83,13 @@ def test_checkpoint_sets_noise_as_the_scales_say(
     for sensor, value in zip(LOG_SCALE_SENSORS, expected, strict=True):
         assert learned["mean_log_scales"][sensor] == pytest.approx(float(value), abs=1e-4)
 
-    # the same filter, run directly with the scaled noise and LiDAR covariances
+    # the same filter, run directly with the scaled noise (VO and LiDAR odometry included)
     seq = load_sequence(weather_run)
+    assert seq.poses is None and set(seq.pose_sources) == {"vo", "lidar"}
     cfg = _cfg(seq)
     base = EskfNoise.from_config(cfg)
-    poses = dataclasses.replace(
-        seq.poses, covariance=scaled_pose_covariance(seq.poses.covariance, expected[None], "lidar")
-    )
     with torch.no_grad():
-        direct = run_eskf(dataclasses.replace(seq, poses=poses), cfg, scaled_noise(base, expected))
+        direct = run_eskf(seq, cfg, scaled_noise(base, expected))
     write_tum(direct.trajectory().select(0).compact(), tmp_path / "direct.tum")
     assert (tmp_path / "trajectory.tum").read_text() == (tmp_path / "direct.tum").read_text()
 

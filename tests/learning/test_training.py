@@ -15,6 +15,8 @@ import pytest
 import torch
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
+from msf_torch.frontend.config import config_for_sequence, load_config
+from msf_torch.frontend.eskf import run_eskf
 from msf_torch.learning import LOG_SCALE_SENSORS, CovNetConfig, load_checkpoint
 from msf_torch.learning.data import (
     SPLIT_SEED_STRIDE,
@@ -170,7 +172,9 @@ def test_data_module_splits_are_disjoint_and_windows_labelled() -> None:
     assert batch.sequence.imu.t.shape == (2, 601)
     assert batch.wheel.shape == (2, 6, 100, 2) and bool(batch.wheel_present[:, 1:].all())
     assert batch.residual_stats.shape == (2, 6, 3, 4)
-    assert bool((batch.residual_stats[..., :3] == 0).all())  # filter features: placeholders
+    nis_mean, nis_max, rejected = batch.residual_stats[..., :3].unbind(-1)
+    assert bool((nis_mean > 0).any()) and bool((nis_max >= nis_mean).all())
+    assert bool(((rejected >= 0) & (rejected <= 1)).all())
     dropout = batch.residual_stats[..., 3]
     assert bool(((dropout >= 0) & (dropout <= 1)).all())
     assert bool((dropout[:, :, 0] < 1).all())  # GNSS at 1 Hz: counted over 2 s spans
@@ -181,6 +185,22 @@ def test_data_module_splits_are_disjoint_and_windows_labelled() -> None:
         label = batch.sequence.labels[f"weather:{WEATHER[int(batch.weather[b, 0])]}"][b]
         inside = (label[:, 0] <= centre[0]) & (centre[0] <= label[:, 1])
         assert bool(inside.any()), names[b]
+
+
+def test_innovation_features_summarise_the_reference_filter(tiny_batch) -> None:
+    seq = tiny_batch.sequence
+    cfg = config_for_sequence(load_config(None), seq.meta, set())
+    features = run_features(seq, 100, ("gnss", "vo", "lidar"), WEATHER, cfg)
+    result = run_eskf(seq, cfg)
+    for s, key, dof in ((0, "gnss", 3), (2, "pose:lidar", 6)):
+        for w in range(6):  # window w covers [w, w + 1) s
+            inside = result.present[key][0] & (result.t[0] >= w) & (result.t[0] < w + 1)
+            nis = result.nis[key][0][inside] / dof
+            rejected = (~result.accepted[key][0][inside]).double()
+            expected = [nis.mean(), nis.max(), rejected.mean()] if inside.any() else [0, 0, 0]
+            got = features.residual_stats[w, s, :3].double()
+            assert torch.allclose(got, torch.tensor(expected).double(), rtol=1e-6), (key, w)
+    assert int(result.present["pose:lidar"][0].sum()) > 40  # 10 Hz source, present
 
 
 def test_dropout_fraction_of_absent_and_thinned_sources(tiny_batch) -> None:

@@ -354,14 +354,15 @@ def test_deterministic_with_seed_and_sequence_contract(run):
     assert a.sequence.meta == b.sequence.meta
     seq = a.sequence
     seq.check()
-    assert seq.poses is a.pose_sources["lidar"]
+    assert seq.poses is None  # both sources are fused as odometry from pose_sources
     assert seq.imu is run.sequence.imu and run.sequence.poses is None
     assert {"slip", "gnss_outage", "env:corridor", "env:urban"} <= seq.labels.keys()
     assert torch.equal(
         seq.labels["weather:night"], torch.tensor([[[15.0, 30.0]]], dtype=torch.float64)
     )
     assert apply_weather(run, _schedule(), 9, pose_source="vo").sequence.poses.t.shape == (1, 601)
-    assert apply_weather(run, _schedule(), 9, pose_source=None).sequence.poses is None
+    lidar = apply_weather(run, _schedule(), 9, pose_source="lidar").sequence
+    assert lidar.poses is lidar.pose_sources["lidar"]
     with pytest.raises(ValueError, match="schedule covers"):
         apply_weather(run, WeatherSchedule.constant("rain", 30.0), 0)
     with pytest.raises(ValueError, match="urban_dof"):
