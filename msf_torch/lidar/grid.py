@@ -32,7 +32,7 @@ Example:
     >>> grid = occupancy_grid(poses, torch.tensor([[2.0]], dtype=torch.float64),
     ...                       torch.zeros(1, dtype=torch.float64), GridConfig(resolution_m=0.5))
     >>> grid.log_odds.shape
-    torch.Size([13, 16])
+    torch.Size([4, 8])
 """
 
 from __future__ import annotations

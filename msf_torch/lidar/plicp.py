@@ -51,16 +51,18 @@ References:
 
 Example:
     >>> import torch
+    >>> from msf_torch.geometry.se2 import between
     >>> from msf_torch.lidar.plicp import PlicpConfig, plicp, scan_points
     >>> from msf_torch.sim.lidar2d import LidarSpec, scan_at, warehouse_map
     >>> spec = LidarSpec()
-    >>> poses = torch.tensor([[8.0, 5.7, 0.0], [8.3, 5.75, 0.05]], dtype=torch.float64)
-    >>> ranges, _ = scan_at(warehouse_map(), poses, spec)
+    >>> poses = torch.tensor([[3.0, 10.0, 1.5], [3.3, 10.2, 1.6]], dtype=torch.float64)
+    >>> ranges, _ = scan_at(warehouse_map(), poses, spec)  # noise-free
     >>> points, valid = scan_points(ranges, spec.angles())
-    >>> result = plicp(points[:1], valid[:1], points[1:], valid[1:], torch.zeros(1, 3,
-    ...                dtype=torch.float64), PlicpConfig(epsilon_xy_m=1e-9, epsilon_theta_rad=1e-9))
-    >>> result.pose.round(decimals=6)
-    tensor([[0.3001, 0.0350, 0.0500]], dtype=torch.float64)
+    >>> config = PlicpConfig(epsilon_xy_m=1e-12, epsilon_theta_rad=1e-12)
+    >>> result = plicp(points[:1], valid[:1], points[1:], valid[1:],
+    ...                torch.zeros(1, 3, dtype=torch.float64), config)
+    >>> bool((result.pose[0] - between(poses[0], poses[1])).abs().max() < 1e-9)
+    True
 """
 
 from __future__ import annotations
