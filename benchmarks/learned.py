@@ -35,7 +35,7 @@ Targets (issue 4): ATE(learned) at least 30 % below ``fixed_best`` and 15 % belo
 ``fixed_per_weather``; learned weighting better than equal weights in every held-out run and
 better than the best single source in >= 90 % of them; NEES fraction >= 90 %.
 
-    python benchmarks/learned.py [--checkpoint checkpoints/covnet_default.pt]
+    python benchmarks/learned.py [--checkpoint checkpoints/covnet_weather.pt]
         [--train-runs 8] [--test-runs 10] [--level 1.5]
 """
 
@@ -57,7 +57,6 @@ from msf_torch.learning.covnet import LOG_SCALE_SENSORS, scaled_noise
 from msf_torch.learning.data import SPLIT_SEED_STRIDE, simulate_labelled_run
 from msf_torch.learning.features import run_features
 from msf_torch.learning.inference import (
-    DEFAULT_CHECKPOINT,
     load_learned,
     run_piecewise,
     window_scales,
@@ -81,6 +80,8 @@ GRID_AXES = {
 """Grid axis -> the :data:`LOG_SCALE_SENSORS` columns it sets."""
 
 TRAINING_CONFIG = Path(__file__).resolve().parent.parent / "training" / "configs" / "default.yaml"
+WEATHER_CHECKPOINT = Path(__file__).resolve().parent.parent / "checkpoints" / "covnet_weather.pt"
+"""The network trained by ``default.yaml`` (see ``checkpoints/README.md``)."""
 WINDOW = 100
 SOURCES = ("vo", "lidar")
 
@@ -172,7 +173,7 @@ def weighting(per_run: dict[str, list[float]]) -> dict:
 def main() -> None:
     """Tune, score, print the table on stderr and one JSON line on stdout."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--checkpoint", type=Path, default=DEFAULT_CHECKPOINT)
+    parser.add_argument("--checkpoint", type=Path, default=WEATHER_CHECKPOINT)
     parser.add_argument("--train-runs", type=int, default=8, help="tuning runs (train seeds)")
     parser.add_argument("--test-runs", type=int, default=10, help="held-out runs (test seeds)")
     parser.add_argument("--level", type=float, default=1.5, help="grid log-scale level")

@@ -1,4 +1,4 @@
-"""Command line: ``msf run | eval | simulate | posegraph``.
+"""Command line: ``msf run | eval | simulate | posegraph | config check``.
 
 Each command parses its arguments, calls the library and prints its result as one JSON
 line last. Errors in the input (a bad file, a bad config key) end with a one-line message
@@ -41,8 +41,24 @@ def build_parser() -> argparse.ArgumentParser:
         "sequence",
         nargs="?",
         default=None,
-        help="path (native .npz / CSV folder, EuRoC folder) or a named dataset "
-        f"({', '.join(NAMED_DATASETS)}); default: the bundled sample",
+        help="path (native .npz / CSV folder, EuRoC folder, ROS bag with --topics) or a named "
+        f"dataset ({', '.join(NAMED_DATASETS)}); default: the bundled sample",
+    )
+    run.add_argument(
+        "--topics",
+        type=Path,
+        default=None,
+        metavar="ROBOT.yaml",
+        help="read SEQUENCE as a ROS bag (rosbag1 .bag or rosbag2 folder) with this robot "
+        "config: topics -> sensors, frames, estimator settings",
+    )
+    run.add_argument(
+        "--export",
+        type=_exports,
+        default=(),
+        metavar="FORMATS",
+        help="also write the trajectory as kitti (trajectory.kitti + trajectory_times.txt) "
+        "and / or rosbag2 (nav_msgs/Odometry in trajectory_rosbag2/), comma separated",
     )
     run.add_argument(
         "--format",
@@ -127,6 +143,11 @@ def build_parser() -> argparse.ArgumentParser:
         "--out", type=Path, required=True, help="native output: FILE.npz or a folder of CSVs"
     )
 
+    config = sub.add_parser("config", help="check a robot or front-end config YAML")
+    config_sub = config.add_subparsers(dest="config_command", required=True)
+    check = config_sub.add_parser("check", help="validate FILE; print what it configures")
+    check.add_argument("file", type=Path)
+
     pg = sub.add_parser("posegraph", help="optimise a 3-D pose graph (g2o / TORO) by LM")
     pg.add_argument("graph", help="g2o / TORO file, or the name of a 3-D graph shipped with gtsam")
     pg.add_argument("--out", type=Path, default=None, help="write the optimised graph (g2o)")
@@ -168,6 +189,20 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+EXPORTS = ("kitti", "rosbag2")
+"""Extra trajectory formats ``msf run --export`` writes."""
+
+
+def _exports(text: str) -> tuple[str, ...]:
+    names = tuple(x.strip() for x in text.split(",") if x.strip())
+    unknown = [x for x in names if x not in EXPORTS]
+    if unknown or not names:
+        raise argparse.ArgumentTypeError(
+            f"unknown export {', '.join(unknown) or repr(text)}; choose from {', '.join(EXPORTS)}"
+        )
+    return names
+
+
 ROBUST_SCALES = {"huber": 1.345, "cauchy": 2.3849, "geman_mcclure": 1.0, "tukey": 4.6851}
 """Default robust-kernel scales (whitened units): 95% efficiency under Gaussian noise for
 Huber, Cauchy and Tukey; 1 for Geman-McClure."""
@@ -197,6 +232,8 @@ def _load(args) -> tuple[Any, Any, str]:
     from msf_torch.runner import DEFAULT_SAMPLE
 
     source = args.sequence
+    if args.topics is not None:
+        return _load_bag(args)
     if source is None:
         if not DEFAULT_SAMPLE.exists():
             from msf_torch.io.native import write_native
@@ -218,6 +255,38 @@ def _load(args) -> tuple[Any, Any, str]:
             explicit |= set(yaml.safe_load(handle) or {})
     cfg = config_for_sequence(cfg, seq.meta, explicit)
     return seq, cfg, source
+
+
+def _load_bag(args) -> tuple[Any, Any, str]:
+    """Sequence and config for ``msf run BAG --topics ROBOT.yaml``."""
+    from msf_torch.io.rosbag import read_rosbag
+    from msf_torch.robot.config import load_robot_config
+
+    if args.sequence is None:
+        raise ValueError("--topics needs the bag to read (msf run BAG --topics ROBOT.yaml)")
+    if args.fmt is not None:
+        raise ValueError("--format does not apply to a ROS bag read with --topics")
+    robot = load_robot_config(args.topics)
+    seq = read_rosbag(args.sequence, robot.layout, sort=args.sort)
+    overrides = _config_overrides(args.config)
+    if args.no_slip_detection:
+        overrides["slip_detection"] = False
+    return seq, robot.eskf_config(seq.meta, overrides), args.sequence
+
+
+def _config_overrides(path: Path | None) -> dict[str, Any]:
+    """Front-end keys of a ``--config`` YAML (validated), used over a robot config's."""
+    if path is None:
+        return {}
+    import yaml
+
+    from msf_torch.frontend.config import load_config
+
+    load_config(path)
+    with open(path, encoding="utf-8") as handle:
+        values = dict(yaml.safe_load(handle) or {})
+    values.pop("smoother", None)
+    return values
 
 
 def _progress_factory(mode: str):
@@ -250,6 +319,8 @@ def _cmd_run(args) -> dict[str, Any]:
         path = args.config
         if path is None and source in NAMED_DATASETS:
             path = packaged_config(source)
+        if path is None and args.topics is not None:
+            path = args.topics
         smoother = load_smoother_config(path)
     options = RunOptions(
         out_dir=args.out,
@@ -259,6 +330,7 @@ def _cmd_run(args) -> dict[str, Any]:
         smooth=args.smooth,
         smoother=smoother,
         learned=_learned(args),
+        exports=args.export,
     )
     return run_sequence(seq, cfg, options)
 
@@ -342,6 +414,31 @@ def _cmd_simulate(args) -> dict[str, Any]:
     return summary
 
 
+def _cmd_config(args) -> dict[str, Any]:
+    """``msf config check FILE``: a robot config (top-level ``sensors``) or a front-end one."""
+    import dataclasses
+
+    from msf_torch.backend.window import load_smoother_config
+    from msf_torch.frontend.config import EskfConfig, load_config
+    from msf_torch.robot.config import is_robot_config, load_robot_config
+
+    if not args.file.is_file():
+        raise FileNotFoundError(f"{args.file}: no such file")
+    if is_robot_config(args.file):
+        robot = load_robot_config(args.file)
+        load_smoother_config(args.file)
+        return {"ok": True, "kind": "robot", **robot.summary()}
+    cfg = load_config(args.file)
+    load_smoother_config(args.file)
+    default = EskfConfig()
+    changed = {
+        f.name: getattr(cfg, f.name)
+        for f in dataclasses.fields(cfg)
+        if getattr(cfg, f.name) != getattr(default, f.name)
+    }
+    return {"ok": True, "kind": "frontend", "file": str(args.file), "estimator": changed}
+
+
 def _cmd_posegraph(args) -> dict[str, Any]:
     from msf_torch.backend.posegraph import optimize_pose_graph, pose_graph_config
     from msf_torch.io.g2o import (
@@ -411,6 +508,7 @@ def main(argv: list[str] | None = None) -> int:
         "simulate": _cmd_simulate,
         "posegraph": _cmd_posegraph,
         "lidar-map": _cmd_lidar_map,
+        "config": _cmd_config,
     }
     try:
         result = commands[args.command](args)

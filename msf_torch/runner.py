@@ -13,6 +13,12 @@ Used by ``msf run``. Outputs in ``out_dir`` (each written atomically: temp file 
   ``smooth`` set, ``ate_*`` and ``outage_*`` score the smoothed trajectory, the front end's
   own figures keep a ``frontend_`` prefix, and ``smoother`` holds the smoother's figures.
 - ``overview.png``: trajectory against the reference, position error, slip factor.
+- with ``exports`` (``msf run --export kitti,rosbag2``): ``trajectory.kitti`` and
+  ``trajectory_times.txt`` (KITTI pose format, :mod:`msf_torch.io.kitti_poses`) and
+  ``trajectory_rosbag2/`` (``nav_msgs/Odometry`` on ``/msf/odometry``, frame ``enu``,
+  child frame the sequence's body frame; stamped with the bag's time origin when the
+  sequence came from a bag; pose covariance and body velocity from the front end when
+  the trajectory is the front end's).
 
 With ``RunOptions.learned`` set, the filter's noise comes from a trained CovNet, per chunk
 of windows (:mod:`msf_torch.learning.inference`); ``summary.json`` then has ``"noise":
@@ -84,6 +90,7 @@ class RunOptions:
         smooth: ``"full"`` or ``"window"`` to smooth after the front end, or None.
         smoother: the smoother's settings (default :class:`SmootherConfig()`).
         learned: a trained CovNet that sets the filter's noise, or None (the config's).
+        exports: extra trajectory formats, any of ``"kitti"``, ``"rosbag2"``.
     """
 
     out_dir: Path
@@ -94,6 +101,7 @@ class RunOptions:
     smooth: str | None = None
     smoother: SmootherConfig | None = None
     learned: LearnedModel | None = None
+    exports: tuple[str, ...] = ()
 
 
 def write_diagnostics(result: EskfResult, path: Path, index: int = 0) -> None:
@@ -223,6 +231,7 @@ def run_sequence(seq: Sequence, cfg: EskfConfig, options: RunOptions) -> dict[st
             }
     summary["slip_detection_enabled"] = bool(cfg.slip_detection)
     write_tum(estimate, out_dir / "trajectory.tum")
+    _export(options.exports, out_dir, seq, estimate, None if smoothed is not None else result)
     write_diagnostics(result, out_dir / "diagnostics.csv")
     if options.plot:
         _plot(out_dir / "overview.png", seq, estimate, result, withheld, options, summary)
@@ -230,6 +239,37 @@ def run_sequence(seq: Sequence, cfg: EskfConfig, options: RunOptions) -> dict[st
         json.dump(summary, handle, indent=2)
         handle.write("\n")
     return summary
+
+
+def _export(
+    formats: tuple[str, ...],
+    out_dir: Path,
+    seq: Sequence,
+    estimate: Trajectory,
+    result: EskfResult | None,
+) -> None:
+    """Write ``estimate`` in the extra formats (see the module docstring)."""
+    if "kitti" in formats:
+        from msf_torch.io.kitti_poses import write_kitti_poses
+
+        write_kitti_poses(estimate, out_dir / "trajectory.kitti", out_dir / "trajectory_times.txt")
+    if "rosbag2" in formats:
+        from msf_torch.io.rosbag import write_odometry_rosbag2
+
+        covariance = velocity = None
+        if result is not None:
+            keep = result.mask[0]
+            rows = torch.tensor([0, 1, 2, 6, 7, 8])
+            covariance = result.covariance[:1, keep][..., rows[:, None], rows]
+            velocity = result.velocity[:1, keep]
+        write_odometry_rosbag2(
+            estimate,
+            out_dir / "trajectory_rosbag2",
+            child_frame_id=str(seq.meta.get("body_frame") or "base_link"),
+            time_origin_ns=int(seq.meta.get("time_origin_ns", 0)),
+            covariance=covariance,
+            velocity=velocity,
+        )
 
 
 def _single(traj: Trajectory) -> Trajectory:

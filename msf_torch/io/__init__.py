@@ -9,6 +9,11 @@ malformed data raises :class:`DataError` naming file, line and field; non-finite
 dropped and counted in ``meta``; backwards time raises unless ``sort=True``; repeated
 timestamps keep the first sample.
 
+ROS bags (rosbag1 and rosbag2, :mod:`msf_torch.io.rosbag`) are read by :func:`read_rosbag`
+with a :class:`BagLayout` (topics -> sensors, frames); trajectories are also written as
+KITTI pose files (:func:`write_kitti_poses`) and ``nav_msgs/Odometry`` rosbag2 folders
+(:func:`write_odometry_rosbag2`).
+
 3-D pose graphs (g2o ``VERTEX_SE3:QUAT`` / ``EDGE_SE3:QUAT``, TORO ``VERTEX3`` / ``EDGE3``) are
 read by :func:`read_pose_graph` into a :class:`PoseGraph` and written by :func:`write_g2o`
 (:mod:`msf_torch.io.g2o`; information matrices in ``[dp, dtheta]`` order, costs equal to
@@ -21,6 +26,8 @@ __all__ = [
     "FORMATS",
     "GTSAM_POSE3_FILES",
     "PoseGraph",
+    "BagLayout",
+    "SensorTopic",
     "DataError",
     "EqvioRun",
     "MissingExtraError",
@@ -29,14 +36,20 @@ __all__ = [
     "detect_format",
     "gtsam_data_path",
     "gtsam_pose_graph_path",
+    "is_rosbag",
     "load_eqvio",
     "load_kitti_gtsam",
     "load_sequence",
     "read_euroc",
+    "read_kitti_poses",
+    "read_rosbag",
     "read_native",
     "read_pose_graph",
     "read_tum",
     "write_g2o",
+    "write_kitti_poses",
+    "write_odometry_rosbag2",
+    "write_rosbag",
     "write_native",
     "write_tum",
 ]
@@ -56,7 +69,16 @@ from msf_torch.io.g2o import (
     write_g2o,
 )
 from msf_torch.io.kitti_gtsam import KITTI_GTSAM_NAME, gtsam_data_path, load_kitti_gtsam
+from msf_torch.io.kitti_poses import read_kitti_poses, write_kitti_poses
 from msf_torch.io.native import read_native, write_native
+from msf_torch.io.rosbag import (
+    BagLayout,
+    SensorTopic,
+    is_rosbag,
+    read_rosbag,
+    write_odometry_rosbag2,
+    write_rosbag,
+)
 from msf_torch.io.tum import read_tum, write_tum
 from msf_torch.types import Sequence
 
@@ -103,6 +125,12 @@ def detect_format(source: str | os.PathLike[str]) -> str:
             return "euroc"
     if path.is_file() and path.suffix.lower() in _TRAJECTORY_SUFFIXES:
         return "tum"
+    if is_rosbag(path) is not None:
+        raise DataError(
+            path,
+            "a ROS bag needs its topic mapping: msf run BAG --topics ROBOT.yaml "
+            "(or msf_torch.io.read_rosbag with a BagLayout)",
+        )
     raise DataError(path, f"unrecognised sequence format; accepted: {_ACCEPTED}")
 
 

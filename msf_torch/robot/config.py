@@ -1,0 +1,607 @@
+"""One YAML per robot: sensors and their topics, frames, estimator noise and gating.
+
+The file is validated when it is loaded; an error is a
+:class:`~msf_torch.io.errors.DataError` that names the file, the line and the key path
+(``robot.yaml:14: field 'sensors.gps.origin': ...``). ``msf config check FILE`` runs the
+same validation. The README lists every key with its default.
+
+Top-level keys
+--------------
+``robot``
+    ``name`` (string, optional).
+``frames`` (optional; without it every sensor sits at the body origin with the body axes)
+    ``urdf`` (path, relative to the YAML file), ``body`` (the estimator's body axes;
+    default: the IMU's frame), ``transforms`` (a list of static transforms ``{parent,
+    child, xyz, rpy}`` or ``{parent, child, xyz, quaternion_xyzw}``: the fallback when
+    there is no URDF, or frames the URDF lacks), ``joints`` (``topic``: a JointState topic
+    giving the movable joints' positions; ``values``: fixed joint values by name).
+``time``
+    ``origin_ns``: ``first`` (default: the earliest stamp read) or an integer in ns.
+``sensors`` (required; a mapping name -> sensor)
+    Every sensor: ``type`` (imu | gnss | wheels | pose | joints | image | laser_scan),
+    ``topic``, ``enabled`` (default true), ``frame`` (default: from the messages),
+    ``stamp`` (header | bag), ``time_offset_s`` (0). Per type (see
+    :mod:`msf_torch.io.rosbag` for what they do): gnss ``origin`` (first | [lat_deg,
+    lon_deg, alt_m]), ``use_message_covariance`` (true), ``min_fix_status`` (0), ``fuse``
+    (subset of [x, y, z]); wheels ``left_joints``, ``right_joints``, ``wheel_radius_m``
+    (a number or [left, right]) for JointState, ``fuse`` (subset of [speed, yaw_rate],
+    default [speed]); pose ``role`` (pose_source | poses | ground_truth),
+    ``source_name``, ``sigma`` (6 numbers), ``use_message_covariance``, ``fuse`` (subset
+    of [x, y, z, roll, pitch, yaw]; role poses only).
+``estimator``
+    Front-end settings: any key of :class:`~msf_torch.frontend.config.EskfConfig`
+    (noise densities, sigmas, gating, initialisation, slip detection, ...).
+``smoother``
+    The back end's section, as in a front-end config (``msf run --smooth``).
+
+Derived estimator settings
+--------------------------
+With ``frames``, :meth:`RobotConfig.eskf_config` sets ``gnss_lever_arm_m`` and
+``wheel_lever_arm_m`` from the extrinsics the bag reader computed, and
+``wheel_track_m`` from the URDF (the distance, along the body y axis, between the left and
+right wheel joints' frames) unless ``estimator`` gives it. Setting a derived key in
+``estimator`` as well is an error that names both. The wheels' ``fuse`` sets
+``wheel_yaw_rate_update``.
+"""
+
+from __future__ import annotations
+
+__all__ = ["RobotConfig", "load_robot_config", "is_robot_config", "ROBOT_KEYS"]
+
+import dataclasses
+import math
+import os
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import torch
+import yaml
+
+from msf_torch.frontend.config import EskfConfig
+from msf_torch.geometry.quaternion import matrix_to_quat
+from msf_torch.io.errors import DataError
+from msf_torch.io.rosbag import (
+    GNSS_COMPONENTS,
+    POSE_COMPONENTS,
+    POSE_ROLES,
+    SENSOR_KINDS,
+    WHEEL_COMPONENTS,
+    BagLayout,
+    SensorTopic,
+)
+from msf_torch.robot.frames import FrameTree, StaticTransform
+
+ROBOT_KEYS = ("robot", "frames", "time", "sensors", "estimator", "smoother")
+"""Top-level keys of a robot YAML."""
+
+_COMMON = ("type", "topic", "enabled", "frame", "stamp", "time_offset_s")
+_PER_KIND = {
+    "imu": (),
+    "gnss": ("origin", "use_message_covariance", "min_fix_status", "fuse"),
+    "wheels": ("left_joints", "right_joints", "wheel_radius_m", "fuse"),
+    "pose": ("role", "source_name", "sigma", "use_message_covariance", "fuse"),
+    "joints": (),
+    "image": (),
+    "laser_scan": (),
+}
+_DERIVED = ("gnss_lever_arm_m", "wheel_lever_arm_m", "wheel_track_m")
+
+
+def _line_map(text: str) -> dict[tuple, int]:
+    """Key path -> 1-based line of every key and list item in a YAML document."""
+    lines: dict[tuple, int] = {}
+    try:
+        root = yaml.compose(text, Loader=yaml.SafeLoader)
+    except yaml.YAMLError:
+        return lines
+
+    def walk(node, path: tuple) -> None:
+        if isinstance(node, yaml.MappingNode):
+            for key, value in node.value:
+                child = (*path, str(key.value))
+                lines[child] = key.start_mark.line + 1
+                walk(value, child)
+        elif isinstance(node, yaml.SequenceNode):
+            for i, item in enumerate(node.value):
+                lines[(*path, i)] = item.start_mark.line + 1
+                walk(item, (*path, i))
+
+    if root is not None:
+        walk(root, ())
+    return lines
+
+
+class _Checker:
+    """Typed access to the loaded YAML with errors naming file, line and key path."""
+
+    def __init__(self, path: str, lines: dict[tuple, int]) -> None:
+        self.path = path
+        self.lines = lines
+
+    def fail(self, keys: tuple, problem: str) -> DataError:
+        line = None
+        for cut in range(len(keys), 0, -1):
+            if keys[:cut] in self.lines:
+                line = self.lines[keys[:cut]]
+                break
+        name = ".".join(str(k) if not isinstance(k, int) else f"[{k}]" for k in keys)
+        return DataError(self.path, problem, line=line, field=name.replace(".[", "["))
+
+    def mapping(self, value: Any, keys: tuple, allowed: tuple[str, ...]) -> dict[str, Any]:
+        if value is None:
+            return {}
+        if not isinstance(value, dict):
+            raise self.fail(keys, f"must be a mapping, got {type(value).__name__}")
+        for key in value:
+            if key not in allowed:
+                raise self.fail((*keys, key), f"unknown key (allowed here: {', '.join(allowed)})")
+        return value
+
+    def string(self, value: Any, keys: tuple) -> str:
+        if not isinstance(value, str) or not value:
+            raise self.fail(keys, f"must be a non-empty string, got {value!r}")
+        return value
+
+    def boolean(self, value: Any, keys: tuple) -> bool:
+        if not isinstance(value, bool):
+            raise self.fail(keys, f"must be true or false, got {value!r}")
+        return value
+
+    def number(self, value: Any, keys: tuple, positive: bool = False) -> float:
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise self.fail(keys, f"must be a number, got {value!r}")
+        if not math.isfinite(value) or (positive and value <= 0):
+            raise self.fail(keys, f"must be a {'positive ' if positive else ''}finite number")
+        return float(value)
+
+    def numbers(self, value: Any, keys: tuple, count: int, positive: bool = False) -> list[float]:
+        if not isinstance(value, list) or len(value) != count:
+            raise self.fail(keys, f"must be a list of {count} numbers, got {value!r}")
+        return [self.number(v, (*keys, i), positive) for i, v in enumerate(value)]
+
+    def strings(self, value: Any, keys: tuple) -> tuple[str, ...]:
+        items = [value] if isinstance(value, str) else value
+        if not isinstance(items, list) or not items:
+            raise self.fail(keys, f"must be a name or a non-empty list of names, got {value!r}")
+        return tuple(self.string(v, (*keys, i)) for i, v in enumerate(items))
+
+    def subset(self, value: Any, keys: tuple, allowed: tuple[str, ...]) -> tuple[str, ...]:
+        if not isinstance(value, list) or not value:
+            raise self.fail(keys, f"must be a non-empty list from {list(allowed)}, got {value!r}")
+        for i, item in enumerate(value):
+            if item not in allowed:
+                raise self.fail((*keys, i), f"unknown component {item!r} (allowed: {allowed})")
+        if len(set(value)) != len(value):
+            raise self.fail(keys, f"repeats a component: {value!r}")
+        return tuple(value)
+
+
+@dataclass
+class RobotConfig:
+    """A validated robot YAML (module docstring).
+
+    Attributes:
+        path: the file it came from, or None.
+        name: ``robot.name`` (default: the file's stem).
+        layout: the bag topics, frames and time / GNSS origins for
+            :func:`~msf_torch.io.rosbag.read_rosbag`.
+        estimator: the ``estimator`` section (EskfConfig keys), validated.
+        wheel_fuse: the wheels' ``fuse`` list, or None when not given.
+        disabled: names of sensors with ``enabled: false``.
+    """
+
+    path: Path | None
+    name: str
+    layout: BagLayout
+    estimator: dict[str, Any] = field(default_factory=dict)
+    wheel_fuse: tuple[str, ...] | None = None
+    disabled: tuple[str, ...] = ()
+    _lines: dict[tuple, int] = field(default_factory=dict, repr=False)
+
+    @property
+    def frames(self) -> FrameTree | None:
+        """The robot's frames, or None."""
+        return self.layout.frames
+
+    def _fail(self, keys: tuple, problem: str) -> DataError:
+        return _Checker(str(self.path or "robot config"), self._lines).fail(keys, problem)
+
+    def _wheel_track_from_urdf(self) -> float | None:
+        """Track width from the URDF wheel joints' frames (body y distance), or None."""
+        wheels = self.layout.sensor("wheels")
+        tree = self.layout.frames
+        if wheels is None or tree is None or not wheels.left_joints:
+            return None
+        frames = {}
+        for joint in wheels.left_joints + wheels.right_joints:
+            frame = tree.joint_frame(joint)
+            if frame is None:
+                return None
+            frames[joint] = frame
+        imu = self.layout.sensor("imu")
+        body = self.layout.body_frame or imu.frame
+        if body is None:
+            return None
+
+        def mean_y(joints: tuple[str, ...]) -> float:
+            values = {j: 0.0 for j in tree.joint_names if j in joints}
+            ys = [float(tree.transform(body, frames[j], values or None)[1, 3]) for j in joints]
+            return sum(ys) / len(ys)
+
+        return abs(mean_y(wheels.left_joints) - mean_y(wheels.right_joints))
+
+    def eskf_config(
+        self, meta: Mapping[str, Any] | None = None, overrides: Mapping[str, Any] | None = None
+    ) -> EskfConfig:
+        """The front end's settings: ``estimator`` + derived geometry + ``overrides``.
+
+        Args:
+            meta: ``Sequence.meta`` from :func:`~msf_torch.io.rosbag.read_rosbag` (its
+                ``extrinsics`` give the lever arms); None: no derived lever arms.
+            overrides: EskfConfig keys that win over everything (command-line switches).
+
+        Raises:
+            DataError: a derived key also set in ``estimator``, a wheel frame rotated
+                against the body, or a setting EskfConfig rejects (naming the key).
+        """
+        values = dict(self.estimator)
+        derived: dict[str, Any] = {}
+        extrinsics = (meta or {}).get("extrinsics", {})
+        if self.layout.frames is not None:
+            gnss = self.layout.sensor("gnss")
+            if gnss is not None and gnss.name in extrinsics:
+                derived["gnss_lever_arm_m"] = [row[3] for row in extrinsics[gnss.name][:3]]
+            wheels = self.layout.sensor("wheels")
+            if wheels is not None and wheels.name in extrinsics:
+                matrix = torch.tensor(extrinsics[wheels.name], dtype=torch.float64)
+                turn = (matrix[:3, :3] - torch.eye(3, dtype=torch.float64)).abs().max()
+                if float(turn) > 1e-9:
+                    raise self._fail(
+                        ("sensors", wheels.name, "frame"),
+                        "the wheel frame is rotated against the body axes; the wheel model "
+                        "measures speed along the body x axis (choose frames.body so that "
+                        "the two agree)",
+                    )
+                derived["wheel_lever_arm_m"] = matrix[:3, 3].tolist()
+            track = self._wheel_track_from_urdf()
+            if track is not None and "wheel_track_m" not in values:
+                derived["wheel_track_m"] = track
+        if self.layout.frames is not None:
+            for key, kind in (("gnss_lever_arm_m", "gnss"), ("wheel_lever_arm_m", "wheels")):
+                sensor = self.layout.sensor(kind)
+                if key in values and sensor is not None:
+                    raise self._fail(
+                        ("estimator", key),
+                        f"is also given by the robot's frames (sensor '{sensor.name}'); set it "
+                        "in one place",
+                    )
+        if self.wheel_fuse is not None:
+            if "wheel_yaw_rate_update" in values:
+                raise self._fail(
+                    ("estimator", "wheel_yaw_rate_update"),
+                    "is also set by the wheels' fuse list; set it in one place",
+                )
+            derived["wheel_yaw_rate_update"] = "yaw_rate" in self.wheel_fuse
+        values.update(derived)
+        values.update(overrides or {})
+        return _eskf_config(values, self._fail)
+
+    def summary(self) -> dict[str, Any]:
+        """A JSON-ready description (what ``msf config check`` prints)."""
+        layout = self.layout
+        out: dict[str, Any] = {
+            "file": None if self.path is None else str(self.path),
+            "name": self.name,
+            "sensors": {
+                s.name: {"type": s.kind, "topic": s.topic}
+                | ({"role": s.role} if s.kind == "pose" else {})
+                for s in layout.sensors
+            },
+            "disabled": list(self.disabled),
+            "time_origin_ns": "first" if layout.time_origin_ns is None else layout.time_origin_ns,
+            "gnss_origin": "first" if layout.gnss_origin is None else list(layout.gnss_origin),
+            "estimator": dict(self.estimator),
+        }
+        if layout.frames is not None:
+            tree = layout.frames
+            body = layout.body_frame or layout.sensor("imu").frame
+            out["frames"] = tree.frames
+            out["joints"] = tree.joint_names
+            out["body_frame"] = body
+            extrinsics = {}
+            for sensor in layout.sensors:
+                if sensor.frame is None or tree.joints_between(body, sensor.frame):
+                    continue
+                matrix = tree.transform(body, sensor.frame)
+                extrinsics[sensor.name] = {
+                    "xyz": matrix[:3, 3].tolist(),
+                    "quaternion_wxyz": matrix_to_quat(matrix[:3, :3]).tolist(),
+                }
+            out["extrinsics_in_body"] = extrinsics
+            derived = self.eskf_config(None)
+            out["derived"] = {
+                key: getattr(derived, key)
+                for key in ("wheel_track_m", "wheel_yaw_rate_update")
+                if getattr(derived, key) != getattr(EskfConfig(**self.estimator), key)
+            }
+        return out
+
+
+def _eskf_config(values: dict[str, Any], fail) -> EskfConfig:
+    known = {f.name for f in dataclasses.fields(EskfConfig)}
+    for key in values:
+        if key not in known:
+            raise fail(("estimator", key), "unknown estimator key (see EskfConfig)")
+    try:
+        config = EskfConfig(**values)
+        config.validate()
+    except (TypeError, ValueError) as err:
+        bad = next((k for k in values if f"'{k}'" in str(err)), None)
+        raise fail(("estimator",) if bad is None else ("estimator", bad), str(err)) from None
+    return config
+
+
+def is_robot_config(path: str | os.PathLike[str]) -> bool:
+    """Whether a YAML file is a robot config (it has a top-level ``sensors`` mapping)."""
+    try:
+        with open(path, encoding="utf-8") as handle:
+            loaded = yaml.safe_load(handle)
+    except (OSError, yaml.YAMLError):
+        return False
+    return isinstance(loaded, dict) and "sensors" in loaded
+
+
+def load_robot_config(path: str | os.PathLike[str]) -> RobotConfig:
+    """Read and validate a robot YAML (module docstring).
+
+    Raises:
+        DataError: naming the file, line and key path of the first problem (a missing
+            or unknown key, a wrong type, an unreadable URDF, an unknown frame, ...).
+    """
+    file = Path(path)
+    try:
+        text = file.read_text(encoding="utf-8")
+    except OSError as err:
+        raise DataError(file, f"cannot read the robot config ({err.strerror})") from None
+    try:
+        loaded = yaml.safe_load(text)
+    except yaml.YAMLError as err:
+        mark = getattr(err, "problem_mark", None)
+        raise DataError(
+            file,
+            f"not valid YAML ({getattr(err, 'problem', err)})",
+            line=None if mark is None else mark.line + 1,
+        ) from None
+    check = _Checker(str(file), _line_map(text))
+    top = check.mapping(loaded, (), ROBOT_KEYS)
+    if "sensors" not in top:
+        raise check.fail(("sensors",), "missing: a robot config maps sensors to topics")
+    robot = check.mapping(top.get("robot"), ("robot",), ("name",))
+    name = check.string(robot["name"], ("robot", "name")) if "name" in robot else file.stem
+    frames_section = check.mapping(
+        top.get("frames"), ("frames",), ("urdf", "body", "transforms", "joints")
+    )
+    tree = _frames(check, frames_section, file.parent)
+    body = None
+    if "body" in frames_section:
+        body = check.string(frames_section["body"], ("frames", "body"))
+    joints = check.mapping(frames_section.get("joints"), ("frames", "joints"), ("topic", "values"))
+    joint_values: dict[str, float] = {}
+    values = joints.get("values") or {}
+    if not isinstance(values, dict):
+        raise check.fail(("frames", "joints", "values"), "must map joint names to values")
+    for joint, value in values.items():
+        if tree is None or joint not in tree.joint_names:
+            raise check.fail(
+                ("frames", "joints", "values", joint),
+                "not a movable joint of the URDF"
+                + ("" if tree is None else f" (movable: {tree.joint_names})"),
+            )
+        joint_values[joint] = check.number(value, ("frames", "joints", "values", joint))
+    time = check.mapping(top.get("time"), ("time",), ("origin_ns",))
+    origin_ns = None
+    if time.get("origin_ns", "first") != "first":
+        value = time["origin_ns"]
+        if isinstance(value, bool) or not isinstance(value, int) or value < 0:
+            raise check.fail(
+                ("time", "origin_ns"), f"must be 'first' or an integer >= 0 (ns), got {value!r}"
+            )
+        origin_ns = value
+    estimator = check.mapping(
+        top.get("estimator"), ("estimator",), tuple(f.name for f in dataclasses.fields(EskfConfig))
+    )
+    _eskf_config(dict(estimator), check.fail)
+    sensors_section = top["sensors"]
+    if not isinstance(sensors_section, dict) or not sensors_section:
+        raise check.fail(("sensors",), "must be a non-empty mapping of sensor names to sensors")
+    sensors: list[SensorTopic] = []
+    disabled: list[str] = []
+    gnss_origin = None
+    wheel_fuse = None
+    for sensor_name, body_value in sensors_section.items():
+        keys = ("sensors", str(sensor_name))
+        if not isinstance(body_value, dict):
+            raise check.fail(keys, "must be a mapping with at least type and topic")
+        kind = body_value.get("type")
+        if kind not in SENSOR_KINDS:
+            raise check.fail(
+                (*keys, "type"), f"must be one of {', '.join(SENSOR_KINDS)}, got {kind!r}"
+            )
+        spec = check.mapping(body_value, keys, _COMMON + _PER_KIND[kind])
+        if "topic" not in spec:
+            raise check.fail((*keys, "topic"), "missing")
+        if not check.boolean(spec.get("enabled", True), (*keys, "enabled")):
+            disabled.append(str(sensor_name))
+            continue
+        fields: dict[str, Any] = {
+            "name": str(sensor_name),
+            "kind": kind,
+            "topic": check.string(spec["topic"], (*keys, "topic")),
+        }
+        if "frame" in spec:
+            fields["frame"] = check.string(spec["frame"], (*keys, "frame"))
+            if tree is not None and fields["frame"] not in tree.frames:
+                raise check.fail(
+                    (*keys, "frame"),
+                    f"unknown frame {fields['frame']!r} (known: {', '.join(tree.frames)})",
+                )
+        if "stamp" in spec:
+            if spec["stamp"] not in ("header", "bag"):
+                raise check.fail((*keys, "stamp"), f"must be header or bag, got {spec['stamp']!r}")
+            fields["stamp"] = spec["stamp"]
+        if "time_offset_s" in spec:
+            fields["time_offset_s"] = check.number(spec["time_offset_s"], (*keys, "time_offset_s"))
+        if "use_message_covariance" in spec:
+            fields["use_message_covariance"] = check.boolean(
+                spec["use_message_covariance"], (*keys, "use_message_covariance")
+            )
+        if kind == "gnss":
+            origin = spec.get("origin", "first")
+            if origin != "first":
+                gnss_origin = tuple(check.numbers(origin, (*keys, "origin"), 3))
+                if abs(gnss_origin[0]) > 90:
+                    raise check.fail((*keys, "origin"), "latitude must lie in [-90, 90] deg")
+            if "min_fix_status" in spec:
+                status = spec["min_fix_status"]
+                if isinstance(status, bool) or status not in (-1, 0, 1, 2):
+                    raise check.fail(
+                        (*keys, "min_fix_status"), f"must be -1, 0, 1 or 2, got {status!r}"
+                    )
+                fields["min_fix_status"] = status
+            if "fuse" in spec:
+                fields["fuse"] = check.subset(spec["fuse"], (*keys, "fuse"), GNSS_COMPONENTS)
+        elif kind == "wheels":
+            if "left_joints" in spec or "right_joints" in spec or "wheel_radius_m" in spec:
+                for side in ("left_joints", "right_joints", "wheel_radius_m"):
+                    if side not in spec:
+                        raise check.fail(
+                            (*keys, side),
+                            "missing (wheels from JointState need left_joints, right_joints "
+                            "and wheel_radius_m)",
+                        )
+                fields["left_joints"] = check.strings(spec["left_joints"], (*keys, "left_joints"))
+                fields["right_joints"] = check.strings(
+                    spec["right_joints"], (*keys, "right_joints")
+                )
+                radius = spec["wheel_radius_m"]
+                if isinstance(radius, list):
+                    fields["wheel_radius_m"] = tuple(
+                        check.numbers(radius, (*keys, "wheel_radius_m"), 2, positive=True)
+                    )
+                else:
+                    r = check.number(radius, (*keys, "wheel_radius_m"), positive=True)
+                    fields["wheel_radius_m"] = (r, r)
+            if "fuse" in spec:
+                fuse = check.subset(spec["fuse"], (*keys, "fuse"), WHEEL_COMPONENTS)
+                if "speed" not in fuse:
+                    raise check.fail((*keys, "fuse"), "the wheels always fuse speed")
+                wheel_fuse = fuse
+        elif kind == "pose":
+            role = spec.get("role", "pose_source")
+            if role not in POSE_ROLES:
+                raise check.fail(
+                    (*keys, "role"), f"must be one of {', '.join(POSE_ROLES)}, got {role!r}"
+                )
+            fields["role"] = role
+            if "source_name" in spec:
+                if role != "pose_source":
+                    raise check.fail((*keys, "source_name"), "only a pose_source has a source name")
+                fields["source_name"] = check.string(spec["source_name"], (*keys, "source_name"))
+            if "sigma" in spec:
+                fields["sigma"] = tuple(
+                    check.numbers(spec["sigma"], (*keys, "sigma"), 6, positive=True)
+                )
+            if "fuse" in spec:
+                if role != "poses":
+                    raise check.fail(
+                        (*keys, "fuse"),
+                        "applies to role poses; a pose source is fused as velocity and rate "
+                        "(estimator.pose_source_rate_update)",
+                    )
+                fields["fuse"] = check.subset(spec["fuse"], (*keys, "fuse"), POSE_COMPONENTS)
+        try:
+            sensors.append(SensorTopic(**fields))
+        except ValueError as err:
+            raise check.fail(keys, str(err)) from None
+    if "topic" in joints:
+        sensors.append(
+            SensorTopic(
+                "joints", "joints", check.string(joints["topic"], ("frames", "joints", "topic"))
+            )
+        )
+    try:
+        layout = BagLayout(
+            sensors=tuple(sensors),
+            frames=tree,
+            body_frame=body,
+            joint_values=joint_values,
+            time_origin_ns=origin_ns,
+            gnss_origin=gnss_origin,
+            wheel_track_m=estimator.get("wheel_track_m", EskfConfig.wheel_track_m),
+        )
+    except ValueError as err:
+        raise check.fail(("sensors",), str(err)) from None
+    imu = layout.sensor("imu")
+    if tree is not None:
+        if body is not None and body not in tree.frames:
+            raise check.fail(
+                ("frames", "body"), f"unknown frame {body!r} (known: {', '.join(tree.frames)})"
+            )
+        if imu.frame is None:
+            raise check.fail(
+                ("sensors", imu.name, "frame"),
+                "missing: with frames, the imu sensor names its frame",
+            )
+    config = RobotConfig(
+        path=file,
+        name=name,
+        layout=layout,
+        estimator=dict(estimator),
+        wheel_fuse=wheel_fuse,
+        disabled=tuple(disabled),
+        _lines=check.lines,
+    )
+    if tree is not None:
+        config.eskf_config(None)
+    return config
+
+
+def _frames(check: _Checker, section: dict[str, Any], folder: Path) -> FrameTree | None:
+    """The FrameTree of a ``frames`` section (URDF and / or static transforms), or None."""
+    transforms: list[StaticTransform] = []
+    items = section.get("transforms") or []
+    if not isinstance(items, list):
+        raise check.fail(("frames", "transforms"), "must be a list of transforms")
+    for i, item in enumerate(items):
+        keys = ("frames", "transforms", i)
+        spec = check.mapping(item, keys, ("parent", "child", "xyz", "rpy", "quaternion_xyzw"))
+        for key in ("parent", "child", "xyz"):
+            if key not in spec:
+                raise check.fail((*keys, key), "missing")
+        if ("rpy" in spec) == ("quaternion_xyzw" in spec):
+            raise check.fail(keys, "give exactly one of rpy and quaternion_xyzw")
+        parent = check.string(spec["parent"], (*keys, "parent"))
+        child = check.string(spec["child"], (*keys, "child"))
+        xyz = check.numbers(spec["xyz"], (*keys, "xyz"), 3)
+        if "rpy" in spec:
+            rpy = check.numbers(spec["rpy"], (*keys, "rpy"), 3)
+            transforms.append(StaticTransform.from_xyz_rpy(parent, child, xyz, rpy))
+        else:
+            quat = check.numbers(spec["quaternion_xyzw"], (*keys, "quaternion_xyzw"), 4)
+            if math.hypot(*quat) < 1e-6:
+                raise check.fail((*keys, "quaternion_xyzw"), "has (near) zero norm")
+            transforms.append(StaticTransform.from_xyz_quaternion(parent, child, xyz, quat))
+    try:
+        if "urdf" in section:
+            urdf = Path(check.string(section["urdf"], ("frames", "urdf")))
+            if not urdf.is_absolute():
+                urdf = folder / urdf
+            return FrameTree.from_urdf(urdf, transforms)
+        if transforms:
+            return FrameTree.from_transforms(transforms)
+    except ValueError as err:
+        key = ("frames", "urdf") if "urdf" in section else ("frames", "transforms")
+        raise check.fail(key, str(err)) from None
+    return None

@@ -1,0 +1,144 @@
+"""``msf run BAG --topics ROBOT.yaml``, ``--export kitti,rosbag2`` and ``msf config check``.
+
+A simulated run with a GNSS antenna 1 m above and behind the IMU goes into a rosbag2 whose
+robot YAML places the antenna with a URDF; the bag run must give the trajectory of the
+native run with the same lever arm set by hand.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from msf_torch.cli import main
+from msf_torch.frontend.config import EskfConfig
+from msf_torch.io import read_kitti_poses, read_native, write_native
+from msf_torch.io.rosbag import write_rosbag
+from msf_torch.io.tum import read_tum
+from msf_torch.robot.config import load_robot_config
+from msf_torch.sim import SimConfig, simulate_run
+
+LEVER = (-0.25, 0.1, 0.95)
+ORIGIN_NS = 1_650_000_000_000_000_000
+
+URDF = f"""<robot name="rover">
+  <link name="base_link"/><link name="gps_link"/>
+  <joint name="gps_joint" type="fixed"><parent link="base_link"/><child link="gps_link"/>
+    <origin xyz="{LEVER[0]} {LEVER[1]} {LEVER[2]}" rpy="0 0 0"/></joint>
+</robot>
+"""
+
+ROBOT = f"""\
+robot: {{name: rover}}
+frames:
+  urdf: rover.urdf
+time: {{origin_ns: {ORIGIN_NS}}}
+sensors:
+  imu: {{type: imu, topic: /imu, frame: base_link}}
+  gps: {{type: gnss, topic: /fix, frame: gps_link, origin: [47.37, 8.54, 410.0]}}
+  wheels:
+    type: wheels
+    topic: /joint_states
+    frame: base_link
+    left_joints: left
+    right_joints: right
+    wheel_radius_m: 0.15
+  truth: {{type: pose, topic: /truth, role: ground_truth, frame: base_link}}
+"""
+
+
+@pytest.fixture(scope="module")
+def robot_run(tmp_path_factory) -> dict[str, Path]:
+    folder = tmp_path_factory.mktemp("robot")
+    config = SimConfig(duration_s=12.0, slip_episodes=0, gnss_lever_arm_m=LEVER)
+    seq = simulate_run(config, 4).sequence
+    streams = {
+        name: dataclasses.replace(s, t=torch.round(s.t * 1e9) / 1e9)
+        for name, s in seq.streams().items()
+    }
+    seq = dataclasses.replace(seq, **streams)
+    native = write_native(seq, folder / "run.npz")
+    (folder / "rover.urdf").write_text(URDF)
+    robot_yaml = folder / "robot.yaml"
+    robot_yaml.write_text(ROBOT)
+    robot = load_robot_config(robot_yaml)
+    bag = write_rosbag(
+        read_native(native),
+        folder / "run",
+        robot.layout,
+        version=2,
+        time_origin_ns=ORIGIN_NS,
+        gnss_origin=robot.layout.gnss_origin,
+    )
+    # the native run's settings: the bag's (defaults) with the lever arm set by hand
+    defaults = EskfConfig()
+    native_cfg = folder / "native.yaml"
+    keys = ("gyro_noise_density", "accel_noise_density")
+    keys += ("gyro_bias_rw_density", "accel_bias_rw_density", "wheel_track_m")
+    lines = [f"{k}: {getattr(defaults, k)!r}" for k in keys]
+    lines.append(f"gnss_lever_arm_m: {list(LEVER)}")
+    native_cfg.write_text("\n".join(lines) + "\n")
+    return {"native": native, "bag": bag, "robot": robot_yaml, "native_cfg": native_cfg}
+
+
+def _last_json(capsys) -> dict:
+    return json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+
+
+def test_bag_run_equals_native_run_and_exports(robot_run, tmp_path, capsys) -> None:
+    out_bag, out_native = tmp_path / "bag", tmp_path / "native"
+    common = ["--no-plot", "--no-learned", "--progress", "off"]
+    args = ["run", str(robot_run["bag"]), "--topics", str(robot_run["robot"])]
+    assert main([*args, "--out", str(out_bag), "--export", "kitti,rosbag2", *common]) == 0
+    summary = _last_json(capsys)
+    assert summary["source"] == str(robot_run["bag"]) and summary["ate_rmse_m"] < 1.0
+    args = ["run", str(robot_run["native"]), "--config", str(robot_run["native_cfg"])]
+    assert main([*args, "--out", str(out_native), *common]) == 0
+    native_summary = _last_json(capsys)
+    bag_traj = read_tum(out_bag / "trajectory.tum")
+    native_traj = read_tum(out_native / "trajectory.tum")
+    assert torch.equal(bag_traj.t, native_traj.t)
+    assert (bag_traj.position - native_traj.position).abs().max() < 1e-9
+    assert (bag_traj.quaternion - native_traj.quaternion).abs().max() < 1e-9
+    assert summary["measurements"] == native_summary["measurements"]
+    # KITTI export: the same poses, times in their own file
+    kitti = read_kitti_poses(out_bag / "trajectory.kitti", out_bag / "trajectory_times.txt")
+    assert torch.equal(kitti.t, bag_traj.t)
+    torch.testing.assert_close(kitti.position, bag_traj.position, rtol=0, atol=1e-12)
+    torch.testing.assert_close(kitti.quaternion, bag_traj.quaternion, rtol=0, atol=1e-12)
+    # rosbag2 export, read by evo: stamps on the bag's clock, poses as in the TUM file
+    from evo.tools import file_interface
+    from rosbags.rosbag2 import Reader
+
+    with Reader(out_bag / "trajectory_rosbag2") as reader:
+        odom = file_interface.read_bag_trajectory(reader, "/msf/odometry")
+    np.testing.assert_allclose(odom.timestamps - ORIGIN_NS / 1e9, bag_traj.t[0].numpy(), atol=1e-6)
+    np.testing.assert_allclose(odom.positions_xyz, bag_traj.position[0].numpy(), atol=1e-12)
+
+
+def test_bag_needs_its_topics(robot_run, tmp_path, capsys) -> None:
+    assert main(["run", str(robot_run["bag"]), "--out", str(tmp_path), "--no-plot"]) == 2
+    assert "--topics" in capsys.readouterr().err
+
+
+def test_config_check(robot_run, tmp_path, capsys) -> None:
+    assert main(["config", "check", str(robot_run["robot"])]) == 0
+    report = _last_json(capsys)
+    assert report["ok"] and report["kind"] == "robot" and report["body_frame"] == "base_link"
+    assert report["extrinsics_in_body"]["gps"]["xyz"] == list(LEVER)
+    assert main(["config", "check", str(robot_run["native_cfg"])]) == 0
+    report = _last_json(capsys)
+    assert report["kind"] == "frontend" and report["estimator"] == {"gnss_lever_arm_m": list(LEVER)}
+    bad = tmp_path / "bad.yaml"
+    text = ROBOT.replace("wheel_radius_m: 0.15", "wheel_radius_m: fast")
+    bad.write_text(text)
+    (tmp_path / "rover.urdf").write_text(URDF)
+    assert main(["config", "check", str(bad)]) == 2
+    err = capsys.readouterr().err
+    line = next(i for i, row in enumerate(text.splitlines(), 1) if "wheel_radius_m" in row)
+    assert f"{bad}:{line}: field 'sensors.wheels.wheel_radius_m': must be a number" in err
