@@ -22,11 +22,16 @@ __all__ = [
     "stream_from_arrays",
     "MAX_REPORTED_LINES",
     "path_name",
+    "read_text",
+    "shown",
+    "split_lines",
 ]
 
 import csv
 import dataclasses
+import math
 import os
+import re
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -38,6 +43,10 @@ from msf_torch.io.errors import DataError
 
 MAX_REPORTED_LINES = 5
 """How many dropped line numbers (or sample indices) per stream are kept in ``meta``."""
+
+_LINE_BREAK = re.compile(r"\r\n|\r|\n")
+"""Line ends as editors count them (universal newlines); other characters that
+``str.splitlines`` breaks at (form feed, U+2028, ...) stay inside their line."""
 
 
 @dataclass
@@ -90,16 +99,17 @@ class Table:
         except ValueError:
             pass
         names = self._column_names(idx)
+        out = np.empty((len(cells), len(idx)), dtype=np.float64)
         for r, row in enumerate(cells):
             for c, cell in enumerate(row):
                 try:
-                    float(cell)
+                    out[r, c] = float(cell)
                 except ValueError:
-                    problem = "empty cell" if cell == "" else f"not a number: {cell!r}"
+                    problem = "empty cell" if cell == "" else f"not a number: {shown(cell)}"
                     raise DataError(
                         self.path, problem, line=int(self.lines[r]), field=names[c]
                     ) from None
-        raise DataError(self.path, "could not convert the table to numbers")  # unreachable
+        return out
 
     def ints(self, column: str | int) -> np.ndarray:
         """Convert one column to a (N,) int64 array (exact; for nanosecond timestamps).
@@ -116,7 +126,7 @@ class Table:
             except (ValueError, OverflowError):
                 raise DataError(
                     self.path,
-                    f"not an integer: {row[i]!r}",
+                    f"not an integer: {shown(row[i])}",
                     line=int(self.lines[r]),
                     field=name,
                 ) from None
@@ -126,6 +136,41 @@ class Table:
         """One column as a list of strings."""
         i = column if isinstance(column, int) else self.index(column)
         return [row[i] for row in self.rows]
+
+
+def read_text(path: str | os.PathLike[str]) -> str:
+    """The whole of a UTF-8 text file (a leading byte-order mark dropped).
+
+    Raises:
+        DataError: no such file, a folder, or bytes that are not UTF-8 (naming the line of
+            the first bad byte).
+    """
+    try:
+        data = Path(path).read_bytes()
+    except FileNotFoundError:
+        raise DataError(path, "no such file") from None
+    except IsADirectoryError:
+        raise DataError(path, "is a folder, expected a file") from None
+    try:
+        return data.decode("utf-8-sig")
+    except UnicodeDecodeError as err:
+        line = len(split_lines(data[: err.start].decode("utf-8-sig", errors="replace")))
+        raise DataError(
+            path, f"not a UTF-8 text file ({err.reason}: byte {data[err.start]:#04x})", line=line
+        ) from None
+
+
+def split_lines(text: str) -> list[str]:
+    """``text`` cut at ``\\r\\n``, ``\\r`` and ``\\n`` only: line ``k`` of the result is the line
+    an editor shows as ``k + 1``, which every error message names."""
+    return _LINE_BREAK.split(text)
+
+
+def shown(cell: str, limit: int = 40) -> str:
+    """``repr`` of a cell for an error message, shortened to about ``limit`` characters."""
+    if len(cell) <= limit:
+        return repr(cell)
+    return f"{cell[:limit]!r}... ({len(cell)} characters)"
 
 
 def read_table(
@@ -160,21 +205,13 @@ def read_table(
         DataError: missing file, empty header, a row with the wrong number of columns.
     """
     path_str = os.fspath(path)
-    try:
-        with open(path, encoding="utf-8-sig", newline="") as handle:
-            text = handle.read()
-    except FileNotFoundError:
-        raise DataError(path_str, "no such file") from None
-    except UnicodeDecodeError as err:
-        raise DataError(path_str, f"not a UTF-8 text file ({err.reason})") from None
-    except IsADirectoryError:
-        raise DataError(path_str, "is a folder, expected a file") from None
+    text = read_text(path)
     kept: list[str] = []
     numbers: list[int] = []
     head: list[str] | None = None
     head_line: int | None = None
     want_header = header in ("line", "hash")
-    for number, raw in enumerate(text.splitlines(), start=1):
+    for number, raw in enumerate(split_lines(text), start=1):
         line = raw.strip()
         if not line:
             continue
@@ -183,7 +220,7 @@ def read_table(
                 if header == "line":
                     continue
                 line = line[len(comment) :]
-            head = _split_one(line, delimiter)
+            head = _split_one(path_str, line, number, delimiter)
             head_line = number
             continue
         if line.startswith(comment):
@@ -195,7 +232,13 @@ def read_table(
     if delimiter is None:
         rows = [line.split() for line in kept]
     else:
-        rows = [[cell.strip() for cell in row] for row in csv.reader(kept, delimiter=delimiter)]
+        reader = csv.reader(kept, delimiter=delimiter)
+        try:
+            rows = [[cell.strip() for cell in row] for row in reader]
+        except csv.Error as err:
+            raise DataError(
+                path_str, f"malformed CSV ({err})", line=numbers[reader.line_num - 1]
+            ) from None
         if len(rows) != len(kept):
             raise DataError(path_str, "unbalanced quotes: a quoted cell spans lines")
     width: int | None
@@ -220,10 +263,14 @@ def read_table(
     return Table(path=path_str, header=head, header_line=head_line, rows=rows, lines=lines)
 
 
-def _split_one(line: str, delimiter: str | None) -> list[str]:
+def _split_one(path: str, line: str, number: int, delimiter: str | None) -> list[str]:
+    """Cells of one line (the header); a CSV error becomes a DataError naming the line."""
     if delimiter is None:
         return line.split()
-    return [cell.strip() for cell in next(csv.reader([line], delimiter=delimiter))]
+    try:
+        return [cell.strip() for cell in next(csv.reader([line], delimiter=delimiter))]
+    except csv.Error as err:
+        raise DataError(path, f"malformed CSV ({err})", line=number) from None
 
 
 def check_columns(
@@ -386,7 +433,7 @@ def clean_stream(
     for key, value in arrays.items():
         if key == "t":
             continue
-        flat = value.reshape(n, -1)
+        flat = value.reshape(n, math.prod(value.shape[1:]))
         if key in nan_ok:
             good &= ~np.isinf(flat).any(axis=1)
         else:
@@ -455,10 +502,20 @@ def check_quaternions(
 
 
 def normalise_quaternions(quat: np.ndarray) -> np.ndarray:
-    """(N, 4) quaternions scaled to unit norm (rows must be finite, non-zero)."""
+    """(..., 4) quaternions scaled to unit norm (rows must be finite, non-zero).
+
+    Rows whose squared norm overflows or underflows (entries near 1e300 or 1e-300) are
+    divided by their largest entry first, so they too come out unit.
+    """
     if quat.shape[0] == 0:
         return quat
-    return quat / np.linalg.norm(quat, axis=-1, keepdims=True)
+    norm = np.linalg.norm(quat, axis=-1, keepdims=True)
+    odd = ~np.isfinite(norm) | (norm < 1e-100)
+    if odd.any():
+        largest = np.abs(quat).max(axis=-1, keepdims=True)
+        quat = np.where(odd, quat / np.where(odd, largest, 1.0), quat)
+        norm = np.linalg.norm(quat, axis=-1, keepdims=True)
+    return quat / norm
 
 
 def stream_from_arrays(kind: type, arrays: dict[str, np.ndarray]) -> Any:

@@ -335,7 +335,8 @@ def _extrinsics(
         return None, None
     quat = np.asarray(values[3:], dtype=np.float64)
     _tables.check_quaternions(path, quat[None], lines=np.array([lines["T_ci_qw"]]), name="value")
-    rot = quat_to_matrix(torch.as_tensor(quat, dtype=torch.float64))
+    unit = _tables.normalise_quaternions(quat[None])[0]
+    rot = quat_to_matrix(torch.as_tensor(unit, dtype=torch.float64))
     return rot, torch.tensor(values[:3], dtype=torch.float64)
 
 

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 __all__ = ["EUROC_IMU_COLUMNS", "EUROC_GT_COLUMNS", "find_euroc_root", "read_euroc"]
 
+import math
 import os
 import re
 from pathlib import Path
@@ -89,26 +90,47 @@ def _read(path: Path, required: list[str]) -> tuple[_tables.Table, np.ndarray, n
 
 
 def _read_sensor_yaml(path: Path) -> dict[str, Any]:
-    """IMU noise densities from ``imu0/sensor.yaml`` (EuRoC's ``%YAML:1.0`` files)."""
-    text = "\n".join(
-        line for line in path.read_text(encoding="utf-8").splitlines() if not line.startswith("%")
-    )
+    """IMU noise densities from ``imu0/sensor.yaml`` (EuRoC's ``%YAML:1.0`` files).
+
+    Directive lines (``%...``) are blanked, not removed, so YAML's line numbers stay the
+    file's. A noise value or ``T_BS`` entry that is not a finite number is a DataError.
+    """
+    lines = _tables.split_lines(_tables.read_text(path))
+    text = "\n".join("" if line.startswith("%") else line for line in lines)
     try:
         doc = yaml.safe_load(text)
     except yaml.YAMLError as err:
         mark = getattr(err, "problem_mark", None)
         line = None if mark is None else mark.line + 1
         raise DataError(path, f"invalid YAML: {err}", line=line) from None
+    except RecursionError:
+        raise DataError(path, "invalid YAML: nested too deeply") from None
     if not isinstance(doc, dict):
         return {}
     noise: dict[str, Any] = {}
     for key, name in _YAML_NOISE.items():
-        if isinstance(doc.get(key), int | float):
-            noise[name] = float(doc[key])
+        value = doc.get(key)
+        if isinstance(value, int | float) and not isinstance(value, bool):
+            noise[name] = _finite_yaml_number(path, value, key)
     body = doc.get("T_BS")
     if isinstance(body, dict) and isinstance(body.get("data"), list) and len(body["data"]) == 16:
-        noise["T_body_sensor"] = [float(x) for x in body["data"]]
+        noise["T_body_sensor"] = [
+            _finite_yaml_number(path, x, f"T_BS.data[{k}]") for k, x in enumerate(body["data"])
+        ]
     return noise
+
+
+def _finite_yaml_number(path: Path, value: Any, key: str) -> float:
+    """``value`` as a finite float; DataError naming ``key`` otherwise."""
+    if isinstance(value, bool) or not isinstance(value, int | float):
+        raise DataError(path, f"not a number: {value!r}", field=key)
+    try:
+        number = float(value)
+    except OverflowError:
+        number = math.inf
+    if not math.isfinite(number):
+        raise DataError(path, f"not finite: {value!r}", field=key)
+    return number
 
 
 def read_euroc(folder: str | os.PathLike[str], sort: bool = False) -> Sequence:

@@ -90,6 +90,7 @@ import torch
 from pytorch_kinematics.transforms import euler_angles_to_matrix
 
 from msf_torch.geometry.quaternion import matrix_to_quat, quat_to_matrix
+from msf_torch.io import _tables
 from msf_torch.io.atomic import atomic_write
 from msf_torch.io.errors import DataError
 from msf_torch.io.kitti_gtsam import gtsam_data_path
@@ -271,8 +272,13 @@ class _Records:
 
 
 def _parse_id(path: str, token: str, line: int, name: str) -> int:
-    if not _ID.fullmatch(token) or int(token) >= 2**63:
-        raise DataError(path, f"not a non-negative integer id: {token!r}", line=line, field=name)
+    if not _ID.fullmatch(token) or len(token.lstrip("0")) > 19 or int(token) >= 2**63:
+        raise DataError(
+            path,
+            f"not a non-negative integer id: {_tables.shown(token)} (ids lie below 2^63)",
+            line=line,
+            field=name,
+        )
     return int(token)
 
 
@@ -284,11 +290,15 @@ def _parse_floats(path: str, tokens: list[str], line: int, names: tuple[str, ...
             try:
                 float(token)
             except ValueError:
-                raise DataError(path, f"not a number: {token!r}", line=line, field=name) from None
+                raise DataError(
+                    path, f"not a number: {_tables.shown(token)}", line=line, field=name
+                ) from None
         raise  # pragma: no cover - float() failed above, so the loop raised
     if not all(map(math.isfinite, values)):
         k = next(k for k, v in enumerate(values) if not math.isfinite(v))
-        raise DataError(path, f"not finite: {tokens[k]!r}", line=line, field=names[k])
+        raise DataError(
+            path, f"not finite: {_tables.shown(tokens[k])}", line=line, field=names[k]
+        )
     return values
 
 
@@ -328,8 +338,8 @@ def _rotations(values: np.ndarray, quat: bool) -> np.ndarray:
     if values.shape[0] == 0:
         return np.zeros((0, 3, 3))
     if quat:
-        wxyz = torch.as_tensor(values[:, [6, 3, 4, 5]], dtype=torch.float64)
-        return quat_to_matrix(wxyz).numpy()
+        wxyz = _tables.normalise_quaternions(values[:, [6, 3, 4, 5]])
+        return quat_to_matrix(torch.as_tensor(wxyz, dtype=torch.float64)).numpy()
     ypr = torch.as_tensor(values[:, [5, 4, 3]], dtype=torch.float64)
     return euler_angles_to_matrix(ypr, "ZYX").numpy()
 
@@ -345,9 +355,15 @@ def _information(values: np.ndarray, quat: bool) -> np.ndarray:
 
 
 def _chain(
-    path: str, ids: np.ndarray, pairs: np.ndarray, rot: np.ndarray, trans: np.ndarray
+    path: str,
+    ids: np.ndarray,
+    pairs: np.ndarray,
+    rot: np.ndarray,
+    trans: np.ndarray,
+    lines: np.ndarray,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Initial poses of an edge-only graph along the odometry edges ``k -> k+1``."""
+    """Initial poses of an edge-only graph along the odometry edges ``k -> k+1``; a position
+    that overflows to inf on the way is a DataError naming the edge that pushed it over."""
     first: dict[tuple[int, int], int] = {}
     for e, (i, j) in enumerate(pairs.tolist()):
         first.setdefault((i, j), e)
@@ -366,7 +382,16 @@ def _chain(
                 f"{int(ids[0])} (identity) along the odometry edges k -> k+1, but there is no "
                 f"edge {a} -> {a + 1}",
             )
-        positions[k + 1] = positions[k] + rotations[k] @ trans[e]
+        with np.errstate(over="ignore", invalid="ignore"):
+            positions[k + 1] = positions[k] + rotations[k] @ trans[e]
+        if not np.isfinite(positions[k + 1]).all():
+            raise DataError(
+                path,
+                f"the initial position of vertex {a + 1}, chained along the odometry edges, "
+                "overflows (the translations are too large)",
+                line=int(lines[e]),
+                field="x",
+            )
         rotations[k + 1] = rotations[k] @ rot[e]
     return rotations, positions
 
@@ -399,44 +424,41 @@ def read_pose_graph(
     records = {tag: _Records() for tag in _SPECS}
     skipped: dict[str, int] = {}
     vertex_line: dict[int, int] = {}
-    try:
-        handle = open(path_str, encoding="utf-8")
-    except FileNotFoundError:
-        raise DataError(path_str, "no such file") from None
-    except IsADirectoryError:
-        raise DataError(path_str, "is a folder, not a pose-graph file") from None
-    with handle:
-        for line_no, raw in enumerate(handle, start=1):
-            tokens = raw.split("#", 1)[0].split()
-            if not tokens:
-                continue
-            tag = tokens[0]
-            spec = _SPECS.get(tag)
-            if spec is None:
-                if _is_2d_tag(tag):
-                    raise DataError(
-                        path_str,
-                        f"2-D pose-graph tag {tag!r}; this reader reads 3-D graphs ({_TAGS})",
-                        line=line_no,
-                        field="tag",
-                    )
-                if unknown_tags == "error":
-                    raise DataError(
-                        path_str, f"unknown tag {tag!r} (known: {_TAGS})", line=line_no, field="tag"
-                    )
-                skipped[tag] = skipped.get(tag, 0) + 1
-                continue
-            _parse_line(path_str, spec, tokens, line_no, records[tag])
-            if not spec.edge:
-                vid = records[tag].ids[-1][0]
-                if vid in vertex_line:
-                    raise DataError(
-                        path_str,
-                        f"duplicate vertex id {vid} (first defined on line {vertex_line[vid]})",
-                        line=line_no,
-                        field="id",
-                    )
-                vertex_line[vid] = line_no
+    for line_no, raw in enumerate(_tables.split_lines(_tables.read_text(path_str)), start=1):
+        tokens = raw.split("#", 1)[0].split()
+        if not tokens:
+            continue
+        tag = tokens[0]
+        spec = _SPECS.get(tag)
+        if spec is None:
+            if _is_2d_tag(tag):
+                raise DataError(
+                    path_str,
+                    f"2-D pose-graph tag {_tables.shown(tag)}; this reader reads 3-D graphs "
+                    f"({_TAGS})",
+                    line=line_no,
+                    field="tag",
+                )
+            if unknown_tags == "error":
+                raise DataError(
+                    path_str,
+                    f"unknown tag {_tables.shown(tag)} (known: {_TAGS})",
+                    line=line_no,
+                    field="tag",
+                )
+            skipped[tag] = skipped.get(tag, 0) + 1
+            continue
+        _parse_line(path_str, spec, tokens, line_no, records[tag])
+        if not spec.edge:
+            vid = records[tag].ids[-1][0]
+            if vid in vertex_line:
+                raise DataError(
+                    path_str,
+                    f"duplicate vertex id {vid} (first defined on line {vertex_line[vid]})",
+                    line=line_no,
+                    field="id",
+                )
+            vertex_line[vid] = line_no
 
     # edges, in file order
     edge_tags = [t for t, s in _SPECS.items() if s.edge]
@@ -504,7 +526,7 @@ def read_pose_graph(
         vertex_ids = np.unique(e_pairs)
         rows = np.searchsorted(vertex_ids, e_pairs)
         rotations, positions = _chain(
-            path_str, vertex_ids, e_pairs, edge_rotations, edge_translations
+            path_str, vertex_ids, e_pairs, edge_rotations, edge_translations, e_lines
         )
 
     def f64(x: np.ndarray) -> torch.Tensor:

@@ -29,6 +29,7 @@ __all__ = [
 
 import importlib.resources
 import importlib.util
+import os
 from pathlib import Path
 from typing import Any
 
@@ -118,11 +119,16 @@ def _read_metadata(path: Path) -> dict[str, Any]:
     return noise
 
 
-def load_kitti_gtsam(sort: bool = False) -> Sequence:
+def load_kitti_gtsam(
+    sort: bool = False, data_dir: str | os.PathLike[str] | None = None
+) -> Sequence:
     """Load the KITTI IMU + GPS drive shipped with gtsam as a Sequence (B = 1).
 
     Args:
         sort: passed to the cleaning rules (the shipped files are already time-sorted).
+        data_dir: a folder holding the three files in the layout described in the module
+            docstring (e.g. an edited copy), or None for the installed gtsam's ``Data``
+            folder. ``meta["source"]`` is this folder.
 
     Returns:
         a :class:`~msf_torch.types.Sequence` named ``"kitti-gtsam"`` with
@@ -141,12 +147,20 @@ def load_kitti_gtsam(sort: bool = False) -> Sequence:
           ``meta["format"] == "kitti-gtsam"``.
 
     Raises:
-        MissingExtraError: gtsam is not installed (``pip install 'msf_torch[peers]'``).
+        MissingExtraError: ``data_dir`` is None and gtsam is not installed
+            (``pip install 'msf_torch[peers]'``).
         DataError: a missing or malformed data file.
     """
-    imu_path = gtsam_data_path(KITTI_IMU_FILE)
-    gps_path = gtsam_data_path(KITTI_GPS_FILE)
-    noise = _read_metadata(gtsam_data_path(KITTI_IMU_METADATA_FILE))
+    if data_dir is None:
+        imu_path = gtsam_data_path(KITTI_IMU_FILE)
+        gps_path = gtsam_data_path(KITTI_GPS_FILE)
+        metadata_path = gtsam_data_path(KITTI_IMU_METADATA_FILE)
+    else:
+        folder = Path(data_dir)
+        imu_path, gps_path, metadata_path = (
+            folder / name for name in (KITTI_IMU_FILE, KITTI_GPS_FILE, KITTI_IMU_METADATA_FILE)
+        )
+    noise = _read_metadata(metadata_path)
 
     imu_table = _tables.read_table(imu_path, delimiter=None)
     _tables.check_columns(imu_table, _IMU_COLUMNS)

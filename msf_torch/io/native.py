@@ -98,6 +98,7 @@ import json
 import os
 import re
 import zipfile
+import zlib
 from pathlib import Path
 from typing import Any
 
@@ -183,6 +184,19 @@ _NPZ_FIELDS: dict[str, dict[str, tuple[int, ...]]] = {
 _OPTIONAL = {("gnss", "sigma"), ("poses", "covariance")}
 _NAN_OK = {"gnss": ("sigma",), "poses": ("covariance",)}
 _QUAT_STREAMS = ("poses", "ground_truth")
+# what numpy's and zipfile's parsers raise on a damaged archive or member
+_NPZ_ERRORS = (
+    OSError,
+    ValueError,
+    EOFError,
+    SyntaxError,
+    KeyError,
+    NotImplementedError,
+    OverflowError,
+    MemoryError,
+    zipfile.BadZipFile,
+    zlib.error,
+)
 
 
 # --------------------------------------------------------------------------- reading
@@ -342,6 +356,10 @@ def _parse_meta_json(path: str, text: str) -> dict[str, Any]:
         value = json.loads(text)
     except json.JSONDecodeError as err:
         raise DataError(path, f"invalid JSON: {err.msg}", line=err.lineno) from None
+    except RecursionError:
+        raise DataError(path, "invalid JSON: nested too deeply") from None
+    except ValueError as err:  # e.g. an integer longer than Python's digit limit
+        raise DataError(path, f"invalid JSON: {str(err)[:120]}") from None
     if not isinstance(value, dict):
         raise DataError(path, f"must hold a JSON object, got {type(value).__name__}")
     return value
@@ -350,26 +368,27 @@ def _parse_meta_json(path: str, text: str) -> dict[str, Any]:
 def _read_meta_json(file: Path) -> dict[str, Any]:
     if not file.exists():
         return {}
-    try:
-        text = file.read_text(encoding="utf-8-sig")
-    except UnicodeDecodeError as err:
-        raise DataError(file, f"not a UTF-8 text file ({err.reason})") from None
-    return _parse_meta_json(str(file), text)
+    return _parse_meta_json(str(file), _tables.read_text(file))
 
 
 def _read_npz(path: Path, sort: bool) -> Sequence:
     spath = str(path)
     try:
         archive = np.load(path, allow_pickle=False)
-    except (OSError, ValueError, zipfile.BadZipFile) as err:
-        raise DataError(path, f"not a readable .npz file ({err})") from None
+    except _NPZ_ERRORS as err:
+        raise DataError(path, f"not a readable .npz file ({type(err).__name__}: {err})") from None
     if not isinstance(archive, np.lib.npyio.NpzFile):
         raise DataError(path, "not a .npz archive (a single .npy array?)")
     with archive as z:
+        key = None
         try:
-            contents = {key: z[key] for key in z.files}
-        except (OSError, ValueError, zipfile.BadZipFile) as err:
-            raise DataError(path, f"corrupt .npz member ({err})") from None
+            contents = {}
+            for key in z.files:
+                contents[key] = z[key]
+        except _NPZ_ERRORS as err:
+            raise DataError(
+                path, f"corrupt .npz member ({type(err).__name__}: {err})", field=key
+            ) from None
     raw: dict[str, dict[str, np.ndarray]] = {}
     where: dict[str, tuple[str, np.ndarray | None, str]] = {}
     labels: dict[str, list[tuple[float, float]]] = {}

@@ -1,0 +1,944 @@
+"""Malformed inputs for every reader in ``msf_torch.io`` (hypothesis strategies) and the oracle
+that judges what a reader did with them.
+
+Used by ``benchmarks/fuzz.py`` (10,000+ inputs) and ``tests/io/test_fuzz_readers.py`` (a few
+dozen per reader in CI). Not a benchmark itself; imported as ``benchmarks._fuzz_inputs``.
+
+A *case* is a valid input of one format (random sizes and numbers from a drawn seed) with 1 to
+3 mutations applied, written into a fresh folder as ``files`` (relative path -> bytes, or None
+for a folder). Mutations of text files: a truncated line or file, a dropped, extra or replaced
+field (the replacement drawn from :data:`JUNK_TOKENS`: non-numbers, NaN/inf, huge and tiny
+numbers, odd Unicode digits, quotes, NUL, ...), swapped, repeated or deleted lines (backwards
+or repeated stamps, lost headers), a line of binary junk, flipped bytes, an empty file, a file
+of random bytes, blank and comment lines, another delimiter, a non-UTF-8 byte, a NUL byte, a
+very long cell, CR line ends. Binary ``.npz`` inputs are mutated as arrays (missing, unknown,
+mistyped or misshapen keys, NaN/inf/huge values, backwards time, zero quaternions, bad labels
+and meta JSON) and as bytes (truncated, flipped, junk). Folder inputs also lose files or get
+a folder where a file should be.
+
+:func:`classify` runs a reader on a case and returns one of
+
+* ``"ok"``: the reader returned and its result keeps the io promises (finite values where
+  promised, strictly increasing times, unit quaternions, orthonormal rotations, positive
+  definite information matrices);
+* ``"data_error"``: a :class:`~msf_torch.io.errors.DataError` (or ``MissingExtraError``)
+  whose path is the input or inside it, with a line number (when given) that the file has;
+* ``"bad_output"``: the reader returned a result that breaks a promise (e.g. a NaN passed);
+* ``"bad_error"``: a DataError that points outside the input or at a line the file lacks;
+* ``"crash"``: any other exception.
+
+Only the first two are acceptable.
+"""
+
+from __future__ import annotations
+
+__all__ = [
+    "JUNK_TOKENS",
+    "READERS",
+    "OUTCOMES",
+    "ACCEPTED",
+    "FuzzCase",
+    "Reader",
+    "case_strategy",
+    "classify",
+    "write_case",
+]
+
+import io
+import json
+import math
+import os
+import re
+import traceback
+import zipfile
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from hypothesis import strategies as st
+
+from msf_torch.io import (
+    DataError,
+    MissingExtraError,
+    PoseGraph,
+    load_eqvio,
+    load_kitti_gtsam,
+    read_euroc,
+    read_native,
+    read_pose_graph,
+    read_tum,
+)
+from msf_torch.io.eqvio import EqvioRun
+from msf_torch.types import Sequence, Trajectory
+
+OUTCOMES = ("ok", "data_error", "bad_output", "bad_error", "crash")
+ACCEPTED = ("ok", "data_error")
+
+JUNK_TOKENS = (
+    "",
+    " ",
+    "abc",
+    "nan",
+    "NaN",
+    "-nan",
+    "inf",
+    "-inf",
+    "+Infinity",
+    "1e400",
+    "-1e400",
+    "1e-400",
+    "1e308",
+    "-1.7976931348623157e308",
+    "4.9e-324",
+    "9" * 400,
+    "-" + "9" * 30,
+    "18446744073709551616",
+    "-9223372036854775809",
+    "9223372036854775807",
+    "-0",
+    "0x1A",
+    "1_000",
+    "\u0661\u0662",  # Arabic-Indic digits: Python's float() reads them, numpy does not
+    "\uff11",  # fullwidth 1
+    "1,5",
+    "1.2.3",
+    "--1",
+    "e5",
+    ".",
+    "+",
+    '"',
+    '"1"',
+    '"a,b"',
+    "\x00",
+    "\t",
+    "\x0c",
+    "\u2028",
+    "None",
+    "true",
+    "\u221e",
+    "1e5\x00",
+    "#",
+)
+"""Replacement tokens: not numbers, non-finite, out-of-range, odd grammar and odd bytes."""
+
+_FILE_JUNK = (
+    b"",
+    b"\x00" * 16,
+    b"\xff\xfe\x00\x00",
+    b"PK\x03\x04",
+    b"\x93NUMPY\x01\x00",
+    b"\xef\xbb\xbf",
+    b"#",
+    b"\n\n\n",
+    b"\r",
+    b'"',
+)
+
+
+@dataclass
+class FuzzCase:
+    """One generated input.
+
+    Attributes:
+        reader: key of :data:`READERS`.
+        files: relative path -> bytes (a file) or None (a folder), written by
+            :func:`write_case`.
+        entry: the relative path handed to the reader (``""``: the case folder itself).
+        sort: the reader's ``sort`` flag (readers that have one).
+        mutations: names of the mutations applied, in order (for reports).
+    """
+
+    reader: str
+    files: dict[str, bytes | None]
+    entry: str
+    sort: bool
+    mutations: list[str]
+
+
+@dataclass(frozen=True)
+class Reader:
+    """A reader under test: how to build its valid input, call it and check its result."""
+
+    name: str
+    build: Callable[[np.random.Generator], tuple[dict[str, Any], str]]
+    read: Callable[[Path, bool], Any]
+    check: Callable[[Any], str | None]
+    binary: bool = False
+
+
+# ----------------------------------------------------------------------------- valid inputs
+
+
+def _num(x: float) -> str:
+    return repr(float(x))
+
+
+def _csv(header: list[str] | None, rows: np.ndarray | list[list[str]], sep: str = ",") -> str:
+    lines = [] if header is None else [sep.join(header)]
+    for row in rows:
+        lines.append(sep.join(c if isinstance(c, str) else _num(c) for c in row))
+    return "\n".join(lines) + "\n"
+
+
+def _times(rng: np.random.Generator, n: int, t0: float = 100.0, step: float = 0.01) -> np.ndarray:
+    return t0 + np.cumsum(rng.uniform(0.5, 1.5, n) * step)
+
+
+def _quats(rng: np.random.Generator, n: int) -> np.ndarray:
+    q = rng.normal(size=(n, 4))
+    return q / np.linalg.norm(q, axis=1, keepdims=True)
+
+
+def _native_arrays(rng: np.random.Generator) -> dict[str, np.ndarray]:
+    """A valid native sequence as npz arrays (every stream, a named source, labels, meta)."""
+    n_imu = int(rng.integers(2, 30))
+    out: dict[str, np.ndarray] = {
+        "imu/t": _times(rng, n_imu),
+        "imu/gyro": rng.normal(size=(n_imu, 3)),
+        "imu/accel": rng.normal(size=(n_imu, 3)) + [0.0, 0.0, 9.81],
+    }
+    n_w = int(rng.integers(0, 8))
+    out |= {
+        "wheel/t": _times(rng, n_w, step=0.05),
+        "wheel/left_speed": rng.normal(size=n_w),
+        "wheel/right_speed": rng.normal(size=n_w),
+    }
+    n_g = int(rng.integers(0, 5))
+    out |= {
+        "gnss/t": _times(rng, n_g, step=0.1),
+        "gnss/position": rng.normal(size=(n_g, 3)) * 100.0,
+        "gnss/sigma": rng.uniform(0.1, 2.0, (n_g, 3)),
+    }
+    for prefix in ("poses", "poses/vo"):
+        n_p = int(rng.integers(0, 5))
+        a = rng.normal(size=(n_p, 6, 6))
+        out |= {
+            f"{prefix}/t": _times(rng, n_p, step=0.1),
+            f"{prefix}/position": rng.normal(size=(n_p, 3)),
+            f"{prefix}/quaternion": _quats(rng, n_p),
+            f"{prefix}/covariance": a @ np.swapaxes(a, 1, 2) * 1e-3,
+        }
+    n_gt = int(rng.integers(0, 6))
+    out |= {
+        "ground_truth/t": _times(rng, n_gt, step=0.05),
+        "ground_truth/position": rng.normal(size=(n_gt, 3)),
+        "ground_truth/quaternion": _quats(rng, n_gt),
+        "labels/slip": np.array([[100.0, 100.1], [100.2, 100.3]]),
+        "meta_json": np.array(json.dumps({"wheel_track_m": 0.5, "imu_noise": {"rate_hz": 100}})),
+    }
+    return out
+
+
+def _native_folder(rng: np.random.Generator) -> dict[str, str]:
+    """The same schema as CSV tables (pose sigmas or covariance entries drawn at random)."""
+    a = _native_arrays(rng)
+    files = {
+        "imu.csv": _csv(
+            ["t", "gyro_x", "gyro_y", "gyro_z", "accel_x", "accel_y", "accel_z"],
+            np.column_stack((a["imu/t"], a["imu/gyro"], a["imu/accel"])),
+        ),
+        "wheel.csv": _csv(
+            ["t", "left_speed", "right_speed"],
+            np.column_stack((a["wheel/t"], a["wheel/left_speed"], a["wheel/right_speed"])),
+        ),
+        "gnss.csv": _csv(
+            ["t", "x", "y", "z", "sigma_x", "sigma_y", "sigma_z"],
+            np.column_stack((a["gnss/t"], a["gnss/position"], a["gnss/sigma"])),
+        ),
+        "ground_truth.csv": _csv(
+            ["t", "x", "y", "z", "qw", "qx", "qy", "qz"],
+            np.column_stack(
+                (a["ground_truth/t"], a["ground_truth/position"], a["ground_truth/quaternion"])
+            ),
+        ),
+        "labels.csv": "name,t_start,t_end\nslip,100.0,100.1\nweather:rain,100.0,100.3\n",
+        "meta.json": json.dumps({"wheel_track_m": 0.5}) + "\n",
+    }
+    for prefix, name in (("poses", "poses.csv"), ("poses/vo", "poses_vo.csv")):
+        base = np.column_stack(
+            (a[f"{prefix}/t"], a[f"{prefix}/position"], a[f"{prefix}/quaternion"])
+        )
+        header = ["t", "x", "y", "z", "qw", "qx", "qy", "qz"]
+        if rng.random() < 0.5:
+            header += ["sigma_x", "sigma_y", "sigma_z", "sigma_roll", "sigma_pitch", "sigma_yaw"]
+            base = np.column_stack((base, rng.uniform(0.01, 0.1, (base.shape[0], 6))))
+        else:
+            rows, cols = np.triu_indices(6)
+            header += [f"c{i}{j}" for i, j in zip(rows, cols, strict=True)]
+            base = np.column_stack((base, a[f"{prefix}/covariance"][:, rows, cols]))
+        files[name] = _csv(header, base)
+    return files
+
+
+def _build_npz(rng: np.random.Generator) -> tuple[dict[str, Any], str]:
+    return {"run.npz": _native_arrays(rng)}, "run.npz"
+
+
+def _build_native_csv(rng: np.random.Generator) -> tuple[dict[str, Any], str]:
+    return dict(_native_folder(rng)), ""
+
+
+def _build_tum(rng: np.random.Generator) -> tuple[dict[str, Any], str]:
+    n = int(rng.integers(1, 25))
+    q = _quats(rng, n)
+    rows = np.column_stack((_times(rng, n), rng.normal(size=(n, 3)), q[:, 1:], q[:, :1]))
+    text = "# t x y z qx qy qz qw\n" + _csv(None, rows, sep=" ")
+    return {"traj.tum": text}, "traj.tum"
+
+
+def _build_euroc(rng: np.random.Generator) -> tuple[dict[str, Any], str]:
+    n = int(rng.integers(1, 25))
+    ns = 1_403_715_273_000_000_000 + np.cumsum(rng.integers(4_000_000, 6_000_000, n))
+    imu_rows = [
+        [str(int(t)), *map(_num, row)]
+        for t, row in zip(ns, rng.normal(size=(n, 6)).tolist(), strict=True)
+    ]
+    imu = _csv(
+        [
+            "#timestamp [ns]",
+            "w_RS_S_x [rad s^-1]",
+            "w_RS_S_y [rad s^-1]",
+            "w_RS_S_z [rad s^-1]",
+            "a_RS_S_x [m s^-2]",
+            "a_RS_S_y [m s^-2]",
+            "a_RS_S_z [m s^-2]",
+        ],
+        imu_rows,
+    )
+    m = int(rng.integers(0, 10))
+    gt_ns = ns[0] + np.cumsum(rng.integers(4_000_000, 6_000_000, m))
+    gt_vals = np.column_stack((rng.normal(size=(m, 3)), _quats(rng, m), rng.normal(size=(m, 9))))
+    gt = _csv(
+        ["#timestamp", "p_RS_R_x [m]", "p_RS_R_y [m]", "p_RS_R_z [m]", "q_RS_w []", "q_RS_x []"]
+        + ["q_RS_y []", "q_RS_z []", "v_RS_R_x [m s^-1]", "v_RS_R_y", "v_RS_R_z"]
+        + ["b_w_RS_S_x", "b_w_RS_S_y", "b_w_RS_S_z", "b_a_RS_S_x", "b_a_RS_S_y", "b_a_RS_S_z"],
+        [[str(int(t)), *map(_num, row)] for t, row in zip(gt_ns, gt_vals.tolist(), strict=True)],
+    )
+    data = ", ".join(_num(x) for x in np.eye(4).ravel())
+    yaml_text = (
+        "%YAML:1.0\nsensor_type: imu\nrate_hz: 200\n"
+        f"gyroscope_noise_density: {_num(rng.uniform(1e-4, 1e-3))}\n"
+        "gyroscope_random_walk: 1.9393e-05\naccelerometer_noise_density: 2.0e-3\n"
+        "accelerometer_random_walk: 3.0e-3\n"
+        f"T_BS:\n  cols: 4\n  rows: 4\n  data: [{data}]\n"
+    )
+    return {
+        "mav0": None,
+        "mav0/imu0": None,
+        "mav0/imu0/data.csv": imu,
+        "mav0/imu0/sensor.yaml": yaml_text,
+        "mav0/state_groundtruth_estimate0": None,
+        "mav0/state_groundtruth_estimate0/data.csv": gt,
+    }, ""
+
+
+def _build_kitti(rng: np.random.Generator) -> tuple[dict[str, Any], str]:
+    n = int(rng.integers(1, 25))
+    t = _times(rng, n, t0=46534.0)
+    dt = np.diff(t, prepend=t[0])
+    imu = _csv(
+        ["Time", "dt", "accelX", "accelY", "accelZ", "omegaX", "omegaY", "omegaZ"],
+        np.column_stack((t, dt, rng.normal(size=(n, 6)))),
+        sep=" ",
+    )
+    m = int(rng.integers(0, 6))
+    gps = _csv(
+        ["Time", "X", "Y", "Z"],
+        np.column_stack((_times(rng, m, t0=46534.0, step=0.1), rng.normal(size=(m, 3)) * 10)),
+    )
+    metadata = (
+        "BodyPtx BodyPty BodyPtz BodyPrx BodyPry BodyPrz AccelerometerSigma GyroscopeSigma "
+        "IntegrationSigma AccelerometerBiasSigma GyroscopeBiasSigma AverageDeltaT\n"
+        "0 0 0 0 0 0 0.01 0.000175 0 0.000167 2.91e-006 0.0100395199348279\n"
+    )
+    return {
+        "KittiEquivBiasedImu.txt": imu,
+        "KittiGps_converted.txt": gps,
+        "KittiEquivBiasedImu_metadata.txt": metadata,
+    }, ""
+
+
+def _info_upper(rng: np.random.Generator) -> list[float]:
+    a = rng.normal(size=(6, 6))
+    info = a @ a.T + 6.0 * np.eye(6)
+    return info[np.triu_indices(6)].tolist()
+
+
+def _build_graph(rng: np.random.Generator, toro: bool) -> tuple[dict[str, Any], str]:
+    n = int(rng.integers(1, 8))
+    lines = ["# a pose graph"]
+    with_vertices = n == 1 or rng.random() < 0.8
+    for i in range(n if with_vertices else 0):
+        p = rng.normal(size=3).tolist()
+        if toro:
+            lines.append(" ".join(["VERTEX3", str(i), *map(_num, p + rng.normal(size=3).tolist())]))
+        else:
+            q = _quats(rng, 1)[0]
+            pose = p + [q[1], q[2], q[3], q[0]]
+            lines.append(" ".join(["VERTEX_SE3:QUAT", str(i), *map(_num, pose)]))
+    edges = [(i, i + 1) for i in range(n - 1)] + [(0, n - 1)] * (n > 2)
+    for i, j in edges:
+        p = rng.normal(size=3).tolist()
+        if toro:
+            pose = p + rng.normal(size=3).tolist()
+            tag = "EDGE3"
+        else:
+            q = _quats(rng, 1)[0]
+            pose = p + [q[1], q[2], q[3], q[0]]
+            tag = "EDGE_SE3:QUAT"
+        lines.append(" ".join([tag, str(i), str(j), *map(_num, pose + _info_upper(rng))]))
+    if rng.random() < 0.3:
+        lines.append("FIX 0")
+    name = "graph.graph" if toro else "graph.g2o"
+    return {name: "\n".join(lines) + "\n"}, name
+
+
+_EQVIO_HEADER = (
+    "row_type,t_abs,t_rel,seq,frame_idx,landmark_id,gx,gy,gz,ax,ay,az,"
+    "bgx,bgy,bgz,bax,bay,baz,u_norm,v_norm,key,value"
+).split(",")
+
+
+def _build_eqvio(rng: np.random.Generator) -> tuple[dict[str, Any], str]:
+    width = len(_EQVIO_HEADER)
+
+    def row(**cells: str) -> list[str]:
+        out = [""] * width
+        for key, value in cells.items():
+            out[_EQVIO_HEADER.index(key)] = value
+        return out
+
+    rows = [row(row_type="meta", key="format_version", value="1")]
+    extr = {"T_ci_tx": -0.02, "T_ci_ty": -0.06, "T_ci_tz": 0.01}
+    q = _quats(rng, 1)[0]
+    extr |= {"T_ci_qw": q[0], "T_ci_qx": q[1], "T_ci_qy": q[2], "T_ci_qz": q[3]}
+    extr |= {"camera_fx": 458.6, "camera_fy": 457.3, "camera_cx": 367.2, "camera_cy": 248.4}
+    extr |= {"eqf.measurement_noise_variance_norm": 1.7756e-5, "eqf.input_var_gyr": 5.9e-8}
+    for key, value in extr.items():
+        rows.append(row(row_type="meta", key=key, value=_num(value)))
+    t0 = 1403715273.2621431
+    n_imu, n_frames = int(rng.integers(1, 15)), int(rng.integers(0, 4))
+    t_imu = t0 + 0.005 * np.arange(n_imu)
+    t_frame = t0 + 0.05 * np.arange(n_frames)
+    events = [(t, 1, k) for k, t in enumerate(t_imu)] + [(t, 0, f) for f, t in enumerate(t_frame)]
+    seq = 0
+    for t, kind, k in sorted(events):
+        if kind == 1:
+            vals = rng.normal(size=6).tolist()
+            rows.append(
+                row(
+                    row_type="imu",
+                    t_abs=_num(t),
+                    t_rel=_num(t - t0),
+                    seq=str(seq),
+                    **dict(zip(("gx", "gy", "gz", "ax", "ay", "az"), map(_num, vals), strict=True)),
+                    **dict.fromkeys(("bgx", "bgy", "bgz", "bax", "bay", "baz"), "0"),
+                )
+            )
+        else:
+            for landmark in rng.choice(40, size=int(rng.integers(1, 5)), replace=False):
+                uv = rng.normal(size=2).tolist()
+                rows.append(
+                    row(
+                        row_type="vision_feature",
+                        t_abs=_num(t),
+                        t_rel=_num(t - t0),
+                        seq=str(seq),
+                        frame_idx=str(k),
+                        landmark_id=str(int(landmark) + 1),
+                        u_norm=_num(uv[0]),
+                        v_norm=_num(uv[1]),
+                    )
+                )
+        seq += 1
+    return {"eqvio.csv": _csv(_EQVIO_HEADER, rows)}, "eqvio.csv"
+
+
+# ----------------------------------------------------------------------------- result checks
+
+
+def _finite(x: torch.Tensor, allow_nan: bool = False) -> bool:
+    x = x.detach()
+    return bool((~torch.isinf(x)).all()) if allow_nan else bool(torch.isfinite(x).all())
+
+
+def _increasing(t: torch.Tensor) -> bool:
+    return bool((t[1:] > t[:-1]).all())
+
+
+def _unit(q: torch.Tensor) -> bool:
+    return bool(((q.norm(dim=-1) - 1.0).abs() < 1e-9).all())
+
+
+def _orthonormal(rot: torch.Tensor) -> bool:
+    if rot.numel() == 0:
+        return True
+    eye = torch.eye(3, dtype=rot.dtype)
+    close = ((rot.mT @ rot - eye).abs().amax((-2, -1)) < 1e-6).all()
+    return bool(close and (torch.linalg.det(rot) > 0).all())
+
+
+def _check_stream(name: str, stream: Any) -> str | None:
+    mask = stream.mask[0]
+    t = stream.t[0, mask]
+    if not _finite(t) or not _increasing(t):
+        return f"{name}.t not finite and strictly increasing"
+    for key, value in stream.tensors().items():
+        if key in ("mask", "t"):
+            continue
+        nan_ok = key in ("sigma", "covariance")
+        if not _finite(value[0, mask], allow_nan=nan_ok):
+            return f"{name}.{key} holds a non-finite value"
+        if key == "quaternion" and not _unit(value[0, mask]):
+            return f"{name}.quaternion not unit"
+    return None
+
+
+def _check_sequence(seq: Sequence) -> str | None:
+    seq.check()
+    if seq.batch_size != 1:
+        return f"B = {seq.batch_size}"
+    if int(seq.imu.mask.sum()) == 0:
+        return "no IMU samples"
+    named = {f"pose_sources[{k}]": v for k, v in seq.pose_sources.items()}
+    for name, stream in {**seq.streams(), **named}.items():
+        problem = _check_stream(name, stream)
+        if problem:
+            return problem
+    for name, spans in seq.labels.items():
+        if not _finite(spans) or bool((spans[..., 1] < spans[..., 0]).any()):
+            return f"label {name!r} interval not finite or reversed"
+    return None
+
+
+def _check_trajectory(traj: Trajectory) -> str | None:
+    return _check_stream("trajectory", traj)
+
+
+def _check_graph(graph: PoseGraph) -> str | None:
+    graph.check()
+    for name in ("rotations", "positions", "edge_rotations", "edge_translations"):
+        if not _finite(getattr(graph, name)):
+            return f"{name} holds a non-finite value"
+    if not (_orthonormal(graph.rotations) and _orthonormal(graph.edge_rotations)):
+        return "a rotation is not orthonormal"
+    info = graph.edge_information
+    if info.numel() and (
+        not _finite(info) or bool(torch.linalg.cholesky_ex(info).info.ne(0).any())
+    ):
+        return "an information matrix is not finite positive definite"
+    return None
+
+
+def _check_eqvio(run: EqvioRun) -> str | None:
+    problem = _check_stream("imu", run.imu)
+    if problem:
+        return problem
+    if not (_finite(run.frame_times) and _increasing(run.frame_times)):
+        return "frame_times not finite and strictly increasing"
+    if not _finite(run.obs_normalized):
+        return "obs_normalized holds a non-finite value"
+    if run.R_imu_cam is not None and not (
+        _finite(run.R_imu_cam) and _orthonormal(run.R_imu_cam[None])
+    ):
+        return "R_imu_cam not a finite rotation"
+    for name in ("t_imu_cam", "intrinsics"):
+        value = getattr(run, name)
+        if value is not None and not _finite(value):
+            return f"{name} holds a non-finite value"
+    if not all(math.isfinite(v) for v in run.imu_noise.values()):
+        return "imu_noise holds a non-finite value"
+    return None
+
+
+READERS: dict[str, Reader] = {
+    r.name: r
+    for r in (
+        Reader(
+            "native_npz", _build_npz, lambda p, s: read_native(p, sort=s), _check_sequence, True
+        ),
+        Reader(
+            "native_csv", _build_native_csv, lambda p, s: read_native(p, sort=s), _check_sequence
+        ),
+        Reader("tum", _build_tum, lambda p, s: read_tum(p, sort=s), _check_trajectory),
+        Reader("euroc", _build_euroc, lambda p, s: read_euroc(p, sort=s), _check_sequence),
+        Reader(
+            "kitti_gtsam",
+            _build_kitti,
+            lambda p, s: load_kitti_gtsam(sort=s, data_dir=p),
+            _check_sequence,
+        ),
+        Reader(
+            "g2o",
+            lambda rng: _build_graph(rng, toro=False),
+            lambda p, s: read_pose_graph(p),
+            _check_graph,
+        ),
+        Reader(
+            "toro",
+            lambda rng: _build_graph(rng, toro=True),
+            lambda p, s: read_pose_graph(p),
+            _check_graph,
+        ),
+        Reader("eqvio", _build_eqvio, lambda p, s: load_eqvio(p), _check_eqvio),
+    )
+}
+"""Reader name -> :class:`Reader`: native ``.npz`` and CSV folder, TUM, EuRoC ASL, the KITTI
+files gtsam ships (``data_dir``), g2o and TORO pose graphs, the EqVIO replay CSV."""
+
+
+# ----------------------------------------------------------------------------- mutations
+
+_TEXT_MUTATIONS = (
+    "truncate_line",
+    "truncate_file",
+    "drop_field",
+    "extra_field",
+    "replace_token",
+    "replace_token",
+    "replace_token",
+    "swap_lines",
+    "duplicate_line",
+    "delete_line",
+    "binary_line",
+    "flip_bytes",
+    "empty_file",
+    "junk_file",
+    "blank_comment",
+    "swap_delimiter",
+    "non_utf8",
+    "nul_byte",
+    "long_cell",
+    "cr_line_ends",
+)
+_FOLDER_MUTATIONS = ("remove_file", "file_to_folder", "stray_file")
+_ARRAY_MUTATIONS = (
+    "drop_key",
+    "unknown_key",
+    "retype",
+    "reshape",
+    "poison_value",
+    "poison_value",
+    "reverse_time",
+    "zero_quaternion",
+    "bad_label",
+    "bad_meta_json",
+)
+_BYTE_MUTATIONS = ("truncate_bytes", "flip_bytes", "junk_file", "empty_file")
+
+
+def _split(line: str, sep: str | None) -> list[str]:
+    return line.split() if sep is None else line.split(sep)
+
+
+def _join(tokens: list[str], sep: str | None) -> str:
+    return (" " if sep is None else sep).join(tokens)
+
+
+def _separator(path: str, text: str) -> str | None:
+    """Field separator of a generated text file (None: runs of whitespace)."""
+    if path.endswith((".tum", ".g2o", ".graph")) or "Imu" in path:
+        return None
+    return "," if path.endswith(".csv") or "," in text else None
+
+
+@st.composite
+def _junk_token(draw) -> str:
+    if draw(st.booleans()):
+        return draw(st.sampled_from(JUNK_TOKENS))
+    return draw(st.text(max_size=12))
+
+
+@st.composite
+def _mutate_text(draw, path: str, data: bytes) -> tuple[bytes, str]:
+    """One mutation of a text file; returns the new bytes and the mutation's name."""
+    kind = draw(st.sampled_from(_TEXT_MUTATIONS))
+    text = data.decode("utf-8", errors="surrogateescape")
+    sep = _separator(path, text)
+    lines = text.split("\n")
+    k = draw(st.integers(0, max(0, len(lines) - 1)))
+    line = lines[k] if lines else ""
+    if kind == "truncate_line":
+        lines[k] = line[: draw(st.integers(0, max(0, len(line) - 1)))]
+    elif kind == "truncate_file":
+        return data[: draw(st.integers(0, max(0, len(data) - 1)))], kind
+    elif kind in ("drop_field", "extra_field", "replace_token", "long_cell"):
+        tokens = _split(line, sep)
+        i = draw(st.integers(0, len(tokens)))
+        if kind == "drop_field" and tokens:
+            del tokens[min(i, len(tokens) - 1)]
+        elif kind == "extra_field":
+            tokens.insert(i, draw(_junk_token()))
+        elif kind == "replace_token" and tokens:
+            tokens[min(i, len(tokens) - 1)] = draw(_junk_token())
+        elif kind == "long_cell" and tokens:
+            tokens[min(i, len(tokens) - 1)] = "1" * draw(st.sampled_from((1000, 200_000)))
+        lines[k] = _join(tokens, sep)
+    elif kind == "swap_lines":
+        j = draw(st.integers(0, max(0, len(lines) - 1)))
+        lines[k], lines[j] = lines[j], lines[k]
+    elif kind == "duplicate_line":
+        lines.insert(k, line)
+    elif kind == "delete_line" and lines:
+        del lines[k]
+    elif kind == "binary_line":
+        junk = draw(st.binary(min_size=1, max_size=40))
+        lines.insert(k, junk.decode("utf-8", errors="surrogateescape"))
+    elif kind == "flip_bytes":
+        raw = bytearray(data)
+        for _ in range(draw(st.integers(1, 4))):
+            if raw:
+                raw[draw(st.integers(0, len(raw) - 1))] = draw(st.integers(0, 255))
+        return bytes(raw), kind
+    elif kind == "empty_file":
+        return draw(st.sampled_from((b"", b"\n", b"   \n\n", b"# only a comment\n"))), kind
+    elif kind == "junk_file":
+        return draw(st.sampled_from(_FILE_JUNK)) + draw(st.binary(max_size=200)), kind
+    elif kind == "blank_comment":
+        lines.insert(k, draw(st.sampled_from(("", "   ", "# comment", "#", "\t"))))
+    elif kind == "swap_delimiter":
+        lines[k] = _join(_split(line, sep), draw(st.sampled_from((";", "\t", ", ", "  ", "|"))))
+    elif kind == "non_utf8":
+        pos = draw(st.integers(0, len(line)))
+        lines[k] = line[:pos] + "\udcff" + line[pos:]
+    elif kind == "nul_byte":
+        pos = draw(st.integers(0, len(line)))
+        lines[k] = line[:pos] + "\x00" + line[pos:]
+    elif kind == "cr_line_ends":
+        return "\n".join(lines).replace("\n", draw(st.sampled_from(("\r\n", "\r")))).encode(
+            "utf-8", errors="surrogateescape"
+        ), kind
+    return "\n".join(lines).encode("utf-8", errors="surrogateescape"), kind
+
+
+@st.composite
+def _mutate_arrays(draw, arrays: dict[str, np.ndarray]) -> tuple[dict[str, np.ndarray], str]:
+    """One mutation of an npz's arrays."""
+    kind = draw(st.sampled_from(_ARRAY_MUTATIONS))
+    out = dict(arrays)
+    keys = sorted(out)
+    key = draw(st.sampled_from(keys)) if keys else "imu/t"
+    value = out.get(key, np.zeros(3))
+    if kind == "drop_key":
+        out.pop(key, None)
+    elif kind == "unknown_key":
+        name = draw(st.sampled_from(("imu/temperature", "odometry/t", "poses/vo/extra", "x", "")))
+        out[name] = np.zeros(3)
+    elif kind == "retype":
+        target = draw(st.sampled_from(("str", "object", "complex", "bool", "int", "float16")))
+        numeric = value.dtype.kind in "fiub"
+        if target == "str":
+            out[key] = value.astype(str)
+        elif target == "object":
+            out[key] = np.array([None, "a", 1.0], dtype=object)
+        elif target == "complex" and numeric:
+            out[key] = value.astype(complex)
+        elif target == "bool" and numeric:
+            out[key] = value.astype(bool)
+        elif target == "int" and numeric:
+            out[key] = np.nan_to_num(value).astype(np.int64)
+        elif target == "float16" and numeric:
+            out[key] = value.astype(np.float16)
+    elif kind == "reshape":
+        how = draw(st.sampled_from(("scalar", "flat", "extra_dim", "transpose", "short")))
+        if how == "scalar":
+            out[key] = np.array(1.0)
+        elif how == "flat":
+            out[key] = np.ravel(value)
+        elif how == "extra_dim":
+            out[key] = value[..., None]
+        elif how == "transpose":
+            out[key] = np.transpose(value)
+        else:
+            out[key] = value[:-1] if value.ndim else value
+    elif kind == "poison_value" and value.dtype.kind == "f" and value.size:
+        value = value.copy()
+        flat = value.reshape(-1)
+        flat[draw(st.integers(0, flat.size - 1))] = draw(
+            st.sampled_from((np.nan, np.inf, -np.inf, 1e308, -1e308, 5e-324, 0.0, -1.0))
+        )
+        out[key] = value
+    elif kind == "reverse_time":
+        times = [k for k in keys if k.endswith("/t") and out[k].size > 1]
+        if times:
+            name = draw(st.sampled_from(times))
+            out[name] = out[name][::-1].copy()
+    elif kind == "zero_quaternion":
+        quats = [k for k in keys if k.endswith("quaternion") and out[k].size]
+        if quats:
+            name = draw(st.sampled_from(quats))
+            q = out[name].copy()
+            q[draw(st.integers(0, q.shape[0] - 1))] = 0.0
+            out[name] = q
+    elif kind == "bad_label":
+        out["labels/" + draw(st.sampled_from(("slip", "x", "")))] = draw(
+            st.sampled_from(
+                (
+                    np.array([[1.0, 0.0]]),
+                    np.array([[np.nan, 1.0]]),
+                    np.zeros((2, 3)),
+                    np.zeros(2),
+                    np.array(["a", "b"]),
+                )
+            )
+        )
+    elif kind == "bad_meta_json":
+        out["meta_json"] = draw(
+            st.sampled_from(
+                (
+                    np.array("{not json"),
+                    np.array("[1, 2]"),
+                    np.array("[" * 100_000 + "]" * 100_000),
+                    np.array(["{}", "{}"]),
+                    np.array(b"{}"),
+                    np.array(7),
+                    np.array('{"a": NaN}'),
+                    np.array("\udcff"),
+                )
+            )
+        )
+    return out, kind
+
+
+def _npz_bytes(arrays: dict[str, np.ndarray]) -> bytes:
+    buffer = io.BytesIO()
+    with zipfile.ZipFile(buffer, "w") as archive:
+        for key, value in arrays.items():
+            member = io.BytesIO()
+            np.lib.format.write_array(member, np.asanyarray(value), allow_pickle=True)
+            archive.writestr(key + ".npy", member.getvalue())
+    return buffer.getvalue()
+
+
+@st.composite
+def _mutate_bytes(draw, data: bytes) -> tuple[bytes, str]:
+    kind = draw(st.sampled_from(_BYTE_MUTATIONS))
+    if kind == "truncate_bytes":
+        return data[: draw(st.integers(0, max(0, len(data) - 1)))], kind
+    if kind == "flip_bytes":
+        raw = bytearray(data)
+        for _ in range(draw(st.integers(1, 8))):
+            if raw:
+                raw[draw(st.integers(0, len(raw) - 1))] = draw(st.integers(0, 255))
+        return bytes(raw), kind
+    if kind == "junk_file":
+        return draw(st.sampled_from(_FILE_JUNK)) + draw(st.binary(max_size=300)), kind
+    return b"", kind
+
+
+@st.composite
+def case_strategy(draw, reader: str) -> FuzzCase:
+    """A malformed input for ``reader`` (a key of :data:`READERS`): a valid input built from
+    a drawn seed, then 1-3 mutations (see the module docstring)."""
+    spec = READERS[reader]
+    rng = np.random.default_rng(draw(st.integers(0, 2**32 - 1)))
+    content, entry = spec.build(rng)
+    sort = draw(st.booleans())
+    mutations: list[str] = []
+    n_mutations = draw(st.integers(1, 3))
+    if spec.binary:
+        arrays = content[entry]
+        byte_level = draw(st.integers(0, 3)) == 0
+        for _ in range(n_mutations if not byte_level else 0):
+            arrays, name = draw(_mutate_arrays(arrays))
+            mutations.append(name)
+        data = _npz_bytes(arrays)
+        if byte_level:
+            data, name = draw(_mutate_bytes(data))
+            mutations.append(name)
+        return FuzzCase(reader, {entry: data}, entry, sort, mutations)
+    files: dict[str, bytes | None] = {
+        k: None if v is None else v.encode("utf-8") for k, v in content.items()
+    }
+    for _ in range(n_mutations):
+        names = sorted(k for k, v in files.items() if v is not None)
+        if not names:
+            break
+        target = draw(st.sampled_from(names))
+        if entry == "" and draw(st.integers(0, 5)) == 0:
+            kind = draw(st.sampled_from(_FOLDER_MUTATIONS))
+            if kind == "remove_file":
+                del files[target]
+            elif kind == "file_to_folder":
+                files[target] = None
+            else:
+                files[draw(st.sampled_from(("notes.txt", "poses_.csv", "poses_a b.csv")))] = (
+                    b"junk\n"
+                )
+            mutations.append(f"{kind}:{target}")
+            continue
+        files[target], name = draw(_mutate_text(target, files[target] or b""))
+        mutations.append(f"{name}:{target}")
+    return FuzzCase(reader, files, entry, sort, mutations)
+
+
+# ----------------------------------------------------------------------------- running
+
+
+def write_case(case: FuzzCase, root: Path) -> Path:
+    """Write ``case.files`` under the empty folder ``root``; return the path to read."""
+    for rel, data in sorted(case.files.items(), key=lambda kv: kv[0].count("/")):
+        target = root / rel
+        if data is None:
+            target.mkdir(parents=True, exist_ok=True)
+        else:
+            target.parent.mkdir(parents=True, exist_ok=True)
+            target.write_bytes(data)
+    return root / case.entry if case.entry else root
+
+
+def _line_count(path: Path) -> int:
+    """Most lines any common convention finds in ``path`` (0 when it is no readable file)."""
+    try:
+        data = path.read_bytes()
+    except OSError:
+        return 0
+    text = data.decode("utf-8", errors="replace")
+    universal = len(re.split(r"\r\n|\r|\n", text))
+    return max(universal, len(text.splitlines()), text.count("\n") + 1)
+
+
+def _judge_error(err: DataError, root: Path) -> str | None:
+    """Why a DataError does not locate its problem inside the input (None: it does)."""
+    where = os.path.abspath(err.path)
+    base = os.path.abspath(root)
+    if not (where == base or where.startswith(base + os.sep) or where.startswith(base + "[")):
+        return f"error names {err.path!r}, outside the input"
+    if err.line is not None:
+        file = Path(re.sub(r"\[[^\]]*\]$", "", where))
+        count = _line_count(file)
+        if not 1 <= err.line <= count:
+            return f"error names line {err.line}; the file has {count}"
+    if not err.problem:
+        return "error without a problem statement"
+    return None
+
+
+def classify(case: FuzzCase, root: Path) -> tuple[str, str]:
+    """Write ``case`` under the empty folder ``root``, run its reader, judge the outcome.
+
+    Returns:
+        (outcome, detail): ``outcome`` one of :data:`OUTCOMES`; ``detail`` the error message,
+        the broken promise or the crash's exception type, message and innermost frame.
+    """
+    spec = READERS[case.reader]
+    path = write_case(case, root)
+    try:
+        result = spec.read(path, case.sort)
+    except (DataError, MissingExtraError) as err:
+        if isinstance(err, MissingExtraError):
+            return "data_error", str(err)
+        problem = _judge_error(err, root)
+        return ("bad_error", f"{problem}: {err}") if problem else ("data_error", str(err))
+    except Exception as err:  # noqa: BLE001 - the oracle's job is to catch everything
+        frame = traceback.extract_tb(err.__traceback__)[-1]
+        where = f"{Path(frame.filename).name}:{frame.lineno}"
+        return "crash", f"{type(err).__name__} at {where}: {str(err)[:200]}"
+    try:
+        problem = spec.check(result)
+    except Exception as err:  # noqa: BLE001 - a result that cannot be checked is bad output
+        problem = f"result check raised {type(err).__name__}: {str(err)[:200]}"
+    return ("bad_output", problem) if problem else ("ok", "")
