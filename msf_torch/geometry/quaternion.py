@@ -6,7 +6,20 @@ Thin, documented wrappers over ``pytorch_kinematics.transforms``; the TUM order
 
 from __future__ import annotations
 
-__all__ = ["quat_to_matrix", "matrix_to_quat", "wxyz_to_xyzw", "xyzw_to_wxyz", "yaw_matrix"]
+__all__ = [
+    "quat_to_matrix",
+    "matrix_to_quat",
+    "wxyz_to_xyzw",
+    "xyzw_to_wxyz",
+    "yaw_matrix",
+    "quat_multiply",
+    "quat_conjugate",
+    "quat_exp",
+    "quat_log",
+]
+
+import functools
+import math
 
 import torch
 from pytorch_kinematics import transforms as _tf
@@ -84,3 +97,61 @@ def yaw_matrix(yaw: torch.Tensor) -> torch.Tensor:
         torch.stack((zero, zero, one), -1),
     )
     return torch.stack(rows, -2)
+
+
+@functools.lru_cache(maxsize=8)
+def _product_table(dtype: torch.dtype, device: torch.device) -> torch.Tensor:
+    """(4, 4, 4) T with ``(a (x) b)_k = sum_ij T_kij a_i b_j`` (Hamilton, scalar first)."""
+    table = torch.zeros(4, 4, 4, dtype=dtype, device=device)
+    signs = {
+        0: ((0, 0, 1), (1, 1, -1), (2, 2, -1), (3, 3, -1)),
+        1: ((0, 1, 1), (1, 0, 1), (2, 3, 1), (3, 2, -1)),
+        2: ((0, 2, 1), (1, 3, -1), (2, 0, 1), (3, 1, 1)),
+        3: ((0, 3, 1), (1, 2, 1), (2, 1, -1), (3, 0, 1)),
+    }
+    for k, terms in signs.items():
+        for i, j, sign in terms:
+            table[k, i, j] = sign
+    return table
+
+
+def quat_multiply(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """Hamilton product ``a (x) b`` of (..., 4) quaternions (broadcasting); one einsum, so
+    cheap on small batches. ``R(a (x) b) = R(a) R(b)``."""
+    a, b = torch.broadcast_tensors(a, b)
+    return torch.einsum("kij,...i,...j->...k", _product_table(a.dtype, a.device), a, b)
+
+
+def quat_conjugate(quat: torch.Tensor) -> torch.Tensor:
+    """``[w, -x, -y, -z]`` (..., 4): the inverse of a unit quaternion."""
+    return quat * torch.tensor([1.0, -1.0, -1.0, -1.0], dtype=quat.dtype, device=quat.device)
+
+
+def quat_exp(phi: torch.Tensor) -> torch.Tensor:
+    """``Exp`` of rotation vectors (..., 3) rad -> unit quaternions (..., 4), ``R = so3.exp``.
+
+    ``[cos(a / 2), sinc(a / 2) phi / 2]`` with ``a = |phi|``; ``torch.sinc`` keeps value and
+    gradient finite at 0 (the 1e-300 only guards the square root).
+    """
+    angle = torch.sqrt((phi * phi).sum(-1, keepdim=True) + 1e-300)
+    return torch.cat((torch.cos(0.5 * angle), 0.5 * torch.sinc(angle / (2 * math.pi)) * phi), -1)
+
+
+def quat_log(quat: torch.Tensor) -> torch.Tensor:
+    """``Log`` of unit quaternions (..., 4) -> rotation vectors (..., 3), angle in [0, pi].
+
+    ``q`` and ``-q`` give the same; ``2 atan2(|v|, w) v / |v|`` with a double-``where``
+    Taylor branch near the identity (finite gradients there).
+    """
+    quat = torch.where(quat[..., :1] < 0, -quat, quat)
+    w, vec = quat[..., :1], quat[..., 1:]
+    norm2 = (vec * vec).sum(-1, keepdim=True)
+    small = norm2 < 1e-16
+    safe_norm = torch.sqrt(torch.where(small, 1.0, norm2))
+    safe_w = torch.where(small, w, 1.0)
+    scale = torch.where(
+        small,
+        2.0 / safe_w * (1.0 - norm2 / (3.0 * safe_w * safe_w)),
+        2.0 * torch.atan2(safe_norm, w) / safe_norm,
+    )
+    return scale * vec
