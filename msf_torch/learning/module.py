@@ -239,6 +239,19 @@ class CovNetModule(L.LightningModule):
         poses = dataclasses.replace(seq.poses, covariance=seq.poses.covariance * factor)
         return dataclasses.replace(seq, poses=poses)
 
+    def start_state(self, batch: RunBatch, cfg: EskfConfig) -> tuple[NavState, torch.Tensor]:
+        """State (B, ...) and conventional covariance (B, 15, 15) at each run's first IMU
+        sample; here :func:`~msf_torch.frontend.init.initial_state` (a subclass may start
+        from known states)."""
+        return initial_state(batch.sequence, cfg)
+
+    def scored_epochs(self, batch: RunBatch, result: EskfResult) -> torch.Tensor:
+        """(B, E + 1) bool: the epochs of one chunk's result that enter the loss; here every
+        real epoch but the chunk's first (it belongs to the previous chunk)."""
+        mask = result.mask.clone()
+        mask[:, 0] = False
+        return mask
+
     def run_chunks(
         self, batch: RunBatch, log_scales: torch.Tensor
     ) -> tuple[dict[str, torch.Tensor], list[EskfResult]]:
@@ -262,7 +275,7 @@ class CovNetModule(L.LightningModule):
         base = EskfNoise.from_config(cfg, seq.imu.t.dtype, seq.imu.t.device)
         length = self.net.config.window_length
         windows = batch.windows
-        state, cov = initial_state(seq, cfg)
+        state, cov = self.start_state(batch, cfg)
         totals = {k: seq.imu.t.new_zeros(()) for k in ("position", "orientation", "nll")}
         totals["count"] = seq.imu.t.new_zeros(())
         results = []
@@ -277,8 +290,7 @@ class CovNetModule(L.LightningModule):
             result = run_eskf(chunk, cfg, scaled_noise(base, scales), initial=(state, cov))
             state, cov = _final(result)
             position, rotation = truth_at(seq.ground_truth, result.t)
-            mask = result.mask.clone()
-            mask[:, 0] = False  # the start state belongs to the previous chunk
+            mask = self.scored_epochs(batch, result)
             err_p = result.position - position
             err_r = so3.log(rotation.mT @ result.rotation)
             p_cov = result.covariance[..., 0:3, 0:3]
