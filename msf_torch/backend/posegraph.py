@@ -14,6 +14,10 @@ i.e. exactly GTSAM's ``NonlinearFactorGraph.error`` of ``BetweenFactor<Pose3>`` 
 gauge is fixed by holding chosen vertices constant (the first one by default), where GTSAM
 would add a prior.
 
+``dof=4`` solves the same cost over x, y, z and yaw only, holding every vertex's roll and
+pitch (visual-inertial runs, where gravity makes them observable):
+:mod:`msf_torch.backend.posegraph4dof`.
+
 Solver defaults (:func:`pose_graph_config`) follow GTSAM's ``LevenbergMarquardtParams``:
 identity damping (``lambda I``) starting at ``lambda = 1e-5``, relative cost-decrease
 tolerance 1e-5, at most 100 iterations; the normal equations are factored by MKL
@@ -44,6 +48,7 @@ import torch
 
 from msf_torch.backend.factors import BetweenFactor
 from msf_torch.backend.lm import LMConfig, solve
+from msf_torch.backend.posegraph4dof import YAW_POSITION, YawBetweenFactor
 from msf_torch.backend.problem import Problem
 from msf_torch.backend.robust import RobustKernel
 from msf_torch.backend.variables import pack_pose, unpack_pose
@@ -121,6 +126,7 @@ def pose_graph_problem(
     graph: PoseGraph,
     robust: RobustKernel | None = None,
     fixed: Sequence[int] | torch.Tensor = (0,),
+    dof: int = 6,
 ) -> Problem:
     """The B = 1 least-squares problem of a pose graph.
 
@@ -128,14 +134,18 @@ def pose_graph_problem(
         graph: N vertices, E edges (any device; float64 recommended).
         robust: kernel applied to every edge, or None.
         fixed: row indices (not file ids) of the vertices held constant.
+        dof: 6 (full poses) or 4 (x, y, z, yaw; roll and pitch held).
 
     Returns:
-        a :class:`~msf_torch.backend.problem.Problem` with group ``"pose"`` (``se3``, values
-        (1, N, 12)) and one :class:`~msf_torch.backend.factors.BetweenFactor` type (E,).
+        a :class:`~msf_torch.backend.problem.Problem` with group ``"pose"`` (``se3``, or
+        ``yaw_position`` for ``dof=4``; values (1, N, 12)) and one
+        :class:`~msf_torch.backend.factors.BetweenFactor` type (E,).
 
     Raises:
-        ValueError: a malformed graph, or a fixed index outside ``[0, N)``.
+        ValueError: a malformed graph, a fixed index outside ``[0, N)`` or ``dof`` not 4 or 6.
     """
+    if dof not in (4, 6):
+        raise ValueError(f"pose graph dof must be 4 or 6, got {dof}")
     graph.check()
     n = graph.num_vertices
     device, dtype = graph.positions.device, graph.positions.dtype
@@ -145,7 +155,7 @@ def pose_graph_problem(
     held = torch.zeros(n, dtype=torch.bool, device=device)
     held[index] = True
     covariance = torch.linalg.inv(graph.edge_information.to(dtype))
-    factor = BetweenFactor(
+    factor = (BetweenFactor if dof == 6 else YawBetweenFactor)(
         _GROUP,
         graph.edge_index[:, 0],
         graph.edge_index[:, 1],
@@ -155,7 +165,8 @@ def pose_graph_problem(
         kernel=robust,
     )
     values = pack_pose(graph.positions, graph.rotations)[None]
-    return Problem({_GROUP: ("se3", values)}, [factor], fixed={_GROUP: held})
+    kind = "se3" if dof == 6 else YAW_POSITION
+    return Problem({_GROUP: (kind, values)}, [factor], fixed={_GROUP: held})
 
 
 def optimize_pose_graph(
@@ -163,6 +174,7 @@ def optimize_pose_graph(
     robust: RobustKernel | None = None,
     config: LMConfig | None = None,
     fixed: Sequence[int] | torch.Tensor = (0,),
+    dof: int = 6,
 ) -> PoseGraphResult:
     """Optimise the vertex poses of a pose graph by Levenberg-Marquardt (GTSAM's cost).
 
@@ -172,16 +184,18 @@ def optimize_pose_graph(
         robust: kernel on every edge (e.g. ``RobustKernel("cauchy", 1.0)``), or None.
         config: LM settings; default :func:`pose_graph_config` ``()``.
         fixed: row indices of the vertices held constant (gauge); default the first.
+        dof: 6 (full poses) or 4 (x, y, z and yaw move; every vertex keeps its roll and
+            pitch: visual-inertial graphs).
 
     Returns:
         :class:`PoseGraphResult`; the input graph is not modified.
 
     Raises:
-        ValueError: a malformed graph or bad ``fixed`` indices.
+        ValueError: a malformed graph, bad ``fixed`` indices or ``dof`` not 4 or 6.
     """
     config = config or pose_graph_config()
     start = time.perf_counter()
-    problem = pose_graph_problem(graph, robust, fixed)
+    problem = pose_graph_problem(graph, robust, fixed, dof)
     with torch.no_grad():
         result = solve(problem, config)
     position, rotation = unpack_pose(result.values[_GROUP][0])
