@@ -515,8 +515,32 @@ def main(argv: list[str] | None = None) -> int:
     except (DataError, MissingExtraError, ValueError, FileNotFoundError) as err:
         print(f"msf {args.command}: error: {err}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt as err:
+        return _interrupted(args, err)
     print(json.dumps(result, default=float))
     return 0
+
+
+INTERRUPTED_STATUS = 130
+"""Exit status after Ctrl-C (SIGINT), as shells report it (128 + 2)."""
+
+
+def _interrupted(args, err: KeyboardInterrupt) -> int:
+    """Say where an interrupted command stopped (stderr) and print its partial summary, if
+    it wrote one (``msf run``: ``runner.RunInterrupted``)."""
+    summary = getattr(err, "summary", None)
+    if summary is None:
+        print(f"msf {args.command}: interrupted (no partial output)", file=sys.stderr)
+        return INTERRUPTED_STATUS
+    stop = summary["interrupted"]
+    print(
+        f"msf {args.command}: interrupted in the {stop['stage']} at t = {stop['t_s']:.3f} s "
+        f"({stop['t_from_start_s']:.3f} s after the first IMU sample; epoch "
+        f"{stop['epochs_done']} of {stop['epochs_total']}); partial outputs in {args.out}",
+        file=sys.stderr,
+    )
+    print(json.dumps(summary, default=float))
+    return INTERRUPTED_STATUS
 
 
 if __name__ == "__main__":

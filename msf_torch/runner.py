@@ -7,8 +7,10 @@ Used by ``msf run``. Outputs in ``out_dir`` (each written atomically: temp file 
   every filter epoch by default, or at the keyframes with the smoother's
   ``output: keyframes``).
 - ``diagnostics.csv``: per epoch: time, error-state covariance diagonal (15 variances in
-  the order of ``geometry.conventions``), slip factor, IMU-gap flag, and per sensor whether
-  a measurement was present, whether it was accepted, and its NIS.
+  the order of ``geometry.conventions``), slip factor, IMU-gap flag, ``divergence`` (0, or
+  the ``frontend.guard`` code of a divergence reset: 1 non-finite, 2 not positive definite,
+  4 NIS blow-up, added), and per sensor whether a measurement was present, whether it was
+  accepted, and its NIS.
 - ``summary.json``: the run summary (also printed as the last line by the CLI). With
   ``smooth`` set, ``ate_*`` and ``outage_*`` score the smoothed trajectory, the front end's
   own figures keep a ``frontend_`` prefix, and ``smoother`` holds the smoother's figures.
@@ -20,6 +22,12 @@ Used by ``msf run``. Outputs in ``out_dir`` (each written atomically: temp file 
   sequence came from a bag; pose covariance and body velocity from the front end when
   the trajectory is the front end's).
 
+Ctrl-C (SIGINT) during the front end or the smoother writes ``trajectory.tum`` (the epochs
+completed), ``diagnostics.csv`` and ``summary.json`` (with an ``interrupted`` entry saying
+where it stopped) and raises :class:`RunInterrupted`. With learned noise the interrupt
+passes through unhandled (``learning.inference.run_piecewise`` does not hand on the
+chunks it finished), so no partial output is written.
+
 With ``RunOptions.learned`` set, the filter's noise comes from a trained CovNet, per chunk
 of windows (:mod:`msf_torch.learning.inference`); ``summary.json`` then has ``"noise":
 "learned"`` and a ``learned`` entry (checkpoint path and sha256, mean log-variance scales,
@@ -28,7 +36,7 @@ inferred weather), else ``"noise": "config"``.
 
 from __future__ import annotations
 
-__all__ = ["RunOptions", "run_sequence", "write_diagnostics", "DEFAULT_SAMPLE"]
+__all__ = ["RunOptions", "RunInterrupted", "run_sequence", "write_diagnostics", "DEFAULT_SAMPLE"]
 
 import json
 import math
@@ -47,6 +55,7 @@ from msf_torch.eval.outage import outage_metrics, split_gnss_outage
 from msf_torch.eval.slip import slip_scores
 from msf_torch.frontend.config import EskfConfig
 from msf_torch.frontend.eskf import SENSORS, EskfResult, run_eskf
+from msf_torch.frontend.guard import DIVERGENCE_CODES, EstimationInterrupted
 from msf_torch.io.atomic import atomic_write
 from msf_torch.io.tum import write_tum
 from msf_torch.types import Sequence, Trajectory
@@ -116,6 +125,8 @@ def write_diagnostics(result: EskfResult, path: Path, index: int = 0) -> None:
         result.gap[index, keep].numpy()[:, None].astype(float),
     ]
     header = ["t"] + [f"var_{n}" for n in _STATE_NAMES] + ["slip_factor", "imu_gap"]
+    cols.append(_divergence(result)[index, keep].numpy()[:, None].astype(float))
+    header.append("divergence")
     for name in SENSORS:
         cols.append(result.present[name][index, keep].numpy()[:, None].astype(float))
         cols.append(result.accepted[name][index, keep].numpy()[:, None].astype(float))
@@ -154,7 +165,13 @@ def run_sequence(seq: Sequence, cfg: EskfConfig, options: RunOptions) -> dict[st
     learned = None
     with torch.no_grad():
         if options.learned is None:
-            result = run_eskf(seq, cfg, progress=callback)
+            try:
+                result = run_eskf(seq, cfg, progress=callback)
+            except EstimationInterrupted as stop:
+                if close is not None:
+                    close()
+                wall = time.perf_counter() - start
+                _write_interrupted(seq, stop.result, out_dir, "frontend", stop.epochs_total, wall)
         else:
             from msf_torch.learning.inference import run_piecewise, scales_summary, window_scales
 
@@ -171,7 +188,14 @@ def run_sequence(seq: Sequence, cfg: EskfConfig, options: RunOptions) -> dict[st
     if options.smooth is not None:
         callback, close = options.progress() if options.progress is not None else (None, None)
         with torch.no_grad():
-            smoothed = smooth(seq, result, cfg, options.smoother, options.smooth, callback)
+            try:
+                smoothed = smooth(seq, result, cfg, options.smoother, options.smooth, callback)
+            except KeyboardInterrupt:
+                if close is not None:
+                    close()
+                wall = time.perf_counter() - start
+                total = int(result.mask[0].sum()) - 1
+                _write_interrupted(seq, result, out_dir, "smoother", total, wall)
         if close is not None:
             close()
     wall = time.perf_counter() - start
@@ -202,6 +226,7 @@ def run_sequence(seq: Sequence, cfg: EskfConfig, options: RunOptions) -> dict[st
     if dropped:
         summary["dropped_nonfinite"] = dropped
     summary["imu_gaps"] = int((result.gap[0] & result.mask[0]).sum())
+    summary.update(_fault_summary(result))
     scored = [("", estimate)] + ([] if smoothed is None else [("frontend_", _single(trajectory))])
     if seq.ground_truth is not None and bool(seq.ground_truth.mask.any()):
         for prefix, traj in scored:
@@ -270,6 +295,89 @@ def _export(
             covariance=covariance,
             velocity=velocity,
         )
+
+
+class RunInterrupted(KeyboardInterrupt):
+    """Ctrl-C (SIGINT) stopped :func:`run_sequence`; partial outputs were written first.
+
+    ``trajectory.tum`` holds the front end's poses up to the last completed epoch (the whole
+    front-end trajectory when the smoother was interrupted), ``diagnostics.csv`` the same
+    epochs, ``summary.json`` the summary below.
+
+    Attributes:
+        summary: the run summary with an ``"interrupted"`` entry: ``stage`` (``"frontend"``
+            or ``"smoother"``), ``epochs_done`` and ``epochs_total`` (front-end epochs),
+            ``t_s`` (time of the last completed epoch, s, the sequence's clock) and
+            ``t_from_start_s`` (the same from the first IMU sample).
+    """
+
+    def __init__(self, summary: dict[str, Any]) -> None:
+        stop = summary["interrupted"]
+        super().__init__(
+            f"interrupted in the {stop['stage']} at t = {stop['t_s']:.6f} s "
+            f"(epoch {stop['epochs_done']} of {stop['epochs_total']})"
+        )
+        self.summary = summary
+
+
+def _divergence(result: EskfResult) -> torch.Tensor:
+    """(B, E + 1) divergence codes; zeros for a result assembled without them (the learned
+    path's chunk concatenation)."""
+    if result.divergence is None:
+        return torch.zeros(result.mask.shape, dtype=torch.long)
+    return result.divergence
+
+
+def _fault_summary(result: EskfResult) -> dict[str, Any]:
+    """Summary entries of the fault guards (sequence 0): divergence resets (count, first
+    times, per code) and samples the filter skipped; empty when there were none."""
+    out: dict[str, Any] = {}
+    keep = result.mask[0]
+    codes = _divergence(result)[0, keep]
+    diverged = codes != 0
+    if bool(diverged.any()):
+        out["divergence_resets"] = int(diverged.sum())
+        out["divergence_first_t_s"] = [round(float(x), 6) for x in result.t[0, keep][diverged][:5]]
+        out["divergence_causes"] = {
+            name: int(((codes & bit) != 0).sum())
+            for bit, name in DIVERGENCE_CODES.items()
+            if bool(((codes & bit) != 0).any())
+        }
+    skipped = {k: int(v[0]) for k, v in result.dropped_samples.items() if int(v[0])}
+    if skipped:
+        out["estimator_skipped_samples"] = skipped
+    return out
+
+
+def _write_interrupted(
+    seq: Sequence, result: EskfResult, out_dir: Path, stage: str, epochs_total: int, wall: float
+) -> None:
+    """Write the partial outputs of an interrupted run, then raise :class:`RunInterrupted`."""
+    done = int(result.mask[0].sum()) - 1
+    t_stop = float(result.t[0, done])
+    summary: dict[str, Any] = {
+        "sequence": seq.names[0],
+        "source": str(seq.meta.get("source", "")),
+        "duration_s": round(_duration(seq), 3),
+        "imu_samples": int(seq.imu.mask[0].sum()),
+        "epochs": done + 1,
+        "wall_s": round(wall, 4),
+        "noise": "config",
+        "interrupted": {
+            "stage": stage,
+            "epochs_done": done,
+            "epochs_total": epochs_total,
+            "t_s": round(t_stop, 6),
+            "t_from_start_s": round(t_stop - float(result.t[0, 0]), 6),
+        },
+        **_fault_summary(result),
+    }
+    write_tum(_single(result.trajectory()), out_dir / "trajectory.tum")
+    write_diagnostics(result, out_dir / "diagnostics.csv")
+    with atomic_write(out_dir / "summary.json") as handle:
+        json.dump(summary, handle, indent=2)
+        handle.write("\n")
+    raise RunInterrupted(summary)
 
 
 def _single(traj: Trajectory) -> Trajectory:

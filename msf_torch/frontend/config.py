@@ -96,6 +96,12 @@ class EskfConfig:
     slip_flag_below: float = 0.5  # a wheel epoch counts as slipping below this factor
     # time tolerance when merging measurement times, s
     time_tolerance_s: float = 1e-6
+    # divergence guard (frontend.guard): a sequence whose state or covariance turns
+    # non-finite or not positive definite, or whose accepted gated block has a NIS above
+    # this many times its gate, is reset to its last good state ...
+    divergence_nis_scale: float = 10.0
+    # ... with the covariance multiplied by this
+    divergence_inflation: float = 100.0
     # adaptive noise (frontend.adaptive); both lists empty = off, results as without
     # Sage-Husa estimate of the measurement noise R of these blocks: "gnss", "pose",
     # "pose:<name>" (not wheel/NHC/ZUPT: the slip factor and the pseudo-measurements set
@@ -132,6 +138,7 @@ class EskfConfig:
             "imu_gap_s",
             "slip_sensitivity",
             "pose_source_max_gap_s",
+            "divergence_nis_scale",
         ]
         for key in positive:
             value = getattr(self, key)
@@ -154,6 +161,11 @@ class EskfConfig:
             raise ValueError(
                 f"config key 'pose_sources' must be 'auto' or a list of distinct source names, "
                 f"got {names!r}"
+            )
+        inflation = self.divergence_inflation
+        if not (isinstance(inflation, (int, float)) and math.isfinite(inflation)) or inflation < 1:
+            raise ValueError(
+                f"config key 'divergence_inflation' must be a number >= 1, got {inflation!r}"
             )
         if not 0.0 < self.gate_probability <= 1.0:
             raise ValueError("config key 'gate_probability' must lie in (0, 1]")

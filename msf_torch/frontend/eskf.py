@@ -69,6 +69,12 @@ import torch
 from msf_torch.frontend.adaptive import BlockAdaptation
 from msf_torch.frontend.config import EskfConfig
 from msf_torch.frontend.gating import chi2_threshold
+from msf_torch.frontend.guard import (
+    DivergenceGuard,
+    EstimationInterrupted,
+    InterruptCatcher,
+    sanitize_sequence,
+)
 from msf_torch.frontend.init import initial_state
 from msf_torch.frontend.schedule import Schedule, build_schedule
 from msf_torch.frontend.slip import slip_factor
@@ -150,6 +156,12 @@ class EskfResult:
             sensors are :data:`SENSORS` and ``"pose:<name>"`` per fused pose source.
         nis: sensor -> (B, E + 1) normalised innovation squared (0 where absent).
         gap: (B, E + 1) bool, an IMU gap was bridged in this epoch.
+        divergence: (B, E + 1) int64, 0 or the ``frontend.guard`` codes (bit flags: 1
+            non-finite, 2 not positive definite, 4 NIS blow-up) of a sequence that diverged
+            in this epoch and was reset to its last good state with inflated covariance.
+        dropped_samples: stream (``"imu"``, ``"wheel"``, ``"gnss"``, ``"pose"``,
+            ``"pose:<name>"``) -> (B,) int64 samples skipped by the input rule of
+            ``frontend.guard`` (non-finite, repeated or backwards stamps).
         fading_factor: (B, E + 1) strong-tracking factor on the predicted covariance (1 =
             none; all 1 without ``strong_tracking_sensors``).
         noise_estimate: Sage-Husa block (``adaptive_noise_sensors``) -> (B, E + 1, d, d)
@@ -171,6 +183,8 @@ class EskfResult:
     accepted: dict[str, torch.Tensor] = field(default_factory=dict)
     nis: dict[str, torch.Tensor] = field(default_factory=dict)
     gap: torch.Tensor | None = None
+    divergence: torch.Tensor | None = None
+    dropped_samples: dict[str, torch.Tensor] = field(default_factory=dict)
     fading_factor: torch.Tensor | None = None
     noise_estimate: dict[str, torch.Tensor] = field(default_factory=dict)
 
@@ -381,9 +395,14 @@ def run_eskf(
             sequence's first IMU sample; default: ``frontend.init.initial_state``.
     Returns:
         :class:`EskfResult` with (B, E + 1) per-epoch fields.
+        Samples with non-finite values or repeated / backwards stamps are skipped and
+        counted (``result.dropped_samples``); a sequence whose state or covariance turns
+        non-finite or not positive definite, or whose re-opened gate lets through a NIS
+        blow-up, is reset to its last good state with inflated covariance and flagged
+        (``result.divergence``); see ``frontend.guard``.
     Raises:
-        FloatingPointError: an innovation covariance lost positive definiteness (the
-            sequence and epoch are named).
+        EstimationInterrupted: Ctrl-C (SIGINT) in the epoch loop; a ``KeyboardInterrupt``
+            carrying the result of the epochs completed (``frontend.guard``).
 
     Example:
         >>> from msf_torch.sim import SimConfig, simulate_run
@@ -395,6 +414,7 @@ def run_eskf(
     cfg = cfg or EskfConfig()
     dtype, device = seq.imu.t.dtype, seq.imu.t.device
     noise = noise or EskfNoise.from_config(cfg, dtype, device)
+    seq, dropped_samples = sanitize_sequence(seq)
     sched = build_schedule(seq, cfg)
     state, cov_conventional = initial if initial is not None else initial_state(seq, cfg)
     _, to_inv0 = _invariant_maps(state.position, state.velocity, state.rotation)
@@ -478,8 +498,8 @@ def run_eskf(
     slip = torch.ones(batch, dtype=dtype, device=device)
     last_wheel_t = sched.t_start.clone()
     streak = torch.zeros(batch, len(active), dtype=dtype, device=device)
-    chol_failed = torch.zeros(batch, dtype=torch.bool, device=device)
-    first_failure = torch.full((batch,), -1, dtype=torch.long, device=device)
+    guard = DivergenceGuard(state, cov, cfg.divergence_inflation, cfg.divergence_nis_scale)
+    divergence_out = [torch.zeros(batch, dtype=torch.long, device=device)]
     out: dict[str, list[torch.Tensor]] = {k: [] for k in ("p", "v", "R", "bg", "ba", "P", "s")}
     accepted_out: list[torch.Tensor] = []
     nis_out: list[torch.Tensor] = []
@@ -498,7 +518,8 @@ def run_eskf(
     accepted_out.append(no_blocks.bool())
     nis_out.append(no_blocks)
 
-    with _intra_op_threads(1 if batch < 16 else torch.get_num_threads()):
+    interrupt = InterruptCatcher()
+    with _intra_op_threads(1 if batch < 16 else torch.get_num_threads()), interrupt:
         for e in range(n_epochs):
             # --- propagation: nominal with bias-corrected increments -----------------------
             d_rot, d_vel, d_pos = pre.corrected(state.gyro_bias, state.accel_bias, index=e)
@@ -532,8 +553,11 @@ def run_eskf(
             to_conv = frame_base.clone()
             to_conv[:, 0:9, 6:9] = torch.cat((-arms, rotation.mT), -2)
             state = NavState(position, velocity, rotation, state.gyro_bias, state.accel_bias)
+            guard.propagated(state, cov)
 
             if present_all is None or not bool(present_all[:, e].any()):
+                state, cov, code = guard.check(state, cov)
+                divergence_out.append(code)
                 accepted_out.append(no_blocks.bool())
                 nis_out.append(no_blocks)
                 record(state, cov, slip)
@@ -571,7 +595,7 @@ def run_eskf(
                             cfg.slip_sensitivity,
                             cfg.slip_recovery_per_s,
                         )
-                        slip = torch.where(here, new_slip, slip)
+                        slip = torch.where(here & torch.isfinite(new_slip), new_slip, slip)
                         var = var / slip[:, None].clamp_min(1e-3) ** 2
                     last_wheel_t = torch.where(here, sched.t_end[:, e], last_wheel_t)
                     rows_used = dims["wheel"]
@@ -654,27 +678,23 @@ def run_eskf(
             s_m = s_all * rows_outer + torch.diag_embed(1.0 - rows)
             chol, info = torch.linalg.cholesky_ex(s_m)
             failed = (info != 0) | (info_b != 0)
-            first_failure = torch.where(failed & ~chol_failed, e, first_failure)
-            chol_failed = chol_failed | failed
             gain = torch.cholesky_solve(h_m @ cov, chol).mT  # (B, 15, M)
             dx = -(gain @ (r_all * rows)[..., None]).squeeze(-1)
             ikh = eye15 - gain @ h_m
             cov = ikh @ cov @ ikh.mT + gain @ (r_cov * rows_outer) @ gain.mT
             state = _inject_invariant(state, dx)
             cov = 0.5 * (cov + cov.mT)
+            state, cov, ok, code = guard.updated(state, cov, ok, nis, threshold, failed)
+            divergence_out.append(code)
             accepted_out.append(ok)
             nis_out.append(nis)
             record(state, cov, slip)
             if progress is not None:
                 progress(e + 1, n_epochs)
 
-    if bool(chol_failed.any()):
-        b = int(torch.nonzero(chol_failed)[0])
-        raise FloatingPointError(
-            f"sequence '{seq.names[b]}': innovation covariance not positive definite at "
-            f"epoch {int(first_failure[b])} (t = {float(sched.t_end[b, first_failure[b]]):.6f} s)"
-        )
+    done = interrupt.settle(list(out.values()), [accepted_out, nis_out, divergence_out], n_epochs)
     mask = torch.cat((torch.ones(batch, 1, dtype=torch.bool, device=device), sched.epoch_mask), 1)
+    mask[:, done + 1 :] = False
     t = torch.cat((sched.t_start[:, None], sched.t_end), 1)
     positions = torch.stack(out["p"], 1)
     velocities = torch.stack(out["v"], 1)
@@ -699,7 +719,7 @@ def run_eskf(
             nis[k] = torch.zeros(batch, n_epochs + 1, dtype=dtype, device=device)
     gap = torch.cat((false_b[:, None], sched.gap), 1)
     fading, noise_estimate = adaptation.history(n_epochs)
-    return EskfResult(
+    result = EskfResult(
         names=list(seq.names),
         t=t,
         mask=mask,
@@ -714,6 +734,11 @@ def run_eskf(
         accepted=accepted,
         nis=nis,
         gap=gap,
+        divergence=torch.stack(divergence_out, 1),
+        dropped_samples=dropped_samples,
         fading_factor=fading,
         noise_estimate=noise_estimate,
     )
+    if interrupt.caught:
+        raise EstimationInterrupted(result, done, n_epochs)
+    return result
