@@ -10,7 +10,9 @@ Used by ``msf run``. Outputs in ``out_dir`` (each written atomically: temp file 
   the order of ``geometry.conventions``), slip factor, IMU-gap flag, ``divergence`` (0, or
   the ``frontend.guard`` code of a divergence reset: 1 non-finite, 2 not positive definite,
   4 NIS blow-up, added), and per sensor whether a measurement was present, whether it was
-  accepted, and its NIS.
+  accepted, and its NIS; with ``source_fault_detection``, per pose source
+  ``pose:<name>_fault`` (1 = excluded as faulty, ``frontend.gating``) and
+  ``pose:<name>_fault_z`` (the detector's deciding Z at the source's pairs).
 - ``summary.json``: the run summary (also printed as the last line by the CLI). With
   ``smooth`` set, ``ate_*`` and ``outage_*`` score the smoothed trajectory, the front end's
   own figures keep a ``frontend_`` prefix, and ``smoother`` holds the smoother's figures.
@@ -132,6 +134,10 @@ def write_diagnostics(result: EskfResult, path: Path, index: int = 0) -> None:
         cols.append(result.accepted[name][index, keep].numpy()[:, None].astype(float))
         cols.append(result.nis[name][index, keep].numpy()[:, None])
         header += [f"{name}_present", f"{name}_accepted", f"{name}_nis"]
+    for name, flags in result.source_fault.items():  # frontend.gating, source_fault_detection
+        cols.append(flags[index, keep].numpy()[:, None].astype(float))
+        cols.append(result.source_fault_z[name][index, keep].numpy()[:, None])
+        header += [f"{name}_fault", f"{name}_fault_z"]
     table = np.hstack(cols)
     with atomic_write(path) as handle:
         handle.write(",".join(header) + "\n")

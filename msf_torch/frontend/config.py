@@ -117,6 +117,22 @@ class EskfConfig:
     strong_tracking_max_factor: float = 10.0  # cap on the fading factor
     # one innovation moves R_hat or V by at most this chi-square quantile (1.0: no clip)
     adaptive_clip_probability: float = 0.9999
+    # multi-model source-fault detection (frontend.gating): each pose source gets a UKF of
+    # the increments it reports; a source whose residuals differ from the other sources' by
+    # more than T = c v / f + T_0 over the window and whose two-tailed Z-test fails is
+    # excluded (weight 0) until its recent residuals are calm again. Off: results unchanged
+    source_fault_detection: bool = False
+    source_fault_window: int = 10  # samples in each source's residual window
+    source_fault_speed_factor: float = 1.0  # c (1: one sample's travel)
+    source_fault_min_threshold_m: float = 0.05  # T_0
+    source_fault_z_enter: float = 3.0  # max |Z| over the window that excludes a source
+    source_fault_z_exit: float = 1.5  # max |Z| over the last exit samples that re-admits it
+    source_fault_exit_samples: int = 3
+    # stiffness of the models: random-walk densities of body velocity and rate; a model
+    # that adapts fast absorbs a lasting fault before the test sees it
+    source_fault_accel_sigma_mps2: float = 0.1
+    source_fault_angular_accel_sigma_radps2: float = 0.1
+    source_fault_rotation_lever_m: float = 1.0  # m per rad of a heading residual
 
     def replace(self, **changes: Any) -> EskfConfig:
         """A copy with ``changes`` applied (names are checked)."""
@@ -170,6 +186,7 @@ class EskfConfig:
         if not 0.0 < self.gate_probability <= 1.0:
             raise ValueError("config key 'gate_probability' must lie in (0, 1]")
         self._validate_adaptive()
+        self._validate_source_faults()
         for key in (
             "wheel_lever_arm_m",
             "nhc_lever_arm_m",
@@ -181,6 +198,31 @@ class EskfConfig:
             value = getattr(self, key)
             if len(value) != 3:
                 raise ValueError(f"config key '{key}' must have 3 entries, got {value!r}")
+
+    def _validate_source_faults(self) -> None:
+        """Raise ``ValueError`` naming the first bad source-fault key."""
+        for key in ("source_fault_window", "source_fault_exit_samples"):
+            value = getattr(self, key)
+            if not (isinstance(value, int) and not isinstance(value, bool) and value >= 1):
+                raise ValueError(f"config key '{key}' must be an integer >= 1, got {value!r}")
+        for key in (
+            "source_fault_speed_factor",
+            "source_fault_min_threshold_m",
+            "source_fault_z_enter",
+            "source_fault_rotation_lever_m",
+        ):
+            value = getattr(self, key)
+            if not (isinstance(value, (int, float)) and math.isfinite(value) and value >= 0):
+                raise ValueError(f"config key '{key}' must be a non-negative number, got {value!r}")
+        for key in ("source_fault_accel_sigma_mps2", "source_fault_angular_accel_sigma_radps2"):
+            value = getattr(self, key)
+            if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
+                raise ValueError(f"config key '{key}' must be a positive number, got {value!r}")
+        if not 0 < self.source_fault_z_exit <= self.source_fault_z_enter:
+            raise ValueError(
+                "config keys 'source_fault_z_exit' and 'source_fault_z_enter' must satisfy "
+                "0 < z_exit <= z_enter"
+            )
 
     def _validate_adaptive(self) -> None:
         """Raise ``ValueError`` naming the first bad adaptive-noise key."""

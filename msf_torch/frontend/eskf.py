@@ -51,6 +51,14 @@ stops drifting with it), covariance ``R_w = s C_w + sigma_g^2 / dt I`` (``sigma_
 noise density). Only relative motion enters, so the source's drift stays out, up to its
 increment over ``dt``.
 
+With ``source_fault_detection`` the pose sources first go through the multi-model fault
+detector of ``frontend.gating`` (a UKF per source, the difference of the sources'
+residuals, a two-tailed Z-test with hysteresis; it sees only the sources' own pairs, so it
+runs once over the schedule before the epoch loop). A source it flags has weight 0 in the
+flagged epochs: its rows leave the update (its gate streak does not count them), and the
+gate, ``pose_source_scale`` and learned weights act on the sources that pass. The weight
+is a straight-through 0/1 gate, so gradients reach the detector's inputs.
+
 Everything is a differentiable torch op: gradients reach the noise parameters
 (:class:`EskfNoise`). The only Python loop on the hot path is over epochs.
 """
@@ -68,7 +76,7 @@ import torch
 
 from msf_torch.frontend.adaptive import BlockAdaptation
 from msf_torch.frontend.config import EskfConfig
-from msf_torch.frontend.gating import chi2_threshold
+from msf_torch.frontend.gating import SourceFaultParams, chi2_threshold, detect_source_faults
 from msf_torch.frontend.guard import (
     DivergenceGuard,
     EstimationInterrupted,
@@ -167,6 +175,11 @@ class EskfResult:
         noise_estimate: Sage-Husa block (``adaptive_noise_sensors``) -> (B, E + 1, d, d)
             the estimated measurement covariance in force after each epoch (zeros before
             the block's first measurement).
+        source_fault: ``"pose:<name>"`` -> (B, E + 1) bool, the fault detector
+            (``source_fault_detection``) excludes the source after this epoch (empty when
+            off).
+        source_fault_z: ``"pose:<name>"`` -> (B, E + 1) the detector's deciding Z statistic
+            at the source's pairs (0 elsewhere; ``frontend.gating.SourceFaultResult.z``).
     """
 
     names: list[str]
@@ -187,6 +200,8 @@ class EskfResult:
     dropped_samples: dict[str, torch.Tensor] = field(default_factory=dict)
     fading_factor: torch.Tensor | None = None
     noise_estimate: dict[str, torch.Tensor] = field(default_factory=dict)
+    source_fault: dict[str, torch.Tensor] = field(default_factory=dict)
+    source_fault_z: dict[str, torch.Tensor] = field(default_factory=dict)
 
     def trajectory(self) -> Trajectory:
         """Estimated poses as a :class:`~msf_torch.types.Trajectory` (B, E + 1)."""
@@ -330,16 +345,10 @@ def _source_covariance(
     """Pose-source block covariances (B, E, S, d, d): ``R_v = s C_v + (a dt / 2)^2 I``,
     (m/s)^2, and with ``pose_source_rate_update`` (d = 6) ``R_w = s C_w + sigma_g^2 / dt I``,
     (rad/s)^2, on the diagonal; ``s`` from ``noise.pose_source_scale`` (default 1)."""
-    batch = sched.t_end.shape[0]
-    ones = torch.ones(batch, dtype=sched.t_end.dtype, device=sched.t_end.device)
-    scale = [
-        per_seq(noise.pose_source_scale[n]) if n in noise.pose_source_scale else ones
-        for n in sched.source_names
-    ]
-    if not scale:
+    if not sched.source_names:
         return sched.source_covariance
-    scale = torch.stack(scale, -1)[:, None, :, None, None]
-    eye = torch.eye(3, dtype=ones.dtype, device=ones.device)
+    scale = _source_scale(sched, noise, per_seq)[:, None, :, None, None]
+    eye = torch.eye(3, dtype=scale.dtype, device=scale.device)
     accel_var = (0.5 * cfg.pose_source_accel_sigma_mps2 * sched.source_dt) ** 2
     velocity = scale * sched.source_covariance + accel_var[..., None, None] * eye
     if not cfg.pose_source_rate_update:
@@ -350,6 +359,20 @@ def _source_covariance(
     rate = scale * sched.source_rate_covariance + gyro_var[..., None, None] * eye
     zeros = torch.zeros_like(rate)
     return torch.cat((torch.cat((velocity, zeros), -1), torch.cat((zeros, rate), -1)), -2)
+
+
+def _source_scale(
+    sched: Schedule, noise: EskfNoise, per_seq: Callable[[torch.Tensor], torch.Tensor]
+) -> torch.Tensor:
+    """(B, S) variance scale of each pose source (``noise.pose_source_scale``, default 1)."""
+    ones = torch.ones(sched.t_end.shape[0], dtype=sched.t_end.dtype, device=sched.t_end.device)
+    return torch.stack(
+        [
+            per_seq(noise.pose_source_scale[n]) if n in noise.pose_source_scale else ones
+            for n in sched.source_names
+        ],
+        -1,
+    )
 
 
 def _segment_matrix(dims: list[int], dtype, device) -> torch.Tensor:
@@ -488,6 +511,24 @@ def run_eskf(
     zupt_var = (per_seq(noise.zupt_sigma) ** 2)[:, None].expand(batch, 3)
     gnss_var = (sched.gnss_sigma * per_seq(noise.gnss_sigma_scale)[:, None, None]) ** 2
     source_cov = _source_covariance(sched, noise, cfg, per_seq)
+    faults = None  # frontend.gating: multi-model source-fault detection over the pairs
+    block_weight = None  # (B, E, K) 0/1 straight-through weight of each block
+    if cfg.source_fault_detection and source_col:
+        scale = _source_scale(sched, noise, per_seq)[:, None, :, None, None]
+        faults = detect_source_faults(
+            sched.t_end,
+            sched.source_velocity,
+            sched.source_rate,
+            scale * sched.source_covariance,
+            scale * sched.source_rate_covariance,
+            sched.source_dt,
+            sched.source_mask,
+            SourceFaultParams.from_config(cfg),
+        )
+        keep = torch.ones(batch, n_epochs, dtype=dtype, device=device)
+        block_weight = torch.stack(
+            [faults.weight[..., source_col[k]] if k in source_col else keep for k in active], -1
+        )
     source_lever = torch.zeros(3, dtype=dtype, device=device)
     eye15 = torch.eye(ERROR_STATE_DIM, dtype=dtype, device=device)
     frame_base = eye15.expand(batch, 15, 15)
@@ -669,10 +710,15 @@ def run_eskf(
             if "wheel" in active and cfg.slip_detection:
                 wheel_col = active.index("wheel")
                 ok[:, wheel_col] = ok[:, wheel_col] & (slip >= cfg.slip_skip_below)
+            passed = ok.to(dtype)
+            if block_weight is not None:  # a source flagged as faulty weighs 0
+                passed = passed * block_weight[:, e]
+                ok = ok & (block_weight[:, e] > 0.5)
+                here = here & (block_weight[:, e] > 0.5)
             streak = torch.where(here, torch.where(ok, 0.0, streak + 1.0), streak)
 
             # --- joint update over the accepted rows (Joseph form) ------------------------
-            rows = ok.to(dtype) @ segment.mT  # (B, M)
+            rows = passed @ segment.mT  # (B, M)
             rows_outer = rows[:, :, None] * rows[:, None, :]
             h_m = h_all * rows[..., None]
             s_m = s_all * rows_outer + torch.diag_embed(1.0 - rows)
@@ -738,6 +784,17 @@ def run_eskf(
         dropped_samples=dropped_samples,
         fading_factor=fading,
         noise_estimate=noise_estimate,
+        source_fault={
+            k: torch.cat((false_b[:, None], faults.flagged[..., s]), 1)
+            for k, s in source_col.items()
+        }
+        if faults is not None
+        else {},
+        source_fault_z={
+            k: torch.cat((zeros_b[:, None], faults.z[..., s]), 1) for k, s in source_col.items()
+        }
+        if faults is not None
+        else {},
     )
     if interrupt.caught:
         raise EstimationInterrupted(result, done, n_epochs)
