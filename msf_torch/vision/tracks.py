@@ -1,0 +1,254 @@
+"""Feature tracks of the visual odometry for the back end's reprojection factors.
+
+The back end's visual-inertial bundle adjustment takes observations in normalized image
+coordinates ``[x/z, y/z]``
+(:class:`~msf_torch.backend.factors.ReprojectionFactor`, landmarks eliminated by the Schur
+complement). Two ways in:
+
+* :func:`vio_data` converts a :class:`~msf_torch.vision.odometry.VoResult` (every PnP
+  inlier of every frame, landmark ids that never repeat) and the run's IMU stream into a
+  :class:`~msf_torch.backend.vio.VioData` for :func:`~msf_torch.backend.vio.solve_vio`
+  (which initialises from a platform at rest);
+* :func:`bundle_adjust` starts the same problem
+  (:func:`~msf_torch.backend.vio.build_vio_problem`: first-state prior, IMU preintegration
+  between keyframes, robust reprojection factors), plus one right-camera reprojection factor
+  per landmark (the stereo match that created it: it fixes the scale, which monocular
+  observations and a nearly unaccelerated IMU leave open), from the odometry itself: the
+  odometry's
+  keyframe poses and stereo map points, turned into a gravity-aligned world by the mean
+  specific force over the first ``init_window_s`` (roll and pitch stay free in the
+  solve), velocities by central differences of the odometry positions, zero biases; then
+  one batched LM solve with the landmarks eliminated.
+"""
+
+from __future__ import annotations
+
+__all__ = ["normalized_coordinates", "vio_data", "VisualInertialBa", "bundle_adjust"]
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from msf_torch.backend.factors import ReprojectionFactor
+from msf_torch.backend.lm import LMConfig, LMResult, solve
+from msf_torch.backend.preintegration import cut_imu
+from msf_torch.backend.problem import Problem
+from msf_torch.backend.robust import RobustKernel
+from msf_torch.backend.variables import pack_nav_state
+from msf_torch.backend.vio import (
+    HUBER_2DOF_95,
+    VioConfig,
+    VioData,
+    build_vio_problem,
+    first_state_prior,
+    gravity_aligned_rotation,
+    keyframe_imu_factor_inputs,
+)
+from msf_torch.geometry.conventions import gravity_world
+from msf_torch.sensors.camera import CameraRig
+from msf_torch.sensors.imu import ImuNoise
+from msf_torch.types import ImuSamples
+from msf_torch.vision.odometry import VoResult
+
+
+def normalized_coordinates(pixels: np.ndarray, rig: CameraRig) -> np.ndarray:
+    """Normalized image coordinates (N, 2) ``((u - cx) / fx, (v - cy) / fy)`` of pixels
+    (N, 2)."""
+    return np.stack(((pixels[:, 0] - rig.cx) / rig.fx, (pixels[:, 1] - rig.cy) / rig.fy), -1)
+
+
+def vio_data(
+    result: VoResult,
+    imu: ImuSamples,
+    imu_noise: ImuNoise,
+    pixel_sigma: float = 0.5,
+    dtype: torch.dtype = torch.float64,
+) -> VioData:
+    """The back end's input from a visual-odometry result and the IMU stream.
+
+    Frames outside the IMU span are left out (with their observations); frame indices are
+    renumbered over the kept frames.
+
+    Args:
+        result: the odometry run (``record_tracks`` on).
+        imu: B = 1 IMU samples on the same clock.
+        imu_noise: IMU noise densities.
+        pixel_sigma: feature sigma, px (converted with ``fx``).
+        dtype: float dtype of the tensors.
+    Returns:
+        :class:`~msf_torch.backend.vio.VioData` with the left camera's extrinsics.
+    Raises:
+        ValueError: B is not 1 or no observation is left.
+    """
+    if imu.batch_size != 1:
+        raise ValueError(f"vio_data: needs B = 1 IMU samples, got B = {imu.batch_size}")
+    keep = imu.mask[0]
+    imu_t = imu.t[0][keep].to(dtype)
+    t0, t1 = float(imu_t[0]), float(imu_t[-1])
+    inside = (result.t >= t0) & (result.t <= t1)
+    renumber = np.cumsum(inside) - 1
+    obs = inside[result.obs_frame]
+    if not obs.any():
+        raise ValueError("vio_data: no feature observation inside the IMU span")
+    rig = result.rig
+    uv = normalized_coordinates(result.obs_pixel[obs], rig)
+    return VioData(
+        imu_t=imu_t,
+        gyro=imu.gyro[0][keep].to(dtype),
+        accel=imu.accel[0][keep].to(dtype),
+        frame_times=torch.as_tensor(result.t[inside], dtype=dtype),
+        obs_frame=torch.as_tensor(renumber[result.obs_frame[obs]], dtype=torch.int64),
+        obs_landmark=torch.as_tensor(result.obs_landmark[obs], dtype=torch.int64),
+        obs_uv=torch.as_tensor(uv, dtype=dtype),
+        body_rotation_cam=torch.as_tensor(rig.body_rotation_cam(), dtype=dtype),
+        body_translation_cam=torch.as_tensor(rig.body_translation_cam(), dtype=dtype),
+        feature_sigma=pixel_sigma / rig.fx,
+        imu_noise=imu_noise,
+    )
+
+
+@dataclass
+class VisualInertialBa:
+    """Outcome of :func:`bundle_adjust`.
+
+    Attributes:
+        keyframe_frames: (K,) frame index of each keyframe used.
+        keyframe_times: (K,) s.
+        initial_states: (K, 21) nav states the solve started from (gravity-aligned world).
+        states: (K, 21) solved nav states.
+        landmarks: (L, 3) solved map points, world, m.
+        landmark_index: (L,) their rows in the odometry's ``landmarks``.
+        observations: M left-camera reprojection factors.
+        stereo_observations: S right-camera reprojection factors.
+        lm: the :class:`~msf_torch.backend.lm.LMResult` (B = 1).
+    """
+
+    keyframe_frames: np.ndarray
+    keyframe_times: torch.Tensor
+    initial_states: torch.Tensor
+    states: torch.Tensor
+    landmarks: torch.Tensor
+    landmark_index: np.ndarray
+    observations: int
+    stereo_observations: int
+    lm: LMResult
+
+
+def bundle_adjust(
+    result: VoResult,
+    imu: ImuSamples,
+    imu_noise: ImuNoise,
+    pixel_sigma: float = 0.5,
+    min_observations: int = 3,
+    init_window_s: float = 0.5,
+    lm: LMConfig | None = None,
+    prior: VioConfig | None = None,
+    kernel: RobustKernel | None = None,
+) -> VisualInertialBa:
+    """Visual-inertial bundle adjustment over the odometry's keyframes (module docstring).
+
+    Args:
+        result: the odometry run (``record_tracks`` on).
+        imu: B = 1 IMU samples on the same clock.
+        imu_noise: IMU noise densities.
+        pixel_sigma: feature sigma, px.
+        min_observations: keyframe observations a landmark needs.
+        init_window_s: accelerometer averaging for the initial roll and pitch, s.
+        lm: LM settings (default: 30 iterations, landmarks eliminated).
+        prior: first-state prior sigmas (:func:`~msf_torch.backend.vio.first_state_prior`).
+        kernel: robust kernel of the reprojection factors (default Huber at 2.45 sigma).
+    Returns:
+        :class:`VisualInertialBa`.
+    Raises:
+        ValueError: B is not 1, fewer than two keyframes lie in the IMU span, or no
+            landmark has enough observations.
+    """
+    if imu.batch_size != 1:
+        raise ValueError(f"bundle_adjust: needs B = 1 IMU samples, got B = {imu.batch_size}")
+    dtype = torch.float64
+    lm = lm or LMConfig(max_iterations=30, eliminate="landmark")
+    prior = prior or VioConfig()
+    kernel = kernel or RobustKernel("huber", HUBER_2DOF_95)
+    keep = imu.mask[0]
+    imu_t = imu.t[0][keep].to(dtype)
+    gyro, accel = imu.gyro[0][keep].to(dtype), imu.accel[0][keep].to(dtype)
+    t0, t1 = float(imu_t[0]), float(imu_t[-1])
+    frames = np.nonzero(result.keyframe & result.valid & (result.t >= t0) & (result.t <= t1))[0]
+    if len(frames) < 2:
+        raise ValueError(f"bundle_adjust: {len(frames)} keyframes in the IMU span, need 2")
+    start = result.t[0]
+    rest = (imu_t >= start) & (imu_t <= start + init_window_s)
+    to_world = gravity_aligned_rotation(accel[rest].mean(0)).numpy()
+    position = result.position @ to_world.T
+    velocity = np.gradient(position, result.t, axis=0)
+    rotation = to_world @ result.rotation
+    zero = torch.zeros(len(frames), 3, dtype=dtype)
+    states = pack_nav_state(
+        torch.as_tensor(position[frames]),
+        torch.as_tensor(velocity[frames]),
+        torch.as_tensor(rotation[frames]),
+        zero,
+        zero,
+    )
+    to_keyframe = np.full(len(result.t), -1, np.int64)
+    to_keyframe[frames] = np.arange(len(frames))
+    obs_kf = to_keyframe[result.obs_frame]
+    in_kf = obs_kf >= 0
+    seen = np.bincount(result.obs_landmark[in_kf], minlength=len(result.landmarks))
+    good_landmark = seen >= min_observations
+    use = in_kf & good_landmark[result.obs_landmark]
+    landmark_index = np.nonzero(good_landmark)[0]
+    if landmark_index.size == 0:
+        raise ValueError("bundle_adjust: no landmark has enough keyframe observations")
+    compact = np.full(len(result.landmarks), -1, np.int64)
+    compact[landmark_index] = np.arange(landmark_index.size)
+    points = torch.as_tensor(result.landmarks[landmark_index] @ to_world.T)
+    times = torch.as_tensor(result.t[frames], dtype=dtype)
+    intervals = cut_imu(imu_t, gyro, accel, times)
+    pre, cov = keyframe_imu_factor_inputs(intervals, states, imu_noise)
+    rig = result.rig
+    sigma = pixel_sigma / rig.fx
+    base = build_vio_problem(
+        states[None],
+        points[None],
+        torch.as_tensor(obs_kf[use]),
+        torch.as_tensor(compact[result.obs_landmark[use]]),
+        torch.as_tensor(normalized_coordinates(result.obs_pixel[use], rig)),
+        pre,
+        cov,
+        torch.as_tensor(rig.body_rotation_cam(), dtype=dtype),
+        torch.as_tensor(rig.body_translation_cam(), dtype=dtype),
+        sigma,
+        gravity_world(dtype=dtype),
+        states[0],
+        first_state_prior(states[0], prior),
+        kernel=kernel,
+    )
+    stereo_kf = to_keyframe[result.stereo_frame]
+    stereo_use = (stereo_kf >= 0) & good_landmark[result.stereo_landmark]
+    count = int(stereo_use.sum())
+    right = ReprojectionFactor(
+        "state",
+        torch.as_tensor(stereo_kf[stereo_use]),
+        "landmark",
+        torch.as_tensor(compact[result.stereo_landmark[stereo_use]]),
+        torch.as_tensor(normalized_coordinates(result.stereo_pixel[stereo_use], rig))[None],
+        (sigma**2 * torch.eye(2, dtype=dtype)).expand(1, count, 2, 2),
+        torch.as_tensor(rig.body_rotation_cam(), dtype=dtype),
+        torch.as_tensor(rig.body_translation_cam(right=True), dtype=dtype),
+        kernel=kernel,
+    )
+    problem = Problem(variables=base.variables, factors=[*base.factors, right], fixed=base.fixed)
+    solved = solve(problem, lm)
+    return VisualInertialBa(
+        keyframe_frames=frames,
+        keyframe_times=times,
+        initial_states=states,
+        states=solved.values["state"][0],
+        landmarks=solved.values["landmark"][0],
+        landmark_index=landmark_index,
+        observations=int(use.sum()),
+        stereo_observations=count,
+        lm=solved,
+    )
