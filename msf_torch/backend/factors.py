@@ -105,6 +105,8 @@ class PosePriorFactor(_Unary):
         covariance: (B|1, F, 6, 6) m^2 / rad^2.
     """
 
+    batched = ("position", "rotation")
+
     def __init__(self, group, index, position, rotation, covariance, kernel=None) -> None:
         super().__init__(group, index, covariance, kernel)
         self.position, self.rotation = position, rotation
@@ -130,6 +132,8 @@ class NavStatePriorFactor(_Unary):
         prior: (B|1, F, 21) nav-state values (:func:`msf_torch.backend.variables.pack_nav_state`).
         covariance: (B|1, F, 15, 15).
     """
+
+    batched = ("prior",)
 
     def __init__(self, group, index, prior, covariance, kernel=None) -> None:
         super().__init__(group, index, covariance, kernel)
@@ -168,6 +172,8 @@ class GnssFactor(_Unary):
         m in the body frame. covariance: (B|1, F, 3, 3) m^2.
     """
 
+    batched = ("measured", "lever_arm")
+
     def __init__(self, group, index, measured, covariance, lever_arm=None, kernel=None) -> None:
         super().__init__(group, index, covariance, kernel)
         self.measured = measured
@@ -187,6 +193,8 @@ class GnssFactor(_Unary):
 class ZeroVelocityFactor(_Unary):
     """Zero velocity ``r = v`` (3,) on ``nav_state`` variables; covariance (B|1, F, 3, 3)."""
 
+    batched = ()
+
     def residual(self, values):
         return self.residual_and_jacobians(values, None)[0]
 
@@ -205,6 +213,8 @@ class NonholonomicFactor(_Unary):
         group, index: ``nav_state`` variables (F,). gyro: (B|1, F, 3) raw gyro rate at each
         state's time, rad/s. covariance: (B|1, F, 2, 2) (m/s)^2. lever_arm: (3,) m, body.
     """
+
+    batched = ("gyro", "lever_arm")
 
     def __init__(self, group, index, gyro, covariance, lever_arm=None, kernel=None) -> None:
         super().__init__(group, index, covariance, kernel)
@@ -243,6 +253,8 @@ class BetweenFactor(_Evaluated, _Binary):
         (B|1, F, 3) m, the measured ``T_i^-1 T_j``. covariance: (B|1, F, 6, 6) in [rho, phi].
     """
 
+    batched = ("rotation", "translation")
+
     def __init__(
         self, group, index_i, index_j, rotation, translation, covariance, kernel=None
     ) -> None:
@@ -272,6 +284,8 @@ class PlaneFactor(_Binary):
     Args: group, index_i, index_j (F,); covariance (B|1, F, 3, 3) rad^2, rad^2, m^2.
     """
 
+    batched = ()
+
     def residual(self, values):
         kind = self.kinds[0]
         return plane_residual(*pose_of(kind, values[0]), *pose_of(kind, values[1]))
@@ -288,6 +302,8 @@ class ImuPreintegrationFactor(_Binary):
         covariance: (B|1, F, 15, 15) (see :func:`msf_torch.backend.preintegration.imu_covariance`).
         gravity: (3,) m/s^2 world.
     """
+
+    batched = ("preintegrated",)
 
     def __init__(
         self,
@@ -338,6 +354,8 @@ class GtsamImuFactor(_Evaluated, _Binary):
         gravity: (3,) m/s^2 world (``[0, 0, -g]`` for GTSAM's ``MakeSharedU(g)``).
     """
 
+    batched = ("preintegrated",)
+
     def __init__(
         self,
         group,
@@ -352,6 +370,32 @@ class GtsamImuFactor(_Evaluated, _Binary):
         self.preintegrated, self.gravity = preintegrated, gravity
 
     def _evaluate(self, values, jacobians: bool):
+        residual, compact = self._compact(values, jacobians)
+        if not jacobians:
+            return residual, None
+        jac_i9, jac_j9 = compact
+        lead = residual.shape[:-1]
+        bias_i = torch.cat(
+            (
+                torch.zeros(*lead, 6, 9, dtype=residual.dtype, device=residual.device),
+                -so3.identity(residual.dtype, residual.device, 6).expand(*lead, 6, 6),
+            ),
+            -1,
+        )
+        jac_i = torch.cat((jac_i9, bias_i), -2)
+        jac_j = torch.cat(
+            (
+                torch.nn.functional.pad(jac_j9, (0, 6)),
+                torch.cat((bias_i[..., :9], -bias_i[..., 9:]), -1),
+            ),
+            -2,
+        )
+        return residual, [jac_i, jac_j]
+
+    def _compact(self, values, jacobians: bool):
+        """Residual (..., 15) and, when asked, the nonzero Jacobian rows: d[rho_p, rho_v,
+        phi] / d(state i) (..., 9, 15) and / d(state j)[dp, dv, dtheta] (..., 9, 9) (the
+        bias rows are -I / +I on the bias columns)."""
         pre = self.preintegrated
         p_i, v_i, r_i, bg_i, ba_i = unpack_nav_state(values[0])
         p_j, v_j, r_j, bg_j, ba_j = unpack_nav_state(values[1])
@@ -365,54 +409,111 @@ class GtsamImuFactor(_Evaluated, _Binary):
         rel = r_j_t @ r_i  # R_j^T R_i
         d_rot = rel @ exp_z
         phi = so3.log(d_rot)
-        d_p = (r_j_t @ (pred_p - p_j)[..., None]).squeeze(-1)
-        d_v = (r_j_t @ (pred_v - v_j)[..., None]).squeeze(-1)
+        d_pv = r_j_t @ torch.stack((pred_p - p_j, pred_v - v_j), -1)  # (..., 3, 2)
         jl_inv = torch.linalg.inv(so3.gamma1(phi))
-        rho_p = (jl_inv @ d_p[..., None]).squeeze(-1)
-        rho_v = (jl_inv @ d_v[..., None]).squeeze(-1)
+        rho = jl_inv @ d_pv
+        rho_p, rho_v = rho[..., 0], rho[..., 1]
         residual = torch.cat((rho_p, rho_v, phi, bg_j - bg_i, ba_j - ba_i), -1)
         if not jacobians:
             return residual, None
 
         lead = residual.shape[:-1]
-        zero = torch.zeros_like(rel)
-        eye6 = so3.identity(rel.dtype, rel.device, 6)
         jr_inv = jl_inv.mT  # J_r(phi) = J_l(phi)^T
         bias_jac = pre.bias_jacobian.expand(*lead, 9, 6)
-        # state i columns [dp, dv, dtheta, db_g, db_a]
-        phi_i = torch.cat(
-            (
-                zero,
-                zero,
-                jr_inv @ exp_z.mT,
-                jr_inv @ so3.right_jacobian(z_theta) @ bias_jac[..., 6:9, :],
-            ),
-            -1,
-        )
-        dp_i = torch.cat(
-            (r_j_t, r_j_t * d_t[..., None], -rel @ so3.hat(z_p), rel @ bias_jac[..., 0:3, :]), -1
-        )
-        dv_i = torch.cat((zero, r_j_t, -rel @ so3.hat(z_v), rel @ bias_jac[..., 3:6, :]), -1)
-        # state j columns [dp, dv, dtheta] (its biases enter only the random-walk rows)
-        phi_j = torch.cat((zero, zero, -jr_inv @ d_rot.mT), -1)
-        dp_j = torch.cat((-r_j_t, zero, so3.hat(d_p)), -1)
-        dv_j = torch.cat((zero, -r_j_t, so3.hat(d_v)), -1)
-        # d(Jl(phi)^-1 x)/dphi = -Jl^-1 d(Jl(phi) y)/dphi at y = Jl^-1 x
+        # phi rows: d phi / d(theta_i, bias_i) = [P, Q]; d phi / d theta_j = S
+        rot_bias = so3.right_jacobian(z_theta) @ bias_jac[..., 6:9, :]
+        pq = jr_inv @ torch.cat((exp_z.mT, rot_bias), -1)  # (..., 3, 9)
+        s_j = -jr_inv @ d_rot.mT
+        # d(Jl(phi)^-1 x)/dphi = -Jl^-1 d(Jl(phi) y)/dphi at y = Jl^-1 x, for x = dp, dv
         coef = so3.coefficients(phi, "123", derivatives=True)
-        turn_p = -jl_inv @ so3.gamma_vector_jacobians(phi, rho_p, coef)[0]
-        turn_v = -jl_inv @ so3.gamma_vector_jacobians(phi, rho_v, coef)[0]
+        turn = -jl_inv[..., None, :, :] @ torch.stack(
+            (
+                so3.gamma_vector_jacobians(phi, rho_p, coef)[0],
+                so3.gamma_vector_jacobians(phi, rho_v, coef)[0],
+            ),
+            -3,
+        )  # (..., 2, 3, 3): p and v rows
+        # state i: rows [rho_p; rho_v] = Jl^-1 [d dp; d dv] + turn [P, Q] on [dtheta, db]
+        jl_rel = jl_inv @ rel
+        own = torch.stack(
+            (
+                torch.cat((-so3.hat(z_p), bias_jac[..., 0:3, :]), -1),
+                torch.cat((-so3.hat(z_v), bias_jac[..., 3:6, :]), -1),
+            ),
+            -3,
+        )  # (..., 2, 3, 9)
+        rot_cols = jl_rel[..., None, :, :] @ own + turn @ pq[..., None, :, :]
+        jl_rj = jl_inv @ r_j_t
+        zero = torch.zeros_like(jl_rj)
+        jac_i9 = torch.cat(
+            (
+                torch.cat((jl_rj, jl_rj * d_t[..., None], rot_cols[..., 0, :, :]), -1),
+                torch.cat((zero, jl_rj, rot_cols[..., 1, :, :]), -1),
+                torch.cat((zero, zero, pq), -1),
+            ),
+            -2,
+        )
+        # state j: [dp, dv, dtheta] columns of the same rows
+        turn_j = jl_inv[..., None, :, :] @ so3.hat(d_pv.mT) + turn @ s_j[..., None, :, :]
+        jac_j9 = torch.cat(
+            (
+                torch.cat((-jl_rj, zero, turn_j[..., 0, :, :]), -1),
+                torch.cat((zero, -jl_rj, turn_j[..., 1, :, :]), -1),
+                torch.cat((zero, zero, s_j), -1),
+            ),
+            -2,
+        )
+        return residual, (jac_i9, jac_j9)
 
-        jac_i = torch.zeros(*lead, 15, 15, dtype=residual.dtype, device=residual.device)
-        jac_j = torch.zeros_like(jac_i)
-        jac_i[..., 0:3, :] = jl_inv @ dp_i + turn_p @ phi_i
-        jac_i[..., 3:6, :] = jl_inv @ dv_i + turn_v @ phi_i
-        jac_i[..., 6:9, :] = phi_i
-        jac_i[..., 9:15, 9:15] = -eye6
-        jac_j[..., 0:3, 0:9] = jl_inv @ dp_j + turn_p @ phi_j
-        jac_j[..., 3:6, 0:9] = jl_inv @ dv_j + turn_v @ phi_j
-        jac_j[..., 6:9, 0:9] = phi_j
-        jac_j[..., 9:15, 9:15] = eye6
-        return residual, [jac_i, jac_j]
+    def _split_whitening(self) -> torch.Tensor | None:
+        """(B|1, F, 9, 9) whitening of the increment rows when the whitening is
+        block-diagonal (9 increment rows, 6 random-walk rows with a diagonal block) and no
+        robust kernel is set, else None. The check is made once (it survives :meth:`select`,
+        which keeps the structure)."""
+        sqrt_info = self.sqrt_information
+        if not hasattr(self, "_split"):
+            walk = sqrt_info[..., 9:15, 9:15]
+            self._split = (
+                self.kernel is None
+                and bool((sqrt_info[..., 0:9, 9:15] == 0).all())
+                and bool((sqrt_info[..., 9:15, 0:9] == 0).all())
+                and bool(
+                    (walk - torch.diag_embed(torch.diagonal(walk, dim1=-2, dim2=-1)) == 0).all()
+                )
+            )
+        return sqrt_info[..., 0:9, 0:9] if self._split else None
+
+    def normal_blocks(self, values, kinds, pairs):
+        """Gauss-Newton share from the compact Jacobian rows when the whitening is
+        block-diagonal (see :meth:`Factor.normal_blocks`); else the generic form."""
+        white_nav = self._split_whitening()
+        if white_nav is None or not all(k.name == "nav_state" for k in kinds):
+            return super().normal_blocks(values, kinds, pairs)
+        residual, (jac_i9, jac_j9) = self._compact(values, True)
+        walk = torch.diagonal(self.sqrt_information[..., 9:15, 9:15], dim1=-2, dim2=-1)
+        white9 = (white_nav @ residual[..., 0:9, None]).squeeze(-1)
+        white6 = walk * residual[..., 9:15]
+        loss = 0.5 * ((white9 * white9).sum(-1) + (white6 * white6).sum(-1))
+        a = white_nav @ jac_i9  # (B, F, 9, 15)
+        c = white_nav @ jac_j9  # (B, F, 9, 9)
+        walk_grad = walk * white6
+        grad_i = (a.mT @ white9[..., None]).squeeze(-1)
+        grad_i = torch.cat((grad_i[..., 0:9], grad_i[..., 9:15] - walk_grad), -1)
+        grad_j = torch.cat(((c.mT @ white9[..., None]).squeeze(-1), walk_grad), -1)
+        walk_info = torch.diag_embed((walk * walk).expand_as(white6))
+        whole, nav, bias = slice(None), slice(0, 9), slice(9, 15)
+        products = {
+            (0, 0): (whole, whole, lambda: a.mT @ a),
+            (1, 1): (nav, nav, lambda: c.mT @ c),
+            (1, 0): (nav, whole, lambda: c.mT @ a),
+            (0, 1): (whole, nav, lambda: a.mT @ c),
+        }
+        pieces = []
+        for pair in pairs:
+            rows, cols, product = products[pair]
+            sign = walk_info if pair[0] == pair[1] else -walk_info
+            pieces.append([(rows, cols, product()), (bias, bias, sign)])
+        return loss, [grad_i, grad_j], pieces
 
 
 class WheelOdometryFactor(_Binary):
@@ -425,6 +526,8 @@ class WheelOdometryFactor(_Binary):
     Args: group, index_i, index_j (F,); increment (B|1, F, 3) m, m, rad; covariance
     (B|1, F, 3, 3); lever_arm (3,) axle centre in the body frame, m.
     """
+
+    batched = ("increment", "lever_arm")
 
     def __init__(
         self, group, index_i, index_j, increment, covariance, lever_arm=None, kernel=None

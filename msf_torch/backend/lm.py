@@ -12,7 +12,9 @@ Linear solvers:
 
 * ``dense``: batched Cholesky of the (B, n, n) system (windows, training); when the
   Hessian is block-tridiagonal (one kind of variable, factors only between neighbours:
-  keyframe chains) a block Cholesky in O(n d^2). Differentiable:
+  keyframe chains) a block Cholesky in O(n d^2), on blocks assembled straight from the
+  factor Jacobians (``chain=True``, the default: no dense (B, n, n) matrix is formed, see
+  :meth:`~msf_torch.backend.problem.Problem.linearize_chain`). Differentiable:
   gradients flow through every iteration (unrolled) to factor noise and measurements.
   With ``eliminate=GROUP`` the block-diagonal part of that group (landmarks) is removed by
   the Schur complement first and back-substituted after.
@@ -63,6 +65,8 @@ class LMConfig:
     eliminate: str | None = None
     gradient_steps: int = 0
     sparse_backend: str = "auto"  # "pardiso" (MKL, CPU), "cholespy" (CPU/CUDA) or "auto"
+    chain: bool = True  # block-tridiagonal problems: assemble blocks, never the dense matrix
+    compact_below: float = 0.75  # drop finished problems once at most this share is active
 
 
 @dataclass
@@ -122,33 +126,47 @@ def _solve_dense(
 def _solve_block_tridiagonal(
     damped: torch.Tensor, rhs: torch.Tensor, block: int
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Block Cholesky of a block-tridiagonal system (B, n, n) with blocks of ``block``:
-    ``L_i L_i^T = A_ii - C_i C_i^T``, ``C_i = A_{i,i-1} L_{i-1}^-T``, then the two
-    block substitutions. O(n block^2) instead of O(n^3)."""
-    count = damped.shape[-1] // block
+    """Block Cholesky of a dense block-tridiagonal system (B, n, n) with blocks of
+    ``block``: its blocks are taken out and passed to :func:`_solve_blocks`."""
+    batch, count = damped.shape[0], damped.shape[-1] // block
+    grid = damped.reshape(batch, count, block, count, block)
+    diagonal = torch.diagonal(grid, dim1=1, dim2=3).permute(0, 3, 1, 2)
+    lower = torch.diagonal(grid[:, 1:, :, :-1], dim1=1, dim2=3).permute(0, 3, 1, 2)
+    return _solve_blocks(diagonal, lower, rhs)
 
-    def at(i: int, j: int) -> torch.Tensor:
-        return damped[:, i * block : (i + 1) * block, j * block : (j + 1) * block]
 
-    factors, couplings = [], [None]
-    ok = torch.ones(damped.shape[0], dtype=torch.bool, device=damped.device)
-    eye = torch.eye(block, dtype=damped.dtype, device=damped.device)
+def _solve_blocks(
+    diagonal: torch.Tensor, lower: torch.Tensor, rhs: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Step (B, K d) and success flags (B,) of the block-tridiagonal system with diagonal
+    blocks (B, K, d, d) and sub-diagonal blocks ``A_{i+1,i}`` (B, K - 1, d, d): block
+    Cholesky ``L_i L_i^T = A_ii - C_i C_i^T``, ``C_i = A_{i,i-1} L_{i-1}^-T``, then the two
+    block substitutions. O(K d^3) instead of O(K^3 d^3)."""
+    batch, count, block = diagonal.shape[0], diagonal.shape[1], diagonal.shape[-1]
+    # each diagonal block carries its right-hand side as an extra column, so one triangular
+    # solve gives both C_i^T = L_{i-1}^-1 A_{i,i-1}^T and y_{i-1}, and one product updates
+    # [A_ii | b_i] by C_i [C_i^T | y_{i-1}]
+    augmented = torch.cat((diagonal, rhs.reshape(batch, count, block, 1)), -1)
+    eye = torch.eye(block, dtype=diagonal.dtype, device=diagonal.device)
+    factors, couplings, forward = [], [None], []
+    ok = torch.ones(batch, dtype=torch.bool, device=diagonal.device)
+    current = augmented[:, 0]
     for i in range(count):
-        diagonal = at(i, i)
         if i > 0:
-            coupling = torch.linalg.solve_triangular(factors[-1], at(i, i - 1).mT, upper=False).mT
+            solved = torch.linalg.solve_triangular(
+                factors[-1], torch.cat((lower[:, i - 1].mT, current[..., block:]), -1), upper=False
+            )
+            coupling = solved[..., :block].mT
             couplings.append(coupling)
-            diagonal = diagonal - coupling @ coupling.mT
-        chol, info = torch.linalg.cholesky_ex(diagonal)
-        ok = ok & (info == 0)
-        factors.append(torch.where((info == 0)[:, None, None], chol, eye))
-    pieces = rhs.reshape(rhs.shape[0], count, block, 1)
-    forward = []
-    for i in range(count):
-        b = pieces[:, i]
-        if i > 0:
-            b = b - couplings[i] @ forward[-1]
-        forward.append(torch.linalg.solve_triangular(factors[i], b, upper=False))
+            forward.append(solved[..., block:])
+            current = augmented[:, i] - coupling @ solved
+        chol, info = torch.linalg.cholesky_ex(current[..., :block])
+        failed = info != 0
+        if bool(failed.any()):
+            ok = ok & ~failed
+            chol = torch.where(failed[:, None, None], eye, chol)
+        factors.append(chol)
+    forward.append(torch.linalg.solve_triangular(factors[-1], current[..., block:], upper=False))
     backward = [None] * count
     for i in reversed(range(count)):
         y = forward[i]
@@ -157,6 +175,17 @@ def _solve_block_tridiagonal(
         backward[i] = torch.linalg.solve_triangular(factors[i].mT, y, upper=True)
     step = torch.cat(backward, 1).reshape(rhs.shape)
     return torch.where(ok[:, None], step, torch.zeros_like(step)), ok
+
+
+def _solve_chain(
+    lin: Linearization, damping: torch.Tensor, config: LMConfig
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Step (B, n) and success flags (B,) of the damped block-tridiagonal system."""
+    diag = torch.diagonal(lin.diagonal, dim1=-2, dim2=-1)  # (B, K, d)
+    damped = lin.diagonal + torch.diag_embed(
+        damping[:, None, None] * _damping_diagonal(diag, config)
+    )
+    return _solve_blocks(damped, lin.lower, -lin.gradient)
 
 
 def _solve_schur(
@@ -308,10 +337,29 @@ def solve(problem: Problem, config: LMConfig | None = None) -> LMResult:
     if solver not in ("dense", "sparse"):
         raise ValueError(f"linear_solver must be 'dense', 'sparse' or 'auto', got {solver!r}")
     sparse = solver == "sparse"
+    block = None if sparse or config.eliminate is not None else problem.block_tridiagonal_size()
+    chain = config.chain and block is not None and problem.dim // block >= 3
+    compact = not sparse and config.compact_below > 0.0 and problem.selectable
     batch = problem.batch_size
     dtype, device = problem.dtype, problem.device
+    sparse_cache: dict = {}
+
+    def linearize(current: Problem, at: dict[str, torch.Tensor]) -> Linearization:
+        if chain:
+            return current.linearize_chain(at)
+        return current.linearize(at, sparse=sparse)
+
+    def linear_step(
+        current: Problem, lin: Linearization, damping: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        if chain:
+            return _solve_chain(lin, damping, config)
+        if sparse:
+            return _solve_sparse(current, lin, damping, config, sparse_cache)
+        return _solve_dense(current, lin, damping, config)
+
     values = dict(problem.values)
-    lin = problem.linearize(values, sparse=sparse)
+    lin = linearize(problem, values)
     initial_cost = lin.cost.detach().clone()
     damping = torch.full((batch,), config.initial_damping, dtype=dtype, device=device)
     growth = torch.full((batch,), 2.0, dtype=dtype, device=device)
@@ -320,30 +368,45 @@ def solve(problem: Problem, config: LMConfig | None = None) -> LMResult:
     stalled = torch.zeros(batch, dtype=torch.bool, device=device)
     iterations = torch.zeros(batch, dtype=torch.long, device=device)
     log: list[dict[str, torch.Tensor]] = []
-    sparse_cache: dict = {}
+    # the problems still carried: all of them, or (after dropping finished ones) ``rows``
+    current, rows = problem, None
+    final_values, final_cost, final_damping = values, lin.cost, damping
+
+    def widen(part: torch.Tensor, base: torch.Tensor) -> torch.Tensor:
+        """Per-problem values of the carried problems placed into the full batch ``base``."""
+        return part if rows is None else base.index_copy(0, rows, part)
+
     for _ in range(config.max_iterations):
         if not bool(active.any()):
             break
-        if sparse:
-            step, ok = _solve_sparse(problem, lin, damping, config, sparse_cache)
-        else:
-            step, ok = _solve_dense(problem, lin, damping, config)
+        carried = active.shape[0]
+        running = int(active.sum())
+        if compact and running < carried and running <= config.compact_below * carried:
+            final_values = {k: widen(v, final_values[k]) for k, v in values.items()}
+            final_cost, final_damping = widen(lin.cost, final_cost), widen(damping, final_damping)
+            keep = torch.nonzero(active).squeeze(-1)
+            rows = keep if rows is None else rows[keep]
+            current = current.select(keep)
+            values = {k: v[keep] for k, v in values.items()}
+            lin = _select(lin, keep)
+            damping, growth, active = damping[keep], growth[keep], active[keep]
+        step, ok = linear_step(current, lin, damping)
         step = step * active[:, None].to(dtype)
-        candidate = problem.retract(values, step)
-        new_lin = problem.linearize(candidate, sparse=sparse)
-        predicted = -(lin.gradient * step).sum(-1) - 0.5 * _quadratic(problem, lin, step, sparse)
+        candidate = current.retract(values, step)
+        new_lin = linearize(current, candidate)
+        predicted = -(lin.gradient * step).sum(-1) - 0.5 * _quadratic(current, lin, step, sparse)
         actual = lin.cost - new_lin.cost
         gain = actual / predicted.clamp_min(torch.finfo(dtype).tiny)
         accept = active & ok & (actual > 0) & torch.isfinite(new_lin.cost)
         step_norm = step.detach().norm(dim=-1)
         near_gauss_newton = damping <= config.initial_damping
-        iterations = iterations + active.long()
+        iterations = iterations + widen(active.long(), torch.zeros_like(iterations))
         log.append(
             {
-                "cost": torch.where(accept, new_lin.cost, lin.cost).detach(),
-                "step_norm": step_norm,
-                "damping": damping.clone(),
-                "accepted": accept.clone(),
+                "cost": widen(torch.where(accept, new_lin.cost, lin.cost), final_cost).detach(),
+                "step_norm": widen(step_norm, torch.zeros_like(final_cost.detach())),
+                "damping": widen(damping, final_damping).detach().clone(),
+                "accepted": widen(accept, torch.zeros_like(converged)).clone(),
             }
         )
         if config.damping_update == "multiplicative":
@@ -356,9 +419,9 @@ def solve(problem: Problem, config: LMConfig | None = None) -> LMResult:
             growth = torch.where(accept, torch.full_like(growth, 2.0), growth * 2.0)
         small_change = actual.detach().abs() <= config.relative_tolerance * lin.cost.detach().abs()
         tiny_cost = new_lin.cost.detach() <= config.absolute_tolerance
-        x_norm = torch.cat([v.detach().reshape(batch, -1) for v in values.values()], -1).norm(
-            dim=-1
-        )
+        x_norm = torch.cat(
+            [v.detach().reshape(active.shape[0], -1) for v in values.values()], -1
+        ).norm(dim=-1)
         tiny_step = step_norm <= config.step_tolerance * (x_norm + config.step_tolerance)
         # the Gauss-Newton model itself promises no relative decrease worth taking
         flat_model = predicted.detach() <= config.relative_tolerance * lin.cost.detach().abs()
@@ -373,24 +436,38 @@ def solve(problem: Problem, config: LMConfig | None = None) -> LMResult:
         elif bool(accept.any()):
             values = {k: _where_batch(accept, candidate[k], v) for k, v in values.items()}
         lin = _merge(accept, new_lin, lin)
-        converged = converged | done
-        stalled = stalled | stall
+        converged = converged | widen(done, torch.zeros_like(converged))
+        stalled = stalled | widen(stall, torch.zeros_like(stalled))
         active = active & ~done & ~stall
+    if rows is not None:
+        values = {k: widen(v, final_values[k]) for k, v in values.items()}
+        cost = widen(lin.cost, final_cost)
+        damping = widen(damping, final_damping)
+        lin = linearize(problem, values) if config.gradient_steps and not sparse else None
+    else:
+        cost = lin.cost
     for _ in range(config.gradient_steps if not sparse else 0):
-        step, ok = _solve_dense(problem, lin, torch.full_like(damping, 1e-12), config)
+        step, ok = linear_step(problem, lin, torch.full_like(damping, 1e-12))
         values = problem.retract(values, step * ok[:, None].to(dtype))
-        lin = problem.linearize(values)
+        lin = linearize(problem, values)
+        cost = lin.cost
     status = [
         "converged" if c else ("stalled" if s else "max_iterations")
         for c, s in zip(converged.tolist(), stalled.tolist(), strict=True)
     ]
-    return LMResult(values, initial_cost, lin.cost, iterations, converged, status, log)
+    return LMResult(values, initial_cost, cost, iterations, converged, status, log)
 
 
 def _quadratic(
     problem: Problem, lin: Linearization, step: torch.Tensor, sparse: bool
 ) -> torch.Tensor:
     """``step^T H step`` (B,) for the undamped Gauss-Newton Hessian."""
+    if lin.diagonal is not None:
+        count, block = lin.diagonal.shape[1], lin.diagonal.shape[-1]
+        pieces = step.reshape(step.shape[0], count, block, 1)
+        on_diagonal = (pieces.mT @ lin.diagonal @ pieces).sum((1, 2, 3))
+        coupled = (pieces[:, 1:].mT @ lin.lower @ pieces[:, :-1]).sum((1, 2, 3))
+        return on_diagonal + 2.0 * coupled
     if not sparse:
         return (step[:, None, :] @ lin.hessian @ step[..., None]).reshape(-1)
     rows, cols = problem.sparse_pattern()
@@ -403,6 +480,21 @@ def _where_batch(mask: torch.Tensor, new: torch.Tensor, old: torch.Tensor) -> to
     return torch.where(mask.reshape(-1, *([1] * (new.dim() - 1))), new, old)
 
 
+def _select(lin: Linearization, index: torch.Tensor) -> Linearization:
+    """The linearisation of problems ``index`` (dense and chain layouts)."""
+
+    def pick(x: torch.Tensor | None) -> torch.Tensor | None:
+        return None if x is None else x[index]
+
+    return Linearization(
+        cost=lin.cost[index],
+        gradient=lin.gradient[index],
+        hessian=pick(lin.hessian),
+        diagonal=pick(lin.diagonal),
+        lower=pick(lin.lower),
+    )
+
+
 def _merge(accept: torch.Tensor, new: Linearization, old: Linearization) -> Linearization:
     """Per problem, the new linearisation where the step was accepted, else the old one."""
     if bool(accept.all()):
@@ -410,6 +502,8 @@ def _merge(accept: torch.Tensor, new: Linearization, old: Linearization) -> Line
     if not bool(accept.any()):
         return old
     hessian = None if new.hessian is None else _where_batch(accept, new.hessian, old.hessian)
+    diagonal = None if new.diagonal is None else _where_batch(accept, new.diagonal, old.diagonal)
+    lower = None if new.lower is None else _where_batch(accept, new.lower, old.lower)
     sparse_values = None
     if new.sparse_values is not None:
         batch = accept.shape[0]
@@ -420,4 +514,6 @@ def _merge(accept: torch.Tensor, new: Linearization, old: Linearization) -> Line
         gradient=_where_batch(accept, new.gradient, old.gradient),
         hessian=hessian,
         sparse_values=sparse_values,
+        diagonal=diagonal,
+        lower=lower,
     )

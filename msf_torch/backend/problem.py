@@ -10,15 +10,20 @@ information (whitening) matrix and an optional robust kernel. The cost of one pr
 
 Linearising gives the Gauss-Newton system ``H dx = -g`` on the stacked tangent vector of the
 free variables (variables can be held fixed). It is assembled either dense and batched
-(B, n, n) for small windows, or as one sparse COO matrix for large problems, B problems
-placed block-diagonally; the index structure is computed once per problem and reused.
+(B, n, n) for small windows, straight into its block-tridiagonal blocks for chains of
+keyframes (:meth:`Problem.linearize_chain`: no dense matrix), or as one sparse COO matrix
+for large problems, B problems placed block-diagonally; the index structure is computed
+once per problem and reused.
 """
 
 from __future__ import annotations
 
-__all__ = ["Factor", "Problem", "Linearization"]
+__all__ = ["Factor", "Problem", "Linearization", "whiten"]
 
+import copy
+import dataclasses
 from dataclasses import dataclass, field
+from typing import Any
 
 import torch
 
@@ -44,6 +49,24 @@ class Factor:
     sqrt_information: torch.Tensor
     kernel: RobustKernel | None = None
     kinds: list[VariableKind]  # set by the Problem: the kind of each slot
+    batched: tuple[str, ...] | None = None
+    """Names of the attributes besides ``sqrt_information`` whose tensors lead with the batch
+    dimension (B|1, F, ...) (tensors, dataclasses or lists of tensors); None when unknown,
+    and then the type cannot be cut down to a subset of the B problems (:meth:`select`)."""
+
+    def select(self, index: torch.Tensor, batch: int) -> Factor:
+        """A copy holding only problems ``index`` (B',) of the ``batch`` problems: every
+        batch-leading tensor of :attr:`batched` (and ``sqrt_information``) indexed along its
+        first dimension; shared ones (leading 1) are kept."""
+        if self.batched is None:
+            raise NotImplementedError(f"{type(self).__name__} does not declare its batched data")
+        out = copy.copy(self)
+        for name in self.batched:
+            setattr(out, name, _select_batch(getattr(self, name), index, batch, self.size))
+        sqrt_info = self.sqrt_information
+        if batch > 1 and sqrt_info.dim() == 4 and sqrt_info.shape[0] == batch:
+            out.sqrt_information = sqrt_info[index]
+        return out
 
     @property
     def size(self) -> int:
@@ -88,6 +111,85 @@ class Factor:
             start += kind.tangent_dim
         return residual, jacobians
 
+    def normal_blocks(
+        self, values: list[torch.Tensor], kinds: list[VariableKind], pairs: list[tuple[int, int]]
+    ) -> tuple[torch.Tensor, list[torch.Tensor], list[list[tuple[slice, slice, torch.Tensor]]]]:
+        """This type's share of the Gauss-Newton system, per factor.
+
+        Args:
+            values: one (B, F, S_slot) per slot. kinds: the slots' variable kinds.
+            pairs: slot pairs ``(a, b)`` whose blocks ``J_a^T J_b`` are wanted (whitened,
+                robust-reweighted Jacobians).
+        Returns:
+            robust loss (B, F); gradient ``J_a^T W r`` (B, F, D_a) per slot; per pair a list
+            of pieces ``(rows, cols, block (B, F, r, c))`` that add up to the (D_a, D_b) block
+            (the default gives one piece over the span of columns where the Jacobians are
+            nonzero; factors with known zero structure may override with smaller pieces).
+        """
+        residual, jacobians = self.residual_and_jacobians(values, kinds)
+        white, jacs, loss = whiten(self, residual, jacobians)
+        grads = [(jac.mT @ white[..., None]).squeeze(-1) for jac in jacs]
+        spans = [_nonzero_columns(jac) for jac in jacs]
+        pieces = [
+            [(spans[a], spans[b], jacs[a][..., spans[a]].mT @ jacs[b][..., spans[b]])]
+            for a, b in pairs
+        ]
+        return loss, grads, pieces
+
+
+def _select_batch(data: Any, index: torch.Tensor, batch: int, size: int) -> Any:
+    """``data`` (tensor (B|1, F, ...), dataclass or list of them, or None) restricted to the
+    problems ``index``; tensors that do not lead with (B, F) (shared ones with a leading 1,
+    or per-type constants such as a (3,) lever arm) are kept."""
+    if data is None:
+        return None
+    if isinstance(data, torch.Tensor):
+        if batch > 1 and data.dim() >= 2 and data.shape[0] == batch and data.shape[1] == size:
+            return data[index]
+        return data
+    if isinstance(data, list | tuple):
+        return type(data)(_select_batch(x, index, batch, size) for x in data)
+    if dataclasses.is_dataclass(data):
+        fields = {
+            f.name: _select_batch(getattr(data, f.name), index, batch, size)
+            for f in dataclasses.fields(data)
+        }
+        return dataclasses.replace(data, **fields)
+    raise TypeError(f"cannot select problems from a {type(data).__name__}")
+
+
+def _nonzero_columns(jacobian: torch.Tensor) -> slice:
+    """The span of columns (..., R, D) -> slice of D where any entry is nonzero (columns
+    outside it contribute exact zeros to ``J^T J``)."""
+    used = torch.nonzero((jacobian != 0).reshape(-1, jacobian.shape[-1]).any(0)).squeeze(-1)
+    if used.numel() == 0:
+        return slice(0, 0)
+    return slice(int(used[0]), int(used[-1]) + 1)
+
+
+def whiten(
+    factor: Factor, residual: torch.Tensor, jacobians: list[torch.Tensor] | None
+) -> tuple[torch.Tensor, list[torch.Tensor] | None, torch.Tensor]:
+    """Robust-reweighted whitened residual (B, F, R), Jacobians (B, F, R, D) (None when not
+    given) and the robust loss per factor (B, F) of ``factor``'s residual (B, F, R) and
+    Jacobians."""
+    sqrt_info = factor.sqrt_information
+    white = (sqrt_info @ residual[..., None]).squeeze(-1)
+    squared = (white * white).sum(-1)
+    if factor.kernel is None:
+        loss = 0.5 * squared
+        scale = None
+    else:
+        loss = factor.kernel.loss(squared)
+        scale = torch.sqrt(factor.kernel.weight(squared))
+        white = white * scale[..., None]
+    jacs = None
+    if jacobians is not None:
+        jacs = [sqrt_info @ j for j in jacobians]
+        if scale is not None:
+            jacs = [j * scale[..., None, None] for j in jacs]
+    return white, jacs, loss
+
 
 def _one_hot(like: torch.Tensor, dim: int) -> torch.Tensor:
     out = torch.zeros_like(like)
@@ -104,12 +206,17 @@ class Linearization:
         hessian: dense (B, n, n) or None (sparse path).
         gradient: (B, n) ``J^T W^T W r`` (robust-weighted).
         sparse_values: (nnz,) values of the sparse pattern (sparse path) or None.
+        diagonal: (B, K, d, d) diagonal blocks ``H_kk`` of a block-tridiagonal Hessian
+            (chain path) or None.
+        lower: (B, K - 1, d, d) sub-diagonal blocks ``H_{k+1,k}`` (chain path) or None.
     """
 
     cost: torch.Tensor
     gradient: torch.Tensor
     hessian: torch.Tensor | None = None
     sparse_values: torch.Tensor | None = None
+    diagonal: torch.Tensor | None = None
+    lower: torch.Tensor | None = None
 
 
 @dataclass
@@ -175,7 +282,26 @@ class Problem:
         ]
         self._dense_index: tuple[torch.Tensor, torch.Tensor] | None = None
         self._block_size: int | None = None
+        self._chain_index: list | None = None
         self._sparse_pattern: tuple[torch.Tensor, torch.Tensor, list] | None = None
+
+    @property
+    def selectable(self) -> bool:
+        """Whether every factor type declares its batched data (:meth:`select` works)."""
+        return all(f.batched is not None for f in self.factors)
+
+    def select(self, index: torch.Tensor) -> Problem:
+        """The problems ``index`` (B',) of this batch as a new Problem of batch size B' (same
+        structure; index tables are shared with this one)."""
+        out = copy.copy(self)
+        out.values = {name: value[index] for name, value in self.values.items()}
+        out.variables = {
+            name: (kind, out.values[name]) for name, (kind, _) in self.variables.items()
+        }
+        out.factors = [f.select(index, self.batch_size) for f in self.factors]
+        out.batch_size = int(index.shape[0])
+        out._sparse_pattern = None
+        return out
 
     # -- evaluation ---------------------------------------------------------------------
 
@@ -196,21 +322,7 @@ class Problem:
                 residual, jacs = factor.residual_and_jacobians(slot_values, kinds)
             else:
                 residual, jacs = factor.residual(slot_values), None
-            sqrt_info = factor.sqrt_information
-            white = (sqrt_info @ residual[..., None]).squeeze(-1)
-            squared = (white * white).sum(-1)
-            if factor.kernel is None:
-                loss = 0.5 * squared
-                scale = None
-            else:
-                loss = factor.kernel.loss(squared)
-                scale = torch.sqrt(factor.kernel.weight(squared))
-                white = white * scale[..., None]
-            if jacs is not None:
-                jacs = [sqrt_info @ j for j in jacs]
-                if scale is not None:
-                    jacs = [j * scale[..., None, None] for j in jacs]
-            out.append((white, jacs, loss))
+            out.append(whiten(factor, residual, jacs))
         return out
 
     def cost(self, values: dict[str, torch.Tensor]) -> torch.Tensor:
@@ -303,6 +415,70 @@ class Problem:
                     size = d
             self._block_size = size
         return self._block_size or None
+
+    def _chain_indices(
+        self,
+    ) -> list[tuple[list[torch.Tensor], list[tuple[int, int, torch.Tensor]]]]:
+        """Per factor type: the block (F,) each slot's gradient goes to (K = spill), and the
+        slot pairs ``(a, b)`` whose product ``J_a^T J_b`` lands in a stored block, with the
+        block (F,) of each factor: ``k`` for ``H_kk``, ``K + k`` for ``H_{k+1,k}``, ``2K - 1``
+        (spill) for fixed variables and upper blocks (the transpose of a stored one)."""
+        if self._chain_index is None:
+            d = self.block_tridiagonal_size()
+            if d is None:
+                raise ValueError("the Hessian is not block-tridiagonal")
+            count = self.dim // d
+            spill = 2 * count - 1
+            out = []
+            for layouts in self.slot_layouts:
+                blocks = [
+                    torch.where(
+                        lay.columns >= 0, lay.columns // d, torch.full_like(lay.columns, -1)
+                    )
+                    for lay in layouts
+                ]
+                grad_targets = [torch.where(k >= 0, k, torch.full_like(k, count)) for k in blocks]
+                pairs = []
+                for a, ka in enumerate(blocks):
+                    for b, kb in enumerate(blocks):
+                        free = (ka >= 0) & (kb >= 0)
+                        target = torch.full_like(ka, spill)
+                        target = torch.where(free & (ka == kb), ka, target)
+                        target = torch.where(free & (ka == kb + 1), count + kb, target)
+                        if bool((target != spill).any()):
+                            pairs.append((a, b, target))
+                out.append((grad_targets, pairs))
+            self._chain_index = out
+        return self._chain_index
+
+    def linearize_chain(self, values: dict[str, torch.Tensor]) -> Linearization:
+        """Cost, gradient and the Gauss-Newton Hessian as its block-tridiagonal blocks
+        (``diagonal`` (B, K, d, d), ``lower`` (B, K - 1, d, d)), assembled per factor from the
+        slot Jacobians without forming the dense (B, n, n) matrix. Only for problems with
+        :meth:`block_tridiagonal_size` (keyframe chains)."""
+        d = self.block_tridiagonal_size()
+        indices = self._chain_indices()
+        count = self.dim // d
+        batch = self.batch_size
+        grad = torch.zeros(batch, count + 1, d, dtype=self.dtype, device=self.device)
+        blocks = torch.zeros(batch, 2 * count, d, d, dtype=self.dtype, device=self.device)
+        cost = torch.zeros(batch, dtype=self.dtype, device=self.device)
+        for factor, (grad_targets, pairs) in zip(self.factors, indices, strict=True):
+            loss, grads, pieces = factor.normal_blocks(
+                self.gathered(factor, values), factor.kinds, [(a, b) for a, b, _ in pairs]
+            )
+            cost = cost + loss.sum(-1)
+            for part, target in zip(grads, grad_targets, strict=True):
+                grad.index_add_(1, target, part)
+            for (_, _, target), parts in zip(pairs, pieces, strict=True):
+                for rows, cols, block in parts:
+                    blocks[:, :, rows, cols].index_add_(1, target, block)
+        return Linearization(
+            cost,
+            grad[:, :count].reshape(batch, self.dim),
+            diagonal=blocks[:, :count],
+            lower=blocks[:, count : 2 * count - 1],
+        )
 
     def _stacked(self, lin: list) -> list[torch.Tensor]:
         """Per factor type, all slot Jacobians side by side: (B, F, R, sum D)."""
