@@ -133,6 +133,22 @@ class EskfConfig:
     source_fault_accel_sigma_mps2: float = 0.1
     source_fault_angular_accel_sigma_radps2: float = 0.1
     source_fault_rotation_lever_m: float = 1.0  # m per rad of a heading residual
+    # online calibration (frontend.calibration): states appended to the error state, each a
+    # random walk; all off = results unchanged. Wheels: radius ratios k_l, k_r (true / nominal
+    # radius, readings are rim speeds at the nominal radius) and the track width (starts at
+    # wheel_track_m); the wheel yaw-rate row is then fused (it observes the track width)
+    calibrate_wheels: bool = False
+    calibration_wheel_radius_ratio: list[float] = field(default_factory=lambda: [1.0, 1.0])
+    calibration_wheel_radius_sigma: float = 0.1  # prior 1-sigma of each ratio
+    calibration_wheel_track_sigma_m: float = 0.05  # prior 1-sigma of the track width
+    calibration_wheel_rw_density: float = 1e-5  # ratio random walk, 1/sqrt(s)
+    calibration_wheel_track_rw_density: float = 1e-5  # m/sqrt(s)
+    # time offsets t_d (sample stamped t_s was taken at t_s + t_d on the IMU clock) of these
+    # sensors: "gnss", "pose:<name>" (pose sources)
+    calibrate_time_offsets: list[str] = field(default_factory=list)
+    calibration_time_offset_s: dict[str, float] = field(default_factory=dict)  # initial t_d
+    calibration_time_offset_sigma_s: float = 0.05  # prior 1-sigma
+    calibration_time_offset_rw_density: float = 1e-5  # s/sqrt(s)
 
     def replace(self, **changes: Any) -> EskfConfig:
         """A copy with ``changes`` applied (names are checked)."""
@@ -187,6 +203,7 @@ class EskfConfig:
             raise ValueError("config key 'gate_probability' must lie in (0, 1]")
         self._validate_adaptive()
         self._validate_source_faults()
+        self._validate_calibration()
         for key in (
             "wheel_lever_arm_m",
             "nhc_lever_arm_m",
@@ -198,6 +215,57 @@ class EskfConfig:
             value = getattr(self, key)
             if len(value) != 3:
                 raise ValueError(f"config key '{key}' must have 3 entries, got {value!r}")
+
+    def _validate_calibration(self) -> None:
+        """Raise ``ValueError`` naming the first bad online-calibration key."""
+        for key in (
+            "calibration_wheel_radius_sigma",
+            "calibration_wheel_track_sigma_m",
+            "calibration_time_offset_sigma_s",
+        ):
+            value = getattr(self, key)
+            if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
+                raise ValueError(f"config key '{key}' must be a positive number, got {value!r}")
+        for key in (
+            "calibration_wheel_rw_density",
+            "calibration_wheel_track_rw_density",
+            "calibration_time_offset_rw_density",
+        ):
+            value = getattr(self, key)
+            if not (isinstance(value, (int, float)) and math.isfinite(value) and value >= 0):
+                raise ValueError(f"config key '{key}' must be a non-negative number, got {value!r}")
+        ratio = self.calibration_wheel_radius_ratio
+        if not (
+            isinstance(ratio, list)
+            and len(ratio) == 2
+            and all(isinstance(r, (int, float)) and math.isfinite(r) and r > 0 for r in ratio)
+        ):
+            raise ValueError(
+                f"config key 'calibration_wheel_radius_ratio' must be two positive numbers, "
+                f"got {ratio!r}"
+            )
+        names = self.calibrate_time_offsets
+        if not (
+            isinstance(names, list)
+            and all(
+                isinstance(n, str) and (n == "gnss" or (n.startswith("pose:") and len(n) > 5))
+                for n in names
+            )
+            and len(set(names)) == len(names)
+        ):
+            raise ValueError(
+                f"config key 'calibrate_time_offsets' must be a list of distinct 'gnss' or "
+                f"'pose:<name>', got {names!r}"
+            )
+        offsets = self.calibration_time_offset_s
+        if not isinstance(offsets, dict) or not all(
+            k in names and isinstance(v, (int, float)) and math.isfinite(v)
+            for k, v in offsets.items()
+        ):
+            raise ValueError(
+                f"config key 'calibration_time_offset_s' must map sensors listed in "
+                f"'calibrate_time_offsets' to finite seconds, got {offsets!r}"
+            )
 
     def _validate_source_faults(self) -> None:
         """Raise ``ValueError`` naming the first bad source-fault key."""

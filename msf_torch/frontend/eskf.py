@@ -75,6 +75,7 @@ from dataclasses import dataclass, field
 import torch
 
 from msf_torch.frontend.adaptive import BlockAdaptation
+from msf_torch.frontend.calibration import CalibrationLayout
 from msf_torch.frontend.config import EskfConfig
 from msf_torch.frontend.gating import SourceFaultParams, chi2_threshold, detect_source_faults
 from msf_torch.frontend.guard import (
@@ -89,6 +90,12 @@ from msf_torch.frontend.slip import slip_factor
 from msf_torch.geometry import so3
 from msf_torch.geometry.conventions import ERROR_STATE_DIM, gravity_world
 from msf_torch.geometry.quaternion import matrix_to_quat
+from msf_torch.sensors.calibration import (
+    calibrated_wheel_residual,
+    shifted_body_velocity_residual,
+    shifted_gnss_residual,
+    shifted_mean_rate_residual,
+)
 from msf_torch.sensors.gnss import gnss_residual
 from msf_torch.sensors.imu import ImuNoise, Preintegrated, preintegrate, propagate_nominal
 from msf_torch.sensors.pose import mean_rate_residual, pose_residual
@@ -180,6 +187,10 @@ class EskfResult:
             off).
         source_fault_z: ``"pose:<name>"`` -> (B, E + 1) the detector's deciding Z statistic
             at the source's pairs (0 elsewhere; ``frontend.gating.SourceFaultResult.z``).
+        calibration_names: names of the online-calibration states (``frontend.calibration``;
+            empty when off).
+        calibration: (B, E + 1, n) their estimates (units in the names; None when off).
+        calibration_covariance: (B, E + 1, n, n) their covariance (None when off).
     """
 
     names: list[str]
@@ -202,6 +213,9 @@ class EskfResult:
     noise_estimate: dict[str, torch.Tensor] = field(default_factory=dict)
     source_fault: dict[str, torch.Tensor] = field(default_factory=dict)
     source_fault_z: dict[str, torch.Tensor] = field(default_factory=dict)
+    calibration_names: tuple[str, ...] = ()
+    calibration: torch.Tensor | None = None
+    calibration_covariance: torch.Tensor | None = None
 
     def trajectory(self) -> Trajectory:
         """Estimated poses as a :class:`~msf_torch.types.Trajectory` (B, E + 1)."""
@@ -375,6 +389,30 @@ def _source_scale(
     )
 
 
+def _source_gyro_change(sched: Schedule, tolerance_s: float = 1e-6) -> torch.Tensor:
+    """(B, E, S, 3) rate of change of the body rate over each pose-source pair, rad/s^2.
+
+    The difference of the mean gyro rates of the pair and of the source's previous pair
+    (which must end where this one starts) over their mean interval; 0 where there is no
+    such previous pair. Means over a pair average the gyro noise, which a difference of
+    single samples would put into the time-offset Jacobian (biasing the offset towards 0).
+    """
+    batch, n_epochs, n_sources = sched.source_mask.shape
+    mask = sched.source_mask
+    index = torch.arange(n_epochs, device=mask.device)[None, :, None].expand_as(mask)
+    last = torch.where(mask, index, -1).cummax(1).values
+    previous = torch.cat((torch.full_like(last[:, :1], -1), last[:, :-1]), 1)
+    safe = previous.clamp_min(0)
+    prev_mean = sched.source_gyro_mean.gather(1, safe[..., None].expand(-1, -1, -1, 3))
+    prev_dt = sched.source_dt.gather(1, safe)
+    prev_end = sched.t_end.gather(1, safe.reshape(batch, -1)).reshape(batch, n_epochs, n_sources)
+    start = sched.t_end[:, :, None] - sched.source_dt
+    adjacent = mask & (previous >= 0) & ((prev_end - start).abs() <= tolerance_s)
+    span = (0.5 * (sched.source_dt + prev_dt)).clamp_min(1e-9)
+    change = (sched.source_gyro_mean - prev_mean) / span[..., None]
+    return torch.where(adjacent[..., None], change, 0.0)
+
+
 def _segment_matrix(dims: list[int], dtype, device) -> torch.Tensor:
     """(M, K) 0/1 matrix mapping stacked measurement rows to their block."""
     seg = torch.zeros(sum(dims), len(dims), dtype=dtype, device=device)
@@ -459,7 +497,7 @@ def run_eskf(
     sensors = SENSORS + tuple(source_col)
     active = [k for k in sensors if bool(present[k].any())]
     dims = dict(_DIMS) | dict.fromkeys(source_col, 6 if cfg.pose_source_rate_update else 3)
-    if not cfg.wheel_yaw_rate_update:
+    if not (cfg.wheel_yaw_rate_update or cfg.calibrate_wheels):
         dims["wheel"] = 3  # the yaw-rate row then only feeds the slip factor
     thresholds = {k: chi2_threshold(dims[k], cfg.gate_probability) for k in sensors}
     if not cfg.gate_pseudo_measurements:
@@ -531,6 +569,23 @@ def run_eskf(
         )
     source_lever = torch.zeros(3, dtype=dtype, device=device)
     eye15 = torch.eye(ERROR_STATE_DIM, dtype=dtype, device=device)
+    # online calibration (frontend.calibration): states appended after the 15 nav entries
+    calib = CalibrationLayout.from_config(cfg, sensors, dtype, device)
+    n_calib = 0 if calib is None else calib.size
+    calib_value = torch.zeros(batch, n_calib, dtype=dtype, device=device)
+    eye_state = eye15
+    if calib is not None:
+        calib_value = calib.initial.expand(batch, n_calib).clone()
+        cross = torch.zeros(batch, ERROR_STATE_DIM, n_calib, dtype=dtype, device=device)
+        cov = torch.cat(
+            (
+                torch.cat((cov, cross), -1),
+                torch.cat((cross.mT, calib.prior_covariance(batch)), -1),
+            ),
+            -2,
+        )
+        eye_state = torch.eye(ERROR_STATE_DIM + n_calib, dtype=dtype, device=device)
+        gyro_change = _source_gyro_change(sched)
     frame_base = eye15.expand(batch, 15, 15)
     nav_frame = torch.zeros(batch, 9, 9, dtype=dtype, device=device)
     zeros_b = torch.zeros(batch, dtype=dtype, device=device)
@@ -541,7 +596,7 @@ def run_eskf(
     streak = torch.zeros(batch, len(active), dtype=dtype, device=device)
     guard = DivergenceGuard(state, cov, cfg.divergence_inflation, cfg.divergence_nis_scale)
     divergence_out = [torch.zeros(batch, dtype=torch.long, device=device)]
-    out: dict[str, list[torch.Tensor]] = {k: [] for k in ("p", "v", "R", "bg", "ba", "P", "s")}
+    out: dict[str, list[torch.Tensor]] = {k: [] for k in ("p", "v", "R", "bg", "ba", "P", "s", "c")}
     accepted_out: list[torch.Tensor] = []
     nis_out: list[torch.Tensor] = []
 
@@ -553,6 +608,7 @@ def run_eskf(
         out["ba"].append(st.accel_bias)
         out["P"].append(p_cov)
         out["s"].append(slip_now)
+        out["c"].append(calib_value)
 
     record(state, cov, slip)
     no_blocks = torch.zeros(batch, len(active), dtype=dtype, device=device)
@@ -590,7 +646,19 @@ def run_eskf(
             noise_map[:, :, 6:9] = right
             q = q_loc[:, e].clone()
             q[:, 0:9, 0:9] = noise_map @ q_loc[:, e, 0:9, 0:9] @ noise_map.mT
-            cov = transition @ cov @ transition.mT + q
+            if calib is None:
+                cov = transition @ cov @ transition.mT + q
+            else:  # calibration states: identity transition, random walk
+                full = eye_state.repeat(batch, 1, 1)
+                full[:, :ERROR_STATE_DIM, :ERROR_STATE_DIM] = transition
+                q_full = torch.zeros_like(full)
+                q_full[:, :ERROR_STATE_DIM, :ERROR_STATE_DIM] = q
+                q_full[:, ERROR_STATE_DIM:, ERROR_STATE_DIM:] = calib.process_noise(
+                    pre.delta_t[:, e]
+                )
+                q = q_full
+                cov = full @ cov @ full.mT + q
+                accel_world = (velocity - state.velocity) / pre.delta_t[:, e, None].clamp_min(1e-9)
             to_conv = frame_base.clone()
             to_conv[:, 0:9, 6:9] = torch.cat((-arms, rotation.mT), -2)
             state = NavState(position, velocity, rotation, state.gyro_bias, state.accel_bias)
@@ -608,25 +676,52 @@ def run_eskf(
 
             # --- measurement blocks (residuals from sensors/, stacked) ---------------------
             residuals, jacobians, variances = [], [], []
+            calib_jacobians = []  # (B, d, n) per block
             full_cov = []  # (row offset, (B, d, d) covariance) of blocks with full covariances
             offset = 0
             gyro_end = sched.gyro_end[:, e]
             for name in active:
+                h_calib = None
                 if name == "wheel":
-                    r, h = wheel_residual(
-                        state.velocity,
-                        state.rotation,
-                        gyro_end,
-                        state.gyro_bias,
-                        sched.wheel_left[:, e],
-                        sched.wheel_right[:, e],
-                        cfg.wheel_track_m,
-                        wheel_lever,
-                    )
+                    if calib is not None and calib.wheels:
+                        r, h, h_wheel = calibrated_wheel_residual(
+                            state.velocity,
+                            state.rotation,
+                            gyro_end,
+                            state.gyro_bias,
+                            sched.wheel_left[:, e],
+                            sched.wheel_right[:, e],
+                            calib_value[:, 0:2],
+                            calib_value[:, 2],
+                            wheel_lever,
+                        )
+                        h_calib = torch.zeros(batch, 4, n_calib, dtype=dtype, device=device)
+                        h_calib[..., 0:3] = h_wheel
+                    else:
+                        r, h = wheel_residual(
+                            state.velocity,
+                            state.rotation,
+                            gyro_end,
+                            state.gyro_bias,
+                            sched.wheel_left[:, e],
+                            sched.wheel_right[:, e],
+                            cfg.wheel_track_m,
+                            wheel_lever,
+                        )
                     var = wheel_var
                     here = sched.wheel_mask[:, e]
                     if cfg.slip_detection:
                         h_inv = h @ to_conv
+                        if calib is not None:
+                            h_inv = torch.cat(
+                                (
+                                    h_inv,
+                                    h_calib
+                                    if h_calib is not None
+                                    else h.new_zeros(batch, h.shape[-2], n_calib),
+                                ),
+                                -1,
+                            )
                         innov = torch.diagonal(h_inv @ cov @ h_inv.mT, dim1=-2, dim2=-1) + var
                         new_slip = slip_factor(
                             r,
@@ -641,6 +736,8 @@ def run_eskf(
                     last_wheel_t = torch.where(here, sched.t_end[:, e], last_wheel_t)
                     rows_used = dims["wheel"]
                     r, h, var = r[:, :rows_used], h[:, :rows_used], var[:, :rows_used]
+                    if h_calib is not None:
+                        h_calib = h_calib[:, :rows_used]
                 elif name == "nhc":
                     r, h = nonholonomic_residual(
                         state.velocity, state.rotation, gyro_end, state.gyro_bias, nhc_lever
@@ -649,6 +746,21 @@ def run_eskf(
                 elif name == "zupt":
                     r, h = zero_velocity_residual(state.velocity)
                     var = zupt_var
+                elif name == "gnss" and calib is not None and "gnss" in calib.time_offset_index:
+                    col_td = calib.time_offset_index["gnss"]
+                    r, h, h_td = shifted_gnss_residual(
+                        state.position,
+                        state.velocity,
+                        state.rotation,
+                        gyro_end,
+                        state.gyro_bias,
+                        gnss_lever,
+                        sched.gnss_position[:, e],
+                        calib_value[:, col_td],
+                    )
+                    h_calib = torch.zeros(batch, 3, n_calib, dtype=dtype, device=device)
+                    h_calib[..., col_td : col_td + 1] = h_td
+                    var = gnss_var[:, e]
                 elif name == "gnss":
                     r, h = gnss_residual(
                         state.position, state.rotation, gnss_lever, sched.gnss_position[:, e]
@@ -663,6 +775,36 @@ def run_eskf(
                     )
                     var = zeros_b[:, None].expand(batch, 6)
                     full_cov.append((offset, sched.pose_covariance[:, e]))
+                elif calib is not None and name in calib.time_offset_index:
+                    col = source_col[name]
+                    col_td = calib.time_offset_index[name]
+                    offset_now = calib_value[:, col_td]
+                    # the pair's mean velocity is the velocity at its mid-time, dt / 2 before
+                    # its end: predicted at t + t_d - dt / 2 (d/dt_d unchanged)
+                    r, h, h_td = shifted_body_velocity_residual(
+                        state.velocity,
+                        state.rotation,
+                        gyro_end,
+                        state.gyro_bias,
+                        source_lever,
+                        accel_world,
+                        sched.source_velocity[:, e, col],
+                        offset_now - 0.5 * sched.source_dt[:, e, col],
+                    )
+                    if cfg.pose_source_rate_update:
+                        r_w, h_w, h_td_w = shifted_mean_rate_residual(
+                            sched.source_gyro_mean[:, e, col],
+                            state.gyro_bias,
+                            gyro_change[:, e, col],
+                            sched.source_rate[:, e, col],
+                            offset_now,
+                        )
+                        r, h = torch.cat((r, r_w), -1), torch.cat((h, h_w), -2)
+                        h_td = torch.cat((h_td, h_td_w), -2)
+                    h_calib = torch.zeros(batch, r.shape[-1], n_calib, dtype=dtype, device=device)
+                    h_calib[..., col_td : col_td + 1] = h_td
+                    var = zeros_b[:, None].expand(batch, r.shape[-1])
+                    full_cov.append((offset, source_cov[:, e, col]))
                 else:
                     col = source_col[name]
                     r, h = body_velocity_residual(
@@ -686,8 +828,16 @@ def run_eskf(
                 residuals.append(r)
                 jacobians.append(h)
                 variances.append(var)
+                if calib is not None:
+                    calib_jacobians.append(
+                        h_calib
+                        if h_calib is not None
+                        else torch.zeros(batch, r.shape[-1], n_calib, dtype=dtype, device=device)
+                    )
             r_all = torch.cat(residuals, -1)
             h_all = torch.cat(jacobians, -2) @ to_conv  # w.r.t. the invariant error
+            if calib is not None:
+                h_all = torch.cat((h_all, torch.cat(calib_jacobians, -2)), -1)
             r_cov = torch.diag_embed(torch.cat(variances, -1))
             if full_cov:
                 r_cov = r_cov.clone()
@@ -726,11 +876,16 @@ def run_eskf(
             failed = (info != 0) | (info_b != 0)
             gain = torch.cholesky_solve(h_m @ cov, chol).mT  # (B, 15, M)
             dx = -(gain @ (r_all * rows)[..., None]).squeeze(-1)
-            ikh = eye15 - gain @ h_m
+            ikh = eye_state - gain @ h_m
             cov = ikh @ cov @ ikh.mT + gain @ (r_cov * rows_outer) @ gain.mT
             state = _inject_invariant(state, dx)
+            calib_before = calib_value
+            if calib is not None:
+                calib_value = calib_value + dx[:, ERROR_STATE_DIM:]
             cov = 0.5 * (cov + cov.mT)
             state, cov, ok, code = guard.updated(state, cov, ok, nis, threshold, failed)
+            if calib is not None:  # a reset also takes the calibration back
+                calib_value = torch.where((code != 0)[:, None], calib_before, calib_value)
             divergence_out.append(code)
             accepted_out.append(ok)
             nis_out.append(nis)
@@ -749,7 +904,9 @@ def run_eskf(
         positions.flatten(0, 1), velocities.flatten(0, 1), rotations.flatten(0, 1)
     )
     to_conv_all = to_conv_all.unflatten(0, (batch, n_epochs + 1))
-    covariances = to_conv_all @ torch.stack(out["P"], 1) @ to_conv_all.mT
+    full_covariances = torch.stack(out["P"], 1)
+    nav = slice(0, ERROR_STATE_DIM)
+    covariances = to_conv_all @ full_covariances[..., nav, nav] @ to_conv_all.mT
     accepted_all = torch.stack(accepted_out, 1)  # (B, E + 1, K)
     nis_all = torch.stack(nis_out, 1)
     present_out = {k: torch.cat((false_b[:, None], present[k]), 1) for k in sensors}
@@ -795,6 +952,11 @@ def run_eskf(
         }
         if faults is not None
         else {},
+        calibration_names=() if calib is None else calib.names,
+        calibration=None if calib is None else torch.stack(out["c"], 1),
+        calibration_covariance=None
+        if calib is None
+        else full_covariances[..., ERROR_STATE_DIM:, ERROR_STATE_DIM:],
     )
     if interrupt.caught:
         raise EstimationInterrupted(result, done, n_epochs)

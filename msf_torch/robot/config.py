@@ -27,7 +27,11 @@ Top-level keys
     (a number or [left, right]) for JointState, ``fuse`` (subset of [speed, yaw_rate],
     default [speed]); pose ``role`` (pose_source | poses | ground_truth),
     ``source_name``, ``sigma`` (6 numbers), ``use_message_covariance``, ``fuse`` (subset
-    of [x, y, z, roll, pitch, yaw]; role poses only).
+    of [x, y, z, roll, pitch, yaw]; role poses only). Online calibration switches
+    (``frontend.calibration``, default false): wheels ``calibrate`` (radius ratios and track
+    width; the yaw-rate row is then fused), gnss ``calibrate_time_offset``, pose
+    ``calibrate_time_offset`` (role pose_source; the estimate starts at 0 on top of the
+    sensor's ``time_offset_s``).
 ``estimator``
     Front-end settings: any key of :class:`~msf_torch.frontend.config.EskfConfig`
     (noise densities, sigmas, gating, initialisation, slip detection, ...).
@@ -41,7 +45,8 @@ With ``frames``, :meth:`RobotConfig.eskf_config` sets ``gnss_lever_arm_m`` and
 ``wheel_track_m`` from the URDF (the distance, along the body y axis, between the left and
 right wheel joints' frames) unless ``estimator`` gives it. Setting a derived key in
 ``estimator`` as well is an error that names both. The wheels' ``fuse`` sets
-``wheel_yaw_rate_update``.
+``wheel_yaw_rate_update``; the calibration switches set ``calibrate_wheels`` and
+``calibrate_time_offsets``.
 """
 
 from __future__ import annotations
@@ -79,9 +84,16 @@ ROBOT_KEYS = ("robot", "frames", "time", "sensors", "estimator", "smoother")
 _COMMON = ("type", "topic", "enabled", "frame", "stamp", "time_offset_s")
 _PER_KIND = {
     "imu": (),
-    "gnss": ("origin", "use_message_covariance", "min_fix_status", "fuse"),
-    "wheels": ("left_joints", "right_joints", "wheel_radius_m", "fuse"),
-    "pose": ("role", "source_name", "sigma", "use_message_covariance", "fuse"),
+    "gnss": ("origin", "use_message_covariance", "min_fix_status", "fuse", "calibrate_time_offset"),
+    "wheels": ("left_joints", "right_joints", "wheel_radius_m", "fuse", "calibrate"),
+    "pose": (
+        "role",
+        "source_name",
+        "sigma",
+        "use_message_covariance",
+        "fuse",
+        "calibrate_time_offset",
+    ),
     "joints": (),
     "image": (),
     "laser_scan": (),
@@ -190,6 +202,8 @@ class RobotConfig:
         estimator: the ``estimator`` section (EskfConfig keys), validated.
         wheel_fuse: the wheels' ``fuse`` list, or None when not given.
         disabled: names of sensors with ``enabled: false``.
+        calibrate: sensors with an online-calibration switch on: ``"wheels"``, ``"gnss"``,
+            ``"pose:<source name>"``.
     """
 
     path: Path | None
@@ -198,6 +212,7 @@ class RobotConfig:
     estimator: dict[str, Any] = field(default_factory=dict)
     wheel_fuse: tuple[str, ...] | None = None
     disabled: tuple[str, ...] = ()
+    calibrate: tuple[str, ...] = ()
     _lines: dict[tuple, int] = field(default_factory=dict, repr=False)
 
     @property
@@ -284,6 +299,15 @@ class RobotConfig:
                     "is also set by the wheels' fuse list; set it in one place",
                 )
             derived["wheel_yaw_rate_update"] = "yaw_rate" in self.wheel_fuse
+        if self.calibrate:
+            for key in ("calibrate_wheels", "calibrate_time_offsets"):
+                if key in values:
+                    raise self._fail(
+                        ("estimator", key),
+                        "is also set by the sensors' calibrate switches; set it in one place",
+                    )
+            derived["calibrate_wheels"] = "wheels" in self.calibrate
+            derived["calibrate_time_offsets"] = [k for k in self.calibrate if k != "wheels"]
         values.update(derived)
         values.update(overrides or {})
         return _eskf_config(values, self._fail)
@@ -420,6 +444,7 @@ def load_robot_config(path: str | os.PathLike[str]) -> RobotConfig:
     disabled: list[str] = []
     gnss_origin = None
     wheel_fuse = None
+    calibrate: list[str] = []
     for sensor_name, body_value in sensors_section.items():
         keys = ("sensors", str(sensor_name))
         if not isinstance(body_value, dict):
@@ -472,6 +497,10 @@ def load_robot_config(path: str | os.PathLike[str]) -> RobotConfig:
                 fields["min_fix_status"] = status
             if "fuse" in spec:
                 fields["fuse"] = check.subset(spec["fuse"], (*keys, "fuse"), GNSS_COMPONENTS)
+            if check.boolean(
+                spec.get("calibrate_time_offset", False), (*keys, "calibrate_time_offset")
+            ):
+                calibrate.append("gnss")
         elif kind == "wheels":
             if "left_joints" in spec or "right_joints" in spec or "wheel_radius_m" in spec:
                 for side in ("left_joints", "right_joints", "wheel_radius_m"):
@@ -498,6 +527,8 @@ def load_robot_config(path: str | os.PathLike[str]) -> RobotConfig:
                 if "speed" not in fuse:
                     raise check.fail((*keys, "fuse"), "the wheels always fuse speed")
                 wheel_fuse = fuse
+            if check.boolean(spec.get("calibrate", False), (*keys, "calibrate")):
+                calibrate.append("wheels")
         elif kind == "pose":
             role = spec.get("role", "pose_source")
             if role not in POSE_ROLES:
@@ -521,6 +552,16 @@ def load_robot_config(path: str | os.PathLike[str]) -> RobotConfig:
                         "(estimator.pose_source_rate_update)",
                     )
                 fields["fuse"] = check.subset(spec["fuse"], (*keys, "fuse"), POSE_COMPONENTS)
+            if check.boolean(
+                spec.get("calibrate_time_offset", False), (*keys, "calibrate_time_offset")
+            ):
+                if role != "pose_source":
+                    raise check.fail(
+                        (*keys, "calibrate_time_offset"),
+                        "applies to role pose_source (the only pose role the filter fuses "
+                        "with a time offset)",
+                    )
+                calibrate.append("pose:" + fields.get("source_name", str(sensor_name)))
         try:
             sensors.append(SensorTopic(**fields))
         except ValueError as err:
@@ -561,6 +602,7 @@ def load_robot_config(path: str | os.PathLike[str]) -> RobotConfig:
         estimator=dict(estimator),
         wheel_fuse=wheel_fuse,
         disabled=tuple(disabled),
+        calibrate=tuple(calibrate),
         _lines=check.lines,
     )
     if tree is not None:

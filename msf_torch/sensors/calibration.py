@@ -1,0 +1,198 @@
+"""Measurement models with calibration parameters: wheel radii and track width, time offsets.
+
+Wheels. An encoder reports the rim speed computed with the nominal (believed) radius ``r_0``:
+``z = theta_dot r_0``. With true radius ``r = k r_0`` the rim speed is ``k z``, so the wheel
+calibration parameters are the radius ratios ``k_l``, ``k_r`` (dimensionless, 1 = nominal)
+and the track width ``D`` (m):
+
+    v = (k_r z_r + k_l z_l) / 2,    omega = (k_r z_r - k_l z_l) / D
+
+and the residual of :func:`msf_torch.sensors.wheel.wheel_residual` becomes
+
+    r = [R^T v + [w]x l - (v, 0, 0),  (w_m,z - b_g,z) - omega]     (4,)
+
+with ``dr/dk_l = [-z_l / 2, 0, 0, z_l / D]``, ``dr/dk_r = [-z_r / 2, 0, 0, -z_r / D]``,
+``dr/dD = [0, 0, 0, omega / D]``. The last is evaluated at the gyro's yaw rate
+``w_m,z - b_g,z`` (equal to ``omega`` where the residual vanishes): the encoder ``omega``
+carries the encoder noise, and a Jacobian correlated with the residual's noise biases the
+track width upwards by ``var(noise) / var(omega)`` (errors in variables; 7 % on the
+benchmark's runs).
+
+Time offsets. A sensor sample stamped ``t_s`` on the sensor's clock was taken at
+``t_s + t_d`` on the IMU clock (``t_d`` = time offset, s). The filter fuses it at ``t_s``
+and predicts it at ``t_s + t_d`` to first order with the current rates:
+
+* GNSS: ``h = p + R l + t_d (v + R ([w]x l))``, ``dh/dt_d`` = antenna velocity (world).
+* Pose-source body velocity: ``h = R^T v + [w]x l + t_d (R^T a - [w]x R^T v)`` with ``a`` the
+  world acceleration (an input, from the propagation), ``dh/dt_d = d(R^T v)/dt``.
+* Pose-source mean rate: the mean gyro rate over the shifted interval,
+  ``w_bar + t_d (w_k - w_k-1) / dt`` with the body rate at the pair's two ends; the ESKF
+  passes a low-noise estimate of ``(w_k - w_k-1) / dt`` (see ``frontend.eskf``).
+
+Sign convention ``r = h(x) - z``; nav Jacobians w.r.t. ``[dp, dv, dtheta, db_g, db_a]``
+(``geometry.conventions``), calibration Jacobians as separate columns.
+"""
+
+from __future__ import annotations
+
+__all__ = [
+    "calibrated_wheel_residual",
+    "shifted_gnss_residual",
+    "shifted_body_velocity_residual",
+    "shifted_mean_rate_residual",
+]
+
+import torch
+
+from msf_torch.geometry import so3
+from msf_torch.geometry.conventions import IDX_BG, IDX_P, IDX_THETA, IDX_V
+from msf_torch.sensors._jacobian import error_state_jacobian
+from msf_torch.sensors.pose import mean_rate_residual
+from msf_torch.sensors.wheel import wheel_residual
+
+
+def calibrated_wheel_residual(
+    velocity: torch.Tensor,
+    rotation: torch.Tensor,
+    gyro: torch.Tensor,
+    gyro_bias: torch.Tensor,
+    left_reading: torch.Tensor,
+    right_reading: torch.Tensor,
+    radius_ratio: torch.Tensor,
+    track_width: torch.Tensor,
+    lever_arm: torch.Tensor,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Wheel residual with calibration parameters.
+
+    Args:
+        velocity, rotation, gyro, gyro_bias, lever_arm: as
+            :func:`msf_torch.sensors.wheel.wheel_residual`.
+        left_reading, right_reading: (...,) rim speeds computed with the nominal radius, m/s.
+        radius_ratio: (..., 2) ``[k_l, k_r]`` true radius / nominal radius.
+        track_width: (...,) ``D``, m.
+    Returns:
+        residual (..., 4), nav Jacobian (..., 4, 15), calibration Jacobian (..., 4, 3) w.r.t.
+        ``[k_l, k_r, D]``.
+    """
+    left = radius_ratio[..., 0] * left_reading
+    right = radius_ratio[..., 1] * right_reading
+    residual, jac = wheel_residual(
+        velocity, rotation, gyro, gyro_bias, left, right, track_width, lever_arm
+    )
+    zero = torch.zeros_like(left)
+    # dr/dD = omega / D at the gyro's yaw rate: the encoders' omega carries their noise, and
+    # a Jacobian correlated with the residual's noise biases D (errors in variables)
+    yaw_rate = gyro[..., 2] - gyro_bias[..., 2]
+    d_left = torch.stack((-0.5 * left_reading, zero, zero, left_reading / track_width), -1)
+    d_right = torch.stack((-0.5 * right_reading, zero, zero, -right_reading / track_width), -1)
+    d_track = torch.stack((zero, zero, zero, yaw_rate / track_width), -1)
+    return residual, jac, torch.stack((d_left, d_right, d_track), -1)
+
+
+def shifted_gnss_residual(
+    position: torch.Tensor,
+    velocity: torch.Tensor,
+    rotation: torch.Tensor,
+    gyro: torch.Tensor,
+    gyro_bias: torch.Tensor,
+    lever_arm: torch.Tensor,
+    measured: torch.Tensor,
+    time_offset: torch.Tensor,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """GNSS residual with the fix taken ``time_offset`` after the filter time.
+
+    Args:
+        position, velocity: (..., 3) IMU position (m) and velocity (m/s), world.
+        rotation: (..., 3, 3) body -> world. gyro, gyro_bias: (..., 3) rad/s.
+        lever_arm: (..., 3) antenna in the body frame, m. measured: (..., 3) fix, m.
+        time_offset: (...,) ``t_d``, s.
+    Returns:
+        residual (..., 3) m, nav Jacobian (..., 3, 15), time-offset Jacobian (..., 3, 1) m/s.
+    """
+    lever = lever_arm.expand_as(position)
+    omega = gyro - gyro_bias
+    arm_world = (rotation @ lever[..., None]).squeeze(-1)
+    arm_rate_body = torch.linalg.cross(omega, lever)
+    arm_rate = (rotation @ arm_rate_body[..., None]).squeeze(-1)
+    antenna_velocity = velocity + arm_rate
+    offset = time_offset[..., None]
+    residual = position + arm_world + offset * antenna_velocity - measured
+    eye = so3.identity(position.dtype, position.device).expand(*position.shape[:-1], 3, 3)
+    scale = offset[..., None]
+    jac = error_state_jacobian(
+        3,
+        [
+            (IDX_P, eye),
+            (IDX_V, scale * eye),
+            (IDX_THETA, -rotation @ so3.hat(lever) - scale * rotation @ so3.hat(arm_rate_body)),
+            (IDX_BG, scale * rotation @ so3.hat(lever)),
+        ],
+        like=position,
+    )
+    return residual, jac, antenna_velocity[..., None]
+
+
+def shifted_body_velocity_residual(
+    velocity: torch.Tensor,
+    rotation: torch.Tensor,
+    gyro: torch.Tensor,
+    gyro_bias: torch.Tensor,
+    lever_arm: torch.Tensor,
+    acceleration: torch.Tensor,
+    measured: torch.Tensor,
+    time_offset: torch.Tensor,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Body-frame velocity of a point at ``lever_arm``, predicted ``time_offset`` later.
+
+    ``h = R^T v + [w]x l + t_d (R^T a - [w]x R^T v)``; ``a`` (the world acceleration) is an
+    input, not a state.
+
+    Args:
+        velocity: (..., 3) world, m/s. rotation: (..., 3, 3). gyro, gyro_bias: (..., 3) rad/s.
+        lever_arm: (..., 3) m. acceleration: (..., 3) world, m/s^2.
+        measured: (..., 3) body-frame velocity, m/s. time_offset: (...,) s.
+    Returns:
+        residual (..., 3) m/s, nav Jacobian (..., 3, 15), time-offset Jacobian (..., 3, 1).
+    """
+    lever = lever_arm.expand_as(velocity)
+    omega = gyro - gyro_bias
+    v_body = (rotation.mT @ velocity[..., None]).squeeze(-1)
+    a_body = (rotation.mT @ acceleration[..., None]).squeeze(-1)
+    rate = a_body - torch.linalg.cross(omega, v_body)
+    offset = time_offset[..., None]
+    residual = v_body + torch.linalg.cross(omega, lever) + offset * rate - measured
+    scale = offset[..., None]
+    hat_w, hat_vb = so3.hat(omega), so3.hat(v_body)
+    jac = error_state_jacobian(
+        3,
+        [
+            (IDX_V, rotation.mT - scale * hat_w @ rotation.mT),
+            (IDX_THETA, hat_vb + scale * (so3.hat(a_body) - hat_w @ hat_vb)),
+            (IDX_BG, so3.hat(lever) - scale * hat_vb),
+        ],
+        like=velocity,
+    )
+    return residual, jac, rate[..., None]
+
+
+def shifted_mean_rate_residual(
+    mean_gyro: torch.Tensor,
+    gyro_bias: torch.Tensor,
+    gyro_rate_change: torch.Tensor,
+    measured_rate: torch.Tensor,
+    time_offset: torch.Tensor,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Mean-rate residual over an interval shifted by ``time_offset``.
+
+    Args:
+        mean_gyro: (..., 3) mean raw gyro over the unshifted interval, rad/s.
+        gyro_bias: (..., 3) rad/s.
+        gyro_rate_change: (..., 3) ``(w_k - w_k-1) / dt``, body rate at the interval's
+            ends (or an estimate of it), rad/s^2.
+        measured_rate: (..., 3) the source's mean body rate, rad/s.
+        time_offset: (...,) s.
+    Returns:
+        residual (..., 3) rad/s, nav Jacobian (..., 3, 15), time-offset Jacobian (..., 3, 1).
+    """
+    residual, jac = mean_rate_residual(mean_gyro, gyro_bias, measured_rate)
+    return residual + time_offset[..., None] * gyro_rate_change, jac, gyro_rate_change[..., None]
