@@ -26,9 +26,8 @@ Used by ``msf run``. Outputs in ``out_dir`` (each written atomically: temp file 
 
 Ctrl-C (SIGINT) during the front end or the smoother writes ``trajectory.tum`` (the epochs
 completed), ``diagnostics.csv`` and ``summary.json`` (with an ``interrupted`` entry saying
-where it stopped) and raises :class:`RunInterrupted`. With learned noise the interrupt
-passes through unhandled (``learning.inference.run_piecewise`` does not hand on the
-chunks it finished), so no partial output is written.
+where it stopped) and raises :class:`RunInterrupted`, with learned noise too
+(``learning.inference.run_piecewise`` hands on the epochs of the chunks it finished).
 
 With ``RunOptions.learned`` set, the filter's noise comes from a trained CovNet, per chunk
 of windows (:mod:`msf_torch.learning.inference`); ``summary.json`` then has ``"noise":
@@ -182,9 +181,16 @@ def run_sequence(seq: Sequence, cfg: EskfConfig, options: RunOptions) -> dict[st
             from msf_torch.learning.inference import run_piecewise, scales_summary, window_scales
 
             scales = window_scales(seq, options.learned.model, cfg)
-            result = run_piecewise(
-                seq, cfg, scales.log_scales, scales.window_length, scales.pose_source, callback
-            )
+            try:
+                result = run_piecewise(
+                    seq, cfg, scales.log_scales, scales.window_length, scales.pose_source, callback
+                )
+            except EstimationInterrupted as stop:
+                if close is not None:
+                    close()
+                wall = time.perf_counter() - start
+                total = stop.epochs_total
+                _write_interrupted(seq, stop.result, out_dir, "frontend", total, wall, "learned")
             learned = scales_summary(scales, options.learned)
         trajectory = result.trajectory()
     frontend_wall = time.perf_counter() - start
@@ -356,9 +362,16 @@ def _fault_summary(result: EskfResult) -> dict[str, Any]:
 
 
 def _write_interrupted(
-    seq: Sequence, result: EskfResult, out_dir: Path, stage: str, epochs_total: int, wall: float
+    seq: Sequence,
+    result: EskfResult,
+    out_dir: Path,
+    stage: str,
+    epochs_total: int,
+    wall: float,
+    noise: str = "config",
 ) -> None:
-    """Write the partial outputs of an interrupted run, then raise :class:`RunInterrupted`."""
+    """Write the partial outputs of an interrupted run (``noise``: the summary's ``"config"``
+    or ``"learned"``), then raise :class:`RunInterrupted`."""
     done = int(result.mask[0].sum()) - 1
     t_stop = float(result.t[0, done])
     summary: dict[str, Any] = {
@@ -368,7 +381,7 @@ def _write_interrupted(
         "imu_samples": int(seq.imu.mask[0].sum()),
         "epochs": done + 1,
         "wall_s": round(wall, 4),
-        "noise": "config",
+        "noise": noise,
         "interrupted": {
             "stage": stage,
             "epochs_done": done,

@@ -100,8 +100,10 @@ class EskfConfig:
     # non-finite or not positive definite, or whose accepted gated block has a NIS above
     # this many times its gate, is reset to its last good state ...
     divergence_nis_scale: float = 10.0
-    # ... with the covariance multiplied by this
+    # ... with the covariance multiplied by this, once per divergence episode, no sigma
+    # raised past divergence_max_sigma_factor x its init_*_sigma (attitude: pi)
     divergence_inflation: float = 100.0
+    divergence_max_sigma_factor: float = 20.0
     # adaptive noise (frontend.adaptive); both lists empty = off, results as without
     # Sage-Husa estimate of the measurement noise R of these blocks: "gnss", "pose",
     # "pose:<name>" (not wheel/NHC/ZUPT: the slip factor and the pseudo-measurements set
@@ -171,6 +173,7 @@ class EskfConfig:
             "slip_sensitivity",
             "pose_source_max_gap_s",
             "divergence_nis_scale",
+            "divergence_max_sigma_factor",
         ]
         for key in positive:
             value = getattr(self, key)

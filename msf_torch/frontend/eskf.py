@@ -81,6 +81,7 @@ from msf_torch.frontend.gating import SourceFaultParams, chi2_threshold, detect_
 from msf_torch.frontend.guard import (
     DivergenceGuard,
     EstimationInterrupted,
+    GateMemory,
     InterruptCatcher,
     sanitize_sequence,
 )
@@ -187,6 +188,8 @@ class EskfResult:
             off).
         source_fault_z: ``"pose:<name>"`` -> (B, E + 1) the detector's deciding Z statistic
             at the source's pairs (0 elsewhere; ``frontend.gating.SourceFaultResult.z``).
+        gate_memory: the gate's rejection streaks and the divergence guard's episode after
+            the last completed epoch (``frontend.guard.GateMemory``), for a next chunk.
         calibration_names: names of the online-calibration states (``frontend.calibration``;
             empty when off).
         calibration: (B, E + 1, n) their estimates (units in the names; None when off).
@@ -213,6 +216,7 @@ class EskfResult:
     noise_estimate: dict[str, torch.Tensor] = field(default_factory=dict)
     source_fault: dict[str, torch.Tensor] = field(default_factory=dict)
     source_fault_z: dict[str, torch.Tensor] = field(default_factory=dict)
+    gate_memory: GateMemory | None = None
     calibration_names: tuple[str, ...] = ()
     calibration: torch.Tensor | None = None
     calibration_covariance: torch.Tensor | None = None
@@ -443,6 +447,7 @@ def run_eskf(
     noise: EskfNoise | None = None,
     progress: Callable[[int, int], None] | None = None,
     initial: tuple[NavState, torch.Tensor] | None = None,
+    gate_memory: GateMemory | None = None,
 ) -> EskfResult:
     """Run the ESKF over a batch of sequences.
 
@@ -454,6 +459,8 @@ def run_eskf(
         progress: optional callback ``(epochs_done, epochs_total)`` (progress bars).
         initial: optional initial state (B, ...) and covariance (B, 15, 15) at each
             sequence's first IMU sample; default: ``frontend.init.initial_state``.
+        gate_memory: the previous chunk's ``result.gate_memory`` when a run is filtered in
+            chunks (``initial`` its last state): rejection streaks carry over.
     Returns:
         :class:`EskfResult` with (B, E + 1) per-epoch fields.
         Samples with non-finite values or repeated / backwards stamps are skipped and
@@ -593,8 +600,9 @@ def run_eskf(
 
     slip = torch.ones(batch, dtype=dtype, device=device)
     last_wheel_t = sched.t_start.clone()
-    streak = torch.zeros(batch, len(active), dtype=dtype, device=device)
-    guard = DivergenceGuard(state, cov, cfg.divergence_inflation, cfg.divergence_nis_scale)
+    guard = DivergenceGuard(
+        state, cov, cfg, active, segment, reopen, _invariant_maps, gate_memory
+    )  # also counts each block's gate rejections in a row (guard.streak)
     divergence_out = [torch.zeros(batch, dtype=torch.long, device=device)]
     out: dict[str, list[torch.Tensor]] = {k: [] for k in ("p", "v", "R", "bg", "ba", "P", "s", "c")}
     accepted_out: list[torch.Tensor] = []
@@ -856,7 +864,7 @@ def run_eskf(
             white = torch.linalg.solve_triangular(chol_b, r_all[..., None], upper=False)
             nis = ((white[..., 0] ** 2) @ segment) * here
             ok = here & (nis < threshold)
-            ok = ok | (here & reopen & (streak >= cfg.gate_reopen_after))
+            ok = ok | (here & reopen & (guard.streak >= cfg.gate_reopen_after))
             if "wheel" in active and cfg.slip_detection:
                 wheel_col = active.index("wheel")
                 ok[:, wheel_col] = ok[:, wheel_col] & (slip >= cfg.slip_skip_below)
@@ -865,7 +873,6 @@ def run_eskf(
                 passed = passed * block_weight[:, e]
                 ok = ok & (block_weight[:, e] > 0.5)
                 here = here & (block_weight[:, e] > 0.5)
-            streak = torch.where(here, torch.where(ok, 0.0, streak + 1.0), streak)
 
             # --- joint update over the accepted rows (Joseph form) ------------------------
             rows = passed @ segment.mT  # (B, M)
@@ -883,7 +890,9 @@ def run_eskf(
             if calib is not None:
                 calib_value = calib_value + dx[:, ERROR_STATE_DIM:]
             cov = 0.5 * (cov + cov.mT)
-            state, cov, ok, code = guard.updated(state, cov, ok, nis, threshold, failed)
+            state, cov, ok, code = guard.updated(
+                state, cov, ok, nis, threshold, failed, here, white[..., 0]
+            )
             if calib is not None:  # a reset also takes the calibration back
                 calib_value = torch.where((code != 0)[:, None], calib_before, calib_value)
             divergence_out.append(code)
@@ -958,6 +967,7 @@ def run_eskf(
         if calib is None
         else full_covariances[..., ERROR_STATE_DIM:, ERROR_STATE_DIM:],
     )
+    result.gate_memory = guard.memory()
     if interrupt.caught:
         raise EstimationInterrupted(result, done, n_epochs)
     return result

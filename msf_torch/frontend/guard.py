@@ -21,19 +21,37 @@ every epoch, for all B sequences at once). A sequence diverges when
   not positive definite (a Cholesky factorisation fails; code
   :data:`NOT_POSITIVE_DEFINITE`), or
 * an accepted, gated block has a normalised innovation squared above
-  ``divergence_nis_scale`` times its gate (code :data:`NIS_BLOWUP`). Gating rejects such a
-  block unless it was re-opened after ``gate_reopen_after`` rejections in a row; its NIS then
-  says that the covariance claims far more certainty than the data allow. (NEES, the same
-  test on the estimation error, needs the truth, which a running filter lacks; the NIS is its
-  observable counterpart.)
+  ``divergence_nis_scale`` times its gate, and the streak it ends shares an offset (code
+  :data:`NIS_BLOWUP`). Gating rejects such a block unless it was re-opened after
+  ``gate_reopen_after`` rejections in a row. A huge NIS alone does not tell a wrong state
+  from a sensor noisier than declared (a GNSS in an urban canyon: every few fixes pass the
+  re-opened gate with NIS far above the limit while the state is fine). What does: a wrong
+  state offsets every innovation of the streak the same way, a mis-specified noise does
+  not. :func:`streak_offset` tests the streak's whitened innovations for a common offset
+  with a statistic whose law without one does not depend on the noise scale (Beta; level
+  0.001). Nor is it a blow-up when another re-openable block passed its own gate during the
+  streak: that sensor vouches for the state, the streak's sensor is the suspect (a blinded
+  camera beside a healthy LiDAR). (NEES, the same test on the estimation error, needs the
+  truth, which a running filter lacks; the NIS is its observable counterpart.)
 
 A diverged sequence is reset to its last good state, the latest one that passed the checks
-(the propagated state of the same epoch when that was healthy: the update is discarded),
-with the covariance multiplied by ``divergence_inflation``; its update counts as not
-accepted. The codes add up (bit flags) and are reported per epoch
-(``EskfResult.divergence``, the ``divergence`` column of ``diagnostics.csv``). Sequences
-that do not diverge are untouched (``torch.where`` picks their own values), so a batch never
-mixes sequences and a run without faults is bit for bit the run without the guard.
+(the propagated state of the same epoch when that was healthy: the update is discarded);
+its update counts as not accepted. The covariance is inflated once per divergence episode
+(from the reset until a re-openable block passes its gate again; a further reset in it
+returns to the last good state as it is): in conventional coordinates every sigma grows by
+``sqrt(divergence_inflation)``, but none past ``divergence_max_sigma_factor`` times its
+configured initial sigma (:func:`reset_sigma_cap`; a sigma already above stays), and
+correlations are kept. So resets cannot compound (the filter once multiplied the covariance
+by 100 at each of many resets and ran away to sigmas of 1e33 m). The codes add up (bit
+flags) and are reported per epoch (``EskfResult.divergence``, the ``divergence`` column of
+``diagnostics.csv``). Sequences that do not diverge are untouched (``torch.where`` picks
+their own values), so a batch never mixes sequences and a run without faults is bit for bit
+the run without the guard.
+
+The gate's memory (each block's rejections in a row, its streak's innovation sums, whether
+another block vouched during it, the open episode) lives in the guard and is handed from
+one ``run_eskf`` call to the next as :class:`GateMemory` (``EskfResult.gate_memory``), so a
+run filtered in chunks gates as one run.
 
 Interruption (:class:`InterruptCatcher`, :class:`EstimationInterrupted`). Ctrl-C (SIGINT)
 during the epoch loop ends the loop, not the results: ``run_eskf`` raises
@@ -52,13 +70,21 @@ __all__ = [
     "DIVERGENCE_CODES",
     "sanitize_sequence",
     "DivergenceGuard",
+    "GateMemory",
+    "reset_sigma_cap",
+    "streak_offset",
+    "OFFSET_PROBABILITY",
 ]
 
 import dataclasses
+import itertools
 import math
+from collections.abc import Callable
 
 import torch
+from scipy.special import betaincinv
 
+from msf_torch.frontend.config import EskfConfig
 from msf_torch.types import NavState, Sequence
 
 NONFINITE = 1
@@ -160,8 +186,93 @@ def _pick(bad: torch.Tensor, a: NavState, b: NavState) -> NavState:
     return NavState(*(where(getattr(a, f), getattr(b, f)) for f in _FIELDS))
 
 
+OFFSET_PROBABILITY = 0.999
+"""Default of :func:`streak_offset`: a streak of zero-mean innovations, whatever their scale,
+passes for an offset with probability 0.001."""
+
+
+@dataclasses.dataclass
+class GateMemory:
+    """What the chi-square gate and the divergence guard remember between ``run_eskf`` calls
+    (``EskfResult.gate_memory`` in, ``run_eskf(..., gate_memory=...)`` out), so that a run
+    filtered in chunks gates and resets as the same run in one piece.
+
+    Attributes:
+        streak: block key (``EskfResult.accepted``'s) -> (B,) its rejections in a row.
+        residual_sum: block key -> (B, d) sum of the whitened innovations of that streak.
+        nis_sum: block key -> (B,) sum of their NIS.
+        vouched: block key -> (B,) bool, another reopenable block passed its gate during
+            that streak (the state agrees with it: the streak is that sensor's fault).
+        episode: (B,) bool, a divergence episode is open (its one inflation is spent).
+    """
+
+    streak: dict[str, torch.Tensor]
+    residual_sum: dict[str, torch.Tensor]
+    nis_sum: dict[str, torch.Tensor]
+    vouched: dict[str, torch.Tensor]
+    episode: torch.Tensor
+
+
+def reset_sigma_cap(cfg: EskfConfig, dtype=torch.float64, device=None) -> torch.Tensor:
+    """(15,) sigma that a reset's inflation may raise each error state to:
+    ``divergence_max_sigma_factor`` times its configured initial sigma (position m, velocity
+    m/s, attitude rad (the larger of the roll/pitch and yaw sigmas, every axis, at most pi),
+    gyro bias rad/s, accel bias m/s^2)."""
+    factor = cfg.divergence_max_sigma_factor
+    attitude = min(factor * max(cfg.init_roll_pitch_sigma_rad, cfg.init_yaw_sigma_rad), math.pi)
+    sigmas = (
+        factor * cfg.init_position_sigma_m,
+        factor * cfg.init_velocity_sigma_mps,
+        attitude,
+        factor * cfg.init_gyro_bias_sigma_radps,
+        factor * cfg.init_accel_bias_sigma_mps2,
+    )
+    return torch.tensor(sigmas, dtype=dtype, device=device).repeat_interleave(3)
+
+
+def streak_offset(
+    candidate: torch.Tensor,
+    residual_sum: torch.Tensor,
+    nis_sum: torch.Tensor,
+    count: torch.Tensor,
+    segment: torch.Tensor,
+    probability: float = OFFSET_PROBABILITY,
+) -> torch.Tensor:
+    """(B,) bool: some ``candidate`` block's streak of innovations shares an offset.
+
+    A streak is the n = ``count`` latest innovations of a block (its rejections in a row and
+    the current one), whitened by their innovation covariances: ``w_1 ... w_n`` (d each).
+    Without an offset (the state consistent, the noise zero-mean of ANY scale, so a
+    mis-specified sigma passes) ``F = |sum w|^2 / (n sum |w|^2)`` is Beta(d / 2,
+    (n - 1) d / 2)-distributed; an offset common to the streak (a wrong state) drives it to
+    1. True where F exceeds that distribution's ``probability`` quantile (n >= 2; one
+    sample carries no such evidence).
+
+    Args:
+        candidate: (B, K) bool, blocks to test.
+        residual_sum: (B, M) sum of the streak's whitened innovations, rows of all blocks.
+        nis_sum: (B, K) sum of their NIS ``|w|^2``.
+        count: (B, K) n, as float.
+        segment: (M, K) 0/1 map from rows to blocks.
+        probability: the test's level is ``1 - probability``.
+    """
+    if not bool(candidate.any()):
+        return candidate.any(-1)
+    share = ((residual_sum**2) @ segment) / (count * nis_sum).clamp_min(
+        torch.finfo(nis_sum.dtype).tiny
+    )
+    dims = segment.sum(0).round().expand_as(count)
+    limit = torch.full_like(share, math.inf)
+    pairs = torch.stack((dims[candidate], count[candidate].round()), -1).long()
+    for d, n in {tuple(p) for p in pairs.tolist() if p[1] >= 2}:
+        quantile = float(betaincinv(d / 2, (n - 1) * d / 2, probability))
+        limit = torch.where((dims == d) & (count.round() == n), quantile, limit)
+    return (candidate & (share > limit)).any(-1)
+
+
 class DivergenceGuard:
-    """Per-sequence divergence detection and reset for the ESKF epoch loop (module docstring).
+    """Per-sequence divergence detection and reset for the ESKF epoch loop (module docstring),
+    and the gate's memory of rejections in a row.
 
     Per epoch: :meth:`propagated` remembers the propagated state (no computation); then
     :meth:`updated` checks the updated state, or :meth:`check` the propagated one in an
@@ -171,29 +282,85 @@ class DivergenceGuard:
 
     Args:
         state: the initial state (B, ...), the first "last good" state.
-        cov: (B, 15, 15) its covariance (any fixed coordinates: the guard only scales it).
-        inflation: covariance multiplier on a reset (>= 1).
-        nis_scale: an accepted gated block diverges above ``nis_scale`` x its gate.
+        cov: (B, D, D) its covariance in the filter's (invariant) coordinates.
+        cfg: ``divergence_inflation``, ``divergence_nis_scale`` and the initial sigmas of
+            :func:`reset_sigma_cap`.
+        blocks: the update's block keys, K.
+        segment: (M, K) 0/1 map from stacked measurement rows to blocks.
+        reopenable: (K,) bool, blocks whose gate re-opens after a streak of rejections.
+        maps: ``(position, velocity, rotation) -> (T, T^-1)`` between the filter's
+            coordinates and the conventional error state, (B, D, D) each.
+        memory: the previous chunk's :class:`GateMemory` (None: nothing rejected yet).
 
     Attributes:
         good_state, good_cov: the last good state and covariance of every sequence.
-        fresh: (B,) bool, the last good state is a reset that no healthy check has followed
-            yet; resetting again to it does not inflate its covariance again.
+        streak: (B, K) rejections in a row of each block (the gate re-opens a reopenable
+            block after ``gate_reopen_after``).
+        vouched: (B, K) bool, another reopenable block passed its gate during the block's
+            current streak (its blow-up is then no divergence).
+        episode: (B,) bool, a divergence episode is open: a reset happened and no reopenable
+            block has passed its gate since; a further reset does not inflate again.
     """
 
     def __init__(
-        self, state: NavState, cov: torch.Tensor, inflation: float, nis_scale: float
+        self,
+        state: NavState,
+        cov: torch.Tensor,
+        cfg: EskfConfig,
+        blocks: list[str],
+        segment: torch.Tensor,
+        reopenable: torch.Tensor,
+        maps: Callable[
+            [torch.Tensor, torch.Tensor, torch.Tensor], tuple[torch.Tensor, torch.Tensor]
+        ],
+        memory: GateMemory | None = None,
     ) -> None:
+        batch, dim = cov.shape[0], cov.shape[-1]
+        dtype, device = cov.dtype, cov.device
         self.good_state, self.good_cov = state, cov
         self.prior_state, self.prior_cov = state, cov
-        self.inflation = inflation
-        self.nis_scale = nis_scale
-        self.fresh = torch.zeros(cov.shape[0], dtype=torch.bool, device=cov.device)
-        self._none = self.fresh
-        self._healthy = torch.zeros(cov.shape[0], dtype=torch.long, device=cov.device)
-        self._eye = torch.eye(cov.shape[-1], dtype=cov.dtype, device=cov.device)
+        self.inflation = cfg.divergence_inflation
+        self.nis_scale = cfg.divergence_nis_scale
+        cap = reset_sigma_cap(cfg, dtype, device) ** 2
+        self._cap_var = torch.cat(
+            (cap, torch.full((dim - cap.numel(),), math.inf, dtype=dtype, device=device))
+        )
+        self.blocks, self.segment, self.reopenable, self.maps = blocks, segment, reopenable, maps
+        self._dims = segment.sum(0).to(torch.long).tolist()
+        self._offsets = [0, *itertools.accumulate(self._dims)]
+        self.streak = torch.zeros(batch, len(blocks), dtype=dtype, device=device)
+        self.residual_sum = torch.zeros(batch, segment.shape[0], dtype=dtype, device=device)
+        self.nis_sum = torch.zeros(batch, len(blocks), dtype=dtype, device=device)
+        self.vouched = torch.zeros(batch, len(blocks), dtype=torch.bool, device=device)
+        self.episode = torch.zeros(batch, dtype=torch.bool, device=device)
+        if memory is not None:
+            self._load(memory)
+        self._healthy = torch.zeros(batch, dtype=torch.long, device=device)
+        self._eye = torch.eye(dim, dtype=dtype, device=device)
         self._gate: torch.Tensor | None = None
         self._limit: torch.Tensor | None = None
+
+    def _load(self, memory: GateMemory) -> None:
+        """Take over a previous chunk's memory (blocks it did not have start afresh)."""
+        self.episode = memory.episode.to(self.episode.device)
+        for k, key in enumerate(self.blocks):
+            rows = slice(self._offsets[k], self._offsets[k + 1])
+            if key in memory.streak and memory.residual_sum[key].shape[-1] == self._dims[k]:
+                self.streak[:, k] = memory.streak[key]
+                self.vouched[:, k] = memory.vouched[key]
+                self.nis_sum[:, k] = memory.nis_sum[key]
+                self.residual_sum[:, rows] = memory.residual_sum[key]
+
+    def memory(self) -> GateMemory:
+        """The gate's and the guard's memory now, for the next chunk's ``run_eskf``."""
+        rows = [slice(a, b) for a, b in itertools.pairwise(self._offsets)]
+        return GateMemory(
+            streak={key: self.streak[:, k] for k, key in enumerate(self.blocks)},
+            residual_sum={key: self.residual_sum[:, rows[k]] for k, key in enumerate(self.blocks)},
+            nis_sum={key: self.nis_sum[:, k] for k, key in enumerate(self.blocks)},
+            vouched={key: self.vouched[:, k] for k, key in enumerate(self.blocks)},
+            episode=self.episode,
+        )
 
     def propagated(self, state: NavState, cov: torch.Tensor) -> None:
         """Remember the propagated state of this epoch (the reset target of its update)."""
@@ -209,21 +376,40 @@ class DivergenceGuard:
         loaded = torch.linalg.cholesky_ex(cov + jitter[:, None, None] * self._eye).info
         return (info != 0) & (loaded != 0)
 
+    def _inflate(self, state: NavState, cov: torch.Tensor) -> torch.Tensor:
+        """``cov`` (B, D, D) inflated for a reset to ``state``: in conventional coordinates
+        ``P' = S P S`` with ``S = diag(s)``, ``s_i^2 = min(inflation, max(1, cap_i^2 / P_ii))``:
+        every sigma grows by ``sqrt(inflation)`` but not past :func:`reset_sigma_cap` (a sigma
+        already above it stays). ``S P S`` is a congruence: positive semi-definite stays so."""
+        nav_conv, nav_inv = self.maps(state.position, state.velocity, state.rotation)
+        to_conv, to_inv = self._eye.repeat(cov.shape[0], 1, 1), self._eye.repeat(cov.shape[0], 1, 1)
+        nav = slice(0, nav_conv.shape[-1])  # states after the navigation ones map to themselves
+        to_conv[:, nav, nav], to_inv[:, nav, nav] = nav_conv, nav_inv
+        conv = to_conv @ cov @ to_conv.mT
+        var = torch.diagonal(conv, dim1=-2, dim2=-1)
+        target = torch.minimum(self.inflation * var, torch.maximum(var, self._cap_var))
+        scale = torch.where(var > 0, (target / var.where(var > 0, 1.0)).sqrt(), 1.0)
+        conv = scale[:, :, None] * conv * scale[:, None, :]
+        return to_inv @ conv @ to_inv.mT
+
     def _reset(
         self, code: torch.Tensor, state: NavState, cov: torch.Tensor
     ) -> tuple[NavState, torch.Tensor]:
         """Sequences with ``code != 0`` go back to their last good state (this epoch's
-        propagated one when that is finite) with inflated covariance; the others keep theirs.
-        Either becomes the new last good state."""
+        propagated one when that is finite), the covariance inflated once per episode; the
+        others keep theirs. Either becomes the new last good state."""
         prior_ok = _finite(self.prior_state, self.prior_cov)
         good_state = _pick(prior_ok, self.prior_state, self.good_state)
         good_cov = torch.where(prior_ok[:, None, None], self.prior_cov, self.good_cov)
-        fresh = self.fresh & ~prior_ok
         bad = code != 0
-        scale = torch.where(fresh, 1.0, self.inflation).to(cov.dtype)
+        inflate = bad & ~self.episode
+        if bool(inflate.any()):
+            good_cov = torch.where(
+                inflate[:, None, None], self._inflate(good_state, good_cov), good_cov
+            )
         state = _pick(bad, good_state, state)
-        cov = torch.where(bad[:, None, None], good_cov * scale[:, None, None], cov)
-        self.good_state, self.good_cov, self.fresh = state, cov, bad
+        cov = torch.where(bad[:, None, None], good_cov, cov)
+        self.good_state, self.good_cov = state, cov
         return state, cov
 
     def check(
@@ -237,10 +423,11 @@ class DivergenceGuard:
         """
         finite = _finite(state, cov)
         if bool(finite.all()):
-            self.good_state, self.good_cov, self.fresh = state, cov, self._none
+            self.good_state, self.good_cov = state, cov
             return state, cov, self._healthy
         code = torch.where(finite, 0, NONFINITE)
         state, cov = self._reset(code, state, cov)
+        self.episode = self.episode | ~finite
         return state, cov, code
 
     def updated(
@@ -251,16 +438,21 @@ class DivergenceGuard:
         nis: torch.Tensor,
         gate: torch.Tensor,
         factorisation_failed: torch.Tensor,
+        present: torch.Tensor,
+        white: torch.Tensor,
     ) -> tuple[NavState, torch.Tensor, torch.Tensor, torch.Tensor]:
-        """Check the updated state; reset the sequences that diverged.
+        """Check the updated state; reset the sequences that diverged; count the gate's
+        rejections in a row.
 
         Args:
             state, cov: the updated state and covariance.
-            accepted: (B, K) bool, blocks fused in the update.
+            accepted: (B, K) bool, blocks fused in the update (gate passed or re-opened).
             nis: (B, K) their normalised innovation squared.
             gate: (K,) chi-square gate of each block (huge for ungated blocks: never a
                 blow-up).
             factorisation_failed: (B,) bool, the innovation covariance's Cholesky failed.
+            present: (B, K) bool, blocks measured in this epoch (and not excluded).
+            white: (B, M) whitened innovations, ``L_k^-1 r_k`` per block (``S_k = L_k L_k^T``).
 
         Returns:
             (state, cov, accepted with the diverged sequences' blocks set False, code (B,)).
@@ -269,15 +461,34 @@ class DivergenceGuard:
         info = torch.linalg.cholesky_ex(cov).info
         if gate is not self._gate:
             self._gate, self._limit = gate, self.nis_scale * gate
-        blowup = (accepted & (nis > self._limit)).any(-1)
+        present_rows = (present.to(white.dtype) @ self.segment.mT) > 0.5
+        residual_sum = self.residual_sum + torch.where(present_rows, white, 0.0)
+        nis_sum = self.nis_sum + torch.where(present, nis, 0.0)
+        count = self.streak + present.to(self.streak.dtype)
+        calm_blocks = accepted & (nis < gate) & self.reopenable
+        calm_count = calm_blocks.sum(-1, keepdim=True)
+        vouched = self.vouched | (calm_count - calm_blocks.long() > 0)
+        candidate = accepted & (nis > self._limit) & ~vouched
+        blowup = streak_offset(candidate, residual_sum, nis_sum, count, self.segment)
+        rejected = present & ~accepted
+        rejected_rows = (rejected.to(white.dtype) @ self.segment.mT) > 0.5
+        self.streak = torch.where(present, torch.where(accepted, 0.0, count), self.streak)
+        self.vouched = vouched & (self.streak > 0)
+        self.residual_sum = torch.where(
+            rejected_rows, residual_sum, torch.where(present_rows, 0.0, self.residual_sum)
+        )
+        self.nis_sum = torch.where(rejected, nis_sum, torch.where(present, 0.0, self.nis_sum))
+        calm = calm_count[:, 0] > 0  # ends an episode
         if bool((finite & (info == 0) & ~(factorisation_failed | blowup)).all()):
-            self.good_state, self.good_cov, self.fresh = state, cov, self._none
+            self.good_state, self.good_cov = state, cov
+            self.episode = self.episode & ~calm
             return state, cov, accepted, self._healthy
         not_psd = finite & self._not_psd(torch.where(finite[:, None, None], cov, self._eye), info)
         code = torch.where(finite, 0, NONFINITE)
         code = code | torch.where(not_psd | factorisation_failed, NOT_POSITIVE_DEFINITE, 0)
         code = code | torch.where(blowup, NIS_BLOWUP, 0)
         state, cov = self._reset(code, state, cov)
+        self.episode = torch.where(code != 0, True, self.episode & ~calm)
         return state, cov, accepted & (code == 0)[:, None], code
 
 

@@ -224,6 +224,10 @@ def _source_velocities(
     """Mean body velocity (B, E, 3) and rate (B, E, 3), their declared covariances
     (B, E, 3, 3) each, and ``dt`` (B, E) of the pairs ``(start, end)`` (sample indices,
     (B, E)) where ``mask`` (B, E)."""
+    if stream.length == 0:  # no samples, so no pairs: one zero sample keeps the indexing valid
+        stream = stream.map(
+            lambda x: torch.zeros(x.shape[0], 1, *x.shape[2:], dtype=x.dtype, device=x.device)
+        )
     f64 = dict(dtype=stream.position.dtype, device=stream.position.device)
     unit = torch.tensor([1.0, 0.0, 0.0, 0.0], **f64)
     m3 = mask[..., None]
@@ -421,7 +425,7 @@ def build_schedule(seq: Sequence, cfg: EskfConfig) -> Schedule:
     gyro_end = seq.imu.gyro[rows, end_index]
 
     def take(stream, name, key, shape):
-        if stream is None:
+        if stream is None or stream.length == 0:  # no samples: as without the stream
             return zeros(batch, n_epochs, *shape)
         return getattr(stream, name)[rows, src[key]]
 
@@ -434,7 +438,7 @@ def build_schedule(seq: Sequence, cfg: EskfConfig) -> Schedule:
         torch.isfinite(gnss_sigma) & (gnss_sigma > 0), gnss_sigma, default_sigma
     )
     pose_position = take(seq.poses, "position", "pose", (3,))
-    if seq.poses is None:
+    if seq.poses is None or seq.poses.length == 0:
         pose_rotation = torch.eye(3, **f64).expand(batch, n_epochs, 3, 3).clone()
         pose_covariance = torch.eye(6, **f64).expand(batch, n_epochs, 6, 6).clone()
     else:

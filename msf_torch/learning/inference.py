@@ -39,7 +39,9 @@ import torch
 
 from msf_torch.frontend.config import EskfConfig
 from msf_torch.frontend.eskf import EskfNoise, EskfResult, run_eskf
+from msf_torch.frontend.guard import EstimationInterrupted, sanitize_sequence
 from msf_torch.frontend.init import initial_state
+from msf_torch.frontend.schedule import build_schedule
 from msf_torch.learning.covnet import (
     LOG_SCALE_SENSORS,
     CovNet,
@@ -200,37 +202,59 @@ def _last(result: EskfResult) -> tuple[NavState, torch.Tensor]:
     return state, at(result.covariance)
 
 
-def _concat(results: list[EskfResult]) -> EskfResult:
+def _per_epoch(values: list[torch.Tensor | None], results: list[EskfResult], keeps) -> torch.Tensor:
+    """One (B, E + 1, ...) tensor from the chunks' per-epoch ``values`` (a chunk's None or
+    missing entry: zeros like the others')."""
+    like = next(v for v in values if v is not None)
+    parts = []
+    for value, result, keep in zip(values, results, keeps, strict=True):
+        if value is None:
+            value = like.new_zeros(like.shape[0], result.mask.shape[1], *like.shape[2:])
+        parts.append(value[:, keep])
+    return torch.cat(parts, 1)
+
+
+def _concat(results: list[EskfResult], dropped_samples: dict[str, torch.Tensor]) -> EskfResult:
     """One result from consecutive chunks' results (B = 1): real epochs only, each later
-    chunk's start epoch (its predecessor's last) dropped."""
+    chunk's start epoch (its predecessor's last) dropped.
+
+    Every per-epoch field (a tensor (B, E + 1, ...) or a dict of them: states, covariance,
+    per-sensor flags and NIS, divergence codes, gaps, fading factors, noise estimates,
+    source-fault flags and Z, any later one) is concatenated, a dict's keys united (zeros
+    where a chunk lacks one); ``dropped_samples`` is the whole run's (``dropped_samples``);
+    other fields (names, ``gate_memory``, per-run flags) are the last chunk's.
+    """
     keeps = []
     for k, r in enumerate(results):
         keep = r.mask[0].clone()
         keep[0] = keep[0] and k == 0
         keeps.append(keep)
 
-    def cat(get: Callable[[EskfResult], torch.Tensor]) -> torch.Tensor:
-        return torch.cat([get(r)[:, keep] for r, keep in zip(results, keeps, strict=True)], 1)
+    def is_per_epoch(value: object, result: EskfResult) -> bool:
+        return (
+            isinstance(value, torch.Tensor)
+            and value.dim() >= 2
+            and value.shape[1] == result.mask.shape[1]
+        )
 
-    first = results[0]
-    per_sensor = {
-        name: {key: cat(lambda r, n=name, k=key: getattr(r, n)[k]) for key in first.present}
-        for name in ("present", "accepted", "nis")
-    }
-    return EskfResult(
-        names=first.names,
-        t=cat(lambda r: r.t),
-        mask=cat(lambda r: r.mask),
-        position=cat(lambda r: r.position),
-        velocity=cat(lambda r: r.velocity),
-        rotation=cat(lambda r: r.rotation),
-        gyro_bias=cat(lambda r: r.gyro_bias),
-        accel_bias=cat(lambda r: r.accel_bias),
-        covariance=cat(lambda r: r.covariance),
-        slip_factor=cat(lambda r: r.slip_factor),
-        gap=None if first.gap is None else cat(lambda r: r.gap),
-        **per_sensor,
-    )
+    fields: dict[str, Any] = {}
+    for name in (f.name for f in dataclasses.fields(EskfResult)):
+        values = [getattr(r, name) for r in results]
+        if name == "dropped_samples":
+            fields[name] = dropped_samples
+        elif any(is_per_epoch(v, r) for v, r in zip(values, results, strict=True)):
+            fields[name] = _per_epoch(values, results, keeps)
+        elif isinstance(values[0], dict) and any(
+            is_per_epoch(x, results[0]) for x in values[0].values()
+        ):
+            keys = list(dict.fromkeys(key for value in values for key in value))
+            fields[name] = {
+                key: _per_epoch([value.get(key) for value in values], results, keeps)
+                for key in keys
+            }
+        else:
+            fields[name] = values[-1]
+    return EskfResult(**fields)
 
 
 def run_piecewise(
@@ -247,7 +271,10 @@ def run_piecewise(
     over the chunk's IMU samples (the last chunk to the end of the IMU stream), each
     chunk with ``scaled_noise`` of its scales and ``seq.poses`` covariances times
     ``exp(log_scale)`` of ``pose_source`` (``"vo"`` when None), starting from the previous
-    chunk's last state and covariance.
+    chunk's last state and covariance and carrying the gate's rejection streaks and the
+    divergence guard's episode (``EskfResult.gate_memory``), so the chunks gate as one run.
+    The input rule of ``frontend.guard`` is applied to the whole run once (skipped samples
+    counted in ``dropped_samples`` as by ``run_eskf``).
 
     Args:
         seq: one run (B = 1).
@@ -258,9 +285,16 @@ def run_piecewise(
         progress: optional callback ``(epochs_done, epochs_total)`` over all chunks.
 
     Returns:
-        :class:`EskfResult` over the whole run (B = 1), real epochs only.
+        :class:`EskfResult` over the whole run (B = 1), real epochs only, with every
+        diagnostic of ``run_eskf`` (divergence codes, dropped samples, source faults, ...).
+
+    Raises:
+        EstimationInterrupted: Ctrl-C in a chunk; it carries the epochs completed over all
+            chunks (the result as above, up to the last completed epoch) and the epochs of
+            the whole run.
     """
-    imu = seq.imu.compact()
+    seq, dropped_samples = sanitize_sequence(dataclasses.replace(seq, imu=seq.imu.compact()))
+    imu = seq.imu  # skipped samples stay in place (masked): the windows keep their samples
     base = EskfNoise.from_config(cfg, imu.t.dtype, imu.t.device)
     windows = log_scales.shape[0]
     change = [0] + [
@@ -270,33 +304,52 @@ def run_piecewise(
     results: list[EskfResult] = []
     done = 0
     initial = initial_state(seq, cfg)  # from the whole run, as run_eskf(seq) starts
+    memory = None  # the gate's rejection streaks and the guard's episode, chunk to chunk
     pose_column = LOG_SCALE_SENSORS.index(pose_source or "vo")
-    for w0, w1 in bounds:
-        scales = log_scales[w0].to(imu.t)
+
+    def chunk_of(w0: int, w1: int | None) -> Sequence:
+        """The run over windows [w0, w1) with those windows' pose covariances."""
         end = None if w1 is None else w1 * window_length + 1
         chunk = dataclasses.replace(
             seq, imu=imu.map(lambda x, a=w0 * window_length, b=end: x[:, a:b])
         )
         if seq.poses is not None:
             covariance = scaled_pose_covariance(
-                seq.poses.covariance, scales[None], LOG_SCALE_SENSORS[pose_column]
+                seq.poses.covariance,
+                log_scales[w0].to(imu.t)[None],
+                LOG_SCALE_SENSORS[pose_column],
             )
             chunk = dataclasses.replace(
                 chunk, poses=dataclasses.replace(seq.poses, covariance=covariance)
             )
+        return chunk
+
+    for index, (w0, w1) in enumerate(bounds):
         callback = None
         if progress is not None:
 
             def callback(d: int, t: int, offset: int = done) -> None:
                 progress(offset + d, offset + t)
 
-        result = run_eskf(
-            chunk, cfg, scaled_noise(base, scales), progress=callback, initial=initial
-        )
-        done += int(result.mask[0].sum())
-        initial = _last(result)
+        noise = scaled_noise(base, log_scales[w0].to(imu.t))
+        try:
+            result = run_eskf(
+                chunk_of(w0, w1), cfg, noise, callback, initial=initial, gate_memory=memory
+            )
+        except EstimationInterrupted as stop:
+            results.append(stop.result)
+            later = sum(
+                build_schedule(chunk_of(a, b), cfg).num_epochs for a, b in bounds[index + 1 :]
+            )
+            raise EstimationInterrupted(
+                _concat(results, dropped_samples),
+                done + stop.epochs_done,
+                done + stop.epochs_total + later,
+            ) from None
+        done += int(result.mask[0].sum()) - 1
+        initial, memory = _last(result), result.gate_memory
         results.append(result)
-    return _concat(results)
+    return _concat(results, dropped_samples)
 
 
 def scales_summary(scales: WindowScales, learned: LearnedModel) -> dict[str, Any]:
