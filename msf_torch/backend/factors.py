@@ -426,39 +426,42 @@ class GtsamImuFactor(_Evaluated, _Binary):
         s_j = -jr_inv @ d_rot.mT
         # d(Jl(phi)^-1 x)/dphi = -Jl^-1 d(Jl(phi) y)/dphi at y = Jl^-1 x, for x = dp, dv
         coef = so3.coefficients(phi, "123", derivatives=True)
-        turn = -jl_inv[..., None, :, :] @ torch.stack(
+        turn = -jl_inv @ torch.cat(
             (
                 so3.gamma_vector_jacobians(phi, rho_p, coef)[0],
                 so3.gamma_vector_jacobians(phi, rho_v, coef)[0],
             ),
-            -3,
-        )  # (..., 2, 3, 3): p and v rows
-        # state i: rows [rho_p; rho_v] = Jl^-1 [d dp; d dv] + turn [P, Q] on [dtheta, db]
-        jl_rel = jl_inv @ rel
-        own = torch.stack(
-            (
-                torch.cat((-so3.hat(z_p), bias_jac[..., 0:3, :]), -1),
-                torch.cat((-so3.hat(z_v), bias_jac[..., 3:6, :]), -1),
-            ),
-            -3,
-        )  # (..., 2, 3, 9)
-        rot_cols = jl_rel[..., None, :, :] @ own + turn @ pq[..., None, :, :]
+            -1,
+        )
+        turn = torch.cat((turn[..., 0:3], turn[..., 3:6]), -2)  # (..., 6, 3): p rows, v rows
         jl_rj = jl_inv @ r_j_t
         zero = torch.zeros_like(jl_rj)
+        # state i: rows [rho_p; rho_v] = Jl^-1 [d dp; d dv] + turn [P, Q] on [dtheta, db]
+        own = torch.cat(
+            (-so3.hat(z_p), bias_jac[..., 0:3, :], -so3.hat(z_v), bias_jac[..., 3:6, :]), -1
+        )
+        moved = (jl_inv @ rel) @ own  # (..., 3, 18): p columns, v columns
+        rot_cols = torch.cat((moved[..., 0:9], moved[..., 9:18]), -2) + turn @ pq
+        translation = torch.cat(
+            (torch.cat((jl_rj, jl_rj * d_t[..., None]), -1), torch.cat((zero, jl_rj), -1)), -2
+        )
         jac_i9 = torch.cat(
             (
-                torch.cat((jl_rj, jl_rj * d_t[..., None], rot_cols[..., 0, :, :]), -1),
-                torch.cat((zero, jl_rj, rot_cols[..., 1, :, :]), -1),
+                torch.cat((translation, rot_cols), -1),
                 torch.cat((zero, zero, pq), -1),
             ),
             -2,
         )
         # state j: [dp, dv, dtheta] columns of the same rows
-        turn_j = jl_inv[..., None, :, :] @ so3.hat(d_pv.mT) + turn @ s_j[..., None, :, :]
+        hats = so3.hat(d_pv.mT)  # (..., 2, 3, 3): [d_p]x, [d_v]x
+        turned = jl_inv @ torch.cat((hats[..., 0, :, :], hats[..., 1, :, :]), -1)
+        turn_j = torch.cat((turned[..., 0:3], turned[..., 3:6]), -2) + turn @ s_j
+        translation_j = torch.cat(
+            (torch.cat((-jl_rj, zero), -1), torch.cat((zero, -jl_rj), -1)), -2
+        )
         jac_j9 = torch.cat(
             (
-                torch.cat((-jl_rj, zero, turn_j[..., 0, :, :]), -1),
-                torch.cat((zero, -jl_rj, turn_j[..., 1, :, :]), -1),
+                torch.cat((translation_j, turn_j), -1),
                 torch.cat((zero, zero, s_j), -1),
             ),
             -2,
@@ -500,7 +503,7 @@ class GtsamImuFactor(_Evaluated, _Binary):
         grad_i = (a.mT @ white9[..., None]).squeeze(-1)
         grad_i = torch.cat((grad_i[..., 0:9], grad_i[..., 9:15] - walk_grad), -1)
         grad_j = torch.cat(((c.mT @ white9[..., None]).squeeze(-1), walk_grad), -1)
-        walk_info = torch.diag_embed((walk * walk).expand_as(white6))
+        walk_info = walk * walk  # (B|1, F, 6) diagonal of the random-walk information
         whole, nav, bias = slice(None), slice(0, 9), slice(9, 15)
         products = {
             (0, 0): (whole, whole, lambda: a.mT @ a),

@@ -6,7 +6,10 @@ clamped below, Marquardt's scaling, or the identity). A step is accepted per pro
 the gain ratio ``rho = (cost - cost_new) / predicted_decrease`` is positive; the damping is
 then updated by Nielsen's rule (``lambda *= max(1/3, 1 - (2 rho - 1)^3)``) and otherwise
 multiplied by a growing factor. Damping, acceptance and convergence are kept per problem,
-so a batch is B independent solves.
+so a batch is B independent solves. Problems that have finished are dropped from the batch
+once at most ``compact_below`` of it is still running (dense and chain paths, when every
+factor type declares its batched data), so a few slow problems do not carry the whole
+batch through their last iterations; the results are unchanged.
 
 Linear solvers:
 
@@ -136,17 +139,23 @@ def _solve_block_tridiagonal(
 
 
 def _solve_blocks(
-    diagonal: torch.Tensor, lower: torch.Tensor, rhs: torch.Tensor
+    diagonal: torch.Tensor,
+    lower: torch.Tensor,
+    rhs: torch.Tensor,
+    added_diagonal: torch.Tensor | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Step (B, K d) and success flags (B,) of the block-tridiagonal system with diagonal
-    blocks (B, K, d, d) and sub-diagonal blocks ``A_{i+1,i}`` (B, K - 1, d, d): block
-    Cholesky ``L_i L_i^T = A_ii - C_i C_i^T``, ``C_i = A_{i,i-1} L_{i-1}^-T``, then the two
-    block substitutions. O(K d^3) instead of O(K^3 d^3)."""
+    blocks (B, K, d, d) (plus ``added_diagonal`` (B, K, d) on their diagonals, the damping)
+    and sub-diagonal blocks ``A_{i+1,i}`` (B, K - 1, d, d): block Cholesky
+    ``L_i L_i^T = A_ii - C_i C_i^T``, ``C_i = A_{i,i-1} L_{i-1}^-T``, then the two block
+    substitutions. O(K d^3) instead of O(K^3 d^3)."""
     batch, count, block = diagonal.shape[0], diagonal.shape[1], diagonal.shape[-1]
     # each diagonal block carries its right-hand side as an extra column, so one triangular
     # solve gives both C_i^T = L_{i-1}^-1 A_{i,i-1}^T and y_{i-1}, and one product updates
     # [A_ii | b_i] by C_i [C_i^T | y_{i-1}]
     augmented = torch.cat((diagonal, rhs.reshape(batch, count, block, 1)), -1)
+    if added_diagonal is not None:
+        augmented[..., :block].diagonal(dim1=-2, dim2=-1).add_(added_diagonal)
     eye = torch.eye(block, dtype=diagonal.dtype, device=diagonal.device)
     factors, couplings, forward = [], [None], []
     ok = torch.ones(batch, dtype=torch.bool, device=diagonal.device)
@@ -182,10 +191,8 @@ def _solve_chain(
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Step (B, n) and success flags (B,) of the damped block-tridiagonal system."""
     diag = torch.diagonal(lin.diagonal, dim1=-2, dim2=-1)  # (B, K, d)
-    damped = lin.diagonal + torch.diag_embed(
-        damping[:, None, None] * _damping_diagonal(diag, config)
-    )
-    return _solve_blocks(damped, lin.lower, -lin.gradient)
+    added = damping[:, None, None] * _damping_diagonal(diag, config)
+    return _solve_blocks(lin.diagonal, lin.lower, -lin.gradient, added)
 
 
 def _solve_schur(

@@ -122,9 +122,10 @@ class Factor:
                 robust-reweighted Jacobians).
         Returns:
             robust loss (B, F); gradient ``J_a^T W r`` (B, F, D_a) per slot; per pair a list
-            of pieces ``(rows, cols, block (B, F, r, c))`` that add up to the (D_a, D_b) block
-            (the default gives one piece over the span of columns where the Jacobians are
-            nonzero; factors with known zero structure may override with smaller pieces).
+            of pieces ``(rows, cols, block (B, F, r, c))`` that add up to the (D_a, D_b) block,
+            or ``(rows, rows, diagonal (B, F, r))`` for a diagonal piece (the default gives
+            one piece over the span of columns where the Jacobians are nonzero; factors with
+            known zero structure may override with smaller pieces).
         """
         residual, jacobians = self.residual_and_jacobians(values, kinds)
         white, jacs, loss = whiten(self, residual, jacobians)
@@ -472,7 +473,11 @@ class Problem:
                 grad.index_add_(1, target, part)
             for (_, _, target), parts in zip(pairs, pieces, strict=True):
                 for rows, cols, block in parts:
-                    blocks[:, :, rows, cols].index_add_(1, target, block)
+                    into = blocks[:, :, rows, cols]
+                    if block.dim() == 3:
+                        into = into.diagonal(dim1=-2, dim2=-1)
+                        block = block.expand(batch, *block.shape[1:])
+                    into.index_add_(1, target, block)
         return Linearization(
             cost,
             grad[:, :count].reshape(batch, self.dim),

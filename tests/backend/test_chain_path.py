@@ -128,7 +128,7 @@ def test_imu_normal_blocks_equal_the_generic_products():
     def whole(parts: list) -> torch.Tensor:
         out = torch.zeros(*loss.shape, 15, 15, dtype=DTYPE)
         for rows, cols, block in parts:
-            out[..., rows, cols] += block
+            out[..., rows, cols] += torch.diag_embed(block) if block.dim() == 3 else block
         return out
 
     for got, ref in zip(pieces, ref_pieces, strict=True):
