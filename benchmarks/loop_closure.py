@@ -50,13 +50,13 @@ What it measures
     before, on every run.
 
 How to run
-    .venv/bin/python benchmarks/loop_closure.py            # 3 runs x 130 s (~40 min, 2 cores)
+    .venv/bin/python benchmarks/loop_closure.py            # 5 runs x 130 s (~7 min per run)
     .venv/bin/python benchmarks/loop_closure.py --quick    # 1 run x 130 s, b in {20, 40}
 
     Per-run lines go to stderr; the last line on stdout is one JSON object.
 
 Options
-    --runs N              runs (seeds FIRST, FIRST + 1, ...; default 3)
+    --runs N              runs (seeds FIRST, FIRST + 1, ...; default 5)
     --first-seed FIRST    first run seed (default 42)
     --duration S          run length, s (default 130)
     --quick               one run, b in {20, 40}
@@ -524,7 +524,7 @@ def one_run(seed: int, duration: float, vocabulary: Vocabulary, args) -> dict[st
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--runs", type=int, default=3)
+    parser.add_argument("--runs", type=int, default=5)
     parser.add_argument("--first-seed", type=int, default=TEST_SEED0)
     parser.add_argument("--duration", type=float, default=130.0)
     parser.add_argument("--quick", action="store_true")
