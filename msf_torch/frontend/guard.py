@@ -294,8 +294,8 @@ class DivergenceGuard:
 
     Attributes:
         good_state, good_cov: the last good state and covariance of every sequence.
-        streak: (B, K) rejections in a row of each block (the gate re-opens a reopenable
-            block after ``gate_reopen_after``).
+        streak: (B, K) rejections in a row of each reopenable block (the gate re-opens it
+            after ``gate_reopen_after``; 0 for the others).
         vouched: (B, K) bool, another reopenable block passed its gate during the block's
             current streak (its blow-up is then no divergence).
         episode: (B,) bool, a divergence episode is open: a reset happened and no reopenable
@@ -335,7 +335,9 @@ class DivergenceGuard:
         self.episode = torch.zeros(batch, dtype=torch.bool, device=device)
         if memory is not None:
             self._load(memory)
+        self._open = bool((self.streak > 0).any())  # some streak runs (else sums are 0)
         self._healthy = torch.zeros(batch, dtype=torch.long, device=device)
+        self._none = torch.zeros(batch, dtype=torch.bool, device=device)
         self._eye = torch.eye(dim, dtype=dtype, device=device)
         self._gate: torch.Tensor | None = None
         self._limit: torch.Tensor | None = None
@@ -430,6 +432,41 @@ class DivergenceGuard:
         self.episode = self.episode | ~finite
         return state, cov, code
 
+    def _streaks(
+        self,
+        accepted: torch.Tensor,
+        nis: torch.Tensor,
+        gate: torch.Tensor,
+        present: torch.Tensor,
+        white: torch.Tensor,
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Update the re-openable blocks' streaks (count, sums, vouching) with this epoch
+        (arguments as :meth:`updated`'s). Returns (B,) NIS blow-up (a re-opened block whose
+        streak shares an offset and that nothing vouched for) and (B,) calm (a re-openable
+        block passed its gate: the end of a divergence episode)."""
+        present = present & self.reopenable  # other blocks never re-open: no streak kept
+        calm_blocks = present & accepted & (nis < gate)
+        if not self._open and torch.equal(calm_blocks, present):
+            return self._none, calm_blocks.any(-1)  # no streak open, none starts
+        present_rows = (present.to(white.dtype) @ self.segment.mT) > 0.5
+        residual_sum = self.residual_sum + torch.where(present_rows, white, 0.0)
+        nis_sum = self.nis_sum + torch.where(present, nis, 0.0)
+        count = self.streak + present.to(self.streak.dtype)
+        calm_count = calm_blocks.sum(-1, keepdim=True)
+        vouched = self.vouched | (calm_count - calm_blocks.long() > 0)
+        candidate = present & accepted & (nis > self._limit) & ~vouched
+        blowup = streak_offset(candidate, residual_sum, nis_sum, count, self.segment)
+        rejected = present & ~accepted
+        rejected_rows = (rejected.to(white.dtype) @ self.segment.mT) > 0.5
+        self.streak = torch.where(present, torch.where(accepted, 0.0, count), self.streak)
+        self.vouched = vouched & (self.streak > 0)
+        self.residual_sum = torch.where(
+            rejected_rows, residual_sum, torch.where(present_rows, 0.0, self.residual_sum)
+        )
+        self.nis_sum = torch.where(rejected, nis_sum, torch.where(present, 0.0, self.nis_sum))
+        self._open = bool((self.streak > 0).any())
+        return blowup, calm_count[:, 0] > 0
+
     def updated(
         self,
         state: NavState,
@@ -461,24 +498,7 @@ class DivergenceGuard:
         info = torch.linalg.cholesky_ex(cov).info
         if gate is not self._gate:
             self._gate, self._limit = gate, self.nis_scale * gate
-        present_rows = (present.to(white.dtype) @ self.segment.mT) > 0.5
-        residual_sum = self.residual_sum + torch.where(present_rows, white, 0.0)
-        nis_sum = self.nis_sum + torch.where(present, nis, 0.0)
-        count = self.streak + present.to(self.streak.dtype)
-        calm_blocks = accepted & (nis < gate) & self.reopenable
-        calm_count = calm_blocks.sum(-1, keepdim=True)
-        vouched = self.vouched | (calm_count - calm_blocks.long() > 0)
-        candidate = accepted & (nis > self._limit) & ~vouched
-        blowup = streak_offset(candidate, residual_sum, nis_sum, count, self.segment)
-        rejected = present & ~accepted
-        rejected_rows = (rejected.to(white.dtype) @ self.segment.mT) > 0.5
-        self.streak = torch.where(present, torch.where(accepted, 0.0, count), self.streak)
-        self.vouched = vouched & (self.streak > 0)
-        self.residual_sum = torch.where(
-            rejected_rows, residual_sum, torch.where(present_rows, 0.0, self.residual_sum)
-        )
-        self.nis_sum = torch.where(rejected, nis_sum, torch.where(present, 0.0, self.nis_sum))
-        calm = calm_count[:, 0] > 0  # ends an episode
+        blowup, calm = self._streaks(accepted, nis, gate, present, white)
         if bool((finite & (info == 0) & ~(factorisation_failed | blowup)).all()):
             self.good_state, self.good_cov = state, cov
             self.episode = self.episode & ~calm
