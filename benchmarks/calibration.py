@@ -25,8 +25,21 @@ reported sigma (z), the fraction of runs with |z| <= 3 and the reported sigma ag
 sigma in every run, and the median over runs of the ATE reduction ``1 - ATE_on / ATE_off``
 at least 40 %.
 
+Extrinsics (extra JSON fields ``extrinsics``; the targets above are unchanged): the same
+seeds again with, in addition, the GNSS lever arm off by 0.2 m, the camera's lever arm by
+0.15 m and its mounting rotation by 0.03 rad, and the IMU rotated against the vehicle by
+0.03 rad, per axis (random signs; ``sim.calibration``), and a VO that chains its relative
+poses, each step followed by its drift increment (the first part's body-side rotation
+drift turns the VO velocities by the accumulated drift, about 0.03 rad after 180 s, which
+the camera's mounting rotation cannot tell apart). Filters ``off``, ``on`` (every
+state: wheels, time offsets, GNSS lever arm, camera extrinsic, IMU-to-vehicle rotation) and
+``no_extrinsics`` (the states above only). Per state: z, the fraction of runs within 3
+sigma, the fraction flagged observable (``EskfResult.calibration_observable``) and the
+fraction of flagged runs within 3 sigma; the ATE of each filter.
+
 How to run
-    .venv/bin/python benchmarks/calibration.py            # 10 runs (~2 min, 1 thread)
+    .venv/bin/python benchmarks/calibration.py            # 10 runs (~7 min, 1 thread)
+    .venv/bin/python benchmarks/calibration.py --no-extrinsics   # the first part only
     .venv/bin/python benchmarks/calibration.py --runs 3   # quicker
 
     Per-run lines go to stderr; the last line on stdout is one JSON object.
@@ -67,6 +80,112 @@ def position_rmse(result: EskfResult, runs: list[CalibrationRun]) -> list[float]
     return out
 
 
+EXTRINSIC_ERRORS = {
+    "gnss_lever_arm_error_m": 0.2,
+    "camera_lever_arm_error_m": 0.15,
+    "camera_rotation_error_rad": 0.03,
+    "imu_body_rotation_error_rad": 0.03,
+    "camera_drift_side": "chained",
+}
+
+
+def state_figures(result: EskfResult, runs: list[CalibrationRun]) -> dict[str, dict]:
+    """Per calibration state of ``result``: truth, estimates, sigmas, z, observability."""
+    names = result.calibration_names
+    estimate = result.calibration[:, -1].numpy()
+    sigma = np.sqrt(np.diagonal(result.calibration_covariance[:, -1].numpy(), 0, -2, -1))
+    truth = np.stack([r.truth.vector(names) for r in runs])
+    initial = result.calibration[:, 0].numpy()
+    z = (estimate - truth) / sigma
+    for b, run in enumerate(runs):
+        log(
+            f"seed {run.run.seed}: estimate {np.round(estimate[b], 4).tolist()} "
+            f"truth {np.round(truth[b], 4).tolist()} z {np.round(z[b], 2).tolist()}"
+        )
+    per_state = {}
+    for k, name in enumerate(names):
+        observable = result.calibration_observable[name].numpy()
+        within = np.abs(z[:, k]) <= 3.0
+        per_state[name] = {
+            "truth": truth[:, k].tolist(),
+            "initial": initial[:, k].tolist(),
+            "estimate": estimate[:, k].tolist(),
+            "sigma": sigma[:, k].tolist(),
+            "initial_error_over_final_sigma_median": statistics.median(
+                np.abs(initial[:, k] - truth[:, k]) / sigma[:, k]
+            ),
+            "z": z[:, k].tolist(),
+            "abs_z_max": float(np.abs(z[:, k]).max()),
+            "within_3_sigma": float(np.mean(within)),
+            "median_abs_error": statistics.median(np.abs(estimate[:, k] - truth[:, k])),
+            "median_sigma": statistics.median(sigma[:, k]),
+            "variance_ratio_median": statistics.median(
+                result.calibration_variance_ratio[:, -1, k].tolist()
+            ),
+            "observable_fraction": float(np.mean(observable)),
+            "within_3_sigma_when_observable": float(np.mean(within[observable]))
+            if observable.any()
+            else None,
+        }
+    return per_state
+
+
+def extrinsic_part(seeds: list[int], duration: float) -> dict:
+    """The extrinsic-calibration runs: filters off / on / no_extrinsics, per-state figures."""
+    start = time.perf_counter()
+    runs = [
+        simulate_calibration_run(s, calibration_sim_config(duration), **EXTRINSIC_ERRORS)
+        for s in seeds
+    ]
+    seq = batch_sequences([r.sequence for r in runs])
+    base = config_for_sequence(EskfConfig(), runs[0].sequence.meta, set())
+    log(f"extrinsics: simulated {len(runs)} runs in {time.perf_counter() - start:.1f} s")
+    offsets = ["gnss", "pose:vo"]
+    no_extrinsics = base.replace(calibrate_wheels=True, calibrate_time_offsets=offsets)
+    filters = {
+        "off": base,
+        "on": no_extrinsics.replace(
+            calibrate_gnss_lever_arm=True,
+            calibrate_pose_extrinsics=["pose:vo"],
+            calibrate_imu_body_rotation=True,
+        ),
+        "no_extrinsics": no_extrinsics,
+    }
+    ate: dict[str, list[float]] = {}
+    wall: dict[str, float] = {}
+    results: dict[str, EskfResult] = {}
+    for name, cfg in filters.items():
+        start = time.perf_counter()
+        results[name] = run_eskf(seq, cfg)
+        wall[name] = time.perf_counter() - start
+        ate[name] = position_rmse(results[name], runs)
+        log(f"extrinsics {name}: {wall[name]:.1f} s, ATE per run {np.round(ate[name], 3).tolist()}")
+    per_state = state_figures(results["on"], runs)
+    reduction = [1.0 - on / off for on, off in zip(ate["on"], ate["off"], strict=True)]
+    observable_ok = all(
+        v["within_3_sigma_when_observable"] in (None, 1.0) for v in per_state.values()
+    )
+    return {
+        "errors": EXTRINSIC_ERRORS,
+        "states": list(results["on"].calibration_names),
+        "calibration": per_state,
+        "ate_m": ate,
+        "ate_median_m": {k: statistics.median(v) for k, v in ate.items()},
+        "ate_reduction_per_run": reduction,
+        "ate_reduction_median": statistics.median(reduction),
+        "wall_s": wall,
+        "checks": {
+            "every_state_within_3_sigma_every_run": all(
+                v["within_3_sigma"] == 1.0 for v in per_state.values()
+            ),
+            "observable_states_within_3_sigma": observable_ok,
+            "ate_on_below_off_every_run": all(
+                on < off for on, off in zip(ate["on"], ate["off"], strict=True)
+            ),
+        },
+    }
+
+
 def main() -> None:
     """Run the benchmark; print per-run lines to stderr and one JSON line to stdout."""
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
@@ -74,6 +193,7 @@ def main() -> None:
     parser.add_argument("--first-seed", type=int, default=6000)
     parser.add_argument("--duration", type=float, default=180.0)
     parser.add_argument("--threads", type=int, default=1)
+    parser.add_argument("--no-extrinsics", action="store_true", help="skip the extrinsic runs")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     seeds = list(range(args.first_seed, args.first_seed + args.runs))
@@ -101,34 +221,8 @@ def main() -> None:
         ate[name] = position_rmse(results[name], runs)
         log(f"{name}: {wall[name]:.1f} s, ATE per run {np.round(ate[name], 3).tolist()}")
 
-    result = results["on"]
-    names = result.calibration_names
-    estimate = result.calibration[:, -1].numpy()
-    sigma = np.sqrt(np.diagonal(result.calibration_covariance[:, -1].numpy(), 0, -2, -1))
-    truth = np.stack([r.truth.vector(names) for r in runs])
-    initial = np.stack([result.calibration[b, 0].numpy() for b in range(len(runs))])
-    z = (estimate - truth) / sigma
-    for b, run in enumerate(runs):
-        log(
-            f"seed {run.run.seed}: estimate {np.round(estimate[b], 4).tolist()} "
-            f"truth {np.round(truth[b], 4).tolist()} z {np.round(z[b], 2).tolist()}"
-        )
-    per_state = {}
-    for k, name in enumerate(names):
-        per_state[name] = {
-            "truth": truth[:, k].tolist(),
-            "initial": initial[:, k].tolist(),
-            "estimate": estimate[:, k].tolist(),
-            "sigma": sigma[:, k].tolist(),
-            "initial_error_over_final_sigma_median": statistics.median(
-                np.abs(initial[:, k] - truth[:, k]) / sigma[:, k]
-            ),
-            "z": z[:, k].tolist(),
-            "abs_z_max": float(np.abs(z[:, k]).max()),
-            "within_3_sigma": float(np.mean(np.abs(z[:, k]) <= 3.0)),
-            "median_abs_error": statistics.median(np.abs(estimate[:, k] - truth[:, k])),
-            "median_sigma": statistics.median(sigma[:, k]),
-        }
+    names = results["on"].calibration_names
+    per_state = state_figures(results["on"], runs)
     reduction = [1.0 - on / off for on, off in zip(ate["on"], ate["off"], strict=True)]
     median_reduction = statistics.median(reduction)
     all_within = all(per_state[n]["within_3_sigma"] == 1.0 for n in names)
@@ -163,6 +257,7 @@ def main() -> None:
                 "ate_reduction_at_least_40_percent": median_reduction >= 0.4,
                 "met": all_within and median_reduction >= 0.4,
             },
+            "extrinsics": None if args.no_extrinsics else extrinsic_part(seeds, args.duration),
             "machine": machine_info(),
         }
     )

@@ -12,10 +12,15 @@ Used by ``msf run``. Outputs in ``out_dir`` (each written atomically: temp file 
   4 NIS blow-up, added), and per sensor whether a measurement was present, whether it was
   accepted, and its NIS; with ``source_fault_detection``, per pose source
   ``pose:<name>_fault`` (1 = excluded as faulty, ``frontend.gating``) and
-  ``pose:<name>_fault_z`` (the detector's deciding Z at the source's pairs).
+  ``pose:<name>_fault_z`` (the detector's deciding Z at the source's pairs); with online
+  calibration (``frontend.calibration``), per state its estimate ``<state>`` and 1-sigma
+  ``<state>_sigma``.
 - ``summary.json``: the run summary (also printed as the last line by the CLI). With
   ``smooth`` set, ``ate_*`` and ``outage_*`` score the smoothed trajectory, the front end's
   own figures keep a ``frontend_`` prefix, and ``smoother`` holds the smoother's figures.
+  With online calibration: ``calibration`` / ``calibration_sigma`` (final estimates and
+  1-sigma per state), ``calibration_variance_ratio`` and ``calibration_observable``
+  (``frontend.calibration.observability``).
 - ``overview.png``: trajectory against the reference, position error, slip factor.
 - with ``exports`` (``msf run --export kitti,rosbag2``): ``trajectory.kitti`` and
   ``trajectory_times.txt`` (KITTI pose format, :mod:`msf_torch.io.kitti_poses`) and
@@ -137,6 +142,11 @@ def write_diagnostics(result: EskfResult, path: Path, index: int = 0) -> None:
         cols.append(flags[index, keep].numpy()[:, None].astype(float))
         cols.append(result.source_fault_z[name][index, keep].numpy()[:, None])
         header += [f"{name}_fault", f"{name}_fault_z"]
+    if result.calibration is not None:  # frontend.calibration: estimate and sigma per state
+        sigma = torch.diagonal(result.calibration_covariance[index, keep], dim1=-2, dim2=-1)
+        cols += [result.calibration[index, keep].numpy(), sigma.sqrt().numpy()]
+        header += list(result.calibration_names)
+        header += [f"{name}_sigma" for name in result.calibration_names]
     table = np.hstack(cols)
     with atomic_write(path) as handle:
         handle.write(",".join(header) + "\n")
@@ -239,6 +249,7 @@ def run_sequence(seq: Sequence, cfg: EskfConfig, options: RunOptions) -> dict[st
         summary["dropped_nonfinite"] = dropped
     summary["imu_gaps"] = int((result.gap[0] & result.mask[0]).sum())
     summary.update(_fault_summary(result))
+    summary.update(_calibration_summary(result))
     scored = [("", estimate)] + ([] if smoothed is None else [("frontend_", _single(trajectory))])
     if seq.ground_truth is not None and bool(seq.ground_truth.mask.any()):
         for prefix, traj in scored:
@@ -338,6 +349,23 @@ def _divergence(result: EskfResult) -> torch.Tensor:
     if result.divergence is None:
         return torch.zeros(result.mask.shape, dtype=torch.long)
     return result.divergence
+
+
+def _calibration_summary(result: EskfResult) -> dict[str, Any]:
+    """Summary entries of online calibration (sequence 0): final estimate, 1-sigma, variance
+    ratio and observability flag per state; empty when off."""
+    if result.calibration is None:
+        return {}
+    last = int(torch.nonzero(result.mask[0])[-1])
+    names = result.calibration_names
+    sigma = torch.diagonal(result.calibration_covariance[0, last]).sqrt()
+    ratio = result.calibration_variance_ratio[0, last]
+    return {
+        "calibration": {n: float(result.calibration[0, last, k]) for k, n in enumerate(names)},
+        "calibration_sigma": {n: float(sigma[k]) for k, n in enumerate(names)},
+        "calibration_variance_ratio": {n: round(float(ratio[k]), 6) for k, n in enumerate(names)},
+        "calibration_observable": {n: bool(result.calibration_observable[n][0]) for n in names},
+    }
 
 
 def _fault_summary(result: EskfResult) -> dict[str, Any]:

@@ -8,27 +8,45 @@ from 15 to ``15 + n`` entries, in this order:
   ``calibration_wheel_radius_ratio``;
 * ``wheel_track_m``: track width, starts at ``wheel_track_m``;
 * ``time_offset_s:<sensor>``: one per entry of ``calibrate_time_offsets`` (``"gnss"``,
-  ``"pose:<name>"``), starts at ``calibration_time_offset_s`` (default 0).
+  ``"pose:<name>"``), starts at ``calibration_time_offset_s`` (default 0);
+* ``lever_arm_m:gnss:{x,y,z}`` (``calibrate_gnss_lever_arm``): the GNSS antenna lever arm in
+  the body frame, starts at ``gnss_lever_arm_m``;
+* per entry ``"pose:<name>"`` of ``calibrate_pose_extrinsics``: ``lever_arm_m:pose:<name>:
+  {x,y,z}`` (the source's origin in the body frame) and ``rotation_rad:pose:<name>:{x,y,z}``
+  (its mounting rotation sensor -> body as a rotation vector), start at
+  ``calibration_pose_lever_arm_m`` / ``calibration_pose_rotation_rad`` (default 0);
+* ``rotation_rad:imu_body:{x,y,z}`` (``calibrate_imu_body_rotation``): the rotation vehicle
+  -> body (IMU) of the wheel and non-holonomic models, starts at
+  ``calibration_imu_body_rotation_rad``.
 
 Each is a random walk (``calibration_*_rw_density``) with a Gaussian prior
-(``calibration_*_sigma``), additive error (``k = k_hat + dk``), and enters only the
+(``calibration_*_sigma``), additive error (``k = k_hat + dk``; the rotations: right error
+``M = M_hat Exp(dphi)``, their estimates reported as rotation vectors), and enters only the
 measurement models of ``sensors.calibration``; the propagation leaves it unchanged. The
 calibration block needs no invariant-coordinate change, so the ESKF appends it to its
 right-invariant covariance as is.
+
+Observability. A state is flagged observable on a run (:func:`observability`) when its
+variance has fallen below ``calibration_observable_ratio`` (0.25: its sigma halved) of the
+variance it would have without measurements, ``sigma_0^2 + q^2 (t - t_0)``. Directions the
+run does not excite (a pose source's vertical lever arm without roll or pitch rates, the
+roll of the IMU-to-vehicle rotation on level ground) keep their prior and are flagged.
 """
 
 from __future__ import annotations
 
-__all__ = ["CalibrationLayout", "WHEEL_STATES"]
+__all__ = ["CalibrationLayout", "WHEEL_STATES", "observability"]
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import torch
 
 from msf_torch.frontend.config import EskfConfig
+from msf_torch.geometry import so3
 
 WHEEL_STATES = ("wheel_radius_ratio_left", "wheel_radius_ratio_right", "wheel_track_m")
 _TIME_PREFIX = "time_offset_s:"
+_AXES = ("x", "y", "z")
 
 
 @dataclass
@@ -42,6 +60,12 @@ class CalibrationLayout:
         rw_density: (n,) random-walk density, unit per sqrt(s).
         wheels: the three wheel states are present (columns 0-2).
         time_offset_index: sensor key (``"gnss"``, ``"pose:<name>"``) -> column.
+        gnss_lever_index: first of the three GNSS lever-arm columns, or None.
+        pose_extrinsic_index: ``"pose:<name>"`` -> first column of its lever arm (3), then
+            its mounting rotation (3).
+        imu_body_index: first of the three IMU-to-vehicle rotation columns, or None.
+        rotation_index: first columns of every rotation triplet (right error, composed on
+            injection).
     """
 
     names: tuple[str, ...]
@@ -50,6 +74,10 @@ class CalibrationLayout:
     rw_density: torch.Tensor
     wheels: bool
     time_offset_index: dict[str, int]
+    gnss_lever_index: int | None = None
+    pose_extrinsic_index: dict[str, int] = field(default_factory=dict)
+    imu_body_index: int | None = None
+    rotation_index: tuple[int, ...] = ()
 
     @classmethod
     def from_config(
@@ -82,13 +110,61 @@ class CalibrationLayout:
             initial.append(float(cfg.calibration_time_offset_s.get(sensor, 0.0)))
             sigma.append(cfg.calibration_time_offset_sigma_s)
             walk.append(cfg.calibration_time_offset_rw_density)
+        rotations: list[int] = []
+
+        def add(prefix: str, start: list[float], rotation: bool) -> int:
+            column = len(names)
+            names.extend(f"{prefix}:{axis}" for axis in _AXES)
+            initial.extend(float(x) for x in start)
+            if rotation:
+                rotations.append(column)
+                sigma.extend([cfg.calibration_rotation_sigma_rad] * 3)
+                walk.extend([cfg.calibration_rotation_rw_density] * 3)
+            else:
+                sigma.extend([cfg.calibration_lever_arm_sigma_m] * 3)
+                walk.extend([cfg.calibration_lever_arm_rw_density] * 3)
+            return column
+
+        gnss_lever = None
+        if cfg.calibrate_gnss_lever_arm and "gnss" in sensors:
+            gnss_lever = add("lever_arm_m:gnss", list(cfg.gnss_lever_arm_m), False)
+        extrinsic = {}
+        for sensor in cfg.calibrate_pose_extrinsics:
+            if sensor not in sensors:
+                continue
+            extrinsic[sensor] = add(
+                "lever_arm_m:" + sensor,
+                cfg.calibration_pose_lever_arm_m.get(sensor, [0.0] * 3),
+                False,
+            )
+            add(
+                "rotation_rad:" + sensor,
+                cfg.calibration_pose_rotation_rad.get(sensor, [0.0] * 3),
+                True,
+            )
+        imu_body = None
+        if cfg.calibrate_imu_body_rotation:
+            imu_body = add(
+                "rotation_rad:imu_body", list(cfg.calibration_imu_body_rotation_rad), True
+            )
         if not names:
             return None
 
         def t(values: list[float]) -> torch.Tensor:
             return torch.tensor(values, dtype=dtype, device=device)
 
-        return cls(tuple(names), t(initial), t(sigma), t(walk), cfg.calibrate_wheels, index)
+        return cls(
+            tuple(names),
+            t(initial),
+            t(sigma),
+            t(walk),
+            cfg.calibrate_wheels,
+            index,
+            gnss_lever,
+            extrinsic,
+            imu_body,
+            tuple(rotations),
+        )
 
     @property
     def size(self) -> int:
@@ -102,3 +178,43 @@ class CalibrationLayout:
     def process_noise(self, delta_t: torch.Tensor) -> torch.Tensor:
         """(B, n, n) random-walk covariance over epochs of length ``delta_t`` (B,) s."""
         return torch.diag_embed(self.rw_density**2 * delta_t[:, None])
+
+    def rotation_matrix(self, values: torch.Tensor, column: int) -> torch.Tensor:
+        """(B, 3, 3) rotation of the triplet starting at ``column`` of ``values`` (B, n)."""
+        return so3.exp(values[:, column : column + 3])
+
+    def inject(self, values: torch.Tensor, correction: torch.Tensor) -> torch.Tensor:
+        """Estimates (B, n) after a correction ``correction`` (B, n): added, except the
+        rotation triplets, ``Log(Exp(phi) Exp(dphi))``."""
+        updated = values + correction
+        if not self.rotation_index:
+            return updated
+        parts = list(updated.unbind(-1))
+        for column in self.rotation_index:
+            block = slice(column, column + 3)
+            composed = so3.log(so3.exp(values[:, block]) @ so3.exp(correction[:, block]))
+            parts[column : column + 3] = composed.unbind(-1)
+        return torch.stack(parts, -1)
+
+
+def observability(
+    layout: CalibrationLayout,
+    variance: torch.Tensor,
+    elapsed_s: torch.Tensor,
+    threshold: float,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Information gained on each calibration state, and whether that makes it observable.
+
+    Args:
+        layout: the run's calibration states.
+        variance: (B, ..., n) their posterior variances.
+        elapsed_s: (B, ...) time since the start, s.
+        threshold: ``calibration_observable_ratio``.
+    Returns:
+        ratio (B, ..., n): posterior variance over ``sigma_0^2 + q^2 elapsed`` (the variance
+        without measurements; 1 = nothing learned), and observable (B, ..., n) bool:
+        ``ratio < threshold``.
+    """
+    unobserved = layout.prior_sigma**2 + layout.rw_density**2 * elapsed_s[..., None]
+    ratio = variance / unobserved
+    return ratio, ratio < threshold

@@ -151,6 +151,24 @@ class EskfConfig:
     calibration_time_offset_s: dict[str, float] = field(default_factory=dict)  # initial t_d
     calibration_time_offset_sigma_s: float = 0.05  # prior 1-sigma
     calibration_time_offset_rw_density: float = 1e-5  # s/sqrt(s)
+    # extrinsics (lever arms in the body = IMU frame, rotations as rotation vectors, rad):
+    # GNSS antenna lever arm (starts at gnss_lever_arm_m); per pose source "pose:<name>" its
+    # lever arm and mounting rotation (sensor -> body; start at the values below, default 0:
+    # the source measures the body); IMU-to-vehicle rotation (vehicle -> body) of the wheel
+    # and non-holonomic models
+    calibrate_gnss_lever_arm: bool = False
+    calibrate_pose_extrinsics: list[str] = field(default_factory=list)
+    calibration_pose_lever_arm_m: dict[str, list[float]] = field(default_factory=dict)
+    calibration_pose_rotation_rad: dict[str, list[float]] = field(default_factory=dict)
+    calibrate_imu_body_rotation: bool = False
+    calibration_imu_body_rotation_rad: list[float] = field(default_factory=lambda: [0.0] * 3)
+    calibration_lever_arm_sigma_m: float = 0.3  # prior 1-sigma per axis
+    calibration_rotation_sigma_rad: float = 0.05  # prior 1-sigma per axis
+    calibration_lever_arm_rw_density: float = 1e-5  # m/sqrt(s)
+    calibration_rotation_rw_density: float = 1e-6  # rad/sqrt(s)
+    # a calibration state counts as observable on a run when its variance has fallen below
+    # this fraction of the variance it would have without measurements (prior + random walk)
+    calibration_observable_ratio: float = 0.25
 
     def replace(self, **changes: Any) -> EskfConfig:
         """A copy with ``changes`` applied (names are checked)."""
@@ -260,6 +278,7 @@ class EskfConfig:
                 f"config key 'calibrate_time_offsets' must be a list of distinct 'gnss' or "
                 f"'pose:<name>', got {names!r}"
             )
+        self._validate_extrinsic_calibration()
         offsets = self.calibration_time_offset_s
         if not isinstance(offsets, dict) or not all(
             k in names and isinstance(v, (int, float)) and math.isfinite(v)
@@ -268,6 +287,54 @@ class EskfConfig:
             raise ValueError(
                 f"config key 'calibration_time_offset_s' must map sensors listed in "
                 f"'calibrate_time_offsets' to finite seconds, got {offsets!r}"
+            )
+
+    def _validate_extrinsic_calibration(self) -> None:
+        """Raise ``ValueError`` naming the first bad lever-arm / rotation calibration key."""
+        for key in ("calibration_lever_arm_sigma_m", "calibration_rotation_sigma_rad"):
+            value = getattr(self, key)
+            if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
+                raise ValueError(f"config key '{key}' must be a positive number, got {value!r}")
+        for key in ("calibration_lever_arm_rw_density", "calibration_rotation_rw_density"):
+            value = getattr(self, key)
+            if not (isinstance(value, (int, float)) and math.isfinite(value) and value >= 0):
+                raise ValueError(f"config key '{key}' must be a non-negative number, got {value!r}")
+        ratio = self.calibration_observable_ratio
+        if not (isinstance(ratio, (int, float)) and 0 < ratio < 1):
+            raise ValueError(
+                f"config key 'calibration_observable_ratio' must lie in (0, 1), got {ratio!r}"
+            )
+        names = self.calibrate_pose_extrinsics
+        if not (
+            isinstance(names, list)
+            and all(isinstance(n, str) and n.startswith("pose:") and len(n) > 5 for n in names)
+            and len(set(names)) == len(names)
+        ):
+            raise ValueError(
+                f"config key 'calibrate_pose_extrinsics' must be a list of distinct "
+                f"'pose:<name>', got {names!r}"
+            )
+
+        def vector(value: Any) -> bool:
+            return (
+                isinstance(value, list)
+                and len(value) == 3
+                and all(isinstance(x, (int, float)) and math.isfinite(x) for x in value)
+            )
+
+        for key in ("calibration_pose_lever_arm_m", "calibration_pose_rotation_rad"):
+            value = getattr(self, key)
+            if not isinstance(value, dict) or not all(
+                k in names and vector(v) for k, v in value.items()
+            ):
+                raise ValueError(
+                    f"config key '{key}' must map sources listed in 'calibrate_pose_extrinsics' "
+                    f"to 3 finite numbers, got {value!r}"
+                )
+        if not vector(self.calibration_imu_body_rotation_rad):
+            raise ValueError(
+                f"config key 'calibration_imu_body_rotation_rad' must have 3 finite numbers, "
+                f"got {self.calibration_imu_body_rotation_rad!r}"
             )
 
     def _validate_source_faults(self) -> None:

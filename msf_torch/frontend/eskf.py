@@ -75,7 +75,7 @@ from dataclasses import dataclass, field
 import torch
 
 from msf_torch.frontend.adaptive import BlockAdaptation
-from msf_torch.frontend.calibration import CalibrationLayout
+from msf_torch.frontend.calibration import CalibrationLayout, observability
 from msf_torch.frontend.config import EskfConfig
 from msf_torch.frontend.gating import SourceFaultParams, chi2_threshold, detect_source_faults
 from msf_torch.frontend.guard import (
@@ -93,9 +93,14 @@ from msf_torch.geometry.conventions import ERROR_STATE_DIM, gravity_world
 from msf_torch.geometry.quaternion import matrix_to_quat
 from msf_torch.sensors.calibration import (
     calibrated_wheel_residual,
+    gnss_lever_arm_jacobian,
+    mounted_rate_residual,
+    mounted_velocity_residual,
     shifted_body_velocity_residual,
     shifted_gnss_residual,
     shifted_mean_rate_residual,
+    vehicle_frame_nonholonomic_residual,
+    vehicle_frame_wheel_residual,
 )
 from msf_torch.sensors.gnss import gnss_residual
 from msf_torch.sensors.imu import ImuNoise, Preintegrated, preintegrate, propagate_nominal
@@ -194,6 +199,10 @@ class EskfResult:
             empty when off).
         calibration: (B, E + 1, n) their estimates (units in the names; None when off).
         calibration_covariance: (B, E + 1, n, n) their covariance (None when off).
+        calibration_variance_ratio: (B, E + 1, n) each state's variance over the variance
+            it would have without measurements (``frontend.calibration.observability``).
+        calibration_observable: state name -> (B,) bool, its ratio at the sequence's last
+            epoch below ``calibration_observable_ratio``.
     """
 
     names: list[str]
@@ -220,6 +229,8 @@ class EskfResult:
     calibration_names: tuple[str, ...] = ()
     calibration: torch.Tensor | None = None
     calibration_covariance: torch.Tensor | None = None
+    calibration_variance_ratio: torch.Tensor | None = None
+    calibration_observable: dict[str, torch.Tensor] = field(default_factory=dict)
 
     def trajectory(self) -> Trajectory:
         """Estimated poses as a :class:`~msf_torch.types.Trajectory` (B, E + 1)."""
@@ -691,7 +702,26 @@ def run_eskf(
             for name in active:
                 h_calib = None
                 if name == "wheel":
-                    if calib is not None and calib.wheels:
+                    if calib is not None and calib.imu_body_index is not None:
+                        col_v = calib.imu_body_index
+                        ones = torch.ones(batch, 2, dtype=dtype, device=device)
+                        r, h, h_wheel, h_rot = vehicle_frame_wheel_residual(
+                            state.velocity,
+                            state.rotation,
+                            gyro_end,
+                            state.gyro_bias,
+                            sched.wheel_left[:, e],
+                            sched.wheel_right[:, e],
+                            calib_value[:, 0:2] if calib.wheels else ones,
+                            calib_value[:, 2] if calib.wheels else cfg.wheel_track_m + zeros_b,
+                            wheel_lever,
+                            calib.rotation_matrix(calib_value, col_v),
+                        )
+                        h_calib = torch.zeros(batch, 4, n_calib, dtype=dtype, device=device)
+                        if calib.wheels:
+                            h_calib[..., 0:3] = h_wheel
+                        h_calib[..., col_v : col_v + 3] = h_rot
+                    elif calib is not None and calib.wheels:
                         r, h, h_wheel = calibrated_wheel_residual(
                             state.velocity,
                             state.rotation,
@@ -746,6 +776,19 @@ def run_eskf(
                     r, h, var = r[:, :rows_used], h[:, :rows_used], var[:, :rows_used]
                     if h_calib is not None:
                         h_calib = h_calib[:, :rows_used]
+                elif name == "nhc" and calib is not None and calib.imu_body_index is not None:
+                    col_v = calib.imu_body_index
+                    r, h, h_rot = vehicle_frame_nonholonomic_residual(
+                        state.velocity,
+                        state.rotation,
+                        gyro_end,
+                        state.gyro_bias,
+                        nhc_lever,
+                        calib.rotation_matrix(calib_value, col_v),
+                    )
+                    h_calib = torch.zeros(batch, 2, n_calib, dtype=dtype, device=device)
+                    h_calib[..., col_v : col_v + 3] = h_rot
+                    var = nhc_var
                 elif name == "nhc":
                     r, h = nonholonomic_residual(
                         state.velocity, state.rotation, gyro_end, state.gyro_bias, nhc_lever
@@ -754,20 +797,37 @@ def run_eskf(
                 elif name == "zupt":
                     r, h = zero_velocity_residual(state.velocity)
                     var = zupt_var
-                elif name == "gnss" and calib is not None and "gnss" in calib.time_offset_index:
-                    col_td = calib.time_offset_index["gnss"]
-                    r, h, h_td = shifted_gnss_residual(
-                        state.position,
-                        state.velocity,
-                        state.rotation,
-                        gyro_end,
-                        state.gyro_bias,
-                        gnss_lever,
-                        sched.gnss_position[:, e],
-                        calib_value[:, col_td],
-                    )
+                elif (
+                    name == "gnss"
+                    and calib is not None
+                    and ("gnss" in calib.time_offset_index or calib.gnss_lever_index is not None)
+                ):
+                    col_l = calib.gnss_lever_index
+                    lever = gnss_lever if col_l is None else calib_value[:, col_l : col_l + 3]
                     h_calib = torch.zeros(batch, 3, n_calib, dtype=dtype, device=device)
-                    h_calib[..., col_td : col_td + 1] = h_td
+                    offset_now = zeros_b
+                    if "gnss" in calib.time_offset_index:
+                        col_td = calib.time_offset_index["gnss"]
+                        offset_now = calib_value[:, col_td]
+                        r, h, h_td = shifted_gnss_residual(
+                            state.position,
+                            state.velocity,
+                            state.rotation,
+                            gyro_end,
+                            state.gyro_bias,
+                            lever,
+                            sched.gnss_position[:, e],
+                            offset_now,
+                        )
+                        h_calib[..., col_td : col_td + 1] = h_td
+                    else:
+                        r, h = gnss_residual(
+                            state.position, state.rotation, lever, sched.gnss_position[:, e]
+                        )
+                    if col_l is not None:
+                        h_calib[..., col_l : col_l + 3] = gnss_lever_arm_jacobian(
+                            state.rotation, gyro_end, state.gyro_bias, offset_now
+                        )
                     var = gnss_var[:, e]
                 elif name == "gnss":
                     r, h = gnss_residual(
@@ -783,6 +843,45 @@ def run_eskf(
                     )
                     var = zeros_b[:, None].expand(batch, 6)
                     full_cov.append((offset, sched.pose_covariance[:, e]))
+                elif calib is not None and name in calib.pose_extrinsic_index:
+                    col = source_col[name]
+                    col_x = calib.pose_extrinsic_index[name]
+                    col_td = calib.time_offset_index.get(name)
+                    offset_now = zeros_b if col_td is None else calib_value[:, col_td]
+                    mount = calib.rotation_matrix(calib_value, col_x + 3)
+                    r, h, h_td, h_lever, h_mount = mounted_velocity_residual(
+                        state.velocity,
+                        state.rotation,
+                        gyro_end,
+                        state.gyro_bias,
+                        calib_value[:, col_x : col_x + 3],
+                        mount,
+                        accel_world,
+                        sched.source_velocity[:, e, col],
+                        offset_now - 0.5 * sched.source_dt[:, e, col],
+                    )
+                    h_extrinsic = torch.cat((h_lever, h_mount), -1)  # (B, 3, 6)
+                    if cfg.pose_source_rate_update:
+                        r_w, h_w, h_td_w, h_mount_w = mounted_rate_residual(
+                            sched.source_gyro_mean[:, e, col],
+                            state.gyro_bias,
+                            gyro_change[:, e, col],
+                            mount,
+                            sched.source_rate[:, e, col],
+                            offset_now,
+                        )
+                        r, h = torch.cat((r, r_w), -1), torch.cat((h, h_w), -2)
+                        h_td = torch.cat((h_td, h_td_w), -2)
+                        h_extrinsic = torch.cat(
+                            (h_extrinsic, torch.cat((torch.zeros_like(h_mount_w), h_mount_w), -1)),
+                            -2,
+                        )
+                    h_calib = torch.zeros(batch, r.shape[-1], n_calib, dtype=dtype, device=device)
+                    if col_td is not None:
+                        h_calib[..., col_td : col_td + 1] = h_td
+                    h_calib[..., col_x : col_x + 6] = h_extrinsic
+                    var = zeros_b[:, None].expand(batch, r.shape[-1])
+                    full_cov.append((offset, source_cov[:, e, col]))
                 elif calib is not None and name in calib.time_offset_index:
                     col = source_col[name]
                     col_td = calib.time_offset_index[name]
@@ -888,7 +987,7 @@ def run_eskf(
             state = _inject_invariant(state, dx)
             calib_before = calib_value
             if calib is not None:
-                calib_value = calib_value + dx[:, ERROR_STATE_DIM:]
+                calib_value = calib.inject(calib_value, dx[:, ERROR_STATE_DIM:])
             cov = 0.5 * (cov + cov.mT)
             state, cov, ok, code = guard.updated(
                 state, cov, ok, nis, threshold, failed, here, white[..., 0]
@@ -931,6 +1030,18 @@ def run_eskf(
             nis[k] = torch.zeros(batch, n_epochs + 1, dtype=dtype, device=device)
     gap = torch.cat((false_b[:, None], sched.gap), 1)
     fading, noise_estimate = adaptation.history(n_epochs)
+    calib_ratio, calib_observable = None, {}
+    if calib is not None:  # information gained on each state by the last epoch of each run
+        calib_ratio, observable = observability(
+            calib,
+            torch.diagonal(full_covariances[..., nav.stop :, nav.stop :], dim1=-2, dim2=-1),
+            t - t[:, :1],
+            cfg.calibration_observable_ratio,
+        )
+        epochs = torch.arange(n_epochs + 1, device=device)
+        last = torch.where(mask, epochs, 0).argmax(1)
+        rows_b = torch.arange(batch, device=device)
+        calib_observable = {n: observable[rows_b, last, k] for k, n in enumerate(calib.names)}
     result = EskfResult(
         names=list(seq.names),
         t=t,
@@ -966,6 +1077,8 @@ def run_eskf(
         calibration_covariance=None
         if calib is None
         else full_covariances[..., ERROR_STATE_DIM:, ERROR_STATE_DIM:],
+        calibration_variance_ratio=calib_ratio,
+        calibration_observable=calib_observable,
     )
     result.gate_memory = guard.memory()
     if interrupt.caught:

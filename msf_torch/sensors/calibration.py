@@ -29,6 +29,17 @@ and predicts it at ``t_s + t_d`` to first order with the current rates:
   ``w_bar + t_d (w_k - w_k-1) / dt`` with the body rate at the pair's two ends; the ESKF
   passes a low-noise estimate of ``(w_k - w_k-1) / dt`` (see ``frontend.eskf``).
 
+Extrinsics (lever arms in the body = IMU frame, m; rotations with a right error
+``M = M_hat Exp(dphi)``):
+
+* GNSS antenna lever arm ``l``: ``dh/dl = R (I + t_d [w]x)`` (:func:`gnss_lever_arm_jacobian`).
+* Pose source (camera / VO) at lever arm ``l_c`` with mounting rotation ``M`` (sensor ->
+  body): its pairs measure the sensor frame's mean velocity ``M^T (R^T v + [w]x l_c)`` and
+  rate ``M^T w`` (:func:`mounted_velocity_residual`, :func:`mounted_rate_residual`).
+* IMU-to-vehicle rotation ``V`` (vehicle -> body): the wheels and the non-holonomic
+  constraint act along the vehicle's axes, ``V^T u`` and ``(V^T w)_z``
+  (:func:`vehicle_frame_wheel_residual`, :func:`vehicle_frame_nonholonomic_residual`).
+
 Sign convention ``r = h(x) - z``; nav Jacobians w.r.t. ``[dp, dv, dtheta, db_g, db_a]``
 (``geometry.conventions``), calibration Jacobians as separate columns.
 """
@@ -40,6 +51,11 @@ __all__ = [
     "shifted_gnss_residual",
     "shifted_body_velocity_residual",
     "shifted_mean_rate_residual",
+    "gnss_lever_arm_jacobian",
+    "mounted_velocity_residual",
+    "mounted_rate_residual",
+    "vehicle_frame_wheel_residual",
+    "vehicle_frame_nonholonomic_residual",
 ]
 
 import torch
@@ -48,7 +64,7 @@ from msf_torch.geometry import so3
 from msf_torch.geometry.conventions import IDX_BG, IDX_P, IDX_THETA, IDX_V
 from msf_torch.sensors._jacobian import error_state_jacobian
 from msf_torch.sensors.pose import mean_rate_residual
-from msf_torch.sensors.wheel import wheel_residual
+from msf_torch.sensors.wheel import body_velocity_residual, wheel_residual, wheel_speed_and_yaw_rate
 
 
 def calibrated_wheel_residual(
@@ -196,3 +212,183 @@ def shifted_mean_rate_residual(
     """
     residual, jac = mean_rate_residual(mean_gyro, gyro_bias, measured_rate)
     return residual + time_offset[..., None] * gyro_rate_change, jac, gyro_rate_change[..., None]
+
+
+def gnss_lever_arm_jacobian(
+    rotation: torch.Tensor,
+    gyro: torch.Tensor,
+    gyro_bias: torch.Tensor,
+    time_offset: torch.Tensor,
+) -> torch.Tensor:
+    """Jacobian (..., 3, 3) of the (shifted) GNSS residual w.r.t. the antenna lever arm.
+
+    ``h = p + R l + t_d (v + R ([w]x l))`` gives ``dh/dl = R (I + t_d [w]x)`` (``t_d = 0``:
+    :func:`msf_torch.sensors.gnss.gnss_residual`).
+
+    Args:
+        rotation: (..., 3, 3) body -> world. gyro, gyro_bias: (..., 3) rad/s.
+        time_offset: (...,) ``t_d``, s.
+    """
+    eye = so3.identity(rotation.dtype, rotation.device)
+    return rotation @ (eye + time_offset[..., None, None] * so3.hat(gyro - gyro_bias))
+
+
+def mounted_velocity_residual(
+    velocity: torch.Tensor,
+    rotation: torch.Tensor,
+    gyro: torch.Tensor,
+    gyro_bias: torch.Tensor,
+    lever_arm: torch.Tensor,
+    mount_rotation: torch.Tensor,
+    acceleration: torch.Tensor,
+    measured: torch.Tensor,
+    time_offset: torch.Tensor,
+) -> tuple[torch.Tensor, ...]:
+    """Sensor-frame velocity of a pose source mounted at ``(lever_arm, mount_rotation)``.
+
+    ``h = M^T u`` with ``u`` the body-frame velocity of the sensor origin predicted
+    ``time_offset`` later (:func:`shifted_body_velocity_residual`) and ``M`` the mounting
+    rotation (sensor -> body, error ``M = M_hat Exp(dphi)``): ``dh/dl = M^T [w]x``,
+    ``dh/dphi = [M^T u]x``.
+
+    Args:
+        velocity, rotation, gyro, gyro_bias, acceleration, time_offset: as
+            :func:`shifted_body_velocity_residual`.
+        lever_arm: (..., 3) sensor origin in the body frame, m.
+        mount_rotation: (..., 3, 3) sensor -> body.
+        measured: (..., 3) the sensor-frame velocity of its origin, m/s.
+    Returns:
+        residual (..., 3) m/s, nav Jacobian (..., 3, 15), time-offset Jacobian (..., 3, 1),
+        lever-arm Jacobian (..., 3, 3), mount-rotation Jacobian (..., 3, 3).
+    """
+    predicted, jac, jac_time = shifted_body_velocity_residual(
+        velocity,
+        rotation,
+        gyro,
+        gyro_bias,
+        lever_arm,
+        acceleration,
+        torch.zeros_like(velocity),
+        time_offset,
+    )
+    to_sensor = mount_rotation.mT
+    in_sensor = (to_sensor @ predicted[..., None]).squeeze(-1)
+    return (
+        in_sensor - measured,
+        to_sensor @ jac,
+        to_sensor @ jac_time,
+        to_sensor @ so3.hat(gyro - gyro_bias),
+        so3.hat(in_sensor),
+    )
+
+
+def mounted_rate_residual(
+    mean_gyro: torch.Tensor,
+    gyro_bias: torch.Tensor,
+    gyro_rate_change: torch.Tensor,
+    mount_rotation: torch.Tensor,
+    measured_rate: torch.Tensor,
+    time_offset: torch.Tensor,
+) -> tuple[torch.Tensor, ...]:
+    """Sensor-frame mean rate of a pose source with mounting rotation ``M`` (sensor -> body).
+
+    ``h = M^T (w_bar - b_g + t_d dw/dt)`` (:func:`shifted_mean_rate_residual` in the sensor
+    frame), ``dh/dphi = [h]x`` for ``M = M_hat Exp(dphi)``.
+
+    Args:
+        mean_gyro, gyro_bias, gyro_rate_change, time_offset: as
+            :func:`shifted_mean_rate_residual`.
+        mount_rotation: (..., 3, 3). measured_rate: (..., 3) the source's mean rate, rad/s.
+    Returns:
+        residual (..., 3) rad/s, nav Jacobian (..., 3, 15), time-offset Jacobian (..., 3, 1),
+        mount-rotation Jacobian (..., 3, 3).
+    """
+    predicted, jac, jac_time = shifted_mean_rate_residual(
+        mean_gyro, gyro_bias, gyro_rate_change, torch.zeros_like(mean_gyro), time_offset
+    )
+    to_sensor = mount_rotation.mT
+    in_sensor = (to_sensor @ predicted[..., None]).squeeze(-1)
+    return in_sensor - measured_rate, to_sensor @ jac, to_sensor @ jac_time, so3.hat(in_sensor)
+
+
+def vehicle_frame_wheel_residual(
+    velocity: torch.Tensor,
+    rotation: torch.Tensor,
+    gyro: torch.Tensor,
+    gyro_bias: torch.Tensor,
+    left_reading: torch.Tensor,
+    right_reading: torch.Tensor,
+    radius_ratio: torch.Tensor,
+    track_width: torch.Tensor,
+    lever_arm: torch.Tensor,
+    vehicle_rotation: torch.Tensor,
+) -> tuple[torch.Tensor, ...]:
+    """Wheel residual in the vehicle frame, misaligned from the IMU (body) frame.
+
+    The wheels (and the non-holonomic constraint) act along the vehicle's axes; ``V``
+    (vehicle -> body, error ``V = V_hat Exp(dphi)``) rotates the body-frame axle velocity
+    ``u = R^T v + [w]x l`` and rate ``w`` into them:
+
+        r = [V^T u - (v, 0, 0),  (V^T w)_z - omega]     (4,)
+
+    ``dr/dphi = [[V^T u]x; ([V^T w]x)_z]``; the wheel-calibration columns are those of
+    :func:`calibrated_wheel_residual` with the track-width row at the vehicle yaw rate.
+
+    Args:
+        velocity, rotation, gyro, gyro_bias, lever_arm: as
+            :func:`msf_torch.sensors.wheel.wheel_residual` (lever arm in the body frame).
+        left_reading, right_reading, radius_ratio, track_width: as
+            :func:`calibrated_wheel_residual`.
+        vehicle_rotation: (..., 3, 3) vehicle -> body.
+    Returns:
+        residual (..., 4), nav Jacobian (..., 4, 15), wheel-calibration Jacobian (..., 4, 3)
+        w.r.t. ``[k_l, k_r, D]``, vehicle-rotation Jacobian (..., 4, 3).
+    """
+    left = radius_ratio[..., 0] * left_reading
+    right = radius_ratio[..., 1] * right_reading
+    speed, turn = wheel_speed_and_yaw_rate(left, right, track_width)
+    zero = torch.zeros_like(speed)
+    to_vehicle = vehicle_rotation.mT
+    axle, jac_axle = body_velocity_residual(
+        velocity, rotation, gyro, gyro_bias, lever_arm, torch.zeros_like(velocity)
+    )
+    axle_vehicle = (to_vehicle @ axle[..., None]).squeeze(-1)
+    rate_vehicle = (to_vehicle @ (gyro - gyro_bias)[..., None]).squeeze(-1)
+    residual = torch.cat(
+        (
+            axle_vehicle - torch.stack((speed, zero, zero), -1),
+            (rate_vehicle[..., 2] - turn)[..., None],
+        ),
+        -1,
+    )
+    jac_yaw = torch.zeros_like(jac_axle[..., :1, :])
+    jac_yaw[..., 0, IDX_BG] = -to_vehicle[..., 2, :]
+    jac = torch.cat((to_vehicle @ jac_axle, jac_yaw), -2)
+    yaw_rate = rate_vehicle[..., 2]
+    d_left = torch.stack((-0.5 * left_reading, zero, zero, left_reading / track_width), -1)
+    d_right = torch.stack((-0.5 * right_reading, zero, zero, -right_reading / track_width), -1)
+    d_track = torch.stack((zero, zero, zero, yaw_rate / track_width), -1)
+    jac_rotation = torch.cat((so3.hat(axle_vehicle), so3.hat(rate_vehicle)[..., 2:3, :]), -2)
+    return residual, jac, torch.stack((d_left, d_right, d_track), -1), jac_rotation
+
+
+def vehicle_frame_nonholonomic_residual(
+    velocity: torch.Tensor,
+    rotation: torch.Tensor,
+    gyro: torch.Tensor,
+    gyro_bias: torch.Tensor,
+    lever_arm: torch.Tensor,
+    vehicle_rotation: torch.Tensor,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Lateral and vertical velocity (..., 2) m/s in the vehicle frame (``V^T u``, see
+    :func:`vehicle_frame_wheel_residual`), nav Jacobian (..., 2, 15) and vehicle-rotation
+    Jacobian (..., 2, 3).
+
+    Args: as :func:`vehicle_frame_wheel_residual` (no readings).
+    """
+    point, jac = body_velocity_residual(
+        velocity, rotation, gyro, gyro_bias, lever_arm, torch.zeros_like(velocity)
+    )
+    to_vehicle = vehicle_rotation.mT
+    in_vehicle = (to_vehicle @ point[..., None]).squeeze(-1)
+    return in_vehicle[..., 1:3], (to_vehicle @ jac)[..., 1:3, :], so3.hat(in_vehicle)[..., 1:3, :]
