@@ -31,7 +31,11 @@ Top-level keys
     (``frontend.calibration``, default false): wheels ``calibrate`` (radius ratios and track
     width; the yaw-rate row is then fused), gnss ``calibrate_time_offset``, pose
     ``calibrate_time_offset`` (role pose_source; the estimate starts at 0 on top of the
-    sensor's ``time_offset_s``).
+    sensor's ``time_offset_s``); extrinsics: gnss ``calibrate_lever_arm`` (starts at the
+    lever arm from the frames or ``estimator``), pose ``calibrate_extrinsics`` (role
+    pose_source: lever arm and mounting rotation on top of the frames' transform, start at
+    0), imu ``calibrate_rotation`` (the IMU's rotation against the vehicle axes of the wheel
+    and non-holonomic models).
 ``estimator``
     Front-end settings: any key of :class:`~msf_torch.frontend.config.EskfConfig`
     (noise densities, sigmas, gating, initialisation, slip detection, ...).
@@ -45,8 +49,9 @@ With ``frames``, :meth:`RobotConfig.eskf_config` sets ``gnss_lever_arm_m`` and
 ``wheel_track_m`` from the URDF (the distance, along the body y axis, between the left and
 right wheel joints' frames) unless ``estimator`` gives it. Setting a derived key in
 ``estimator`` as well is an error that names both. The wheels' ``fuse`` sets
-``wheel_yaw_rate_update``; the calibration switches set ``calibrate_wheels`` and
-``calibrate_time_offsets``.
+``wheel_yaw_rate_update``; the calibration switches set ``calibrate_wheels``,
+``calibrate_time_offsets``, ``calibrate_gnss_lever_arm``, ``calibrate_pose_extrinsics`` and
+``calibrate_imu_body_rotation``.
 """
 
 from __future__ import annotations
@@ -83,8 +88,15 @@ ROBOT_KEYS = ("robot", "frames", "time", "sensors", "estimator", "smoother")
 
 _COMMON = ("type", "topic", "enabled", "frame", "stamp", "time_offset_s")
 _PER_KIND = {
-    "imu": (),
-    "gnss": ("origin", "use_message_covariance", "min_fix_status", "fuse", "calibrate_time_offset"),
+    "imu": ("calibrate_rotation",),
+    "gnss": (
+        "origin",
+        "use_message_covariance",
+        "min_fix_status",
+        "fuse",
+        "calibrate_time_offset",
+        "calibrate_lever_arm",
+    ),
     "wheels": ("left_joints", "right_joints", "wheel_radius_m", "fuse", "calibrate"),
     "pose": (
         "role",
@@ -93,6 +105,7 @@ _PER_KIND = {
         "use_message_covariance",
         "fuse",
         "calibrate_time_offset",
+        "calibrate_extrinsics",
     ),
     "joints": (),
     "image": (),
@@ -204,6 +217,8 @@ class RobotConfig:
         disabled: names of sensors with ``enabled: false``.
         calibrate: sensors with an online-calibration switch on: ``"wheels"``, ``"gnss"``,
             ``"pose:<source name>"``.
+        calibrate_extrinsics: sensors with an extrinsic-calibration switch on: ``"imu"``,
+            ``"gnss"``, ``"pose:<source name>"``.
     """
 
     path: Path | None
@@ -213,6 +228,7 @@ class RobotConfig:
     wheel_fuse: tuple[str, ...] | None = None
     disabled: tuple[str, ...] = ()
     calibrate: tuple[str, ...] = ()
+    calibrate_extrinsics: tuple[str, ...] = ()
     _lines: dict[tuple, int] = field(default_factory=dict, repr=False)
 
     @property
@@ -308,6 +324,22 @@ class RobotConfig:
                     )
             derived["calibrate_wheels"] = "wheels" in self.calibrate
             derived["calibrate_time_offsets"] = [k for k in self.calibrate if k != "wheels"]
+        if self.calibrate_extrinsics:
+            extrinsic_keys = (
+                "calibrate_gnss_lever_arm",
+                "calibrate_pose_extrinsics",
+                "calibrate_imu_body_rotation",
+            )
+            for key in extrinsic_keys:
+                if key in values:
+                    raise self._fail(
+                        ("estimator", key),
+                        "is also set by the sensors' calibrate switches; set it in one place",
+                    )
+            chosen = self.calibrate_extrinsics
+            derived["calibrate_gnss_lever_arm"] = "gnss" in chosen
+            derived["calibrate_pose_extrinsics"] = [k for k in chosen if k.startswith("pose:")]
+            derived["calibrate_imu_body_rotation"] = "imu" in chosen
         values.update(derived)
         values.update(overrides or {})
         return _eskf_config(values, self._fail)
@@ -445,6 +477,7 @@ def load_robot_config(path: str | os.PathLike[str]) -> RobotConfig:
     gnss_origin = None
     wheel_fuse = None
     calibrate: list[str] = []
+    calibrate_extrinsics: list[str] = []
     for sensor_name, body_value in sensors_section.items():
         keys = ("sensors", str(sensor_name))
         if not isinstance(body_value, dict):
@@ -501,6 +534,10 @@ def load_robot_config(path: str | os.PathLike[str]) -> RobotConfig:
                 spec.get("calibrate_time_offset", False), (*keys, "calibrate_time_offset")
             ):
                 calibrate.append("gnss")
+            if check.boolean(
+                spec.get("calibrate_lever_arm", False), (*keys, "calibrate_lever_arm")
+            ):
+                calibrate_extrinsics.append("gnss")
         elif kind == "wheels":
             if "left_joints" in spec or "right_joints" in spec or "wheel_radius_m" in spec:
                 for side in ("left_joints", "right_joints", "wheel_radius_m"):
@@ -562,6 +599,18 @@ def load_robot_config(path: str | os.PathLike[str]) -> RobotConfig:
                         "with a time offset)",
                     )
                 calibrate.append("pose:" + fields.get("source_name", str(sensor_name)))
+            if check.boolean(
+                spec.get("calibrate_extrinsics", False), (*keys, "calibrate_extrinsics")
+            ):
+                if role != "pose_source":
+                    raise check.fail(
+                        (*keys, "calibrate_extrinsics"),
+                        "applies to role pose_source (the filter fuses its relative motion)",
+                    )
+                calibrate_extrinsics.append("pose:" + fields.get("source_name", str(sensor_name)))
+        elif kind == "imu":
+            if check.boolean(spec.get("calibrate_rotation", False), (*keys, "calibrate_rotation")):
+                calibrate_extrinsics.append("imu")
         try:
             sensors.append(SensorTopic(**fields))
         except ValueError as err:
@@ -603,6 +652,7 @@ def load_robot_config(path: str | os.PathLike[str]) -> RobotConfig:
         wheel_fuse=wheel_fuse,
         disabled=tuple(disabled),
         calibrate=tuple(calibrate),
+        calibrate_extrinsics=tuple(calibrate_extrinsics),
         _lines=check.lines,
     )
     if tree is not None:

@@ -485,3 +485,36 @@ def test_run_outputs_report_calibration_and_observability(short_run, tmp_path):
     assert float(rows[-1]["rotation_rad:imu_body:z_sigma"]) == pytest.approx(
         float(result.calibration_covariance[0, -1, 5, 5]) ** 0.5, rel=1e-8
     )
+
+
+def test_robot_yaml_extrinsic_switches(tmp_path):
+    from msf_torch.io.errors import DataError
+    from msf_torch.robot.config import load_robot_config
+
+    text = """\
+sensors:
+  imu: {type: imu, topic: /imu, calibrate_rotation: true}
+  odom: {type: wheels, topic: /odom}
+  gps: {type: gnss, topic: /fix, calibrate_lever_arm: true}
+  cam: {type: pose, topic: /vo, source_name: vo, calibrate_extrinsics: true}
+"""
+    path = tmp_path / "robot.yaml"
+    path.write_text(text)
+    robot = load_robot_config(path)
+    assert robot.calibrate_extrinsics == ("imu", "gnss", "pose:vo")
+    cfg = robot.eskf_config({"extrinsics": {}})
+    assert cfg.calibrate_gnss_lever_arm and cfg.calibrate_imu_body_rotation
+    assert cfg.calibrate_pose_extrinsics == ["pose:vo"]
+    assert cfg.calibrate_wheels is False and cfg.calibrate_time_offsets == []
+    both = tmp_path / "both.yaml"
+    both.write_text(text + "estimator: {calibrate_gnss_lever_arm: false}\n")
+    with pytest.raises(DataError, match="calibrate_gnss_lever_arm"):
+        load_robot_config(both).eskf_config({"extrinsics": {}})
+    poses = tmp_path / "poses.yaml"
+    poses.write_text(text.replace("source_name: vo,", "role: poses,"))
+    with pytest.raises(DataError, match="sensors.cam.calibrate_extrinsics"):
+        load_robot_config(poses)
+    bad = tmp_path / "bad.yaml"
+    bad.write_text(text.replace("calibrate_rotation: true", "calibrate_rotation: 1.5"))
+    with pytest.raises(DataError, match="sensors.imu.calibrate_rotation"):
+        load_robot_config(bad)
