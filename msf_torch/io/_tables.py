@@ -111,6 +111,32 @@ class Table:
                     ) from None
         return out
 
+    def finite_floats(self, columns: list[str], what: str = "rows") -> np.ndarray:
+        """Like :meth:`floats`, for a file that must hold at least one row of finite numbers.
+
+        ``what`` names the rows in the empty-file error (e.g. ``"poses"``).
+
+        Returns:
+            (N, len(columns)) float64 array, N >= 1, every entry finite.
+
+        Raises:
+            DataError: an empty table, or naming the line and column of the first
+                non-finite value.
+        """
+        if len(self) == 0:
+            raise DataError(self.path, f"no {what} in the file")
+        data = self.floats(columns)
+        bad = np.argwhere(~np.isfinite(data))
+        if bad.size:
+            r, c = (int(x) for x in bad[0])
+            raise DataError(
+                self.path,
+                f"non-finite value {data[r, c]!r}",
+                line=int(self.lines[r]),
+                field=columns[c],
+            )
+        return data
+
     def ints(self, column: str | int) -> np.ndarray:
         """Convert one column to a (N,) int64 array (exact; for nanosecond timestamps).
 

@@ -88,18 +88,7 @@ def read_kitti_poses(
             length, or times that do not increase (naming file and line).
     """
     table = _tables.read_table(path, delimiter=None, header="none", names=_COLUMNS)
-    if len(table) == 0:
-        raise DataError(table.path, "no poses in the file")
-    data = table.floats(_COLUMNS)
-    bad = np.argwhere(~np.isfinite(data))
-    if bad.size:
-        r, c = (int(x) for x in bad[0])
-        raise DataError(
-            table.path,
-            f"non-finite value {data[r, c]!r}",
-            line=int(table.lines[r]),
-            field=_COLUMNS[c],
-        )
+    data = table.finite_floats(_COLUMNS, "poses")
     n = data.shape[0]
     if times_path is None:
         t = np.arange(n, dtype=np.float64)

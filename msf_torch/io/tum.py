@@ -18,7 +18,6 @@ import torch
 
 from msf_torch.io import _tables
 from msf_torch.io.atomic import atomic_write
-from msf_torch.io.errors import DataError
 from msf_torch.types import Trajectory
 
 TUM_COLUMNS = ["t", "x", "y", "z", "qx", "qy", "qz", "qw"]
@@ -46,18 +45,7 @@ def read_tum(path: str | os.PathLike[str], sort: bool = False) -> Trajectory:
         DataError: naming the file, line and column of bad input.
     """
     table = _tables.read_table(path, delimiter=None, header="none", names=TUM_COLUMNS)
-    if len(table) == 0:
-        raise DataError(table.path, "no poses in the file")
-    data = table.floats(TUM_COLUMNS)
-    bad = np.argwhere(~np.isfinite(data))
-    if bad.size:
-        r, c = (int(x) for x in bad[0])
-        raise DataError(
-            table.path,
-            f"non-finite value {data[r, c]!r}",
-            line=int(table.lines[r]),
-            field=TUM_COLUMNS[c],
-        )
+    data = table.finite_floats(TUM_COLUMNS, "poses")
     quat = data[:, [7, 4, 5, 6]]
     _tables.check_quaternions(table.path, quat, lines=table.lines, name="qw")
     arrays = {"t": data[:, 0], "position": data[:, 1:4], "quaternion": quat}
