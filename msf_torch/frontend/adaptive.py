@@ -385,8 +385,35 @@ class BlockAdaptation:
             measurement_cov: (B, M, M) stacked nominal R.
             present: (B, K) bool, block k has a measurement.
         Returns:
-            ``P^-`` (B, n, n) and the stacked R to use (B, M, M).
+            ``P^-`` (B, n, n) and the stacked R to use (B, M, M). A sequence with a
+            non-finite input (e.g. an overflowing propagation) is not adapted: its blocks
+            count as absent, its non-finite ``P^-`` comes back unchanged for the divergence
+            guard (``frontend.guard``) to reset, and its R is the nominal one.
         """
+        usable = (
+            torch.isfinite(propagated + process).flatten(-2).all(-1)
+            & torch.isfinite(jacobian).flatten(-2).all(-1)
+            & torch.isfinite(residual).all(-1)
+            & torch.isfinite(measurement_cov).flatten(-2).all(-1)
+        )
+        passthrough = None
+        if not bool(usable.all()):  # stand-ins keep eigh / Cholesky away from inf and NaN
+            passthrough = propagated + process, measurement_cov
+            keep = usable[:, None, None]
+            propagated = torch.where(
+                keep,
+                propagated,
+                torch.eye(propagated.shape[-1], dtype=self._dtype, device=self._device),
+            )
+            process = torch.where(keep, process, 0.0)
+            jacobian = torch.where(keep, jacobian, 0.0)
+            residual = torch.where(usable[:, None], residual, 0.0)
+            measurement_cov = torch.where(
+                keep,
+                measurement_cov,
+                torch.eye(residual.shape[-1], dtype=self._dtype, device=self._device),
+            )
+            present = present & usable[:, None]
         predicted = propagated + process
         r_cov = measurement_cov.clone() if self.noise_blocks else measurement_cov
         for name in self.noise_blocks:
@@ -452,6 +479,10 @@ class BlockAdaptation:
             predicted = faded + process
         self._fading[epoch] = fading
         self._noise[epoch] = dict(self._r_hat)
+        if passthrough is not None:
+            keep = usable[:, None, None]
+            predicted = torch.where(keep, predicted, passthrough[0])
+            r_cov = torch.where(keep, r_cov, passthrough[1])
         return predicted, r_cov
 
     def history(self, n_epochs: int) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
