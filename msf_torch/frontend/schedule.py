@@ -118,7 +118,7 @@ def _merge_times(times: np.ndarray, tol: float) -> np.ndarray:
     """Sorted unique times, merging values closer than ``tol`` (first kept)."""
     if times.size == 0:
         return times
-    times = np.sort(times)
+    times = np.sort(times, kind="stable")  # timsort: linear on a few concatenated sorted runs
     keep = np.concatenate(([True], np.diff(times) > tol))
     return times[keep]
 

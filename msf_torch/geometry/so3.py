@@ -185,14 +185,21 @@ def exp_and_gammas(
     """``Exp(phi)``, ``Gamma_1(phi)``, ``Gamma_2(phi)`` stacked: (..., 3) -> (..., 3, 3, 3).
 
     All three are ``a I + b [phi]x + c [phi]x^2``; computing them together shares every
-    intermediate (large batches of IMU samples).
+    intermediate (large batches of IMU samples). ``coefficients``: optional
+    ``coefficients(phi)`` computed already.
     """
-    c = _coefficients(phi)
+    c = coefficients if coefficients is not None else _coefficients(phi)
     eye = identity(phi.dtype, phi.device)
-    a = torch.tensor([1.0, 1.0, 0.5], dtype=phi.dtype, device=phi.device)[:, None, None]
-    b = torch.stack((c["c0"], c["c1"], c["c2"]), -3)
-    d = torch.stack((c["c1"], c["c2"], c["c3"]), -3)
-    return a * eye + b * hat(phi)[..., None, :, :] + d * c["skew2"][..., None, :, :]
+    skew, skew2 = hat(phi), c["skew2"]
+    # (..., 1, 1) x (..., 3, 3) products: a 5-D broadcast over the three is slower on CPU
+    return torch.stack(
+        (
+            eye + c["c0"] * skew + c["c1"] * skew2,
+            eye + c["c1"] * skew + c["c2"] * skew2,
+            0.5 * eye + c["c2"] * skew + c["c3"] * skew2,
+        ),
+        -3,
+    )
 
 
 def gamma_vector_jacobians(

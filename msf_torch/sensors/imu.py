@@ -226,13 +226,12 @@ def preintegrate(
     prefix_rot = torch.stack(rotations, -3)  # (..., L + 1, 3, 3)
     rot_start = prefix_rot[..., :-1, :, :]
 
-    # one product for every per-sample map: R_j [Gamma_1 dt, Gamma_2 dt^2, dG_1 dt^2, dG_2 dt^3]
+    # the increments: V, P from the sample-frame steps Gamma_1 f dt, Gamma_2 f dt^2
     dt2 = dt_mat * dt_mat
-    local = torch.cat((gam1 * dt_mat, gam2 * dt2, d_gamma1 * dt2, d_gamma2 * (dt2 * dt_mat)), -1)
-    maps = rot_start @ local
-    acc_v, acc_p, in_v, in_p = maps.split(3, -1)  # acc_v = R_j Gamma_1 dt = R_{j+1} J_r dt
-    vel_steps = (acc_v @ force[..., None]).squeeze(-1)  # (..., L, 3)
-    pos_steps = (acc_p @ force[..., None]).squeeze(-1)
+    gam1_dt = gam1 * dt_mat  # R_j Gamma_1 dt = R_{j+1} J_r dt = -Y_j / (db_g + n_g) = acc_v
+    gam2_dt2 = gam2 * dt2
+    local_steps = torch.cat((gam1_dt @ force[..., None], gam2_dt2 @ force[..., None]), -1)
+    vel_steps, pos_steps = (rot_start @ local_steps).unbind(-1)  # (..., L, 3) each
     vel_after = torch.cumsum(vel_steps, -2)  # V_{j+1}
     vel_before = vel_after - vel_steps  # V_j
     pos_after = torch.cumsum(vel_before * dt_col + pos_steps, -2)  # P_{j+1}
@@ -246,15 +245,33 @@ def preintegrate(
     vel_lever = delta_velocity[..., None, :] - vel_after  # D_j
     pos_lever = delta_position[..., None, :] - pos_after - remaining[..., None] * vel_after  # C_j
 
-    # -Y_j = R_{j+1} J_r(w dt) dt = R_j Exp(w dt) J_r(w dt) dt = R_j Gamma_1 dt = acc_v
-    levers = torch.cat((so3.hat(vel_lever), so3.hat(pos_lever)), -2) @ acc_v  # (..., L, 6, 3)
+    # Every bias Jacobian is a sum over samples of R_j X_j (X_j 3 x 12 in the sample frame),
+    # so they are one contraction over (sample, column of R_j):
+    #   sum R_j Gamma_1 dt, sum R_j (rem Gamma_1 dt + Gamma_2 dt^2), and the bias turning the
+    #   force inside each sample (d(Gamma_n(w dt) f)/db_g = -dG_n dt) as
+    #   sum R_j dG_1 dt^2 and sum R_j (dG_2 dt^3 + rem dG_1 dt^2).
+    # The lever terms sum [D_j]x acc_v_j = sum_m G_m W_m (hat(a) = sum_m a_m G_m) with
+    # W_m = sum_j D_jm acc_v_j, and the same with C_j, are one contraction over samples.
     rem = remaining[..., None, None]
-    jac_theta_bg = -delta_rotation.mT @ acc_v.sum(-3)
-    # the bias also turns the force inside each sample: d(Gamma_n(w dt) f)/db_g = -dG_n dt
-    jac_v_bg = (levers[..., 0:3, :] - in_v).sum(-3)
-    jac_p_bg = (levers[..., 3:6, :] - in_p - rem * in_v).sum(-3)
-    jac_v_ba = -acc_v.sum(-3)
-    jac_p_ba = -(rem * acc_v + acc_p).sum(-3)
+    in_v = d_gamma1 * dt2
+    in_p = d_gamma2 * (dt2 * dt_mat) + rem * in_v
+    columns = torch.cat((gam1_dt, rem * gam1_dt + gam2_dt2, in_v, in_p), -1)  # (..., L, 3, 12)
+    length = dt.shape[-1]
+    lead = dt.shape[:-1]
+    sums = rot_start.transpose(-3, -2).reshape(*lead, 3, 3 * length) @ (
+        columns.reshape(*lead, 3 * length, 12)
+    )
+    sum_acc_v, sum_acc_p, sum_in_v, sum_in_p = sums.split(3, -1)
+    acc_v = rot_start @ gam1_dt  # (..., L, 3, 3)
+    lever_w = torch.cat((vel_lever, pos_lever), -1).mT @ acc_v.flatten(-2)  # (..., 6, 9)
+    generators = so3.hat(so3.identity(gyro.dtype, gyro.device))  # (3, 3, 3): G_m[a, i]
+    to_hat = generators.permute(1, 0, 2).reshape(3, 9)  # [a, (m, i)]
+    levers = to_hat @ lever_w.reshape(*lead, 2, 9, 3)  # sum [D_j]x acc_v_j, [C_j]x acc_v_j
+    jac_theta_bg = -delta_rotation.mT @ sum_acc_v
+    jac_v_bg = levers[..., 0, :, :] - sum_in_v
+    jac_p_bg = levers[..., 1, :, :] - sum_in_p
+    jac_v_ba = -sum_acc_v
+    jac_p_ba = -sum_acc_p
     zeros = torch.zeros_like(jac_v_ba)
     jac = torch.cat(
         (
