@@ -34,6 +34,7 @@ __all__ = [
     "recursive_covariance",
     "imu_covariance",
     "preintegrate_wheel",
+    "calibrated_wheel_increment",
     "TangentPreintegrated",
     "preintegrate_imu_tangent",
 ]
@@ -203,29 +204,18 @@ def imu_covariance(pre: Preintegrated | TangentPreintegrated, noise: ImuNoise) -
     return out
 
 
-def preintegrate_wheel(
-    left_speed: torch.Tensor,
-    right_speed: torch.Tensor,
-    dt: torch.Tensor,
-    track_width: float | torch.Tensor,
-    speed_sigma: float | torch.Tensor,
-    slip: torch.Tensor | None = None,
-) -> tuple[torch.Tensor, torch.Tensor]:
-    """Planar differential-drive increment and covariance over intervals.
-
-    Each sample holds forward speed ``v = (v_r + v_l)/2`` and yaw rate ``w = (v_r - v_l)/D``
-    for ``dt`` (an exact arc); the increment is ``[dx, dy, dyaw]`` in the frame of the
-    interval's start. Rim-speed noise: each speed has standard deviation ``speed_sigma /
-    f`` (m/s) over the sample, ``f`` the slip factor.
+def _wheel_arcs(
+    speed: torch.Tensor, yaw_rate: torch.Tensor, dt: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Planar increment of exact arcs and its sensitivities to each sample's speed and yaw
+    rate.
 
     Args:
-        left_speed, right_speed: (..., L) rim speeds, m/s. dt: (..., L) s (0 = padding).
-        track_width: D, m. speed_sigma: m/s. slip: (..., L) slip factor in (0, 1] or None.
+        speed: (..., L) forward speed, m/s. yaw_rate: (..., L) rad/s. dt: (..., L) s.
     Returns:
-        increment (..., 3) [m, m, rad] and covariance (..., 3, 3).
+        increment (..., 3) ``[dx, dy, dyaw]`` in the frame of the start, and the Jacobians
+        (..., 3, L) of the increment w.r.t. each sample's speed and yaw rate.
     """
-    speed = 0.5 * (right_speed + left_speed)
-    yaw_rate = (right_speed - left_speed) / track_width
     turn = yaw_rate * dt
     small = turn.abs() < 1e-6
     safe = torch.where(small, torch.ones_like(turn), turn)
@@ -261,6 +251,33 @@ def preintegrate_wheel(
         ),
         -2,
     )  # (..., 3, L)
+    return increment, jac_v, jac_w
+
+
+def preintegrate_wheel(
+    left_speed: torch.Tensor,
+    right_speed: torch.Tensor,
+    dt: torch.Tensor,
+    track_width: float | torch.Tensor,
+    speed_sigma: float | torch.Tensor,
+    slip: torch.Tensor | None = None,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Planar differential-drive increment and covariance over intervals.
+
+    Each sample holds forward speed ``v = (v_r + v_l)/2`` and yaw rate ``w = (v_r - v_l)/D``
+    for ``dt`` (an exact arc); the increment is ``[dx, dy, dyaw]`` in the frame of the
+    interval's start. Rim-speed noise: each speed has standard deviation ``speed_sigma /
+    f`` (m/s) over the sample, ``f`` the slip factor.
+
+    Args:
+        left_speed, right_speed: (..., L) rim speeds, m/s. dt: (..., L) s (0 = padding).
+        track_width: D, m. speed_sigma: m/s. slip: (..., L) slip factor in (0, 1] or None.
+    Returns:
+        increment (..., 3) [m, m, rad] and covariance (..., 3, 3).
+    """
+    speed = 0.5 * (right_speed + left_speed)
+    yaw_rate = (right_speed - left_speed) / track_width
+    increment, jac_v, jac_w = _wheel_arcs(speed, yaw_rate, dt)
     sigma = torch.as_tensor(speed_sigma, dtype=dt.dtype, device=dt.device)
     if slip is not None:
         sigma = sigma / slip.clamp_min(1e-3)
@@ -271,6 +288,47 @@ def preintegrate_wheel(
     for jac in (jac_left, jac_right):
         cov = cov + (jac * var[..., None, :]) @ jac.mT
     return increment, cov
+
+
+def calibrated_wheel_increment(
+    left_reading: torch.Tensor,
+    right_reading: torch.Tensor,
+    dt: torch.Tensor,
+    calibration: torch.Tensor,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Differential-drive increment with wheel calibration, and its Jacobian.
+
+    The readings are rim speeds at the nominal radii; with radius ratios (true / nominal)
+    ``k_l``, ``k_r`` and track width ``D`` each sample holds ``v = (k_r z_r + k_l z_l) / 2``
+    and ``w = (k_r z_r - k_l z_l) / D`` for ``dt`` (exact arcs, as
+    :func:`preintegrate_wheel`).
+
+    Args:
+        left_reading, right_reading: (..., L) nominal-radius rim speeds, m/s.
+        dt: (..., L) s (0 = padding).
+        calibration: (..., 3) ``[k_l, k_r, D]`` (dimensionless, dimensionless, m).
+    Returns:
+        increment (..., 3) ``[dx, dy, dyaw]`` (m, m, rad) in the frame of the interval's
+        start, and its Jacobian (..., 3, 3) w.r.t. ``[k_l, k_r, D]``.
+    """
+    ratio_left = calibration[..., 0:1]
+    ratio_right = calibration[..., 1:2]
+    track = calibration[..., 2:3]
+    left = ratio_left * left_reading
+    right = ratio_right * right_reading
+    yaw_rate = (right - left) / track
+    increment, jac_v, jac_w = _wheel_arcs(0.5 * (right + left), yaw_rate, dt)
+    d_left = 0.5 * jac_v - jac_w / track[..., None]  # w.r.t. each sample's left rim speed
+    d_right = 0.5 * jac_v + jac_w / track[..., None]
+    jacobian = torch.stack(
+        (
+            (d_left * left_reading[..., None, :]).sum(-1),
+            (d_right * right_reading[..., None, :]).sum(-1),
+            -(jac_w * (yaw_rate / track)[..., None, :]).sum(-1),
+        ),
+        -1,
+    )
+    return increment, jacobian
 
 
 @dataclass

@@ -11,11 +11,16 @@ nav_state    [p(3), v(3), R(9, row-major), b_g, b_a] 15: [dp, dv, dtheta, db_g, 
 pose         [p(3), R(9, row-major)]                 6: [dp, dtheta]
 se3          [p(3), R(9, row-major)]                 6: [rho, phi], ``T <- T exp(xi)``
 point        [x, y, z]                               3
+wheel_calib  [k_l, k_r, D]                           3
 ============ ======================================= ========================================
 
 ``se3`` is the Lie-group chart of pose graphs (GTSAM's ``Pose3`` retraction): the step is
 body-frame, ``R <- R Exp(phi)``, ``p <- p + R Gamma_1(phi) rho``. Relative-pose residuals
 are nearly linear in it, so pose-graph LM needs fewer iterations than with ``pose``.
+
+``wheel_calib`` holds a run's wheel calibration (:mod:`msf_torch.frontend.calibration`):
+the radius ratios true / nominal of the left and right wheels and the track width (m);
+steps add.
 
 A ``nav_state`` tangent is the ESKF's error state, so the residual Jacobians in
 :mod:`msf_torch.sensors` apply to it column for column.
@@ -29,6 +34,7 @@ __all__ = [
     "POSE",
     "POINT",
     "SE3",
+    "WHEEL_CALIBRATION",
     "KINDS",
     "pack_nav_state",
     "unpack_nav_state",
@@ -53,7 +59,7 @@ class VariableKind:
 
     def retract(self, value: torch.Tensor, step: torch.Tensor) -> torch.Tensor:
         """Apply a tangent step (..., D) to values (..., S); returns (..., S)."""
-        if self.name == "point":
+        if self.name in ("point", "wheel_calib"):
             return value + step
         if self.name == "pose":
             position, rotation = unpack_pose(value)
@@ -78,7 +84,8 @@ NAV_STATE = VariableKind("nav_state", 21, 15)
 POSE = VariableKind("pose", 12, 6)
 POINT = VariableKind("point", 3, 3)
 SE3 = VariableKind("se3", 12, 6)
-KINDS = {kind.name: kind for kind in (NAV_STATE, POSE, POINT, SE3)}
+WHEEL_CALIBRATION = VariableKind("wheel_calib", 3, 3)
+KINDS = {kind.name: kind for kind in (NAV_STATE, POSE, POINT, SE3, WHEEL_CALIBRATION)}
 
 
 def pack_nav_state(

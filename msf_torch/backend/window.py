@@ -22,6 +22,24 @@ factor builder (:meth:`KeyframeGraph.factors`). One ``nav_state`` variable per k
 * the non-holonomic constraint and zero velocity at keyframes where the front end applied
   them; optionally planar motion between keyframes (ground vehicles).
 
+Wheel calibration (``calibrate_wheels``, full batch only): one ``wheel_calib`` variable per
+run, ``c = [k_l, k_r, D]`` (radius ratios true / nominal and track width, m, as the front
+end's states of :mod:`msf_torch.frontend.calibration`), constant over the run (radii and
+track change with load and tyre pressure over hours, not within a run; one variable keeps
+the problem a chain plus one border). Each wheel factor recomputes its increment from the
+interval's readings at ``c`` (:class:`~msf_torch.backend.factors.CalibratedWheelOdometryFactor`)
+and its yaw row is kept (the radius difference is seen only there, as in the front end).
+The front end must calibrate its wheels as well
+(``calibrate_wheels``): its slip factors weight the wheel factors, and an uncalibrated front
+end's slip detector takes miscalibrated wheels for slipping ones.
+Prior: the front end's *initial* calibration and sigmas (``calibration_wheel_radius_ratio``,
+``wheel_track_m``, ``calibration_wheel_radius_sigma``, ``calibration_wheel_track_sigma_m``):
+its final estimate has seen the same wheel readings, so it is only the starting value (when
+the front end calibrated its wheels; else the prior mean). The Hessian is block tridiagonal
+plus a dense border of three columns, so LM takes its general dense or sparse path; the
+marginal covariances come from the chain's Schur complements with the border eliminated
+(:func:`bordered_chain_covariance`), still in O(K).
+
 Full batch (:func:`smooth_full`): all keyframes in one LM solve (sparse Cholesky beyond
 1500 unknowns). The per-keyframe marginal covariances come from the chain structure of the
 problem (every factor joins one keyframe or two consecutive ones, so the Gauss-Newton
@@ -77,6 +95,8 @@ __all__ = [
     "smooth_window",
     "smooth",
     "chain_covariance",
+    "bordered_chain_covariance",
+    "smooth_full_calibrated",
     "densify",
 ]
 
@@ -102,7 +122,13 @@ from msf_torch.backend.preintegration import (
 )
 from msf_torch.backend.problem import Factor, Problem
 from msf_torch.backend.robust import KERNELS, RobustKernel
-from msf_torch.backend.variables import NAV_STATE, pack_nav_state, unpack_nav_state
+from msf_torch.backend.variables import (
+    NAV_STATE,
+    WHEEL_CALIBRATION,
+    pack_nav_state,
+    unpack_nav_state,
+)
+from msf_torch.frontend.calibration import WHEEL_STATES
 from msf_torch.frontend.config import EskfConfig
 from msf_torch.frontend.eskf import EskfNoise, EskfResult, _intra_op_threads
 from msf_torch.frontend.keyframes import KeyframeConfig, select_keyframes
@@ -113,6 +139,7 @@ from msf_torch.sensors.imu import Preintegrated, propagate_nominal
 from msf_torch.types import Sequence, Trajectory
 
 _GROUP = "state"
+_CALIB = "wheel_calibration"
 NOISE_KEYS = (
     "gyro_noise_density",
     "accel_noise_density",
@@ -138,6 +165,8 @@ class SmootherConfig:
             ``tukey`` or ``none``.
         gnss_kernel_scale: its scale in whitened units (sigmas).
         wheel: use wheel odometry between keyframes when the sequence has wheels.
+        calibrate_wheels: estimate the wheel radius ratios and track width as one
+            variable of the run (full batch only; needs ``wheel``).
         nhc: non-holonomic constraint at keyframes where the front end applied it.
         zero_velocity: zero velocity at keyframes the front end found stationary.
         plane: planar motion between consecutive keyframes (ground vehicles).
@@ -163,6 +192,7 @@ class SmootherConfig:
     gnss_kernel: str = "huber"
     gnss_kernel_scale: float = 3.0
     wheel: bool = True
+    calibrate_wheels: bool = False
     nhc: bool = True
     zero_velocity: bool = True
     plane: bool = False
@@ -213,9 +243,11 @@ class SmootherConfig:
                 raise bad(key, "a positive number")
             if math.isnan(value) or value <= 0:
                 raise bad(key, "a positive number")
-        for key in ("wheel", "nhc", "zero_velocity", "plane", "covariance"):
+        for key in ("wheel", "calibrate_wheels", "nhc", "zero_velocity", "plane", "covariance"):
             if not isinstance(getattr(self, key), bool):
                 raise bad(key, "true or false")
+        if self.calibrate_wheels and not self.wheel:
+            raise bad("calibrate_wheels", "false when 'smoother.wheel' is false")
         for key, low in (("window_size", 2), ("window_step", 1), ("max_iterations", 1)):
             value = getattr(self, key)
             if isinstance(value, bool) or not isinstance(value, int) or value < low:
@@ -298,6 +330,12 @@ class KeyframeGraph:
         nhc_lever_arm (3,) m.
         zupt_index (Z,), zupt_covariance (1, Z, 3, 3).
         plane_covariance: (1, 1, 3, 3) or None (no plane factors).
+        wheel_samples: wheel calibration only: per wheel interval the readings it was
+            integrated from, left and right rim speeds (1, W, L) m/s and durations
+            (1, W, L) s (0 = padding); else None.
+        calibration_initial: (1, 1, 3) starting value of ``[k_l, k_r, D]``, or None
+            (no calibration variable).
+        calibration_prior: its prior mean (1, 1, 3) and covariance (1, 1, 3, 3), or None.
     """
 
     t: torch.Tensor
@@ -323,11 +361,29 @@ class KeyframeGraph:
     zupt_index: torch.Tensor
     zupt_covariance: torch.Tensor
     plane_covariance: torch.Tensor | None
+    wheel_samples: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None = None
+    calibration_initial: torch.Tensor | None = None
+    calibration_prior: tuple[torch.Tensor, torch.Tensor] | None = None
 
     @property
     def size(self) -> int:
         """K, the number of keyframes."""
         return int(self.t.numel())
+
+    @property
+    def calibrated(self) -> bool:
+        """Whether the graph carries the wheel calibration variable."""
+        return self.calibration_initial is not None
+
+    def values(
+        self, states: torch.Tensor, calibration: torch.Tensor | None = None
+    ) -> dict[str, torch.Tensor]:
+        """Variable values of :meth:`problem`: nav states (1, K', 21) and, when calibrated,
+        the calibration (1, 1, 3) (default its starting value)."""
+        out = {_GROUP: states}
+        if self.calibrated:
+            out[_CALIB] = self.calibration_initial if calibration is None else calibration
+        return out
 
     def factors(self, first: int, last: int, unary_last: bool = True) -> list[Factor]:
         """Factor types over keyframes ``[first, last)``, indexed from ``first``.
@@ -357,6 +413,8 @@ class KeyframeGraph:
             out.append(
                 F.NavStatePriorFactor(_GROUP, zero, self.initial[:, :1], self.prior_covariance)
             )
+            if self.calibration_prior is not None:
+                out.append(F.VectorPriorFactor(_CALIB, zero, *self.calibration_prior))
         intervals = torch.arange(self.size - 1)
         keep, i, j = binary(intervals)
         if i.numel():
@@ -374,7 +432,23 @@ class KeyframeGraph:
                 cov = self.plane_covariance.expand(1, i.numel(), 3, 3)
                 out.append(F.PlaneFactor(_GROUP, i, j, cov, None))
         keep, i, j = binary(self.wheel_index)
-        if i.numel():
+        if i.numel() and self.wheel_samples is not None:
+            left, right, dt = self.wheel_samples
+            out.append(
+                F.CalibratedWheelOdometryFactor(
+                    _GROUP,
+                    i,
+                    j,
+                    _CALIB,
+                    left[:, keep],
+                    right[:, keep],
+                    dt[:, keep],
+                    self.wheel_covariance[:, keep],
+                    float(self.calibration_prior[0][0, 0, 2]),
+                    self.wheel_lever_arm,
+                )
+            )
+        elif i.numel():
             out.append(
                 F.WheelOdometryFactor(
                     _GROUP,
@@ -413,11 +487,21 @@ class KeyframeGraph:
             out.append(F.ZeroVelocityFactor(_GROUP, i, self.zupt_covariance[:, keep], None))
         return out
 
-    def problem(self, values: torch.Tensor, first: int = 0, last: int | None = None) -> Problem:
+    def problem(
+        self,
+        values: torch.Tensor,
+        first: int = 0,
+        last: int | None = None,
+        calibration: torch.Tensor | None = None,
+    ) -> Problem:
         """The least-squares problem over keyframes ``[first, last)`` (default: all) with
-        values (1, last - first, 21)."""
+        values (1, last - first, 21), and when calibrated the calibration variable (group
+        ``"wheel_calibration"``, (1, 1, 3), default its starting value) after them."""
         last = self.size if last is None else last
-        return Problem({_GROUP: (NAV_STATE, values)}, self.factors(first, last))
+        variables: dict[str, tuple] = {_GROUP: (NAV_STATE, values)}
+        if self.calibrated:
+            variables[_CALIB] = (WHEEL_CALIBRATION, self.values(values, calibration)[_CALIB])
+        return Problem(variables, self.factors(first, last))
 
 
 def _cut_channels(
@@ -436,8 +520,11 @@ def _wheel_intervals(
     frontend: EskfResult,
     cfg: EskfConfig,
     keyframe_times: torch.Tensor,
-) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Wheel increments between keyframes: (W,) interval index, (1, W, 3), (1, W, 3, 3)."""
+    calibrate: bool = False,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, tuple[torch.Tensor, ...] | None]:
+    """Wheel increments between keyframes: (W,) interval index, (1, W, 3), (1, W, 3, 3),
+    and with ``calibrate`` the readings of each interval (left, right rim speeds and
+    durations, (1, W, L) each; the yaw row is then kept), else None."""
     wheel = seq.wheel
     keep = wheel.mask[0]
     stamp = wheel.t[0, keep]
@@ -448,7 +535,7 @@ def _wheel_intervals(
         torch.zeros(1, 0, 3, 3, dtype=dtype),
     )
     if stamp.numel() < 2:
-        return empty
+        return (*empty, None)
     epoch_t = frontend.t[0, frontend.mask[0]]
     epoch_slip = frontend.slip_factor[0, frontend.mask[0]]
     at = (torch.searchsorted(epoch_t, stamp, right=True) - 1).clamp(0, epoch_t.numel() - 1)
@@ -470,7 +557,7 @@ def _wheel_intervals(
     usable = dt.sum(-1) >= 0.9 * span
     index = torch.nonzero(usable).squeeze(-1)
     if index.numel() == 0:
-        return empty
+        return (*empty, None)
     increment, covariance = preintegrate_wheel(
         cut.gyro[index, :, 0],
         cut.gyro[index, :, 1],
@@ -479,12 +566,19 @@ def _wheel_intervals(
         math.sqrt(2.0) * cfg.wheel_speed_sigma_mps,
         cut.gyro[index, :, 2].clamp(1e-3, 1.0),
     )
-    if not cfg.wheel_yaw_rate_update:
+    if not (cfg.wheel_yaw_rate_update or calibrate):
         covariance = covariance.clone()
         covariance[..., 2, :] = 0.0
         covariance[..., :, 2] = 0.0
         covariance[..., 2, 2] = _YAW_OFF_VARIANCE
-    return index, increment[None], covariance[None]
+    samples = None
+    if calibrate:
+        # a piece's two rim-speed noises drive three rows: an interval of one piece has a
+        # singular covariance; the IMU's 1e-6 relative diagonal floor keeps it definite
+        floor = 1e-6 * torch.diagonal(covariance, dim1=-2, dim2=-1)
+        covariance = covariance + torch.diag_embed(floor)
+        samples = (cut.gyro[None, index, :, 0], cut.gyro[None, index, :, 1], dt[None, index])
+    return index, increment[None], covariance[None], samples
 
 
 def build_graph(
@@ -571,8 +665,20 @@ def build_graph(
     wheel_index = torch.zeros(0, dtype=torch.long)
     wheel_increment = torch.zeros(1, 0, 3, dtype=dtype)
     wheel_covariance = torch.zeros(1, 0, 3, 3, dtype=dtype)
+    wheel_samples = None
     if smoother.wheel and seq.wheel is not None and bool(seq.wheel.mask.any()):
-        wheel_index, wheel_increment, wheel_covariance = _wheel_intervals(seq, frontend, cfg, t)
+        wheel_index, wheel_increment, wheel_covariance, wheel_samples = _wheel_intervals(
+            seq, frontend, cfg, t, smoother.calibrate_wheels
+        )
+    calibration_initial, calibration_prior = None, None
+    if smoother.calibrate_wheels and not set(WHEEL_STATES) <= set(frontend.calibration_names):
+        raise ValueError(
+            "config key 'smoother.calibrate_wheels' needs the front end's 'calibrate_wheels' "
+            "as well: without it the front end's slip detector takes miscalibrated wheels "
+            "for slipping ones and its slip factors switch them off"
+        )
+    if smoother.calibrate_wheels:
+        calibration_initial, calibration_prior = _wheel_calibration_prior(frontend, cfg, dtype)
 
     # pseudo-measurements where the front end applied them
     nhc_index = torch.zeros(0, dtype=torch.long)
@@ -622,7 +728,31 @@ def build_graph(
         zupt_index=zupt_index,
         zupt_covariance=zupt_covariance,
         plane_covariance=plane_covariance,
+        wheel_samples=wheel_samples,
+        calibration_initial=calibration_initial,
+        calibration_prior=calibration_prior,
     )
+
+
+def _wheel_calibration_prior(
+    frontend: EskfResult, cfg: EskfConfig, dtype: torch.dtype
+) -> tuple[torch.Tensor, tuple[torch.Tensor, torch.Tensor]]:
+    """Starting value (1, 1, 3) of ``[k_l, k_r, D]`` and its prior mean (1, 1, 3) and
+    covariance (1, 1, 3, 3): the front end's initial calibration and sigmas; the start is
+    the front end's final estimate when it calibrated its wheels, else the prior mean."""
+    mean = torch.tensor(
+        [*map(float, cfg.calibration_wheel_radius_ratio), float(cfg.wheel_track_m)], dtype=dtype
+    )
+    sigma = torch.tensor(
+        [cfg.calibration_wheel_radius_sigma] * 2 + [cfg.calibration_wheel_track_sigma_m],
+        dtype=dtype,
+    )
+    start = mean
+    names = frontend.calibration_names
+    if frontend.calibration is not None and all(name in names for name in WHEEL_STATES):
+        columns = [names.index(name) for name in WHEEL_STATES]
+        start = frontend.calibration[0, -1, columns].to(dtype)
+    return start[None, None].clone(), (mean[None, None], torch.diag(sigma**2)[None, None])
 
 
 def chain_covariance(problem: Problem, values: dict[str, torch.Tensor]) -> torch.Tensor:
@@ -669,6 +799,68 @@ def chain_covariance(problem: Problem, values: dict[str, torch.Tensor]) -> torch
     return torch.stack(covariance[::-1], 1)
 
 
+def bordered_chain_covariance(
+    problem: Problem, values: dict[str, torch.Tensor], border: str
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Marginal covariances of a chain of K variables bordered by one global variable.
+
+    The chain group's factors join one variable or two consecutive ones, and any factor may
+    also join the single variable of group ``border`` (e.g. a run's wheel calibration), so
+    the Gauss-Newton Hessian is ``[[A, B], [B^T, C]]`` with ``A`` block tridiagonal. With
+    ``X = A^-1 B`` (block forward / back substitution) the border's covariance is
+    ``Sigma_c = (C - B^T X)^-1`` and the chain's diagonal blocks are
+    ``(A^-1)_kk + X_k Sigma_c X_k^T`` (``(A^-1)_kk`` as in :func:`chain_covariance`); O(K).
+    The problem must have the chain group first, ``border`` second and nothing fixed.
+
+    Returns:
+        chain covariances (B, K, D, D) and the border's covariance (B, M, M).
+    Raises:
+        ValueError: a factor joins non-consecutive chain variables or more than two.
+    """
+    chain_name = next(name for name in problem.values if name != border)
+    value = values[chain_name]
+    batch, count = value.shape[:2]
+    dim = problem.kinds[chain_name].tangent_dim
+    width = problem.kinds[border].tangent_dim
+    diag = value.new_zeros(batch, count, dim, dim)
+    upper = value.new_zeros(batch, max(count - 1, 0), dim, dim)
+    cross = value.new_zeros(batch, count, dim, width)
+    corner = value.new_zeros(batch, width, width)
+    for factor, (_, jacs, _) in zip(problem.factors, problem.whitened(values), strict=True):
+        slots = list(zip(factor.slots, jacs, strict=True))
+        chain = [(idx, jac) for (group, idx), jac in slots if group != border]
+        rim = [jac for (group, _), jac in slots if group == border]
+        if len(chain) > 2 or len(rim) > 1:
+            raise ValueError("bordered_chain_covariance: a factor joins more than two variables")
+        if len(chain) == 2 and not bool((chain[1][0] == chain[0][0] + 1).all()):
+            raise ValueError("bordered_chain_covariance: a factor joins non-consecutive variables")
+        for idx, jac in chain:
+            diag = diag.index_add(1, idx, jac.mT @ jac)
+            if rim:
+                cross = cross.index_add(1, idx, jac.mT @ rim[0])
+        if len(chain) == 2:
+            upper = upper.index_add(1, chain[0][0], chain[0][1].mT @ chain[1][1])
+        if rim:
+            corner = corner + (rim[0].mT @ rim[0]).sum(1)
+    inverse = [torch.linalg.inv(diag[:, 0])]
+    forward = [cross[:, 0]]
+    for k in range(1, count):
+        link = upper[:, k - 1]
+        schur = diag[:, k] - link.mT @ inverse[-1] @ link
+        inverse.append(torch.linalg.inv(schur))
+        forward.append(cross[:, k] - link.mT @ inverse[-2] @ forward[-1])
+    solved = [inverse[-1] @ forward[-1]]  # X = A^-1 B, from the last block back
+    covariance = [inverse[-1]]
+    for k in range(count - 2, -1, -1):
+        gain = inverse[k] @ upper[:, k]
+        solved.append(inverse[k] @ forward[k] - gain @ solved[-1])
+        covariance.append(inverse[k] + gain @ covariance[-1] @ gain.mT)
+    solved_x = torch.stack(solved[::-1], 1)  # (B, K, D, M)
+    border_cov = torch.linalg.inv(corner - (cross.mT @ solved_x).sum(1))
+    chain_cov = torch.stack(covariance[::-1], 1) + solved_x @ border_cov[:, None] @ solved_x.mT
+    return chain_cov, border_cov
+
+
 @dataclass
 class SmootherResult:
     """Outcome of a smoother on one sequence (B = 1, K keyframes).
@@ -685,6 +877,11 @@ class SmootherResult:
             at the smoothed states (the same yardstick for both modes).
         wall_s: seconds for graph building and solving.
         output: the smoothed trajectory (keyframes or front-end epochs, per ``output``).
+        calibration_names: the calibration variable's entries (``calibrate_wheels``:
+            ``frontend.calibration.WHEEL_STATES``), or ().
+        calibration: (1, 3) its estimate ``[k_l, k_r, D]``, or None.
+        calibration_sigma: (1, 3) marginal 1-sigma from the solved information matrix, or
+            None (also when ``covariance`` is off).
     """
 
     mode: str
@@ -696,6 +893,9 @@ class SmootherResult:
     cost: float
     wall_s: float
     output: Trajectory
+    calibration_names: tuple[str, ...] = ()
+    calibration: torch.Tensor | None = None
+    calibration_sigma: torch.Tensor | None = None
 
     def trajectory(self) -> Trajectory:
         """The smoothed keyframe poses as a :class:`Trajectory` (1, K)."""
@@ -724,6 +924,15 @@ class SmootherResult:
             "wall_s": self.wall_s,
             "output_poses": int(self.output.mask.sum()),
         }
+        if self.calibration is not None:
+            sigma = self.calibration_sigma
+            out["calibration"] = {
+                name: {
+                    "estimate": float(self.calibration[0, k]),
+                    "sigma": None if sigma is None else float(sigma[0, k]),
+                }
+                for k, name in enumerate(self.calibration_names)
+            }
         return out
 
 
@@ -744,20 +953,46 @@ def _lm_config(smoother: SmootherConfig, solver: str) -> LMConfig:
 def smooth_full(
     graph: KeyframeGraph, smoother: SmootherConfig | None = None
 ) -> tuple[torch.Tensor, torch.Tensor | None, list[LMResult]]:
-    """Full-batch smoothing of every keyframe in one LM solve.
+    """Full-batch smoothing of every keyframe in one LM solve (a calibrated graph's
+    calibration estimate comes from :func:`smooth_full_calibrated`).
 
     Returns:
         states (1, K, 21), variances (1, K, 15) or None, ``[LMResult]``.
     """
     smoother = smoother or SmootherConfig()
+    states, variance, results, _, _ = smooth_full_calibrated(graph, smoother)
+    return states, variance, results
+
+
+def smooth_full_calibrated(
+    graph: KeyframeGraph, smoother: SmootherConfig | None = None
+) -> tuple[
+    torch.Tensor,
+    torch.Tensor | None,
+    list[LMResult],
+    torch.Tensor | None,
+    torch.Tensor | None,
+]:
+    """:func:`smooth_full` that also returns the calibration variable (calibrated graphs).
+
+    Returns:
+        states (1, K, 21), variances (1, K, 15) or None, ``[LMResult]``, calibration
+        (1, 3) ``[k_l, k_r, D]`` or None, its covariance (1, 3, 3) or None.
+    """
+    smoother = smoother or SmootherConfig()
     problem = graph.problem(graph.initial)
     result = solve(problem, _lm_config(smoother, smoother.linear_solver))
     states = result.values[_GROUP]
-    variance = None
-    if smoother.covariance:
+    variance, calibration, calibration_cov = None, None, None
+    if graph.calibrated:
+        calibration = result.values[_CALIB][:, 0]
+    if smoother.covariance and graph.calibrated:
+        covariance, calibration_cov = bordered_chain_covariance(problem, result.values, _CALIB)
+        variance = torch.diagonal(covariance, dim1=-2, dim2=-1)
+    elif smoother.covariance:
         covariance = chain_covariance(problem, result.values)
         variance = torch.diagonal(covariance, dim1=-2, dim2=-1)
-    return states, variance, [result]
+    return states, variance, [result], calibration, calibration_cov
 
 
 def _marginalize(
@@ -846,6 +1081,8 @@ def smooth_window(
         states (1, K, 21), variances (1, K, 15) or None, one ``LMResult`` per window.
     """
     smoother = smoother or SmootherConfig()
+    if graph.calibrated:
+        raise ValueError("smoother.calibrate_wheels: the sliding window does not calibrate")
     count = graph.size
     size, step = smoother.window_size, smoother.window_step
     values = graph.initial.clone()
@@ -960,18 +1197,27 @@ def smooth(
     if mode not in ("full", "window"):
         raise ValueError(f"smoother mode must be 'full' or 'window', got {mode!r}")
     smoother = smoother or SmootherConfig()
+    if mode == "window" and smoother.calibrate_wheels:
+        raise ValueError(
+            "config key 'smoother.calibrate_wheels' is supported by the full batch only "
+            "(msf run --smooth full)"
+        )
     start = time.perf_counter()
+    calibration, calibration_cov = None, None
     with _intra_op_threads(1):  # small matrices: thread hand-offs cost more than they save
         graph = build_graph(seq, frontend, cfg, smoother)
         if mode == "full":
-            states, variance, results = smooth_full(graph, smoother)
+            states, variance, results, calibration, calibration_cov = smooth_full_calibrated(
+                graph, smoother
+            )
             if progress is not None:
                 progress(1, 1)
         else:
             states, variance, results = smooth_window(graph, smoother, progress)
         wall = time.perf_counter() - start
         whole = graph.problem(graph.initial)
-        costs = whole.cost({_GROUP: graph.initial}), whole.cost({_GROUP: states})
+        solved = None if calibration is None else calibration[:, None]
+        costs = whole.cost(graph.values(graph.initial)), whole.cost(graph.values(states, solved))
     if smoother.output == "frontend":
         output = densify(graph.epoch, states, frontend)
     else:
@@ -992,4 +1238,9 @@ def smooth(
         cost=float(costs[1]),
         wall_s=wall,
         output=output,
+        calibration_names=WHEEL_STATES if calibration is not None else (),
+        calibration=calibration,
+        calibration_sigma=None
+        if calibration_cov is None
+        else torch.diagonal(calibration_cov, dim1=-2, dim2=-1).sqrt(),
     )

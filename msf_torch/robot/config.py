@@ -40,7 +40,9 @@ Top-level keys
     Front-end settings: any key of :class:`~msf_torch.frontend.config.EskfConfig`
     (noise densities, sigmas, gating, initialisation, slip detection, ...).
 ``smoother``
-    The back end's section, as in a front-end config (``msf run --smooth``).
+    The back end's section, as in a front-end config (``msf run --smooth``);
+    ``calibrate_wheels: true`` there makes the wheel radii and track width variables of the
+    full-batch smoother (with the wheels' ``calibrate`` on as well).
 
 Derived estimator settings
 --------------------------
