@@ -113,6 +113,7 @@ def simulate_labelled_run(
     min_segment_s: float = 5.0,
     gnss_outage_count: int = 0,
     gnss_outage_duration_s: tuple[float, float] = (10.0, 20.0),
+    unreported_error: bool = True,
 ) -> Sequence:
     """One simulated run (B = 1) with a random weather schedule, weather-driven slip
     episodes and degraded GNSS / pose streams; labels ``"weather:<c>"``, ``"slip"``, ...
@@ -125,6 +126,11 @@ def simulate_labelled_run(
         pose_source: ``"vo"``, ``"lidar"`` or None (see :func:`~msf_torch.sim.apply_weather`).
         mean_segment_s, min_segment_s: weather segment lengths, s
             (:meth:`~msf_torch.sim.WeatherSchedule.random`).
+        gnss_outage_count, gnss_outage_duration_s: random GNSS outages
+            (:class:`~msf_torch.sim.SimConfig`).
+        unreported_error: the VO / LiDAR weather error their covariances do not report
+            (:func:`~msf_torch.sim.apply_weather`; on for learning: it is what the
+            network can learn beyond the declared covariances).
     """
     s_schedule, s_slip, s_run, s_weather = (
         int(x) for x in np.random.SeedSequence(int(seed)).generate_state(4)
@@ -139,7 +145,9 @@ def simulate_labelled_run(
         gnss_outage_duration_s=gnss_outage_duration_s,
     )
     run = simulate_run(weather_slip_config(base, schedule, s_slip), s_run)
-    wet = apply_weather(run, schedule, s_weather, pose_source=pose_source)
+    wet = apply_weather(
+        run, schedule, s_weather, pose_source=pose_source, unreported_error=unreported_error
+    )
     return dataclasses.replace(wet.sequence, names=[f"sim-{seed}"])
 
 

@@ -30,10 +30,36 @@ those quantities into degraded streams:
   the open (``H = n / (3 sigma_pt^2) I``); in a corridor only a fraction ``f`` of them faces
   along the corridor axis ``a``, ``H = (n / sigma_pt^2) (f a a^T + (1 - f) / 2 (I - a a^T))``,
   so the covariance ``H^-1`` is largest along the corridor (degeneracy).
+* **Unmodelled error** (both pose sources). An odometry front end reports the covariance its
+  estimator can compute: nominal per-feature (per-point) noise over the number of features
+  (points) it used. Weather adds error that this covariance does not see, so the emitted
+  white noise has covariance ``k^2`` times the reported one (``k`` = ``error_scale``):
+
+  - VO, contrast: corner localisation error is inversely proportional to the feature's
+    contrast-to-noise ratio (Cramér-Rao bound of edge / corner localisation). With scene
+    contrasts exponential, the CNR of a detected feature is ``CNR_min + X``,
+    ``X ~ Exp(m)``, ``m = c_mean T S / sqrt(S + r^2)`` (the exponential is memoryless), so
+    ``E[1/CNR^2] = (1/m) (1/a - (1/m) e^(a/m) E_1(a/m))`` with ``a = CNR_min``. The reported
+    ``sigma_1`` is calibrated on clear-daylight features (``T = 1``, full signal, contrast
+    ``calibration_contrast``).
+  - VO, motion blur: the exposure ``t_e = t_max S / (k E)`` grows to ``t_max`` in the dark;
+    image points move at ``f (|omega| + v / d)`` px/s (rotation plus translation parallax at
+    the feature depth), smearing a feature over ``b = f (|omega| + v / d) t_e`` px, a box
+    of variance ``b^2 / 12``. Per-feature variance ``sigma_px^2 E[1/CNR^2] / E_ref[1/CNR^2]
+    + b^2 / 12`` against the reported ``sigma_px^2``.
+  - LiDAR, clutter: a multi-echo LiDAR also reports echoes of fog, rain or snow particles
+    beyond the near gate, out to ``g_c`` where particle backscatter falls below the
+    detection threshold: per beam with probability ``p_c = e^(-alpha g) (1 - e^(-alpha
+    (g_c - g)))``. Registration cannot tell them from surface points: it reports
+    ``sigma_pt^2 / (n_s + n_c)``, while a clutter point's residual after the robust kernel
+    has sigma ``sigma_c``, so ``k^2 = (n_s + n_c sigma_c^2 / sigma_pt^2) / (n_s + n_c)``.
+
 * **Drift** (both pose sources): the odometry frame wanders from the world frame as a random
   walk in distance travelled ``s``: position increments ``N(0, q_p^2 ds)`` drawn in the body
-  frame and rotated to world, rotation increments ``N(0, q_theta^2 ds)`` (body). A source's
-  per-sample covariance describes its white noise only; the drift is returned separately
+  frame and rotated to world, rotation increments ``N(0, q_theta^2 ds)`` (body), each
+  step times the sample's ``error_scale`` ``k`` (drift accumulates the frame-to-frame
+  errors, which grow with the same per-feature error). A source's per-sample covariance
+  describes its white noise only (before ``k``); the drift is returned separately
   (:class:`PoseSourceTruth`) so that it can be evaluated.
 * **Wheels** (:class:`WheelModel`, :func:`weather_slip_config`). High-traction-demand events
   (kerbs, bumps, starts) arrive at rate ``lambda_0``; their peak friction demand is
@@ -102,7 +128,7 @@ from typing import Any
 
 import numpy as np
 import torch
-from scipy.special import lambertw
+from scipy.special import exp1, lambertw
 
 from msf_torch.geometry import so3
 from msf_torch.geometry.quaternion import matrix_to_quat
@@ -383,6 +409,11 @@ class CameraModel:
         rotation_sigma_one_feature_rad: ``sigma_1`` rotation (per axis, body), rad.
         drift_position_m_per_sqrt_m: ``q_p``, m/sqrt(m).
         drift_rotation_rad_per_sqrt_m: ``q_theta``, rad/sqrt(m).
+        focal_length_px: focal length ``f``, px.
+        max_exposure_s: ``t_max``, longest exposure (signal ``k E`` is reached there), s.
+        feature_sigma_px: ``sigma_px``, localisation error of a clear-daylight feature, px.
+        calibration_contrast: ``c_mean`` of the clear-daylight scene on which ``sigma_1``
+            was calibrated.
     """
 
     rate_hz: float = 10.0
@@ -397,6 +428,10 @@ class CameraModel:
     rotation_sigma_one_feature_rad: float = 0.02
     drift_position_m_per_sqrt_m: float = 0.01
     drift_rotation_rad_per_sqrt_m: float = 1e-3
+    focal_length_px: float = 450.0
+    max_exposure_s: float = 0.03
+    feature_sigma_px: float = 0.3
+    calibration_contrast: float = 0.10
 
     def signal_electrons(self, illuminance_lux: np.ndarray) -> np.ndarray:
         """Pixel signal ``S = min(target, k E)`` (...,), e-."""
@@ -421,6 +456,55 @@ class CameraModel:
         root = np.sqrt(np.maximum(np.asarray(features, np.float64), 1.0))
         return self.position_sigma_one_feature_m / root, self.rotation_sigma_one_feature_rad / root
 
+    def mean_cnr(self, condition: WeatherCondition) -> float:
+        """``m = c_mean T S / sqrt(S + r^2)``, mean CNR of the scene's candidate features."""
+        beta = extinction_coefficient(
+            condition.visibility_m, rain_rate_mm_h=condition.rain_rate_mm_h
+        )
+        transmittance = math.exp(-float(beta) * self.feature_depth_m)
+        signal = float(self.signal_electrons(condition.illuminance_lux))
+        noise = math.sqrt(signal + self.read_noise_electrons**2)
+        return condition.scene_contrast * transmittance * signal / noise
+
+    def inverse_cnr_squared(self, mean_cnr: float) -> float:
+        """``E[1 / CNR^2]`` of detected features, ``CNR = CNR_min + Exp(mean_cnr)``."""
+        a, m = self.detection_cnr, mean_cnr
+        z = a / m
+        # e^z E_1(z); asymptotic series where exp(z) would overflow
+        if z < 300.0:
+            scaled = math.exp(z) * float(exp1(z))
+        else:
+            scaled = (1 - 1 / z + 2 / z**2 - 6 / z**3 + 24 / z**4) / z
+        return (1.0 / a - scaled / m) / m
+
+    def exposure_s(self, illuminance_lux: float) -> float:
+        """``t_e = t_max S / (k E)``, s."""
+        signal = float(self.signal_electrons(illuminance_lux))
+        return self.max_exposure_s * signal / (self.electrons_per_lux * illuminance_lux)
+
+    def error_scale(
+        self, condition: WeatherCondition, speed: np.ndarray, angular_rate: np.ndarray
+    ) -> np.ndarray:
+        """``k`` (N,): true over reported sigma from contrast and motion blur.
+
+        Args:
+            condition: the weather.
+            speed: (N,) m/s.
+            angular_rate: (N,) ``|omega|``, rad/s.
+        """
+        clear = dataclasses.replace(
+            DEFAULT_CONDITIONS["sunny"],
+            visibility_m=1e9,
+            illuminance_lux=self.target_signal_electrons / self.electrons_per_lux * 1e3,
+            scene_contrast=self.calibration_contrast,
+        )
+        ratio = self.inverse_cnr_squared(self.mean_cnr(condition)) / self.inverse_cnr_squared(
+            self.mean_cnr(clear)
+        )
+        image_rate = np.asarray(angular_rate) + np.asarray(speed) / self.feature_depth_m
+        blur_px = self.focal_length_px * image_rate * self.exposure_s(condition.illuminance_lux)
+        return np.sqrt(ratio + blur_px**2 / 12.0 / self.feature_sigma_px**2)
+
 
 @dataclass(frozen=True)
 class LidarModel:
@@ -443,6 +527,9 @@ class LidarModel:
             axis in a corridor (1/3 means isotropic).
         drift_position_m_per_sqrt_m: ``q_p``, m/sqrt(m).
         drift_rotation_rad_per_sqrt_m: ``q_theta``, rad/sqrt(m).
+        clutter_range_m: ``g_c``, range out to which particle echoes are detected, m.
+        clutter_residual_sigma_m: ``sigma_c``, residual of a clutter point after the
+            registration's robust kernel, m.
     """
 
     rate_hz: float = 10.0
@@ -457,6 +544,8 @@ class LidarModel:
     corridor_axial_normal_fraction: float = 0.02
     drift_position_m_per_sqrt_m: float = 0.002
     drift_rotation_rad_per_sqrt_m: float = 2e-4
+    clutter_range_m: float = 10.0
+    clutter_residual_sigma_m: float = 1.0
 
     def extinction(self, condition: WeatherCondition) -> float:
         """``alpha`` at the laser wavelength, 1/m."""
@@ -475,6 +564,18 @@ class LidarModel:
     def spurious_probability(self, alpha: float) -> float:
         """``p_spur = 1 - exp(-alpha g)``."""
         return -math.expm1(-alpha * self.near_gate_m)
+
+    def clutter_probability(self, alpha: float) -> float:
+        """``p_c = e^(-alpha g) (1 - e^(-alpha (g_c - g)))``, particle echo past the gate."""
+        gap = max(self.clutter_range_m - self.near_gate_m, 0.0)
+        return math.exp(-alpha * self.near_gate_m) * -math.expm1(-alpha * gap)
+
+    def error_scale(self, surface_points: np.ndarray, clutter_points: np.ndarray) -> np.ndarray:
+        """``k = sqrt((n_s + n_c sigma_c^2 / sigma_pt^2) / (n_s + n_c))`` (N,)."""
+        surface = np.asarray(surface_points, np.float64)
+        clutter = np.asarray(clutter_points, np.float64)
+        ratio = (self.clutter_residual_sigma_m / self.point_sigma_m) ** 2
+        return np.sqrt((surface + clutter * ratio) / np.maximum(surface + clutter, 1.0))
 
     def expected_points(self, condition: WeatherCondition) -> float:
         """Valid points ``n (1 - exp(-R_max / L)) (1 - p_spur)``."""
@@ -582,6 +683,8 @@ class PoseSourceTruth:
         drift: (N, 6) ``[dp (world, m), dtheta (body, rad)]`` of the odometry frame.
         noise: (N, 6) white error, same layout; the emitted error is ``drift + noise``.
         corridor: (N,) bool, inside a corridor (LiDAR; all False for VO).
+        error_scale: (N,) ``k``, emitted white-noise sigma over the reported one.
+        clutter: (N,) particle echoes taken as points (LiDAR; zeros for VO).
     """
 
     t: np.ndarray
@@ -591,6 +694,8 @@ class PoseSourceTruth:
     drift: np.ndarray
     noise: np.ndarray
     corridor: np.ndarray
+    error_scale: np.ndarray
+    clutter: np.ndarray
 
 
 @dataclass
@@ -670,9 +775,11 @@ def _drift(
     q_position: float,
     q_rotation: float,
     rng: np.random.Generator,
+    scale: np.ndarray,
 ) -> np.ndarray:
-    """(N, 6) random-walk drift from per-sample distances (N,) m; zero at the first sample."""
-    root = np.sqrt(distance)[:, None]
+    """(N, 6) random-walk drift from per-sample distances (N,) m, steps times ``scale``
+    (N,); zero at the first sample."""
+    root = (np.sqrt(distance) * scale)[:, None]
     step_p = np.einsum("nij,nj->ni", rotation, rng.normal(0.0, 1.0, (len(distance), 3))) * root
     step_r = rng.normal(0.0, 1.0, (len(distance), 3)) * root
     steps = np.concatenate((q_position * step_p, q_rotation * step_r), -1)
@@ -722,11 +829,13 @@ def _block_diag(position_cov: np.ndarray, rotation_var: np.ndarray) -> np.ndarra
 
 
 def _sample_error(
-    covariance: np.ndarray, drift: np.ndarray, rng: np.random.Generator
+    covariance: np.ndarray, drift: np.ndarray, rng: np.random.Generator, scale: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:
-    """White noise ``L z`` (N, 6) with ``L L^T = covariance``, and ``drift + noise``."""
+    """White noise ``k L z`` (N, 6) with ``L L^T = covariance``, ``k = scale`` (N,), and
+    ``drift + noise``."""
     chol = np.linalg.cholesky(covariance)
     noise = np.einsum("nij,nj->ni", chol, rng.normal(0.0, 1.0, (len(covariance), 6)))
+    noise = noise * scale[:, None]
     return noise, drift + noise
 
 
@@ -741,6 +850,7 @@ def apply_weather(
     lidar: LidarModel | None = None,
     gnss: GnssModel | None = None,
     pose_source: str | None = None,
+    unreported_error: bool = False,
 ) -> WeatherRun:
     """Degrade a simulated run under ``schedule``: VO and LiDAR pose streams, GNSS, labels.
 
@@ -763,6 +873,10 @@ def apply_weather(
             ``sequence.poses``, where the filter fuses it as absolute poses. Both streams are
             always in ``sequence.pose_sources``, fused as odometry; name one here only for a
             filter configured with ``pose_sources`` that excludes it, or it is used twice.
+        unreported_error: emit the weather error the sources do not report (VO contrast
+            and motion blur, LiDAR clutter: ``error_scale`` ``k``, see the module
+            docstring). False (default) keeps ``k = 1`` and draws no clutter: the declared
+            covariances are then exact, the idealisation the filter-consistency tests use.
 
     Returns:
         :class:`WeatherRun`, float64 CPU tensors, B = 1.
@@ -803,6 +917,11 @@ def apply_weather(
     features = rng_vo.poisson(expected).astype(np.float64)
     sig_p, sig_r = camera.sigmas(features)
     cov = _block_diag(sig_p[:, None, None] ** 2 * np.eye(3), sig_r**2)
+    rate = np.linalg.norm(state.angular_velocity, axis=-1)
+    scale = np.ones(len(t_vo))
+    for k, condition in enumerate(segment_conditions):
+        here = (seg == k) & unreported_error
+        scale[here] = camera.error_scale(condition, state.speed[here], rate[here])
     distance = np.linalg.norm(np.diff(state.position, axis=0, prepend=state.position[:1]), axis=-1)
     drift = _drift(
         state.rotation,
@@ -810,12 +929,21 @@ def apply_weather(
         camera.drift_position_m_per_sqrt_m,
         camera.drift_rotation_rad_per_sqrt_m,
         rng_vo,
+        scale,
     )
-    noise, error = _sample_error(cov, drift, rng_vo)
+    noise, error = _sample_error(cov, drift, rng_vo, scale)
     keep = features >= camera.min_tracked_features
     sources["vo"] = _pose_stream(t_vo, state.position, state.rotation, error, cov, keep)
     source_truth["vo"] = PoseSourceTruth(
-        t_vo, seg, expected, features, drift, noise, np.zeros(len(t_vo), dtype=bool)
+        t_vo,
+        seg,
+        expected,
+        features,
+        drift,
+        noise,
+        np.zeros(len(t_vo), dtype=bool),
+        scale,
+        np.zeros(len(t_vo)),
     )
 
     # LiDAR ------------------------------------------------------------------------------
@@ -824,12 +952,22 @@ def apply_weather(
     seg = schedule.index_at(t_li)
     expected = np.array([lidar.expected_points(c) for c in segment_conditions])[seg]
     points = rng_lidar.binomial(lidar.scan_points, expected / lidar.scan_points).astype(np.float64)
+    p_clutter = np.array(
+        [lidar.clutter_probability(lidar.extinction(c)) for c in segment_conditions]
+    )[seg]
+    clutter = (
+        rng_lidar.binomial(lidar.scan_points, p_clutter).astype(np.float64)
+        if unreported_error
+        else np.zeros(len(t_li))
+    )
+    accepted = points + clutter
     horizontal = state.velocity * np.array([1.0, 1.0, 0.0])
     axis = horizontal / np.linalg.norm(horizontal, axis=-1, keepdims=True)
     corridor = _inside(t_li, environment.corridors_s)
-    pos_cov = lidar.position_covariance(points, axis, corridor)
-    rot_var = lidar.rotation_sigma_one_point_rad**2 / np.maximum(points, 1.0)
+    pos_cov = lidar.position_covariance(accepted, axis, corridor)
+    rot_var = lidar.rotation_sigma_one_point_rad**2 / np.maximum(accepted, 1.0)
     cov = _block_diag(pos_cov, rot_var)
+    scale = lidar.error_scale(points, clutter)
     distance = np.linalg.norm(np.diff(state.position, axis=0, prepend=state.position[:1]), axis=-1)
     drift = _drift(
         state.rotation,
@@ -837,11 +975,14 @@ def apply_weather(
         lidar.drift_position_m_per_sqrt_m,
         lidar.drift_rotation_rad_per_sqrt_m,
         rng_lidar,
+        scale,
     )
-    noise, error = _sample_error(cov, drift, rng_lidar)
+    noise, error = _sample_error(cov, drift, rng_lidar, scale)
     keep = points >= lidar.min_valid_points
     sources["lidar"] = _pose_stream(t_li, state.position, state.rotation, error, cov, keep)
-    source_truth["lidar"] = PoseSourceTruth(t_li, seg, expected, points, drift, noise, corridor)
+    source_truth["lidar"] = PoseSourceTruth(
+        t_li, seg, expected, points, drift, noise, corridor, scale, clutter
+    )
 
     # GNSS -------------------------------------------------------------------------------
     old = run.sequence.gnss
@@ -891,6 +1032,8 @@ def apply_weather(
         "gnss": dataclasses.asdict(gnss),
         "pose_source": pose_source,
     }
+    if unreported_error:  # absent when off: metadata of earlier runs stays as it was
+        meta["weather"]["unreported_error"] = True
     sequence = dataclasses.replace(
         run.sequence,
         gnss=degraded_gnss,

@@ -232,3 +232,26 @@ def test_truth_at_interpolates_position_and_picks_nearer_rotation() -> None:
     yaw = torch.atan2(rot[0, :, 1, 0], rot[0, :, 0, 0])
     expected = torch.tensor([0.0, math.pi, math.pi, math.pi], dtype=torch.float64)
     assert torch.allclose(yaw.abs(), expected, atol=1e-12)
+
+
+def test_labelled_runs_carry_the_unreported_weather_error():
+    """Training runs emit the weather error the sources do not report (error scale k >= 1,
+    sim.weather); switched off, the same draws give streams whose error the declared
+    covariances describe. The declared covariances are the same either way."""
+    on = simulate_labelled_run(3, 12.0)
+    off = simulate_labelled_run(3, 12.0, unreported_error=False)
+    assert on.meta["weather"]["unreported_error"] is True
+    assert "unreported_error" not in off.meta["weather"]
+    truth = on.ground_truth
+    stride = round(float(on.pose_sources["vo"].t[0, 1] - on.pose_sources["vo"].t[0, 0]) * 100)
+    rms = {}
+    for name, seq in (("on", on), ("off", off)):
+        vo = seq.pose_sources["vo"]
+        true_position = truth.position[:, ::stride][:, : vo.t.shape[1]]
+        torch.testing.assert_close(truth.t[:, ::stride][:, : vo.t.shape[1]], vo.t)
+        err = (vo.position - true_position)[vo.mask]
+        rms[name] = float(err.pow(2).sum(-1).mean().sqrt())
+    torch.testing.assert_close(
+        on.pose_sources["vo"].covariance, off.pose_sources["vo"].covariance, rtol=0.0, atol=0.0
+    )
+    assert rms["on"] > 1.05 * rms["off"], rms

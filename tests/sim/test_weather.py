@@ -9,7 +9,7 @@ import math
 import numpy as np
 import pytest
 import torch
-from scipy import stats
+from scipy import integrate, stats
 
 from msf_torch.geometry.quaternion import quat_to_matrix
 from msf_torch.sensors.pose import pose_residual
@@ -178,17 +178,24 @@ def _residuals(run, stream, t: np.ndarray) -> np.ndarray:
     return residual.numpy()
 
 
-def test_emitted_noise_matches_declared_covariance(run):
+@pytest.mark.parametrize("unreported", [False, True])
+def test_emitted_noise_matches_declared_covariance(run, unreported):
     env = Environment(corridors_s=((20.0, 40.0),))
     for source in ("vo", "lidar"):
         white, nees = [], []
         for seed in range(4):
-            out = apply_weather(run, _schedule(), seed, environment=env)
+            out = apply_weather(
+                run, _schedule(), seed, environment=env, unreported_error=unreported
+            )
             stream, truth = out.pose_sources[source], out.source_truth[source]
+            if not unreported:
+                np.testing.assert_array_equal(truth.error_scale, 1.0)
+                np.testing.assert_array_equal(truth.clutter, 0.0)
             keep = stream.mask[0].numpy()
             noise = (_residuals(run, stream, truth.t) - truth.drift)[keep]
             np.testing.assert_allclose(noise, truth.noise[keep], atol=1e-9)
-            cov = stream.covariance[0].numpy()[keep]
+            # emitted = error_scale^2 x declared (the weather error the source cannot see)
+            cov = stream.covariance[0].numpy()[keep] * truth.error_scale[keep, None, None] ** 2
             chol = np.linalg.cholesky(cov)
             w = np.linalg.solve(chol, noise[..., None])[..., 0]
             white.append(w)
@@ -223,12 +230,12 @@ def test_declared_covariances_follow_the_models(run):
 
 
 def test_drift_is_a_random_walk_in_distance(run):
-    out = apply_weather(run, _schedule(), 5)
+    out = apply_weather(run, _schedule(), 5, unreported_error=True)
     for source, model in (("vo", CameraModel()), ("lidar", LidarModel())):
         truth = out.source_truth[source]
         state = run.path.evaluate(truth.t)
         ds = np.linalg.norm(np.diff(state.position, axis=0), axis=-1)
-        step = np.diff(truth.drift, axis=0) / np.sqrt(ds)[:, None]
+        step = np.diff(truth.drift, axis=0) / (np.sqrt(ds) * truth.error_scale[1:])[:, None]
         body_p = np.einsum("nji,nj->ni", state.rotation[1:], step[:, :3])
         z = np.concatenate(
             (
@@ -240,6 +247,65 @@ def test_drift_is_a_random_walk_in_distance(run):
         np.testing.assert_array_equal(truth.drift[0], 0.0)
         assert abs((z**2).mean() - 1.0) < 4.0 * math.sqrt(2.0 / z.size)
         assert abs(z.mean()) < 4.0 / math.sqrt(z.size)
+
+
+def test_vo_error_scale_from_contrast_and_motion_blur():
+    camera = CameraModel()
+    a = camera.detection_cnr
+
+    def inverse_cnr_squared(mean: float) -> float:  # E[1/(a + X)^2], X ~ Exp(mean), by quadrature
+        return integrate.quad(lambda x: math.exp(-x / mean) / mean / (a + x) ** 2, 0, np.inf)[0]
+
+    for mean in (0.005, 0.05, 0.7, 2.0, 7.0, 40.0):
+        closed_form = camera.inverse_cnr_squared(mean)
+        assert closed_form == pytest.approx(inverse_cnr_squared(mean), rel=1e-7)
+    sunny, night = DEFAULT_CONDITIONS["sunny"], DEFAULT_CONDITIONS["night"]
+    # clear daylight at rest is the calibration: k = 1; sunny (V = 20 km) barely above
+    clear = dataclasses.replace(sunny, visibility_m=1e9)
+    assert camera.error_scale(clear, np.zeros(1), np.zeros(1))[0] == pytest.approx(1.0, rel=1e-9)
+    assert camera.error_scale(sunny, np.zeros(1), np.zeros(1))[0] == pytest.approx(1.0, rel=1e-3)
+    # night: full exposure t_max, blur b = f (|w| + v / d) t_max px, box variance b^2 / 12
+    speed, rate = np.array([0.0, 1.5, 1.5]), np.array([0.0, 0.0, 0.2])
+    contrast = camera.inverse_cnr_squared(camera.mean_cnr(night)) / camera.inverse_cnr_squared(
+        camera.mean_cnr(clear)
+    )
+    blur = 450.0 * (rate + speed / 10.0) * 0.03
+    expected = np.sqrt(contrast + blur**2 / 12.0 / 0.3**2)
+    np.testing.assert_allclose(camera.error_scale(night, speed, rate), expected, rtol=1e-12)
+    assert camera.error_scale(night, speed, rate)[2] > 3.0  # several-fold at night in a turn
+
+
+def test_lidar_clutter_error_scale_matches_least_squares_monte_carlo():
+    lidar = LidarModel()
+    fog = DEFAULT_CONDITIONS["fog"]
+    alpha = lidar.extinction(fog)
+    p_c = lidar.clutter_probability(alpha)
+    assert p_c == pytest.approx(math.exp(-2.0 * alpha) * (1.0 - math.exp(-8.0 * alpha)), rel=1e-12)
+    assert lidar.clutter_probability(0.0) == 0.0
+    # equal-weight least squares of an offset from n_s surface points (sigma 0.2 m) and n_c
+    # clutter points (sigma 1 m) vs the reported sigma_pt^2 / (n_s + n_c)
+    rng = np.random.default_rng(0)
+    n_s, n_c, trials = 260, 110, 20000
+    residuals = np.concatenate(
+        (rng.normal(0, 0.2, (trials, n_s)), rng.normal(0, 1.0, (trials, n_c))), 1
+    )
+    ratio = residuals.mean(1).var() / (0.2**2 / (n_s + n_c))
+    k = float(lidar.error_scale(np.array([n_s]), np.array([n_c]))[0])
+    assert abs(ratio - k**2) < 4.0 * k**2 * math.sqrt(2.0 / trials)
+    assert lidar.error_scale(np.array([300.0]), np.array([0.0]))[0] == 1.0
+
+
+def test_weather_error_scale_reaches_the_streams(run):
+    schedule = WeatherSchedule.from_boundaries([0.0, 30.0, 60.0], ["night", "fog"])
+    out = apply_weather(run, schedule, 1, unreported_error=True)
+    vo, lidar = out.source_truth["vo"], out.source_truth["lidar"]
+    assert np.median(vo.error_scale[vo.condition == 0]) > 2.0  # night: blur
+    assert np.median(vo.error_scale[vo.condition == 1]) < 1.5
+    assert np.median(lidar.error_scale[lidar.condition == 1]) > 2.0  # fog: clutter
+    assert np.median(lidar.error_scale[lidar.condition == 0]) < 1.1
+    fog = lidar.condition == 1
+    p_c = LidarModel().clutter_probability(LidarModel().extinction(DEFAULT_CONDITIONS["fog"]))
+    assert abs(lidar.clutter[fog].mean() - 400 * p_c) < 4.0 * math.sqrt(400 * p_c / fog.sum())
 
 
 def test_dropouts_only_below_the_tracking_threshold(run):
