@@ -38,9 +38,10 @@ the runs where learned beats it: the grid's best set is an argmin over near-ties
 tuning runs and can generalise worse than the config noise, so a target met against
 ``fixed_best`` alone does not show that the network earns its place.
 
-Targets (issue 4): ATE(learned) at least 30 % below ``fixed_best`` and 15 % below
-``fixed_per_weather``; learned weighting better than equal weights in every held-out run and
-better than the best single source in >= 90 % of them; NEES fraction >= 90 %.
+Targets (issue 4): ATE(learned) at least 30 % below the better of ``fixed_best`` and
+``config`` (``ate_target_met`` is judged so) and 15 % below ``fixed_per_weather``; learned
+weighting better than equal weights in every held-out run and better than the best single
+source in >= 90 % of them; NEES fraction >= 90 %.
 
     python benchmarks/learned.py [--checkpoint checkpoints/covnet_weather.pt]
         [--train-runs 8] [--test-runs 10] [--level 1.5]
@@ -316,7 +317,10 @@ def main() -> None:
         ),
         "target_vs_fixed_best": 0.30,
         "target_vs_fixed_per_weather": 0.15,
-        "ate_target_met": 1.0 - ate["learned"] / ate["fixed_best"] >= 0.30
+        # judged against the stronger of the two fixed sets a user could pick without the
+        # test runs (the grid's choice on the tuning runs and the configured noise, itself a
+        # grid point): a grid choice that generalises badly must not make the target easy
+        "ate_target_met": 1.0 - ate["learned"] / min(ate["fixed_best"], ate["config"]) >= 0.30
         and 1.0 - ate["learned"] / ate["fixed_per_weather"] >= 0.15,
         "nees_fraction_inside_95": round(inside / max(total, 1.0), 4),
         "nees_target": 0.90,
