@@ -60,6 +60,7 @@ import numpy as np
 import torch
 from hypothesis import strategies as st
 
+from msf_torch.geometry.quaternion import quat_to_matrix
 from msf_torch.io import (
     DataError,
     MissingExtraError,
@@ -72,6 +73,8 @@ from msf_torch.io import (
     read_tum,
 )
 from msf_torch.io.eqvio import EqvioRun
+from msf_torch.io.kitti_poses import read_kitti_poses
+from msf_torch.io.scans import read_scans
 from msf_torch.types import Sequence, Trajectory
 
 OUTCOMES = ("ok", "data_error", "bad_output", "bad_error", "crash")
@@ -287,6 +290,30 @@ def _build_tum(rng: np.random.Generator) -> tuple[dict[str, Any], str]:
     rows = np.column_stack((_times(rng, n), rng.normal(size=(n, 3)), q[:, 1:], q[:, :1]))
     text = "# t x y z qx qy qz qw\n" + _csv(None, rows, sep=" ")
     return {"traj.tum": text}, "traj.tum"
+
+
+def _build_kitti_poses(rng: np.random.Generator) -> tuple[dict[str, Any], str]:
+    n = int(rng.integers(1, 25))
+    matrices = quat_to_matrix(torch.as_tensor(_quats(rng, n))).numpy()
+    rows = np.concatenate((matrices, rng.normal(size=(n, 3, 1)) * 10), -1).reshape(n, 12)
+    times = _times(rng, n, t0=0.0, step=0.1)[:, None]
+    return {"poses.txt": _csv(None, rows, sep=" "), "times.txt": _csv(None, times)}, ""
+
+
+def _build_scans(rng: np.random.Generator) -> tuple[dict[str, Any], str]:
+    n, k = int(rng.integers(1, 12)), int(rng.integers(2, 40))
+    ranges = rng.uniform(0.1, 30.0, (n, k))
+    ranges[rng.random((n, k)) < 0.1] = np.nan
+    arrays = {
+        "t": _times(rng, n, t0=0.0, step=0.1),
+        "angles": np.linspace(-np.pi / 2, np.pi / 2, k),
+        "ranges": ranges,
+        "odometry": rng.normal(size=(n, 3)),
+        "truth": rng.normal(size=(n, 3)),
+    }
+    if rng.random() < 0.3:
+        del arrays["odometry"], arrays["truth"]
+    return {"scans.npz": arrays}, "scans.npz"
 
 
 def _build_euroc(rng: np.random.Generator) -> tuple[dict[str, Any], str]:
@@ -518,6 +545,22 @@ def _check_trajectory(traj: Trajectory) -> str | None:
     return _check_stream("trajectory", traj)
 
 
+def _check_scans(scans: dict[str, torch.Tensor]) -> str | None:
+    t, angles, ranges = scans["t"], scans["angles"], scans["ranges"]
+    if not (_finite(t) and _increasing(t)):
+        return "t not finite and strictly increasing"
+    if not (_finite(angles) and _increasing(angles)):
+        return "angles not finite and strictly increasing"
+    if ranges.shape != (t.numel(), angles.numel()):
+        return "ranges not (N, K)"
+    if bool((ranges.isinf() | (ranges < 0)).any()):
+        return "ranges hold inf or a negative value"
+    for key in ("odometry", "truth"):
+        if key in scans and not _finite(scans[key]):
+            return f"{key} holds a non-finite value"
+    return None
+
+
 def _check_graph(graph: PoseGraph) -> str | None:
     graph.check()
     for name in ("rotations", "positions", "edge_rotations", "edge_translations"):
@@ -584,10 +627,19 @@ READERS: dict[str, Reader] = {
             _check_graph,
         ),
         Reader("eqvio", _build_eqvio, lambda p, s: load_eqvio(p), _check_eqvio),
+        Reader(
+            "kitti_poses",
+            _build_kitti_poses,
+            lambda p, s: read_kitti_poses(p / "poses.txt", p / "times.txt"),
+            _check_trajectory,
+        ),
+        Reader("scans", _build_scans, lambda p, s: read_scans(p), _check_scans, True),
     )
 }
 """Reader name -> :class:`Reader`: native ``.npz`` and CSV folder, TUM, EuRoC ASL, the KITTI
-files gtsam ships (``data_dir``), g2o and TORO pose graphs, the EqVIO replay CSV."""
+files gtsam ships (``data_dir``), g2o and TORO pose graphs, the EqVIO replay CSV, KITTI
+odometry poses + times, 2D LiDAR scans (``.npz``). Not here: rosbags (binary containers
+written by ``rosbags``; their reader is tested on bags written by its own writers)."""
 
 
 # ----------------------------------------------------------------------------- mutations

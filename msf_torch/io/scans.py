@@ -7,8 +7,8 @@ Keys (float64):
   (0 = sensor x axis, counter-clockwise);
 * ``ranges`` (N, K): ranges, m; NaN (or inf) where a beam returned nothing;
 * ``odometry`` (N, 3), optional: wheel-odometry pose ``[x, y, yaw]`` at each scan (m, rad),
-  used as PLICP's initial guesses;
-* ``truth`` (N, 3), optional: true pose at each scan, for evaluation.
+  used as PLICP's initial guesses; finite;
+* ``truth`` (N, 3), optional: true pose at each scan, for evaluation; finite.
 
 Example:
     >>> from msf_torch.io.scans import read_scans, write_scans
@@ -25,6 +25,7 @@ from __future__ import annotations
 __all__ = ["read_scans", "write_scans"]
 
 import os
+import zipfile
 from pathlib import Path
 
 import numpy as np
@@ -69,7 +70,7 @@ def read_scans(path: str | os.PathLike[str]) -> dict[str, torch.Tensor]:
     try:
         with np.load(source) as data:
             arrays = {key: np.asarray(data[key], dtype=np.float64) for key in data.files}
-    except (OSError, ValueError) as err:
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile) as err:
         raise DataError(source, f"cannot read as .npz: {err}") from err
     for key in ("t", "angles", "ranges"):
         if key not in arrays:
@@ -83,7 +84,9 @@ def read_scans(path: str | os.PathLike[str]) -> dict[str, torch.Tensor]:
             field="ranges",
         )
     if not np.all(np.isfinite(t)) or np.any(np.diff(t) <= 0):
-        bad = int(np.argmax(~np.isfinite(t[1:]) | (np.diff(t) <= 0))) + 1
+        with np.errstate(invalid="ignore"):
+            wrong = ~np.isfinite(t) | np.concatenate(([False], np.diff(t) <= 0))
+        bad = int(np.argmax(wrong))
         raise DataError(source, f"times must be finite and increasing (scan {bad})", field="t")
     step = np.diff(angles)
     if len(angles) < 2 or not np.all(step > 0) or np.ptp(step) > 1e-6 * abs(step.mean()):
@@ -99,4 +102,7 @@ def read_scans(path: str | os.PathLike[str]) -> dict[str, torch.Tensor]:
             raise DataError(
                 source, f"expected ({t.shape[0]}, 3), got {arrays[key].shape}", field=key
             )
+        if key in arrays and not np.all(np.isfinite(arrays[key])):
+            scan = int(np.argwhere(~np.isfinite(arrays[key]))[0, 0])
+            raise DataError(source, f"non-finite pose at scan {scan}", field=key)
     return {key: torch.as_tensor(value) for key, value in arrays.items()}

@@ -228,3 +228,43 @@ def test_eqvio_meta_json_like_keys_do_not_crash(tmp_path):
     run = load_eqvio(_write(tmp_path / "e.csv", header + rows))
     torch.testing.assert_close(run.R_imu_cam @ run.R_imu_cam.T, torch.eye(3, dtype=torch.float64))
     assert json.dumps(run.meta)
+
+
+def _scan_arrays(n: int = 3, k: int = 5) -> dict[str, np.ndarray]:
+    return {
+        "t": np.arange(n, dtype=np.float64) * 0.1,
+        "angles": np.linspace(-1.0, 1.0, k),
+        "ranges": np.full((n, k), 2.0),
+        "odometry": np.zeros((n, 3)),
+    }
+
+
+@pytest.mark.parametrize("cut", [0, 10, 120])
+def test_truncated_scan_file_is_a_data_error(tmp_path, cut):
+    """Fuzzer finds: a cut .npz raised EOFError (empty member) or BadZipFile."""
+    from msf_torch.io.scans import read_scans
+
+    path = tmp_path / "scans.npz"
+    np.savez(path, **_scan_arrays())
+    path.write_bytes(path.read_bytes()[:cut])
+    with pytest.raises(DataError, match="cannot read as .npz"):
+        read_scans(path)
+
+
+def test_scan_file_single_nan_time_and_nan_odometry(tmp_path):
+    """Fuzzer finds: one scan with a NaN time crashed the error's own argmax; NaN odometry
+    passed through to PLICP's initial guesses."""
+    from msf_torch.io.scans import read_scans
+
+    path = tmp_path / "scans.npz"
+    arrays = _scan_arrays(n=1)
+    arrays["t"][0] = np.nan
+    np.savez(path, **arrays)
+    with pytest.raises(DataError, match=r"finite and increasing \(scan 0\)"):
+        read_scans(path)
+    arrays = _scan_arrays()
+    arrays["odometry"][2, 1] = np.inf
+    np.savez(path, **arrays)
+    with pytest.raises(DataError, match="non-finite pose at scan 2") as info:
+        read_scans(path)
+    assert info.value.field == "odometry"
