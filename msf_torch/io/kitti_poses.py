@@ -94,7 +94,7 @@ def read_kitti_poses(
         t = np.arange(n, dtype=np.float64)
     else:
         times = _tables.read_table(times_path, delimiter=None, header="none", names=["t"])
-        t = times.floats(["t"])[:, 0]
+        t = times.finite_floats(["t"], "times")[:, 0]
         if t.shape[0] != n:
             raise DataError(times.path, f"{t.shape[0]} times for {n} poses in {table.path}")
         back = np.flatnonzero(~(t[1:] > t[:-1]))

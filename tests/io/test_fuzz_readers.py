@@ -268,3 +268,14 @@ def test_scan_file_single_nan_time_and_nan_odometry(tmp_path):
     with pytest.raises(DataError, match="non-finite pose at scan 2") as info:
         read_scans(path)
     assert info.value.field == "odometry"
+
+
+def test_kitti_poses_single_infinite_time_is_a_data_error(tmp_path):
+    """Fuzzer finds (seed 1): a lone time over the float range (400 nines) was read as inf."""
+    from msf_torch.io.kitti_poses import read_kitti_poses
+
+    (tmp_path / "poses.txt").write_text("1 0 0 0 0 1 0 0 0 0 1 0\n")
+    (tmp_path / "times.txt").write_text("9" * 400 + "\n")
+    with pytest.raises(DataError, match="non-finite value") as info:
+        read_kitti_poses(tmp_path / "poses.txt", tmp_path / "times.txt")
+    assert info.value.line == 1 and info.value.field == "t"
