@@ -32,6 +32,8 @@ import dataclasses
 import math
 import os
 import re
+import zipfile
+import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -40,6 +42,20 @@ import numpy as np
 import torch
 
 from msf_torch.io.errors import DataError
+
+NPZ_ERRORS = (
+    OSError,
+    ValueError,
+    EOFError,
+    SyntaxError,
+    KeyError,
+    NotImplementedError,
+    OverflowError,
+    MemoryError,
+    zipfile.BadZipFile,
+    zlib.error,
+)
+"""What numpy's and zipfile's parsers raise on a damaged ``.npz`` archive or member."""
 
 MAX_REPORTED_LINES = 5
 """How many dropped line numbers (or sample indices) per stream are kept in ``meta``."""

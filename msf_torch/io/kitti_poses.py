@@ -25,6 +25,9 @@ from msf_torch.io.errors import DataError
 from msf_torch.types import Trajectory
 
 _COLUMNS = ["r11", "r12", "r13", "tx", "r21", "r22", "r23", "ty", "r31", "r32", "r33", "tz"]
+ROTATION_TOLERANCE = 1e-3
+"""Largest ``|R^T R - I|`` entry a pose's 3x3 block may have (files written with 6-9
+significant digits are orthonormal to ~1e-6); beyond it the line is rejected."""
 
 
 def write_kitti_poses(
@@ -78,14 +81,16 @@ def read_kitti_poses(
 ) -> Trajectory:
     """Read a KITTI pose file (and its times file, else times 0, 1, 2, ... s).
 
-    Rotations are taken as given and converted to unit quaternions (``[w, x, y, z]``).
+    Rotations must be orthonormal within :data:`ROTATION_TOLERANCE` with determinant > 0;
+    they are converted to unit quaternions (``[w, x, y, z]``).
 
     Returns:
         a :class:`~msf_torch.types.Trajectory` with B = 1, float64.
 
     Raises:
-        DataError: a line without 12 numbers, a non-finite entry, a times file of another
-            length, or times that do not increase (naming file and line).
+        DataError: a line without 12 numbers, a non-finite entry, a 3x3 block that is not a
+            rotation, a times file of another length, or times that do not increase (naming
+            file and line).
     """
     table = _tables.read_table(path, delimiter=None, header="none", names=_COLUMNS)
     data = table.finite_floats(_COLUMNS, "poses")
@@ -104,7 +109,21 @@ def read_kitti_poses(
                 times.path, f"time {t[i]!r} does not increase", line=int(times.lines[i]), field="t"
             )
     matrices = data.reshape(n, 3, 4)
-    quat = matrix_to_quat(torch.as_tensor(matrices[:, :, :3]))
+    rotations = matrices[:, :, :3]
+    with np.errstate(over="ignore", invalid="ignore"):
+        off = np.abs(np.swapaxes(rotations, 1, 2) @ rotations - np.eye(3)).max(axis=(1, 2))
+        det = np.linalg.det(rotations)
+    bad = np.flatnonzero(~(off <= ROTATION_TOLERANCE) | ~(det > 0))
+    if bad.size:
+        i = int(bad[0])
+        raise DataError(
+            table.path,
+            f"pose {i}: the 3x3 block is not a rotation (max |R^T R - I| = {off[i]:.3g}, "
+            f"det = {det[i]:.3g})",
+            line=int(table.lines[i]),
+        )
+    quat = matrix_to_quat(torch.as_tensor(rotations))
+    quat = quat / quat.norm(dim=-1, keepdim=True)
     return Trajectory(
         t=torch.as_tensor(t)[None],
         position=torch.as_tensor(matrices[:, :, 3].copy())[None],

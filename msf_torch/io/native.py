@@ -97,8 +97,6 @@ import csv
 import json
 import os
 import re
-import zipfile
-import zlib
 from pathlib import Path
 from typing import Any
 
@@ -184,19 +182,6 @@ _NPZ_FIELDS: dict[str, dict[str, tuple[int, ...]]] = {
 _OPTIONAL = {("gnss", "sigma"), ("poses", "covariance")}
 _NAN_OK = {"gnss": ("sigma",), "poses": ("covariance",)}
 _QUAT_STREAMS = ("poses", "ground_truth")
-# what numpy's and zipfile's parsers raise on a damaged archive or member
-_NPZ_ERRORS = (
-    OSError,
-    ValueError,
-    EOFError,
-    SyntaxError,
-    KeyError,
-    NotImplementedError,
-    OverflowError,
-    MemoryError,
-    zipfile.BadZipFile,
-    zlib.error,
-)
 
 
 # --------------------------------------------------------------------------- reading
@@ -375,7 +360,7 @@ def _read_npz(path: Path, sort: bool) -> Sequence:
     spath = str(path)
     try:
         archive = np.load(path, allow_pickle=False)
-    except _NPZ_ERRORS as err:
+    except _tables.NPZ_ERRORS as err:
         raise DataError(path, f"not a readable .npz file ({type(err).__name__}: {err})") from None
     if not isinstance(archive, np.lib.npyio.NpzFile):
         raise DataError(path, "not a .npz archive (a single .npy array?)")
@@ -385,7 +370,7 @@ def _read_npz(path: Path, sort: bool) -> Sequence:
             contents = {}
             for key in z.files:
                 contents[key] = z[key]
-        except _NPZ_ERRORS as err:
+        except _tables.NPZ_ERRORS as err:
             raise DataError(
                 path, f"corrupt .npz member ({type(err).__name__}: {err})", field=key
             ) from None

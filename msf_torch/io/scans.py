@@ -25,12 +25,12 @@ from __future__ import annotations
 __all__ = ["read_scans", "write_scans"]
 
 import os
-import zipfile
 from pathlib import Path
 
 import numpy as np
 import torch
 
+from msf_torch.io import _tables
 from msf_torch.io.atomic import atomic_save_npz
 from msf_torch.io.errors import DataError
 
@@ -70,7 +70,7 @@ def read_scans(path: str | os.PathLike[str]) -> dict[str, torch.Tensor]:
     try:
         with np.load(source) as data:
             arrays = {key: np.asarray(data[key], dtype=np.float64) for key in data.files}
-    except (OSError, ValueError, EOFError, zipfile.BadZipFile) as err:
+    except _tables.NPZ_ERRORS as err:
         raise DataError(source, f"cannot read as .npz: {err}") from err
     for key in ("t", "angles", "ranges"):
         if key not in arrays:
@@ -89,7 +89,12 @@ def read_scans(path: str | os.PathLike[str]) -> dict[str, torch.Tensor]:
         bad = int(np.argmax(wrong))
         raise DataError(source, f"times must be finite and increasing (scan {bad})", field="t")
     step = np.diff(angles)
-    if len(angles) < 2 or not np.all(step > 0) or np.ptp(step) > 1e-6 * abs(step.mean()):
+    if (
+        len(angles) < 2
+        or not np.all(np.isfinite(step))
+        or not np.all(step > 0)
+        or np.ptp(step) > 1e-6 * abs(step.mean())
+    ):
         raise DataError(source, "beam angles must be evenly spaced and increasing", field="angles")
     with np.errstate(invalid="ignore"):
         negative = np.isfinite(ranges) & (ranges < 0)

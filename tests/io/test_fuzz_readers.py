@@ -279,3 +279,30 @@ def test_kitti_poses_single_infinite_time_is_a_data_error(tmp_path):
     with pytest.raises(DataError, match="non-finite value") as info:
         read_kitti_poses(tmp_path / "poses.txt", tmp_path / "times.txt")
     assert info.value.line == 1 and info.value.field == "t"
+
+
+def test_kitti_poses_block_that_is_not_a_rotation_names_its_line(tmp_path):
+    """Fuzzer finds (seed 2): a 1e308 token in the 3x3 block gave a non-unit quaternion."""
+    from msf_torch.io.kitti_poses import read_kitti_poses
+
+    path = tmp_path / "poses.txt"
+    path.write_text("1 0 0 0 0 1 0 0 0 0 1 0\n1 0 0 1 0 1e308 0 0 0 0 1 0\n")
+    with pytest.raises(DataError, match="pose 1: the 3x3 block is not a rotation") as info:
+        read_kitti_poses(path)
+    assert info.value.line == 2
+    path.write_text("-1 0 0 0 0 1 0 0 0 0 1 0\n")  # a reflection: orthonormal, det -1
+    with pytest.raises(DataError, match="det = -1"):
+        read_kitti_poses(path)
+
+
+def test_scan_angles_beyond_the_float_range_are_a_data_error(tmp_path):
+    """Fuzzer finds (seed 2): huge beam angles made the spacing check compare NaN."""
+    from msf_torch.io.scans import read_scans
+
+    path = tmp_path / "scans.npz"
+    arrays = _scan_arrays()
+    arrays["angles"][1:] = [1e308, 1.5e308, 1.7e308, 1.79e308]
+    arrays["angles"][0] = -1.7e308
+    np.savez(path, **arrays)
+    with pytest.raises(DataError, match="evenly spaced"):
+        read_scans(path)
