@@ -45,6 +45,7 @@ import torch
 
 from msf_torch.geometry import so3
 from msf_torch.sensors.imu import ImuNoise, Preintegrated, preintegrate
+from msf_torch.sensors.wheel import wheel_speed_and_yaw_rate
 
 
 @dataclass
@@ -254,6 +255,18 @@ def _wheel_arcs(
     return increment, jac_v, jac_w
 
 
+def _rim_speed_jacobians(
+    jac_speed: torch.Tensor, jac_yaw_rate: torch.Tensor, track_width: torch.Tensor | float
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Chain rule from ``(v, w)`` to the rim speeds: (..., 3, L) Jacobians of the increment
+    w.r.t. each sample's left and right rim speed, with ``v = (v_r + v_l) / 2`` and
+    ``w = (v_r - v_l) / D``."""
+    return (
+        0.5 * jac_speed - jac_yaw_rate / track_width,
+        0.5 * jac_speed + jac_yaw_rate / track_width,
+    )
+
+
 def preintegrate_wheel(
     left_speed: torch.Tensor,
     right_speed: torch.Tensor,
@@ -275,15 +288,13 @@ def preintegrate_wheel(
     Returns:
         increment (..., 3) [m, m, rad] and covariance (..., 3, 3).
     """
-    speed = 0.5 * (right_speed + left_speed)
-    yaw_rate = (right_speed - left_speed) / track_width
+    speed, yaw_rate = wheel_speed_and_yaw_rate(left_speed, right_speed, track_width)
     increment, jac_v, jac_w = _wheel_arcs(speed, yaw_rate, dt)
     sigma = torch.as_tensor(speed_sigma, dtype=dt.dtype, device=dt.device)
     if slip is not None:
         sigma = sigma / slip.clamp_min(1e-3)
     var = sigma**2 * torch.ones_like(dt)
-    jac_left = 0.5 * jac_v - jac_w / track_width
-    jac_right = 0.5 * jac_v + jac_w / track_width
+    jac_left, jac_right = _rim_speed_jacobians(jac_v, jac_w, track_width)
     cov = torch.zeros(*dt.shape[:-1], 3, 3, dtype=dt.dtype, device=dt.device)
     for jac in (jac_left, jac_right):
         cov = cov + (jac * var[..., None, :]) @ jac.mT
@@ -314,12 +325,12 @@ def calibrated_wheel_increment(
     ratio_left = calibration[..., 0:1]
     ratio_right = calibration[..., 1:2]
     track = calibration[..., 2:3]
-    left = ratio_left * left_reading
-    right = ratio_right * right_reading
-    yaw_rate = (right - left) / track
-    increment, jac_v, jac_w = _wheel_arcs(0.5 * (right + left), yaw_rate, dt)
-    d_left = 0.5 * jac_v - jac_w / track[..., None]  # w.r.t. each sample's left rim speed
-    d_right = 0.5 * jac_v + jac_w / track[..., None]
+    speed, yaw_rate = wheel_speed_and_yaw_rate(
+        ratio_left * left_reading, ratio_right * right_reading, track
+    )
+    increment, jac_v, jac_w = _wheel_arcs(speed, yaw_rate, dt)
+    # w.r.t. each sample's left / right rim speed
+    d_left, d_right = _rim_speed_jacobians(jac_v, jac_w, track[..., None])
     jacobian = torch.stack(
         (
             (d_left * left_reading[..., None, :]).sum(-1),

@@ -67,6 +67,23 @@ from msf_torch.sensors.pose import mean_rate_residual
 from msf_torch.sensors.wheel import body_velocity_residual, wheel_residual, wheel_speed_and_yaw_rate
 
 
+def _wheel_calibration_jacobian(
+    left_reading: torch.Tensor,
+    right_reading: torch.Tensor,
+    track_width: torch.Tensor,
+    yaw_rate: torch.Tensor,
+) -> torch.Tensor:
+    """(..., 4, 3) Jacobian of the wheel residual ``[u - (v, 0, 0), w_z - omega]`` w.r.t.
+    ``[k_l, k_r, D]``: ``v = (k_r z_r + k_l z_l) / 2``, ``omega = (k_r z_r - k_l z_l) / D``,
+    with ``d omega / dD = -omega / D`` taken at the gyro's ``yaw_rate`` (rad/s), not the
+    encoders' (a Jacobian correlated with the residual's noise biases D)."""
+    zero = torch.zeros_like(left_reading)
+    d_left = torch.stack((-0.5 * left_reading, zero, zero, left_reading / track_width), -1)
+    d_right = torch.stack((-0.5 * right_reading, zero, zero, -right_reading / track_width), -1)
+    d_track = torch.stack((zero, zero, zero, yaw_rate / track_width), -1)
+    return torch.stack((d_left, d_right, d_track), -1)
+
+
 def calibrated_wheel_residual(
     velocity: torch.Tensor,
     rotation: torch.Tensor,
@@ -95,14 +112,12 @@ def calibrated_wheel_residual(
     residual, jac = wheel_residual(
         velocity, rotation, gyro, gyro_bias, left, right, track_width, lever_arm
     )
-    zero = torch.zeros_like(left)
-    # dr/dD = omega / D at the gyro's yaw rate: the encoders' omega carries their noise, and
-    # a Jacobian correlated with the residual's noise biases D (errors in variables)
     yaw_rate = gyro[..., 2] - gyro_bias[..., 2]
-    d_left = torch.stack((-0.5 * left_reading, zero, zero, left_reading / track_width), -1)
-    d_right = torch.stack((-0.5 * right_reading, zero, zero, -right_reading / track_width), -1)
-    d_track = torch.stack((zero, zero, zero, yaw_rate / track_width), -1)
-    return residual, jac, torch.stack((d_left, d_right, d_track), -1)
+    return (
+        residual,
+        jac,
+        _wheel_calibration_jacobian(left_reading, right_reading, track_width, yaw_rate),
+    )
 
 
 def shifted_gnss_residual(
@@ -364,12 +379,11 @@ def vehicle_frame_wheel_residual(
     jac_yaw = torch.zeros_like(jac_axle[..., :1, :])
     jac_yaw[..., 0, IDX_BG] = -to_vehicle[..., 2, :]
     jac = torch.cat((to_vehicle @ jac_axle, jac_yaw), -2)
-    yaw_rate = rate_vehicle[..., 2]
-    d_left = torch.stack((-0.5 * left_reading, zero, zero, left_reading / track_width), -1)
-    d_right = torch.stack((-0.5 * right_reading, zero, zero, -right_reading / track_width), -1)
-    d_track = torch.stack((zero, zero, zero, yaw_rate / track_width), -1)
+    jac_calibration = _wheel_calibration_jacobian(
+        left_reading, right_reading, track_width, rate_vehicle[..., 2]
+    )
     jac_rotation = torch.cat((so3.hat(axle_vehicle), so3.hat(rate_vehicle)[..., 2:3, :]), -2)
-    return residual, jac, torch.stack((d_left, d_right, d_track), -1), jac_rotation
+    return residual, jac, jac_calibration, jac_rotation
 
 
 def vehicle_frame_nonholonomic_residual(

@@ -9,11 +9,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
+from error_state_checks import DTYPE, boxplus, central_differences, random_state
 
 from msf_torch.frontend.calibration import CalibrationLayout
 from msf_torch.frontend.config import EskfConfig, config_for_sequence, load_config
 from msf_torch.frontend.eskf import run_eskf
-from msf_torch.geometry import so3
 from msf_torch.sensors.calibration import (
     calibrated_wheel_residual,
     shifted_body_velocity_residual,
@@ -23,47 +23,10 @@ from msf_torch.sensors.calibration import (
 from msf_torch.sim.calibration import calibration_sim_config, simulate_calibration_run
 from msf_torch.types import batch_sequences
 
-DTYPE = torch.float64
-EPS = 1e-6
-
-
-def _state(gen: torch.Generator, batch: int = 4) -> dict[str, torch.Tensor]:
-    def randn(*shape, scale=1.0):
-        return scale * torch.randn(batch, *shape, generator=gen, dtype=DTYPE)
-
-    return {
-        "position": randn(3, scale=20.0),
-        "velocity": randn(3, scale=3.0),
-        "rotation": so3.exp(randn(3, scale=1.5)),
-        "gyro_bias": randn(3, scale=0.01),
-        "accel_bias": randn(3, scale=0.05),
-    }
-
-
-def _boxplus(state: dict[str, torch.Tensor], dx: torch.Tensor) -> dict[str, torch.Tensor]:
-    """Conventions' perturbation: p + dp, v + dv, R Exp(dtheta), b + db."""
-    return {
-        "position": state["position"] + dx[:, 0:3],
-        "velocity": state["velocity"] + dx[:, 3:6],
-        "rotation": state["rotation"] @ so3.exp(dx[:, 6:9]),
-        "gyro_bias": state["gyro_bias"] + dx[:, 9:12],
-        "accel_bias": state["accel_bias"] + dx[:, 12:15],
-    }
-
-
-def _numeric(fn, size: int, batch: int) -> torch.Tensor:
-    """(B, rows, size) central differences of fn(dx (B, size)) -> (B, rows)."""
-    cols = []
-    for k in range(size):
-        step = torch.zeros(batch, size, dtype=DTYPE)
-        step[:, k] = EPS
-        cols.append((fn(step) - fn(-step)) / (2 * EPS))
-    return torch.stack(cols, -1)
-
 
 def test_wheel_jacobians_match_finite_differences():
     gen = torch.Generator().manual_seed(1)
-    state = _state(gen)
+    state = random_state(gen)
     batch = state["position"].shape[0]
     gyro = 0.4 * torch.randn(batch, 3, generator=gen, dtype=DTYPE)
     left = 3.0 + torch.randn(batch, generator=gen, dtype=DTYPE)
@@ -88,15 +51,15 @@ def test_wheel_jacobians_match_finite_differences():
         )
 
     _, h_nav, h_cal = residual(state, calib)
-    num_nav = _numeric(lambda dx: residual(_boxplus(state, dx), calib)[0], 15, batch)
-    num_cal = _numeric(lambda dc: residual(state, calib + dc)[0], 3, batch)
+    num_nav = central_differences(lambda dx: residual(boxplus(state, dx), calib)[0], 15, batch)
+    num_cal = central_differences(lambda dc: residual(state, calib + dc)[0], 3, batch)
     torch.testing.assert_close(h_nav, num_nav, atol=1e-7, rtol=1e-7)
     torch.testing.assert_close(h_cal, num_cal, atol=1e-7, rtol=1e-7)
 
 
 def test_time_offset_jacobians_match_finite_differences():
     gen = torch.Generator().manual_seed(2)
-    state = _state(gen)
+    state = random_state(gen)
     batch = state["position"].shape[0]
     gyro = 0.4 * torch.randn(batch, 3, generator=gen, dtype=DTYPE)
     lever = torch.tensor([0.3, -0.2, 0.5], dtype=DTYPE)
@@ -116,8 +79,10 @@ def test_time_offset_jacobians_match_finite_differences():
 
     for model in (gnss, body):
         _, h_nav, h_td = model(state, offset)
-        num_nav = _numeric(lambda dx, m=model: m(_boxplus(state, dx), offset)[0], 15, batch)
-        num_td = _numeric(lambda d, m=model: m(state, offset + d[:, 0])[0], 1, batch)
+        num_nav = central_differences(
+            lambda dx, m=model: m(boxplus(state, dx), offset)[0], 15, batch
+        )
+        num_td = central_differences(lambda d, m=model: m(state, offset + d[:, 0])[0], 1, batch)
         torch.testing.assert_close(h_nav, num_nav, atol=1e-7, rtol=1e-7)
         torch.testing.assert_close(h_td, num_td, atol=1e-7, rtol=1e-7)
     # with t_d = 0 the GNSS model is the plain one: antenna position p + R l
@@ -138,8 +103,8 @@ def test_time_offset_jacobians_match_finite_differences():
         return shifted_mean_rate_residual(mean, s["gyro_bias"], change, rate_meas, td)
 
     _, h_nav, h_td = mean_rate(state, offset)
-    num_nav = _numeric(lambda dx: mean_rate(_boxplus(state, dx), offset)[0], 15, batch)
-    num_td = _numeric(lambda d: mean_rate(state, offset + d[:, 0])[0], 1, batch)
+    num_nav = central_differences(lambda dx: mean_rate(boxplus(state, dx), offset)[0], 15, batch)
+    num_td = central_differences(lambda d: mean_rate(state, offset + d[:, 0])[0], 1, batch)
     torch.testing.assert_close(h_nav, num_nav, atol=1e-7, rtol=1e-7)
     torch.testing.assert_close(h_td, num_td, atol=1e-7, rtol=1e-7)
 

@@ -11,6 +11,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
+from error_state_checks import DTYPE, boxplus, central_differences, random_state
 
 from msf_torch.frontend.calibration import CalibrationLayout, observability
 from msf_torch.frontend.config import EskfConfig, config_for_sequence, load_config
@@ -31,8 +32,6 @@ from msf_torch.sensors.vehicle import nonholonomic_residual
 from msf_torch.sensors.wheel import wheel_residual
 from msf_torch.sim.calibration import calibration_sim_config, simulate_calibration_run
 
-DTYPE = torch.float64
-EPS = 1e-6
 EXTRINSIC_ERRORS = {
     "gnss_lever_arm_error_m": 0.2,
     "camera_lever_arm_error_m": 0.15,
@@ -42,47 +41,13 @@ EXTRINSIC_ERRORS = {
 }
 
 
-def _state(gen: torch.Generator, batch: int = 4) -> dict[str, torch.Tensor]:
-    def randn(*shape, scale=1.0):
-        return scale * torch.randn(batch, *shape, generator=gen, dtype=DTYPE)
-
-    return {
-        "position": randn(3, scale=20.0),
-        "velocity": randn(3, scale=3.0),
-        "rotation": so3.exp(randn(3, scale=1.5)),
-        "gyro_bias": randn(3, scale=0.01),
-        "accel_bias": randn(3, scale=0.05),
-    }
-
-
-def _boxplus(state: dict[str, torch.Tensor], dx: torch.Tensor) -> dict[str, torch.Tensor]:
-    """Conventions' perturbation: p + dp, v + dv, R Exp(dtheta), b + db."""
-    return {
-        "position": state["position"] + dx[:, 0:3],
-        "velocity": state["velocity"] + dx[:, 3:6],
-        "rotation": state["rotation"] @ so3.exp(dx[:, 6:9]),
-        "gyro_bias": state["gyro_bias"] + dx[:, 9:12],
-        "accel_bias": state["accel_bias"] + dx[:, 12:15],
-    }
-
-
-def _numeric(fn, size: int, batch: int) -> torch.Tensor:
-    """(B, rows, size) central differences of fn(dx (B, size)) -> (B, rows)."""
-    cols = []
-    for k in range(size):
-        step = torch.zeros(batch, size, dtype=DTYPE)
-        step[:, k] = EPS
-        cols.append((fn(step) - fn(-step)) / (2 * EPS))
-    return torch.stack(cols, -1)
-
-
 def _close(analytic: torch.Tensor, numeric: torch.Tensor) -> None:
     torch.testing.assert_close(analytic, numeric, atol=1e-7, rtol=1e-7)
 
 
 def test_gnss_lever_arm_jacobian_matches_finite_differences():
     gen = torch.Generator().manual_seed(3)
-    state = _state(gen)
+    state = random_state(gen)
     batch = state["position"].shape[0]
     gyro = 0.4 * torch.randn(batch, 3, generator=gen, dtype=DTYPE)
     lever = torch.randn(batch, 3, generator=gen, dtype=DTYPE)
@@ -103,12 +68,12 @@ def test_gnss_lever_arm_jacobian_matches_finite_differences():
             )[0]
 
         analytic = gnss_lever_arm_jacobian(state["rotation"], gyro, state["gyro_bias"], t_d)
-        _close(analytic, _numeric(lambda d, f=gnss: f(lever + d), 3, batch))
+        _close(analytic, central_differences(lambda d, f=gnss: f(lever + d), 3, batch))
 
 
 def test_mounted_pose_source_jacobians_match_finite_differences():
     gen = torch.Generator().manual_seed(4)
-    state = _state(gen)
+    state = random_state(gen)
     batch = state["position"].shape[0]
     gyro = 0.4 * torch.randn(batch, 3, generator=gen, dtype=DTYPE)
     accel = torch.randn(batch, 3, generator=gen, dtype=DTYPE)
@@ -134,11 +99,19 @@ def test_mounted_pose_source_jacobians_match_finite_differences():
     _, h_nav, h_td, h_lever, h_mount = velocity(state, lever, zero3, offset)
     _close(
         h_nav,
-        _numeric(lambda dx: velocity(_boxplus(state, dx), lever, zero3, offset)[0], 15, batch),
+        central_differences(
+            lambda dx: velocity(boxplus(state, dx), lever, zero3, offset)[0], 15, batch
+        ),
     )
-    _close(h_td, _numeric(lambda d: velocity(state, lever, zero3, offset + d[:, 0])[0], 1, batch))
-    _close(h_lever, _numeric(lambda d: velocity(state, lever + d, zero3, offset)[0], 3, batch))
-    _close(h_mount, _numeric(lambda d: velocity(state, lever, d, offset)[0], 3, batch))
+    _close(
+        h_td,
+        central_differences(lambda d: velocity(state, lever, zero3, offset + d[:, 0])[0], 1, batch),
+    )
+    _close(
+        h_lever,
+        central_differences(lambda d: velocity(state, lever + d, zero3, offset)[0], 3, batch),
+    )
+    _close(h_mount, central_differences(lambda d: velocity(state, lever, d, offset)[0], 3, batch))
     # identity mount: the body-frame model of sensors.calibration, unrotated
     plain = shifted_body_velocity_residual(
         state["velocity"],
@@ -174,9 +147,11 @@ def test_mounted_pose_source_jacobians_match_finite_differences():
         )
 
     _, h_nav, h_td, h_mount = rate(state, zero3, offset)
-    _close(h_nav, _numeric(lambda dx: rate(_boxplus(state, dx), zero3, offset)[0], 15, batch))
-    _close(h_td, _numeric(lambda d: rate(state, zero3, offset + d[:, 0])[0], 1, batch))
-    _close(h_mount, _numeric(lambda d: rate(state, d, offset)[0], 3, batch))
+    _close(
+        h_nav, central_differences(lambda dx: rate(boxplus(state, dx), zero3, offset)[0], 15, batch)
+    )
+    _close(h_td, central_differences(lambda d: rate(state, zero3, offset + d[:, 0])[0], 1, batch))
+    _close(h_mount, central_differences(lambda d: rate(state, d, offset)[0], 3, batch))
     unrotated = shifted_mean_rate_residual(mean, state["gyro_bias"], change, rate_measured, offset)
     identity = mounted_rate_residual(
         mean, state["gyro_bias"], change, so3.exp(zero3), rate_measured, offset
@@ -187,7 +162,7 @@ def test_mounted_pose_source_jacobians_match_finite_differences():
 
 def test_vehicle_frame_jacobians_match_finite_differences():
     gen = torch.Generator().manual_seed(5)
-    state = _state(gen)
+    state = random_state(gen)
     batch = state["position"].shape[0]
     gyro = 0.4 * torch.randn(batch, 3, generator=gen, dtype=DTYPE)
     left = 3.0 + torch.randn(batch, generator=gen, dtype=DTYPE)
@@ -219,9 +194,11 @@ def test_vehicle_frame_jacobians_match_finite_differences():
     calib = torch.cat((ratio, track[:, None]), -1)
     zero3 = torch.zeros(batch, 3, dtype=DTYPE)
     _, h_nav, h_wheel, h_rot = wheel(state, calib, zero3)
-    _close(h_nav, _numeric(lambda dx: wheel(_boxplus(state, dx), calib, zero3)[0], 15, batch))
-    _close(h_wheel, _numeric(lambda d: wheel(state, calib + d, zero3)[0], 3, batch))
-    _close(h_rot, _numeric(lambda d: wheel(state, calib, d)[0], 3, batch))
+    _close(
+        h_nav, central_differences(lambda dx: wheel(boxplus(state, dx), calib, zero3)[0], 15, batch)
+    )
+    _close(h_wheel, central_differences(lambda d: wheel(state, calib + d, zero3)[0], 3, batch))
+    _close(h_rot, central_differences(lambda d: wheel(state, calib, d)[0], 3, batch))
     # identity rotation: the body-frame wheel model
     plain = calibrated_wheel_residual(
         state["velocity"],
@@ -273,8 +250,8 @@ def test_vehicle_frame_jacobians_match_finite_differences():
         )
 
     _, h_nav, h_rot = nhc(state, zero3)
-    _close(h_nav, _numeric(lambda dx: nhc(_boxplus(state, dx), zero3)[0], 15, batch))
-    _close(h_rot, _numeric(lambda d: nhc(state, d)[0], 3, batch))
+    _close(h_nav, central_differences(lambda dx: nhc(boxplus(state, dx), zero3)[0], 15, batch))
+    _close(h_rot, central_differences(lambda d: nhc(state, d)[0], 3, batch))
     r_plain, h_plain = nonholonomic_residual(
         state["velocity"], state["rotation"], gyro, state["gyro_bias"], lever
     )

@@ -1,0 +1,48 @@
+"""Shared helpers for Jacobian tests of error-state measurement models: a random batch of
+navigation states, the conventions' perturbation and central differences."""
+
+from __future__ import annotations
+
+import torch
+
+from msf_torch.geometry import so3
+
+DTYPE = torch.float64
+EPS = 1e-6
+
+
+def random_state(gen: torch.Generator, batch: int = 4) -> dict[str, torch.Tensor]:
+    """A batch of navigation states: position (B, 3) m, velocity (B, 3) m/s, rotation
+    (B, 3, 3), gyro bias (B, 3) rad/s, accel bias (B, 3) m/s^2."""
+
+    def randn(*shape, scale=1.0):
+        return scale * torch.randn(batch, *shape, generator=gen, dtype=DTYPE)
+
+    return {
+        "position": randn(3, scale=20.0),
+        "velocity": randn(3, scale=3.0),
+        "rotation": so3.exp(randn(3, scale=1.5)),
+        "gyro_bias": randn(3, scale=0.01),
+        "accel_bias": randn(3, scale=0.05),
+    }
+
+
+def boxplus(state: dict[str, torch.Tensor], dx: torch.Tensor) -> dict[str, torch.Tensor]:
+    """Conventions' perturbation by dx (B, 15): p + dp, v + dv, R Exp(dtheta), b + db."""
+    return {
+        "position": state["position"] + dx[:, 0:3],
+        "velocity": state["velocity"] + dx[:, 3:6],
+        "rotation": state["rotation"] @ so3.exp(dx[:, 6:9]),
+        "gyro_bias": state["gyro_bias"] + dx[:, 9:12],
+        "accel_bias": state["accel_bias"] + dx[:, 12:15],
+    }
+
+
+def central_differences(fn, size: int, batch: int) -> torch.Tensor:
+    """(B, rows, size) central differences of fn(dx (B, size)) -> (B, rows), step EPS."""
+    cols = []
+    for k in range(size):
+        step = torch.zeros(batch, size, dtype=DTYPE)
+        step[:, k] = EPS
+        cols.append((fn(step) - fn(-step)) / (2 * EPS))
+    return torch.stack(cols, -1)
