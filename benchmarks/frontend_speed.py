@@ -20,6 +20,15 @@ What it measures
       (``benchmarks/peers/filterpy_eskf.py``), timed from the same ``Sequence`` (its initial
       state comes from ours), over the whole drive or a prefix (``--filterpy-prefix-s``).
 
+    * ``--device cuda``: ours (B = 1, the batch and ``--extra-batch``) runs on the GPU: the
+      loaded sequences are moved there before timing, and every timed call ends with
+      ``torch.cuda.synchronize()`` (the batched runs get ``--warmup`` untimed runs too, for
+      CUDA's first-call costs). The peers stay on the CPU, so ``ratio`` then compares our
+      GPU run with GTSAM on the CPU. ``cuda_peak_allocated_mb``: the GPU memory high-water
+      mark of each of our runs (``torch.cuda.max_memory_allocated``).
+    * ``--extra-batch N``: one more batched run of ours with N copies (e.g. 256), reported
+      as ``ours.extra_batched`` with its speedup over the single run; not judged.
+
     Timings are medians over ``--repeats`` (after ``--warmup`` untimed runs of ours), with
     the minimum and the process CPU time alongside (wall time grows when other work shares
     the machine; CPU time much less). Peak resident memory: each part runs once more in a
@@ -35,6 +44,7 @@ What it measures
 How to run
     .venv/bin/python benchmarks/frontend_speed.py             # ~1-3 min on a 2-core CPU
     .venv/bin/python benchmarks/frontend_speed.py --quick     # 1 repeat, B = 8
+    .venv/bin/python benchmarks/frontend_speed.py --device cuda --extra-batch 256
 
     Progress goes to stderr; the last line on stdout is one JSON object.
 
@@ -47,6 +57,8 @@ Options
     --gnss-noise-m S       GNSS noise sigma added to copies 1..B-1, m (default 0.2)
     --time-shift-s S       time shift of copy k is k * S, s (default 1e-3)
     --filterpy-prefix-s S  run the filterpy peer on the first S seconds only (0 = all; default)
+    --extra-batch N        also time ours with N copies (0 = no; default), not judged
+    --device cpu|cuda      where ours runs (default cpu); peers always on the CPU
     --quick                1 repeat, no warm-up, B = 8 (the 10x target is still judged)
     --no-memory            skip the four memory-measurement processes
 """
@@ -104,29 +116,46 @@ def rmse_at(traj, fixes: GnssFixes) -> float:
     return float(outage_metrics(traj, fixes)["outage_rmse_m"])
 
 
+def synchronized(fn: Callable[[], Any], device: torch.device) -> Callable[[], Any]:
+    """``fn`` followed by ``torch.cuda.synchronize`` on a CUDA device (so a timing covers
+    the queued GPU work); ``fn`` itself on the CPU."""
+    if device.type != "cuda":
+        return fn
+
+    def run():
+        out = fn()
+        torch.cuda.synchronize(device)
+        return out
+
+    return run
+
+
 def part_callable(
     name: str, seq: Sequence, cfg: Any, opts: dict[str, Any]
 ) -> tuple[Callable[[], Any], dict[str, Any]]:
     """The zero-argument callable that one timed part runs, and facts about its input.
 
     ``name``: ``ours`` (B = 1), ``ours_batch`` (B = ``opts["batch"]`` varied copies),
-    ``gtsam`` or ``filterpy``. Timing and memory measurement run exactly these callables.
+    ``ours_extra`` (B = ``opts["extra_batch"]``), ``gtsam`` or ``filterpy``. Ours runs on
+    ``opts["device"]`` (the input is moved there first, outside the callable; on CUDA the
+    callable ends with a synchronize). Timing and memory measurement run exactly these
+    callables.
     """
+    device = torch.device(opts.get("device", "cpu"))
     if name == "ours":
+        seq_dev = seq.to(device)
 
         def ours():
             with torch.no_grad():
-                result = run_eskf(seq, cfg)
+                result = run_eskf(seq_dev, cfg)
                 return result, result.trajectory()
 
-        return ours, {"imu_samples": int(seq.imu.mask.sum())}
-    if name == "ours_batch":
+        return synchronized(ours, device), {"imu_samples": int(seq.imu.mask.sum())}
+    if name in ("ours_batch", "ours_extra"):
         start = time.perf_counter()
-        copies = [
-            variant(seq, k, opts["gnss_noise_m"], opts["time_shift_s"])
-            for k in range(opts["batch"])
-        ]
-        batch = batch_sequences(copies)
+        size = opts["batch"] if name == "ours_batch" else opts["extra_batch"]
+        copies = [variant(seq, k, opts["gnss_noise_m"], opts["time_shift_s"]) for k in range(size)]
+        batch = batch_sequences(copies).to(device)
         info = {"imu_samples": int(batch.imu.mask.sum()), "build_s": time.perf_counter() - start}
 
         def ours_batch():
@@ -134,7 +163,7 @@ def part_callable(
                 result = run_eskf(batch, cfg)
                 return result, result.trajectory()
 
-        return ours_batch, info
+        return synchronized(ours_batch, device), info
     if name == "gtsam":
         arrays = peer_arrays(seq)
         return (lambda: run_gtsam_kitti(**arrays)), {}
@@ -151,9 +180,13 @@ def _memory_child(name: str, opts: dict[str, Any], conn: Any) -> None:
         cfg, _ = kitti_config(seq)
         fn, _ = part_callable(name, seq, cfg, opts)
         gc.collect()
+        cuda = name.startswith("ours") and torch.device(opts["device"]).type == "cuda"
+        if cuda:
+            torch.cuda.reset_peak_memory_stats()
         with PeakRss() as mem:
             fn()
-        conn.send({**mem.as_dict(), "process": "fresh"})
+        gpu = {"cuda_peak_allocated_mb": torch.cuda.max_memory_allocated() / 2**20} if cuda else {}
+        conn.send({**mem.as_dict(), **gpu, "process": "fresh"})
     except Exception as exc:  # report, do not hang the parent
         conn.send({"error": f"{type(exc).__name__}: {exc}"})
     finally:
@@ -188,12 +221,20 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--gnss-noise-m", type=float, default=0.2)
     parser.add_argument("--time-shift-s", type=float, default=1e-3)
     parser.add_argument("--filterpy-prefix-s", type=float, default=0.0)
+    parser.add_argument("--extra-batch", type=int, default=0, help="also time this B (0: no)")
+    parser.add_argument("--device", choices=("cpu", "cuda"), default="cpu", help="where ours runs")
     parser.add_argument("--quick", action="store_true", help="1 repeat, no warm-up, B = 8")
     parser.add_argument("--no-memory", action="store_true", help="skip the memory processes")
     args = parser.parse_args(argv)
     if args.quick:
         args.repeats, args.warmup, args.batch = 1, 0, min(args.batch, 8)
     batch_repeats = args.batch_repeats if args.batch_repeats is not None else args.repeats
+    device = torch.device(args.device)
+    if device.type == "cuda" and not torch.cuda.is_available():
+        parser.error("--device cuda: torch sees no CUDA device")
+    # CUDA's first calls (context, kernels, cuBLAS/cuSOLVER handles) would land in a
+    # batched run's first repeat, so on the GPU those get warm-up runs too
+    batch_warmup = args.warmup if device.type == "cuda" else 0
     machine = machine_info()  # before our own load shows in the load average
 
     seq = load_sequence("kitti-gtsam")
@@ -203,7 +244,7 @@ def main(argv: list[str] | None = None) -> int:
     duration = float(seq.imu.t[0, -1] - seq.imu.t[0, 0])
     log(
         f"kitti-gtsam: {n_imu} IMU samples, {n_fix} fixes, {duration:.1f} s; "
-        f"torch threads {torch.get_num_threads()}"
+        f"torch threads {torch.get_num_threads()}; ours on {device}"
     )
 
     opts = {
@@ -211,6 +252,8 @@ def main(argv: list[str] | None = None) -> int:
         "gnss_noise_m": args.gnss_noise_m,
         "time_shift_s": args.time_shift_s,
         "prefix": args.filterpy_prefix_s if args.filterpy_prefix_s > 0 else None,
+        "extra_batch": args.extra_batch,
+        "device": args.device,
     }
     prefix = opts["prefix"]
 
@@ -225,13 +268,37 @@ def main(argv: list[str] | None = None) -> int:
     ours_batch, batch_info = part_callable("ours_batch", seq, cfg, opts)
     n_batch_imu = batch_info["imu_samples"]
     batch_wall, batch_times, (batch_res, _) = time_repeats(
-        ours_batch, batch_repeats, 0, label=f"ours B={args.batch}"
+        ours_batch, batch_repeats, batch_warmup, label=f"ours B={args.batch}"
     )
     copy0_diff = float(
         (batch_res.position[0, : ours_res.position.shape[1]] - ours_res.position[0]).abs().max()
     )
     del batch_res, ours_batch
     log(f"ours B={args.batch}: {batch_wall:.3f} s median, {n_batch_imu / batch_wall:.0f} samples/s")
+
+    extra = None
+    if args.extra_batch > 0:
+        ours_extra, extra_info = part_callable("ours_extra", seq, cfg, opts)
+        extra_wall, extra_times, (extra_res, _) = time_repeats(
+            ours_extra, batch_repeats, batch_warmup, label=f"ours B={args.extra_batch}"
+        )
+        extra_diff = float(
+            (extra_res.position[0, : ours_res.position.shape[1]] - ours_res.position[0]).abs().max()
+        )
+        del extra_res, ours_extra
+        extra_sps = extra_info["imu_samples"] / extra_wall
+        extra = {
+            "batch": args.extra_batch,
+            "wall_s": extra_wall,
+            "timing": extra_times,
+            "imu_samples": extra_info["imu_samples"],
+            "imu_samples_per_s": extra_sps,
+            "aggregate_realtime_factor": args.extra_batch * duration / extra_wall,
+            "speedup_vs_single": extra_sps / (n_imu / ours_wall),
+            "batch_build_s": extra_info["build_s"],
+            "batch_copy0_max_diff_m": extra_diff,
+        }
+        log(f"ours B={args.extra_batch}: {extra_wall:.3f} s median, {extra_sps:.0f} samples/s")
 
     # --- GTSAM peer -------------------------------------------------------------------------
     gtsam_run, _ = part_callable("gtsam", seq, cfg, opts)
@@ -247,7 +314,8 @@ def main(argv: list[str] | None = None) -> int:
     # --- peak memory, each part once in a fresh process ----------------------------------------
     memory: dict[str, Any] = {}
     if not args.no_memory:
-        for name in ("ours", "ours_batch", "gtsam", "filterpy"):
+        parts = ("ours", "ours_batch") + (("ours_extra",) if extra else ()) + ("gtsam", "filterpy")
+        for name in parts:
             memory[name] = measure_memory(name, opts)
             log(f"memory {name}: {memory[name]}")
 
@@ -255,6 +323,7 @@ def main(argv: list[str] | None = None) -> int:
     first = gtsam_res["first_gps_index"]
     causal_idx = np.nonzero(gtsam_res["causal"])[0] + first
     scored = seq.gnss.map(lambda x: x[:, torch.as_tensor(causal_idx)])
+    ours_traj = ours_traj.to("cpu")
     fp_traj = trajectory_from(fp_res["t"], fp_res["position"])
     fp_scored = scored
     if prefix is not None:
@@ -302,6 +371,12 @@ def main(argv: list[str] | None = None) -> int:
             "filterpy_prefix_s": prefix,
             "torch_threads": torch.get_num_threads(),
             "grad": "torch.no_grad()",
+            "ours_device": str(device),
+            "ours_device_name": (
+                torch.cuda.get_device_name(device) if device.type == "cuda" else None
+            ),
+            "peers_device": "cpu",
+            "extra_batch": args.extra_batch,
         },
         "ours": {
             "wall_s": ours_wall,
@@ -321,6 +396,9 @@ def main(argv: list[str] | None = None) -> int:
                 "batch_copy0_max_diff_m": copy0_diff,
                 "memory": memory.get("ours_batch"),
             },
+            "extra_batched": None
+            if extra is None
+            else {**extra, "memory": memory.get("ours_extra")},
         },
         "peer": {
             "name": "GTSAM CombinedImuFactor + GPSFactor, ISAM2 (benchmarks/peers/gtsam_kitti.py)",

@@ -634,6 +634,10 @@ def run_eskf(
     accepted_out.append(no_blocks.bool())
     nis_out.append(no_blocks)
 
+    # which epochs have a measurement in any sequence: one host transfer, not one per epoch
+    epoch_has_update = (
+        [False] * n_epochs if present_all is None else present_all.any(-1).any(0).tolist()
+    )
     interrupt = InterruptCatcher()
     with _intra_op_threads(1 if batch < 16 else torch.get_num_threads()), interrupt:
         for e in range(n_epochs):
@@ -683,7 +687,7 @@ def run_eskf(
             state = NavState(position, velocity, rotation, state.gyro_bias, state.accel_bias)
             guard.propagated(state, cov)
 
-            if present_all is None or not bool(present_all[:, e].any()):
+            if not epoch_has_update[e]:
                 state, cov, code = guard.check(state, cov)
                 divergence_out.append(code)
                 accepted_out.append(no_blocks.bool())
