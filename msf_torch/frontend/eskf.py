@@ -1015,10 +1015,12 @@ def run_eskf(
     to_conv_all, _ = _invariant_maps(
         positions.flatten(0, 1), velocities.flatten(0, 1), rotations.flatten(0, 1)
     )
-    to_conv_all = to_conv_all.unflatten(0, (batch, n_epochs + 1))
     full_covariances = torch.stack(out["P"], 1)
     nav = slice(0, ERROR_STATE_DIM)
-    covariances = to_conv_all @ full_covariances[..., nav, nav] @ to_conv_all.mT
+    # one batch of (B (E + 1)) 15x15 products (3-D operands: about half the time of 4-D)
+    covariances = (
+        to_conv_all @ full_covariances[..., nav, nav].flatten(0, 1) @ to_conv_all.mT
+    ).unflatten(0, (batch, n_epochs + 1))
     accepted_all = torch.stack(accepted_out, 1)  # (B, E + 1, K)
     nis_all = torch.stack(nis_out, 1)
     present_out = {k: torch.cat((false_b[:, None], present[k]), 1) for k in sensors}

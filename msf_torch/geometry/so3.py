@@ -23,6 +23,7 @@ __all__ = [
     "gamma_vector_jacobians",
     "exp_and_gammas",
     "coefficients",
+    "series_coefficients",
     "series",
     "project",
 ]
@@ -71,6 +72,30 @@ def _angle_terms(phi: torch.Tensor):
     return theta2, small, safe_theta2, torch.sqrt(safe_theta2)
 
 
+# Each series coefficient as its Taylor series in theta^2 (below the small-angle switch)
+# and in closed form (t = theta, t2 = theta^2, s = sin t, c = cos t): one table for
+# ``_coefficients`` and ``series_coefficients``.
+_TAYLOR = {
+    "c0": lambda x2, x4: 1.0 - x2 / 6.0 + x4 / 120.0,
+    "c1": lambda x2, x4: 0.5 - x2 / 24.0 + x4 / 720.0,
+    "c2": lambda x2, x4: 1.0 / 6.0 - x2 / 120.0 + x4 / 5040.0,
+    "c3": lambda x2, x4: 1.0 / 24.0 - x2 / 720.0 + x4 / 40320.0,
+    "e1": lambda x2, x4: -1.0 / 12.0 + x2 / 180.0 - x4 / 6720.0,
+    "e2": lambda x2, x4: -1.0 / 60.0 + x2 / 1260.0 - x4 / 60480.0,
+    "e3": lambda x2, x4: -1.0 / 360.0 + x2 / 10080.0 - x4 / 604800.0,
+}
+_CLOSED = {
+    "c0": lambda t2, t, s, c: s / t,
+    "c1": lambda t2, t, s, c: (1.0 - c) / t2,
+    "c2": lambda t2, t, s, c: (t - s) / (t2 * t),
+    "c3": lambda t2, t, s, c: (t2 + 2.0 * c - 2.0) / (2.0 * t2 * t2),
+    "e1": lambda t2, t, s, c: s / (t2 * t) - 2.0 * (1.0 - c) / (t2 * t2),
+    "e2": lambda t2, t, s, c: (1.0 - c) / (t2 * t2) - 3.0 * (t - s) / (t2 * t2 * t),
+    "e3": lambda t2, t, s, c: (t - s) / (t2 * t2 * t) - 2.0 * (t2 + 2.0 * c - 2.0) / (t2 * t2 * t2),
+}
+SERIES_NAMES = ("c0", "c1", "c2", "c3", "e1", "e2", "e3")
+
+
 def _coefficients(
     phi: torch.Tensor, which: str = "0123", derivatives: bool = False
 ) -> dict[str, torch.Tensor]:
@@ -89,37 +114,32 @@ def _coefficients(
         "theta2": theta2,
         "skew2": phi[..., :, None] * phi[..., None, :] - theta2 * identity(phi.dtype, phi.device),
     }
-    if "0" in which:
-        out["c0"] = torch.where(small, 1.0 - theta2 / 6.0 + th4 / 120.0, sin_t / t)
-    if "1" in which:
-        out["c1"] = torch.where(small, 0.5 - theta2 / 24.0 + th4 / 720.0, (1.0 - cos_t) / t2)
-    if "2" in which:
-        out["c2"] = torch.where(
-            small, 1.0 / 6.0 - theta2 / 120.0 + th4 / 5040.0, (t - sin_t) / (t2 * t)
-        )
-    if "3" in which:
-        out["c3"] = torch.where(
-            small,
-            1.0 / 24.0 - theta2 / 720.0 + th4 / 40320.0,
-            (t2 + 2.0 * cos_t - 2.0) / (2.0 * t2 * t2),
-        )
-    if derivatives:
-        out["e1"] = torch.where(
-            small,
-            -1.0 / 12.0 + theta2 / 180.0 - th4 / 6720.0,
-            sin_t / (t2 * t) - 2.0 * (1.0 - cos_t) / (t2 * t2),
-        )
-        out["e2"] = torch.where(
-            small,
-            -1.0 / 60.0 + theta2 / 1260.0 - th4 / 60480.0,
-            (1.0 - cos_t) / (t2 * t2) - 3.0 * (t - sin_t) / (t2 * t2 * t),
-        )
-        out["e3"] = torch.where(
-            small,
-            -1.0 / 360.0 + theta2 / 10080.0 - th4 / 604800.0,
-            (t - sin_t) / (t2 * t2 * t) - 2.0 * (t2 + 2.0 * cos_t - 2.0) / (t2 * t2 * t2),
+    names = [f"c{d}" for d in which] + (["e1", "e2", "e3"] if derivatives else [])
+    for name in names:
+        out[name] = torch.where(
+            small, _TAYLOR[name](theta2, th4), _CLOSED[name](t2, t, sin_t, cos_t)
         )
     return out
+
+
+def series_coefficients(theta2: torch.Tensor) -> torch.Tensor:
+    """All seven series coefficients ``(c0, c1, c2, c3, e1, e2, e3)`` of :func:`coefficients`
+    from ``theta^2`` of any shape: (...) -> (7, ...), the same values.
+
+    For large batches of small rotations (IMU samples): the Taylor series is evaluated
+    everywhere and the closed form only at angles above the small-angle switch (one host
+    check whether there are any), instead of both everywhere.
+    """
+    th4 = theta2 * theta2
+    out = torch.stack([_TAYLOR[name](theta2, th4) for name in SERIES_NAMES])
+    large = theta2 >= _SMALL_ANGLE**2
+    if not bool(large.any()):
+        return out
+    t2 = theta2[large]
+    t = torch.sqrt(t2)
+    sin_t, cos_t = torch.sin(t), torch.cos(t)
+    closed = torch.stack([_CLOSED[name](t2, t, sin_t, cos_t) for name in SERIES_NAMES])
+    return out.masked_scatter(large.expand_as(out), closed)
 
 
 def coefficients(
