@@ -420,8 +420,10 @@ def build_schedule(seq: Sequence, cfg: EskfConfig) -> Schedule:
             source_gyro_mean[b, has, s] = torch.as_tensor(gyro_mean[idx[has]], **f64)
 
     rows = torch.arange(batch, device=device)[:, None]
-    gyro = seq.imu.gyro[rows[..., None], sample_index]
-    accel = seq.imu.accel[rows[..., None], sample_index]
+    # the ZOH samples of every piece: one index_select on the flattened (B N) samples
+    flat_index = (sample_index + rows[..., None] * seq.imu.length).reshape(-1)
+    gyro = seq.imu.gyro.reshape(-1, 3).index_select(0, flat_index).reshape(*dt.shape, 3)
+    accel = seq.imu.accel.reshape(-1, 3).index_select(0, flat_index).reshape(*dt.shape, 3)
     gyro_end = seq.imu.gyro[rows, end_index]
 
     def take(stream, name, key, shape):

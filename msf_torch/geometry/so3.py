@@ -72,17 +72,18 @@ def _angle_terms(phi: torch.Tensor):
     return theta2, small, safe_theta2, torch.sqrt(safe_theta2)
 
 
-# Each series coefficient as its Taylor series in theta^2 (below the small-angle switch)
-# and in closed form (t = theta, t2 = theta^2, s = sin t, c = cos t): one table for
-# ``_coefficients`` and ``series_coefficients``.
+# Each series coefficient as its Taylor series ``a0 + a1 t^2 + a2 t^4`` (below the
+# small-angle switch; the table holds (a0, a1, a2)) and in closed form (t = theta,
+# t2 = theta^2, s = sin t, c = cos t): one table for ``_coefficients`` and
+# ``series_coefficients``.
 _TAYLOR = {
-    "c0": lambda x2, x4: 1.0 - x2 / 6.0 + x4 / 120.0,
-    "c1": lambda x2, x4: 0.5 - x2 / 24.0 + x4 / 720.0,
-    "c2": lambda x2, x4: 1.0 / 6.0 - x2 / 120.0 + x4 / 5040.0,
-    "c3": lambda x2, x4: 1.0 / 24.0 - x2 / 720.0 + x4 / 40320.0,
-    "e1": lambda x2, x4: -1.0 / 12.0 + x2 / 180.0 - x4 / 6720.0,
-    "e2": lambda x2, x4: -1.0 / 60.0 + x2 / 1260.0 - x4 / 60480.0,
-    "e3": lambda x2, x4: -1.0 / 360.0 + x2 / 10080.0 - x4 / 604800.0,
+    "c0": (1.0, -1.0 / 6.0, 1.0 / 120.0),
+    "c1": (0.5, -1.0 / 24.0, 1.0 / 720.0),
+    "c2": (1.0 / 6.0, -1.0 / 120.0, 1.0 / 5040.0),
+    "c3": (1.0 / 24.0, -1.0 / 720.0, 1.0 / 40320.0),
+    "e1": (-1.0 / 12.0, 1.0 / 180.0, -1.0 / 6720.0),
+    "e2": (-1.0 / 60.0, 1.0 / 1260.0, -1.0 / 60480.0),
+    "e3": (-1.0 / 360.0, 1.0 / 10080.0, -1.0 / 604800.0),
 }
 _CLOSED = {
     "c0": lambda t2, t, s, c: s / t,
@@ -116,22 +117,26 @@ def _coefficients(
     }
     names = [f"c{d}" for d in which] + (["e1", "e2", "e3"] if derivatives else [])
     for name in names:
-        out[name] = torch.where(
-            small, _TAYLOR[name](theta2, th4), _CLOSED[name](t2, t, sin_t, cos_t)
-        )
+        a0, a1, a2 = _TAYLOR[name]
+        taylor = a0 + a1 * theta2 + a2 * th4
+        out[name] = torch.where(small, taylor, _CLOSED[name](t2, t, sin_t, cos_t))
     return out
 
 
 def series_coefficients(theta2: torch.Tensor) -> torch.Tensor:
     """All seven series coefficients ``(c0, c1, c2, c3, e1, e2, e3)`` of :func:`coefficients`
-    from ``theta^2`` of any shape: (...) -> (7, ...), the same values.
+    from ``theta^2`` of any shape: (...) -> (7, ...), the same values up to rounding.
 
     For large batches of small rotations (IMU samples): the Taylor series is evaluated
-    everywhere and the closed form only at angles above the small-angle switch (one host
-    check whether there are any), instead of both everywhere.
+    everywhere (one matrix product with the table of series coefficients) and the closed
+    form only at angles above the small-angle switch (one host check whether there are
+    any), instead of both everywhere.
     """
-    th4 = theta2 * theta2
-    out = torch.stack([_TAYLOR[name](theta2, th4) for name in SERIES_NAMES])
+    table = torch.tensor(
+        [_TAYLOR[name] for name in SERIES_NAMES], dtype=theta2.dtype, device=theta2.device
+    )
+    powers = torch.stack((torch.ones_like(theta2), theta2, theta2 * theta2))
+    out = (table @ powers.reshape(3, -1)).reshape(len(SERIES_NAMES), *theta2.shape)
     large = theta2 >= _SMALL_ANGLE**2
     if not bool(large.any()):
         return out

@@ -162,19 +162,14 @@ class Preintegrated:
 
 
 def _series_matrix(
-    outer: torch.Tensor,
-    phi: torch.Tensor,
-    a: torch.Tensor,
-    b: torch.Tensor,
-    c: torch.Tensor,
+    phi: torch.Tensor, a: torch.Tensor, b: torch.Tensor, c: torch.Tensor
 ) -> torch.Tensor:
     """``a phi phi^T + b I + c [phi]x`` per sample, in the component-major layout.
 
     Exp, Gamma_1 and Gamma_2 are all of this form (``[phi]x^2 = phi phi^T - t^2 I``).
-    Args: outer (N, 3, 3, L) = phi phi^T, phi (N, 3, L), a, b, c (N, L).
-    Returns (N, 3, 3, L).
+    Args: phi (N, 3, L), a, b, c (N, L). Returns (N, 3, 3, L).
     """
-    out = outer * a[:, None, None]
+    out = (a[:, None] * phi)[:, :, None] * phi[:, None, :]
     out.diagonal(dim1=1, dim2=2).add_(b[..., None])
     return _add_hat(out, phi, c)
 
@@ -279,16 +274,15 @@ def preintegrate(
     force = samples_last(accel - accel_bias[..., None, :])
     dt = dt.reshape(batch, length)
     phi = omega * dt[:, None]
-    outer = phi[:, :, None] * phi[:, None, :]  # phi phi^T
-    theta2 = outer.diagonal(dim1=1, dim2=2).sum(-1)
+    theta2 = (phi * phi).sum(1)
     c0, c1, c2, c3, e1, e2, e3 = so3.series_coefficients(theta2)
     dt2 = dt * dt
     dt3 = dt2 * dt
     # Exp = I + c0 [phi]x + c1 [phi]x^2, Gamma_1 dt, Gamma_2 dt^2 (same form, other weights)
     rot_start, delta_rotation = _prefix_rotations(  # R_j (N, 3, 3, L), R_L
-        _series_matrix(outer, phi, c1, 1.0 - c1 * theta2, c0)
+        _series_matrix(phi, c1, 1.0 - c1 * theta2, c0)
     )
-    gam1_dt = _series_matrix(outer, phi, c2 * dt, dt * (1.0 - c2 * theta2), c1 * dt)
+    gam1_dt = _series_matrix(phi, c2 * dt, dt * (1.0 - c2 * theta2), c1 * dt)
 
     # Gamma_n f with [phi]x^2 f = (phi . f) phi - t^2 f
     cross = torch.linalg.cross(phi, force, dim=1)  # phi x f
@@ -331,10 +325,7 @@ def preintegrate(
         """``sum_j R_j X_j`` (N, 3, 3) from the transposed blocks ``X_j^T`` (N, 3, 3, L)."""
         return (block_t.reshape(batch, 3, 3 * length) @ rot_flat_t).mT
 
-    sum_gam2 = rotated_sum(
-        _series_matrix(outer, phi, c3 * dt2, dt2 * (0.5 - c3 * theta2), -(c2 * dt2))
-    )
-    force_phi = force[:, :, None] * phi[:, None, :]  # f phi^T
+    sum_gam2 = rotated_sum(_series_matrix(phi, c3 * dt2, dt2 * (0.5 - c3 * theta2), -(c2 * dt2)))
     # the vectors u_n of dG_n's u_n phi^T, with [phi]x^2 f = (phi . f) phi - t^2 f
     u_1 = series_vector(-(e2 * theta2 + 2.0 * c2), e1, e2)
     u_2 = series_vector(-(e3 * theta2 + 2.0 * c3), e2, e3)
@@ -345,7 +336,7 @@ def preintegrate(
 
     def jacobian_block(alpha: torch.Tensor, beta: torch.Tensor, vec: torch.Tensor):
         """Transposed block ``beta ((phi . f) I + f phi^T) + phi vec^T + alpha [f]x``."""
-        block = force_phi * beta[:, None, None]
+        block = (beta[:, None] * force)[:, :, None] * phi[:, None, :]
         block.addcmul_(phi[:, :, None], vec[:, None, :])
         block.diagonal(dim1=1, dim2=2).add_((beta * dot)[..., None])
         return _add_hat(block, force, alpha)

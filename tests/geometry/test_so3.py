@@ -366,3 +366,26 @@ def test_log_gradient_finite_for_nearly_equal_rotations():
     (grad,) = torch.autograd.grad((so3.log(x) ** 2).sum(), x)
     bad = (~torch.isfinite(grad)).flatten(1).any(-1)
     assert not bool(bad.any()), f"{int(bad.sum())} of 500 log gradients are NaN"
+
+
+def test_series_coefficients_equal_coefficients_and_closed_forms():
+    """Batched coefficients from theta^2 (Taylor everywhere, closed form above the switch)
+    equal ``coefficients`` on both sides of the switch; at theta >= 0.5 they equal numpy's
+    closed forms of c_n and central differences (dc_n / dt) / t of them for e_n."""
+    phi = torch.cat((_phis(21), _phis(22), 1e-2 * _phis(23))).reshape(3, -1, 3)
+    coef = so3.coefficients(phi, "0123", derivatives=True)
+    batched = so3.series_coefficients((phi * phi).sum(-1))
+    assert batched.shape == (7, *phi.shape[:-1])
+    for k, name in enumerate(so3.SERIES_NAMES):
+        torch.testing.assert_close(batched[k], coef[name][..., 0, 0], rtol=1e-15, atol=1e-18)
+
+    def closed(t: np.ndarray) -> list[np.ndarray]:
+        s, c = np.sin(t), np.cos(t)
+        return [s / t, (1 - c) / t**2, (t - s) / t**3, (t**2 + 2 * c - 2) / (2 * t**4)]
+
+    t = np.linspace(0.5, 3.0, 30)  # closed forms free of cancellation here
+    h = 1e-5
+    slopes = [(a - b) / (2 * h) / t for a, b in zip(closed(t + h), closed(t - h), strict=True)]
+    got = so3.series_coefficients(torch.as_tensor(t * t)).numpy()
+    np.testing.assert_allclose(got[:4], np.stack(closed(t)), rtol=1e-13)
+    np.testing.assert_allclose(got[4:], np.stack(slopes[1:]), rtol=1e-6)
