@@ -289,3 +289,132 @@ def test_odometry_scale_is_the_least_squares_step_ratio():
     expected = np.linalg.lstsq(steps, target, rcond=None)[0][0]
     assert odometry_scale(noisy, metric) == pytest.approx(expected, rel=1e-12)
     assert odometry_scale(np.zeros((5, 3)), metric[:5]) == 1.0
+
+
+def _drifted(frames, k: int, drift: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Frame k's body pose in an odometry frame that drifted by the transform ``drift``."""
+    pose = np.eye(4)
+    pose[:3, :3], pose[:3, 3] = frames[k].rotation, frames[k].position
+    moved = drift @ pose
+    return moved[:3, 3], moved[:3, :3]
+
+
+def test_recent_loop_predicts_the_next_match(rendered, places, vocabulary):
+    """First lap: frames 0, 10, 20, 30 at 0-3 s with their true poses; second lap: frames 5,
+    15, 25 at 30-32 s in an odometry frame that drifted by 1.2 m and 8 deg of yaw. The loop
+    at 31 s comes from the bag of words; at 32 s that loop and the odometry predict the
+    match, which is verified first (from the predicted pose) and agrees with the simulated
+    relative pose. Without poses the same query goes through the bag of words."""
+    _, renderer, frames = rendered
+    drift = np.eye(4)
+    drift[:3, :3] = Rotation.from_euler("z", 8.0, degrees=True).as_matrix()
+    drift[:3, 3] = [1.2, -0.7, 0.05]
+    lap = ((0.0, 0), (1.0, 2), (2.0, 4), (3.0, 6))
+    revisit = ((30.0, 1), (31.0, 3), (32.0, 5))
+    with_poses = LoopDetector(vocabulary, renderer.rig, LoopConfig())
+    without = LoopDetector(vocabulary, renderer.rig, LoopConfig())
+    for t, k in lap:
+        with_poses.process(t, places[k], frames[5 * k].position, frames[5 * k].rotation)
+        without.process(t, places[k])
+    records = []
+    for t, k in revisit:
+        loop, record = with_poses.process(t, places[k], *_drifted(frames, 5 * k, drift))
+        records.append((loop, record))
+        without.process(t, places[k])
+    (_, first), (loop_bow, second), (loop, third) = records
+    assert not first["propagated"] and loop_bow is not None and not second["propagated"]
+    assert loop is not None and third["propagated"] and third["verified"]
+    assert loop.query == 6 and loop.match in (2, 3)  # frames 20 / 30, beside frame 25
+    rotation, translation = _truth_relative(frames, 10 * loop.match, 25)
+    assert np.linalg.norm(loop.translation - translation) < 0.05
+    assert np.degrees(np.linalg.norm(rotation_log(rotation.T @ loop.rotation))) < 0.3
+    assert with_poses.loops[-1] is loop
+    _, plain = without.process(33.0, places[5])
+    assert not plain["propagated"]
+
+
+def test_prediction_needs_a_recent_loop_and_a_nearby_keyframe(rendered, places, vocabulary):
+    """No prediction once the last loop is older than propagation_window_s, nor when the
+    odometry puts the query farther than propagation_radius_m from every stored keyframe."""
+    _, renderer, frames = rendered
+    for config, query_t, shift in (
+        (LoopConfig(propagation_window_s=0.5), 32.0, 0.0),
+        (LoopConfig(propagation_radius_m=0.4), 32.0, 3.0),
+    ):
+        detector = LoopDetector(vocabulary, renderer.rig, config)
+        for t, k in ((0.0, 0), (1.0, 2), (2.0, 4), (3.0, 6)):
+            detector.process(t, places[k], frames[5 * k].position, frames[5 * k].rotation)
+        for t, k in ((30.0, 1), (31.0, 3)):
+            detector.process(t, places[k], frames[5 * k].position, frames[5 * k].rotation)
+        assert detector.loops, "the bag-of-words loop at 31 s seeds the prediction"
+        position = frames[25].position + frames[25].rotation @ [0.0, shift, 0.0]
+        _, record = detector.process(query_t, places[5], position, frames[25].rotation)
+        assert not record["propagated"]
+
+
+def test_loose_loop_is_refused(rendered, places, vocabulary):
+    """A loop whose translation sigma exceeds max_translation_sigma_m is refused (the
+    translation floor alone is 0.02 m)."""
+    _, renderer, frames = rendered
+    for limit, accepted in ((0.1, True), (0.015, False)):
+        config = LoopConfig(min_gap_s=1.0, min_consistent=0, max_translation_sigma_m=limit)
+        detector = LoopDetector(vocabulary, renderer.rig, config)
+        detector.process(frames[0].t, places[0])
+        loop, _ = detector.process(frames[15].t, places[3])
+        assert (loop is not None) == accepted
+
+
+def test_benchmark_edge_sigmas_fit_the_rendered_odometry(rendered, odometry):
+    """The benchmark's keyframe-odometry sigmas (fitted on its tuning seeds) against this
+    rendered run's keyframe steps: whitened squared errors average near 1 per axis, while
+    the generic drift model's average far below (too loose)."""
+    from benchmarks.loop_closure import VO_EDGE_SIGMAS
+
+    _, _, frames = rendered
+    index = [kf.frame for kf in odometry.keyframes]
+    vo_p = np.array([kf.position for kf in odometry.keyframes])
+    vo_r = np.array([kf.rotation for kf in odometry.keyframes])
+    true_p = np.array([frames[k].position for k in index])
+    true_r = np.array([frames[k].rotation for k in index])
+    errors = []
+    for k in range(len(index) - 1):
+        true_rel_r = true_r[k].T @ true_r[k + 1]
+        true_rel_t = true_r[k].T @ (true_p[k + 1] - true_p[k])
+        rel_r = vo_r[k].T @ vo_r[k + 1]
+        rel_t = vo_r[k].T @ (vo_p[k + 1] - vo_p[k])
+        errors.append(
+            np.concatenate(
+                (true_rel_r.T @ (rel_t - true_rel_t), rotation_log(true_rel_r.T @ rel_r))
+            )
+        )
+    errors = np.array(errors)
+    fitted = odometry_edge_covariance(vo_p, vo_r, **VO_EDGE_SIGMAS)
+    generic = odometry_edge_covariance(vo_p, vo_r)
+    per_axis_fitted = np.mean(errors**2 / np.diagonal(fitted, axis1=1, axis2=2))
+    per_axis_generic = np.mean(errors**2 / np.diagonal(generic, axis1=1, axis2=2))
+    assert 0.2 < per_axis_fitted < 2.0
+    assert per_axis_generic < 0.3 * per_axis_fitted
+
+
+def test_benchmark_frontend_cache_round_trip(tmp_path):
+    """benchmarks/loop_closure.py's front-end cache returns the places and poses it wrote."""
+    from benchmarks.loop_closure import load_frontend, save_frontend
+    from msf_torch.vision.loop import PlaceFeatures
+
+    rng = np.random.default_rng(0)
+    places = [
+        PlaceFeatures(
+            rng.uniform(0, 640, (n, 2)),
+            rng.integers(0, 256, (n, 32), dtype=np.uint8),
+            np.where(rng.random((n, 1)) < 0.3, np.nan, rng.uniform(1, 9, (n, 3))),
+            1.2 ** rng.integers(0, 4, n).astype(float),
+        )
+        for n in (5, 0, 9)
+    ]
+    front = {"kf_t": np.arange(3.0), "vo_p": rng.normal(size=(3, 3)), "places": places}
+    save_frontend(tmp_path / "run.npz", front)
+    back = load_frontend(tmp_path / "run.npz")
+    np.testing.assert_array_equal(back["vo_p"], front["vo_p"])
+    for a, b in zip(back["places"], places, strict=True):
+        for name in ("pixels", "descriptors", "points", "scales"):
+            np.testing.assert_array_equal(getattr(a, name), getattr(b, name))
