@@ -338,7 +338,7 @@ def main(argv: list[str] | None = None) -> int:
         "gtsam_smoothed_rmse_vs_gps_m": rmse_at(
             trajectory_from(gtsam_res["t"], gtsam_res["smoothed_position"]), scored
         ),
-        "filterpy_rmse_vs_gps_m": rmse_at(fp_traj, fp_scored),
+        "filterpy_rmse_vs_gps_m": rmse_at(fp_traj, fp_scored) if fp_scored.mask.any() else None,
         "filterpy_scored_fixes": int(fp_scored.mask.sum()),
         "ours_gnss_accepted": int(ours_res.accepted["gnss"].sum()),
         "ours_gnss_rejected": int((ours_res.present["gnss"] & ~ours_res.accepted["gnss"]).sum()),

@@ -24,6 +24,8 @@ def split_gnss_outage(seq: Sequence, start_s: float, end_s: float) -> tuple[Sequ
         start_s, end_s: window in seconds from the sequence's first IMU sample.
     Returns:
         (sequence without those fixes, the withheld fixes as their own stream).
+    Raises:
+        ValueError: B != 1, no GNSS, end <= start, or fewer than 2 fixes inside the window.
     """
     if seq.batch_size != 1:
         raise ValueError(f"split_gnss_outage needs B = 1, got B = {seq.batch_size}")
@@ -33,8 +35,12 @@ def split_gnss_outage(seq: Sequence, start_s: float, end_s: float) -> tuple[Sequ
         raise ValueError(f"outage window must have end > start, got {start_s}:{end_s}")
     rel = seq.gnss.t[0] - seq.start_time[0]
     inside = (rel >= start_s) & (rel <= end_s) & seq.gnss.mask[0]
-    if not bool(inside.any()):
-        raise ValueError(f"no GNSS fix lies inside the outage window {start_s}:{end_s} s")
+    held = int(inside.sum())
+    if held < 2:
+        raise ValueError(
+            f"the outage window {start_s}:{end_s} s holds {held} GNSS fix(es); drift needs at "
+            "least 2 (a distance travelled inside the window)"
+        )
     kept = seq.gnss.map(lambda x: x[:, ~inside])
     withheld = seq.gnss.map(lambda x: x[:, inside])
     return dataclasses.replace(seq, gnss=kept), withheld
@@ -64,7 +70,11 @@ def outage_metrics(estimate: Trajectory, withheld: GnssFixes) -> dict[str, float
         ``outage_rmse_m``, ``outage_max_error_m``, ``outage_distance_m``,
         ``outage_drift_pct`` (= max error / distance * 100), ``outage_duration_s``,
         ``outage_fixes``.
+    Raises:
+        ValueError: when ``withheld`` holds no fix (nothing to score against).
     """
+    if not bool(withheld.mask[0].any()):
+        raise ValueError("outage_metrics: no withheld GNSS fix to score the estimate against")
     t_ref = withheld.t[0, withheld.mask[0]]
     p_ref = withheld.position[0, withheld.mask[0]]
     err = (interpolate_positions(estimate, t_ref) - p_ref).norm(dim=-1)
