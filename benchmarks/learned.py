@@ -39,7 +39,8 @@ tuning runs and can generalise worse than the config noise, so a target met agai
 ``fixed_best`` alone does not show that the network earns its place.
 
 Targets (issue 4): ATE(learned) at least 30 % below the better of ``fixed_best`` and
-``config`` (``ate_target_met`` is judged so) and 15 % below ``fixed_per_weather``; learned
+``config`` (``ate_target_met`` is judged so; ``ate_target_as_worded_met`` judges the issue's
+wording, ``fixed_best`` alone) and 15 % below ``fixed_per_weather``; learned
 weighting better than equal weights in every held-out run and better than the best single
 source in >= 90 % of them; NEES fraction >= 90 %.
 
@@ -321,6 +322,9 @@ def main() -> None:
         # test runs (the grid's choice on the tuning runs and the configured noise, itself a
         # grid point): a grid choice that generalises badly must not make the target easy
         "ate_target_met": 1.0 - ate["learned"] / min(ate["fixed_best"], ate["config"]) >= 0.30
+        and 1.0 - ate["learned"] / ate["fixed_per_weather"] >= 0.15,
+        # the issue's wording alone (the grid's choice and the per-weather sets), for the record
+        "ate_target_as_worded_met": 1.0 - ate["learned"] / ate["fixed_best"] >= 0.30
         and 1.0 - ate["learned"] / ate["fixed_per_weather"] >= 0.15,
         "nees_fraction_inside_95": round(inside / max(total, 1.0), 4),
         "nees_target": 0.90,

@@ -38,6 +38,7 @@ __all__ = [
     "RunFeatures",
     "run_features",
     "simulate_labelled_run",
+    "simulate_labelled_weather_run",
     "collate_runs",
     "RunDataModule",
 ]
@@ -57,6 +58,7 @@ from msf_torch.io import load_sequence
 from msf_torch.learning.features import RunFeatures, pose_source_of, run_features
 from msf_torch.sim import (
     SimConfig,
+    WeatherRun,
     WeatherSchedule,
     apply_weather,
     simulate_run,
@@ -104,7 +106,7 @@ class RunBatch:
         return dataclasses.replace(self, sequence=self.sequence.to(device), **moved)
 
 
-def simulate_labelled_run(
+def simulate_labelled_weather_run(
     seed: int,
     duration_s: float,
     imu_rate_hz: float = 100.0,
@@ -114,9 +116,11 @@ def simulate_labelled_run(
     gnss_outage_count: int = 0,
     gnss_outage_duration_s: tuple[float, float] = (10.0, 20.0),
     unreported_error: bool = True,
-) -> Sequence:
-    """One simulated run (B = 1) with a random weather schedule, weather-driven slip
-    episodes and degraded GNSS / pose streams; labels ``"weather:<c>"``, ``"slip"``, ...
+) -> WeatherRun:
+    """The :class:`~msf_torch.sim.weather.WeatherRun` behind :func:`simulate_labelled_run`
+    (same seed, same draws): the run plus what its pose sources did (per-sample
+    ``error_scale``, drift and white noise: :class:`~msf_torch.sim.weather.PoseSourceTruth`),
+    for oracle baselines. ``sequence.names`` is ``["sim-<seed>"]``.
 
     Args:
         seed: non-negative int; the schedule, slip, path and weather draws use seeds
@@ -148,7 +152,36 @@ def simulate_labelled_run(
     wet = apply_weather(
         run, schedule, s_weather, pose_source=pose_source, unreported_error=unreported_error
     )
-    return dataclasses.replace(wet.sequence, names=[f"sim-{seed}"])
+    return dataclasses.replace(
+        wet, sequence=dataclasses.replace(wet.sequence, names=[f"sim-{seed}"])
+    )
+
+
+def simulate_labelled_run(
+    seed: int,
+    duration_s: float,
+    imu_rate_hz: float = 100.0,
+    pose_source: str | None = None,
+    mean_segment_s: float = 15.0,
+    min_segment_s: float = 5.0,
+    gnss_outage_count: int = 0,
+    gnss_outage_duration_s: tuple[float, float] = (10.0, 20.0),
+    unreported_error: bool = True,
+) -> Sequence:
+    """One simulated run (B = 1) with a random weather schedule, weather-driven slip
+    episodes and degraded GNSS / pose streams; labels ``"weather:<c>"``, ``"slip"``, ...
+    (the arguments as in :func:`simulate_labelled_weather_run`)."""
+    return simulate_labelled_weather_run(
+        seed,
+        duration_s,
+        imu_rate_hz,
+        pose_source,
+        mean_segment_s,
+        min_segment_s,
+        gnss_outage_count,
+        gnss_outage_duration_s,
+        unreported_error,
+    ).sequence
 
 
 def _crop_imu(seq: Sequence, samples: int) -> Sequence:

@@ -24,6 +24,7 @@ from msf_torch.learning.data import (
     collate_runs,
     run_features,
     simulate_labelled_run,
+    simulate_labelled_weather_run,
 )
 from msf_torch.learning.module import CovNetModule, truth_at
 from msf_torch.types import Trajectory
@@ -255,3 +256,25 @@ def test_labelled_runs_carry_the_unreported_weather_error():
         on.pose_sources["vo"].covariance, off.pose_sources["vo"].covariance, rtol=0.0, atol=0.0
     )
     assert rms["on"] > 1.05 * rms["off"], rms
+
+
+def test_labelled_weather_run_is_the_labelled_run_with_its_source_truth():
+    """The oracle's entry point gives the same streams as simulate_labelled_run, and its
+    per-sample error scale k is the ratio of the emitted white noise to the declared
+    covariance: whitening the noise by k L (L L^T = covariance) leaves unit variance."""
+    wet = simulate_labelled_weather_run(3, 12.0)
+    seq = simulate_labelled_run(3, 12.0)
+    assert wet.sequence.names == seq.names == ["sim-3"]
+    for name in ("vo", "lidar"):
+        a, b = wet.sequence.pose_sources[name], seq.pose_sources[name]
+        torch.testing.assert_close(a.position, b.position, rtol=0.0, atol=0.0)
+        torch.testing.assert_close(a.covariance, b.covariance, rtol=0.0, atol=0.0)
+        truth = wet.source_truth[name]
+        assert truth.error_scale.shape == (a.t.shape[1],)
+        keep = a.mask[0].numpy()
+        chol = torch.linalg.cholesky(a.covariance[0, keep])
+        noise = torch.from_numpy(truth.noise[keep])[..., None]
+        k = torch.from_numpy(truth.error_scale[keep])[:, None]
+        white = torch.linalg.solve_triangular(chol, noise, upper=False)[..., 0] / k
+        assert abs(float(white.var()) - 1.0) < 0.1, float(white.var())
+    assert float(wet.source_truth["lidar"].error_scale.max()) > 2.0  # fog: k matters above
