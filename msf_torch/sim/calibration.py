@@ -136,7 +136,7 @@ def calibration_sim_config(duration_s: float = 180.0, **overrides) -> SimConfig:
 
 
 def _tensor(x: np.ndarray) -> torch.Tensor:
-    return torch.from_numpy(np.ascontiguousarray(x, dtype=np.float64))[None]
+    return torch.from_numpy(np.array(x, dtype=np.float64, order="C"))[None]
 
 
 def _camera_stream(

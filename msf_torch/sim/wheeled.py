@@ -912,7 +912,7 @@ class SimulatedRun:
 
 
 def _tensor(x: np.ndarray) -> torch.Tensor:
-    return torch.from_numpy(np.ascontiguousarray(x, dtype=np.float64))[None]
+    return torch.from_numpy(np.array(x, dtype=np.float64, order="C"))[None]
 
 
 def simulate_run(config: SimConfig, seed: int, *, path_seed: int | None = None) -> SimulatedRun:
