@@ -109,7 +109,9 @@ def _usable(stream, nan_ok: tuple[str, ...]) -> torch.Tensor:
     one of the same stream."""
     good = stream.mask & torch.isfinite(stream.t)
     for name, value in stream.tensors().items():
-        if name in ("t", "mask") or name in nan_ok:
+        # a finite sum means every value is finite (one NaN or inf makes it NaN or inf):
+        # the per-sample test (slow over (B, N, 3)) only runs where the sum is not
+        if name in ("t", "mask") or name in nan_ok or bool(torch.isfinite(value.sum())):
             continue
         flat = value.reshape(*value.shape[:2], math.prod(value.shape[2:]))
         good = good & torch.isfinite(flat).all(-1)
@@ -120,7 +122,10 @@ def _usable(stream, nan_ok: tuple[str, ...]) -> torch.Tensor:
 
 
 def _drop(stream, usable: torch.Tensor):
-    """The stream with ``mask = usable`` and the values of the other samples set to 0."""
+    """The stream with ``mask = usable`` and the values of the other samples set to 0 (the
+    stream itself when every sample is usable)."""
+    if bool(usable.all()):
+        return stream
 
     def clean(name: str, value: torch.Tensor) -> torch.Tensor:
         if name == "mask":

@@ -21,6 +21,7 @@ from __future__ import annotations
 __all__ = ["initial_state"]
 
 import math
+from collections.abc import Callable
 
 import numpy as np
 import torch
@@ -49,13 +50,28 @@ def _valid(stream, b: int):
     }
 
 
+def _imu_reader(
+    seq: Sequence, b: int
+) -> tuple[np.ndarray, Callable[[str, np.ndarray | slice], np.ndarray]]:
+    """Valid IMU times (N,) s of sequence ``b`` and a reader ``(field, selection) -> values``
+    of those samples at ``selection`` (a boolean mask or slice over the N): only the
+    samples used are copied (the initialisation reads a short window of the accelerometer,
+    and only the gyro's z axis)."""
+    index = np.nonzero(seq.imu.mask[b].cpu().numpy())[0]
+
+    def read(name: str, selection: np.ndarray | slice) -> np.ndarray:
+        return getattr(seq.imu, name)[b].detach().cpu().numpy()[index[selection]]
+
+    return seq.imu.t[b].detach().cpu().numpy()[index], read
+
+
 def _one(
     seq: Sequence, b: int, cfg: EskfConfig
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, float]:
-    imu = _valid(seq.imu, b)
-    t0 = imu["t"][0]
-    window = imu["t"] <= t0 + cfg.init_window_s
-    f = imu["accel"][window].mean(0) - np.asarray(cfg.init_accel_bias_mps2)
+    imu_t, read_imu = _imu_reader(seq, b)
+    t0 = imu_t[0]
+    window = imu_t <= t0 + cfg.init_window_s
+    f = read_imu("accel", window).mean(0) - np.asarray(cfg.init_accel_bias_mps2)
     roll = math.atan2(f[1], f[2])
     pitch = math.atan2(-f[0], math.hypot(f[1], f[2]))
     yaw = 0.0
@@ -101,10 +117,11 @@ def _one(
             if wheel is not None:
                 # dead-reckon with wheel speed and gyro yaw rate in the initial heading frame
                 speed = np.interp(
-                    imu["t"], wheel["t"], 0.5 * (wheel["left_speed"] + wheel["right_speed"])
+                    imu_t, wheel["t"], 0.5 * (wheel["left_speed"] + wheel["right_speed"])
                 )
-                dt = np.diff(imu["t"], append=imu["t"][-1])
-                heading = np.cumsum(imu["gyro"][:, 2] * dt) - imu["gyro"][:, 2] * dt
+                dt = np.diff(imu_t, append=imu_t[-1])
+                yaw_rate = read_imu("gyro", slice(None))[:, 2]
+                heading = np.cumsum(yaw_rate * dt) - yaw_rate * dt
                 path = np.stack(
                     (
                         np.cumsum(speed * np.cos(heading) * dt),
@@ -114,7 +131,7 @@ def _one(
                 )
                 path = np.vstack((np.zeros(2), path[:-1]))
                 dr = np.stack(
-                    [np.interp(gnss["t"][: k + 1], imu["t"], path[:, i]) for i in range(2)], 1
+                    [np.interp(gnss["t"][: k + 1], imu_t, path[:, i]) for i in range(2)], 1
                 )
                 # 2-D Kabsch on centred point sets: no single fix anchors the alignment
                 gg = gnss["position"][: k + 1, :2]

@@ -52,7 +52,10 @@ class Schedule:
         t_start: (B,) filter start time (first IMU sample), s.
         t_end: (B, E) epoch end times, s.
         epoch_mask: (B, E) bool, real epochs.
-        gyro, accel: (B, E, L, 3) ZOH values of each piece.
+        sample_index: (B, E, L) index of each piece's held IMU sample into ``imu_gyro`` /
+            ``imu_accel`` (padding: the sequence's first sample); :meth:`held_imu` gathers
+            the (B, E, L, 3) ZOH values of a range of epochs.
+        imu_gyro, imu_accel: (B N, 3) the batch's raw IMU samples, flattened (views).
         dt: (B, E, L) piece durations, s (0 = padding).
         noise_scale: (B, E, L) IMU variance multipliers (gaps).
         gap: (B, E) bool, the epoch contains an IMU gap.
@@ -80,8 +83,9 @@ class Schedule:
     t_start: torch.Tensor
     t_end: torch.Tensor
     epoch_mask: torch.Tensor
-    gyro: torch.Tensor
-    accel: torch.Tensor
+    sample_index: torch.Tensor
+    imu_gyro: torch.Tensor
+    imu_accel: torch.Tensor
     dt: torch.Tensor
     noise_scale: torch.Tensor
     gap: torch.Tensor
@@ -112,6 +116,18 @@ class Schedule:
     def num_epochs(self) -> int:
         """E."""
         return self.t_end.shape[1]
+
+    def held_imu(self, epochs: slice = slice(None)) -> tuple[torch.Tensor, torch.Tensor]:
+        """ZOH gyro (rad/s) and accelerometer (m/s^2) values (B, e, L, 3) of the pieces of
+        ``epochs``, gathered on demand: a consumer that works through the epochs in chunks
+        never holds all (B, E, L, 3) of them (at B = 32 on the KITTI drive, 37 MB each)."""
+        index = self.sample_index[:, epochs]
+        flat = index.reshape(-1)
+        shape = (*index.shape, 3)
+        return (
+            self.imu_gyro.index_select(0, flat).reshape(shape),
+            self.imu_accel.index_select(0, flat).reshape(shape),
+        )
 
 
 def _merge_times(times: np.ndarray, tol: float) -> np.ndarray:
@@ -276,8 +292,7 @@ def build_schedule(seq: Sequence, cfg: EskfConfig) -> Schedule:
         imu_t = _np(seq.imu.t[b])[imu_mask]
         if imu_t.size < 2:
             raise ValueError(f"sequence '{seq.names[b]}' has {imu_t.size} IMU samples; need >= 2")
-        gyro = _np(seq.imu.gyro[b])[imu_mask]
-        accel = _np(seq.imu.accel[b])[imu_mask]
+        imu_sel = np.nonzero(imu_mask)[0]
         t0, t_last = imu_t[0], imu_t[-1]
 
         def stream_times(stream, b=b, t0=t0, t_last=t_last):
@@ -292,6 +307,9 @@ def build_schedule(seq: Sequence, cfg: EskfConfig) -> Schedule:
         gnss_t, gnss_src = stream_times(seq.gnss)
         pose_t, pose_src = stream_times(seq.poses)
         pairs = [_source_pairs(seq.pose_sources[n], b, t0, t_last, cfg) for n in names]
+        # the gyro and accelerometer values (N, 3) are read only where a step needs them
+        gyro = _np(seq.imu.gyro[b])[imu_sel] if pairs or cfg.zupt else None
+        accel = _np(seq.imu.accel[b])[imu_sel] if cfg.zupt else None
         use_nhc = cfg.nhc == "on" or (cfg.nhc == "auto" and wheel_t.size == 0)
         updates = _merge_times(
             np.concatenate((wheel_t, gnss_t, pose_t, *[p[0] for p in pairs], [t_last])), tol
@@ -350,7 +368,7 @@ def build_schedule(seq: Sequence, cfg: EskfConfig) -> Schedule:
                 piece_dt=piece_dt,
                 gap_piece=gap_piece,
                 end_sample=end_sample,
-                imu_sel=np.nonzero(imu_mask)[0],
+                imu_sel=imu_sel,
                 wheel=(wheel_idx, wheel_src),
                 gnss=(gnss_idx, gnss_src),
                 pose=(pose_idx, pose_src),
@@ -368,62 +386,65 @@ def build_schedule(seq: Sequence, cfg: EskfConfig) -> Schedule:
     def zeros(*shape, dt=dtype):
         return torch.zeros(*shape, dtype=dt, device=device)
 
-    t_end = zeros(batch, n_epochs)
-    epoch_mask = zeros(batch, n_epochs, dt=torch.bool)
-    dt = zeros(batch, n_epochs, n_slots)
-    noise_scale = torch.ones(batch, n_epochs, n_slots, **f64)
-    gap = zeros(batch, n_epochs, dt=torch.bool)
-    sample_index = torch.zeros(batch, n_epochs, n_slots, dtype=torch.long, device=device)
-    end_index = torch.zeros(batch, n_epochs, dtype=torch.long, device=device)
+    # the padded (B, E[, L]) arrays are filled in numpy (fancy-index writes of a sequence's
+    # pieces cost microseconds there, far less than torch's multi-index puts) and moved to
+    # the device once
+    t_end = np.zeros((batch, n_epochs))
+    epoch_mask = np.zeros((batch, n_epochs), dtype=bool)
+    dt = np.zeros((batch, n_epochs, n_slots))
+    noise_scale = np.ones((batch, n_epochs, n_slots))
+    gap = np.zeros((batch, n_epochs), dtype=bool)
+    # index into the flattened (B N) IMU samples, padding at each sequence's first sample
+    sample_index = np.empty((batch, n_epochs, n_slots), dtype=np.int64)
+    end_index = np.zeros((batch, n_epochs), dtype=np.int64)
     masks = {
-        k: zeros(batch, n_epochs, dt=torch.bool) for k in ("wheel", "gnss", "pose", "nhc", "zupt")
+        k: np.zeros((batch, n_epochs), dtype=bool) for k in ("wheel", "gnss", "pose", "nhc", "zupt")
     }
-    src = {
-        k: torch.zeros(batch, n_epochs, dtype=torch.long, device=device)
-        for k in ("wheel", "gnss", "pose")
-    }
+    src = {k: np.zeros((batch, n_epochs), dtype=np.int64) for k in ("wheel", "gnss", "pose")}
     n_src = len(names)
-    source_mask = zeros(batch, n_epochs, n_src, dt=torch.bool)
-    source_end = torch.zeros(batch, n_epochs, n_src, dtype=torch.long, device=device)
-    source_start = torch.zeros(batch, n_epochs, n_src, dtype=torch.long, device=device)
-    source_gyro_mean = zeros(batch, n_epochs, n_src, 3)
-    t_start = torch.zeros(batch, **f64)
+    source_mask = np.zeros((batch, n_epochs, n_src), dtype=bool)
+    source_end = np.zeros((batch, n_epochs, n_src), dtype=np.int64)
+    source_start = np.zeros((batch, n_epochs, n_src), dtype=np.int64)
+    source_gyro_mean = np.zeros((batch, n_epochs, n_src, 3))
+    t_start = np.array([p["t0"] for p in per_seq], dtype=np.float64)
     for b, p in enumerate(per_seq):
         n_e = p["updates"].size
-        t_start[b] = float(p["t0"])
-        t_end[b, :n_e] = torch.as_tensor(p["updates"], **f64)
-        t_end[b, n_e:] = float(p["updates"][-1])
+        t_end[b, :n_e] = p["updates"]
+        t_end[b, n_e:] = p["updates"][-1]
         epoch_mask[b, :n_e] = True
-        e_idx = torch.as_tensor(p["epoch"], device=device)
-        s_idx = torch.as_tensor(p["slot"], device=device)
-        dt[b, e_idx, s_idx] = torch.as_tensor(p["piece_dt"], **f64)
-        scale = np.where(p["gap_piece"], cfg.imu_gap_noise_scale, 1.0)
-        noise_scale[b, e_idx, s_idx] = torch.as_tensor(scale, **f64)
-        gap_epochs = np.unique(p["epoch"][p["gap_piece"]])
-        gap[b, torch.as_tensor(gap_epochs, dtype=torch.long, device=device)] = True
-        sample_index[b, e_idx, s_idx] = torch.as_tensor(p["imu_sel"][p["sample"]], device=device)
-        end_index[b, :n_e] = torch.as_tensor(p["imu_sel"][p["end_sample"]], device=device)
+        piece = p["epoch"] * n_slots + p["slot"]  # index into the sequence's (E L) slots
+        dt[b].reshape(-1)[piece] = p["piece_dt"]
+        noise_scale[b].reshape(-1)[piece[p["gap_piece"]]] = cfg.imu_gap_noise_scale
+        gap[b, p["epoch"][p["gap_piece"]]] = True
+        sample_index[b] = b * seq.imu.length
+        sample_index[b].reshape(-1)[piece] += p["imu_sel"][p["sample"]]
+        end_index[b, :n_e] = p["imu_sel"][p["end_sample"]]
         for key in ("wheel", "gnss", "pose"):
             idx, source = p[key]
             has = idx >= 0
-            masks[key][b, :n_e] = torch.as_tensor(has, device=device)
-            src[key][b, :n_e][torch.as_tensor(has, device=device)] = torch.as_tensor(
-                source[idx[has]], dtype=torch.long, device=device
-            )
-        masks["nhc"][b, :n_e] = torch.as_tensor(p["nhc"], device=device)
-        masks["zupt"][b, :n_e] = torch.as_tensor(p["zupt"], device=device)
+            masks[key][b, :n_e] = has
+            src[key][b, :n_e][has] = source[idx[has]]
+        masks["nhc"][b, :n_e] = p["nhc"]
+        masks["zupt"][b, :n_e] = p["zupt"]
         for s, (idx, end, start, gyro_mean) in enumerate(p["sources"]):
             has = np.nonzero(idx >= 0)[0]
             source_mask[b, has, s] = True
-            source_end[b, has, s] = torch.as_tensor(end[idx[has]], device=device)
-            source_start[b, has, s] = torch.as_tensor(start[idx[has]], device=device)
-            source_gyro_mean[b, has, s] = torch.as_tensor(gyro_mean[idx[has]], **f64)
+            source_end[b, has, s] = end[idx[has]]
+            source_start[b, has, s] = start[idx[has]]
+            source_gyro_mean[b, has, s] = gyro_mean[idx[has]]
+
+    def tensor(x: np.ndarray) -> torch.Tensor:
+        return torch.as_tensor(x, device=device, dtype=dtype if x.dtype == np.float64 else None)
+
+    t_start, t_end, dt, noise_scale, source_gyro_mean = map(
+        tensor, (t_start, t_end, dt, noise_scale, source_gyro_mean)
+    )
+    epoch_mask, gap, end_index, source_mask = map(tensor, (epoch_mask, gap, end_index, source_mask))
+    source_end, source_start, sample_index = map(tensor, (source_end, source_start, sample_index))
+    masks = {k: tensor(v) for k, v in masks.items()}
+    src = {k: tensor(v) for k, v in src.items()}
 
     rows = torch.arange(batch, device=device)[:, None]
-    # the ZOH samples of every piece: one index_select on the flattened (B N) samples
-    flat_index = (sample_index + rows[..., None] * seq.imu.length).reshape(-1)
-    gyro = seq.imu.gyro.reshape(-1, 3).index_select(0, flat_index).reshape(*dt.shape, 3)
-    accel = seq.imu.accel.reshape(-1, 3).index_select(0, flat_index).reshape(*dt.shape, 3)
     gyro_end = seq.imu.gyro[rows, end_index]
 
     def take(stream, name, key, shape):
@@ -469,8 +490,9 @@ def build_schedule(seq: Sequence, cfg: EskfConfig) -> Schedule:
         t_start=t_start,
         t_end=t_end,
         epoch_mask=epoch_mask,
-        gyro=gyro,
-        accel=accel,
+        sample_index=sample_index,
+        imu_gyro=seq.imu.gyro.reshape(-1, 3),
+        imu_accel=seq.imu.accel.reshape(-1, 3),
         dt=dt,
         noise_scale=noise_scale,
         gap=gap,
