@@ -96,7 +96,14 @@ def test_sigint_to_msf_run_leaves_a_valid_partial_trajectory(tmp_path):
     out = tmp_path / "out"
     command = [sys.executable, "-m", "msf_torch.cli", "run", str(path), "--out", str(out)]
     command += ["--no-plot", "--progress", "on", "--no-learned"]
-    proc = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    # a shell's background job (`cmd &`, a CI runner's) starts with SIGINT ignored, which the
+    # child would inherit and Python then never raises KeyboardInterrupt: give it the default
+    proc = subprocess.Popen(
+        command,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
+    )
     os.set_blocking(proc.stderr.fileno(), False)
     seen = b""
     deadline = time.monotonic() + 180.0
