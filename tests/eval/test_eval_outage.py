@@ -5,9 +5,11 @@ from __future__ import annotations
 import math
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 
+from benchmarks._common import trajectory_from
 from msf_torch.eval.outage import outage_metrics, split_gnss_outage
 from msf_torch.io import load_sequence
 from msf_torch.types import GnssFixes, Trajectory
@@ -17,12 +19,8 @@ SAMPLE = Path(__file__).resolve().parents[2] / "datasets" / "sample_slip.npz"
 
 def _line(speed: float, duration: float, rate: float = 100.0) -> Trajectory:
     """Straight-line estimate p(t) = (speed t, 0, 0), identity attitude, B = 1."""
-    t = torch.arange(0.0, duration + 1e-9, 1.0 / rate, dtype=torch.float64)[None]
-    position = torch.zeros(*t.shape, 3, dtype=torch.float64)
-    position[..., 0] = speed * t
-    quaternion = torch.zeros(*t.shape, 4, dtype=torch.float64)
-    quaternion[..., 0] = 1.0
-    return Trajectory(t, position, quaternion, torch.ones_like(t, dtype=torch.bool))
+    t = np.arange(0.0, duration + 1e-9, 1.0 / rate)
+    return trajectory_from(t, np.stack([speed * t, 0.0 * t, 0.0 * t], axis=-1))
 
 
 def _fixes(t: torch.Tensor, position: torch.Tensor) -> GnssFixes:
