@@ -21,12 +21,18 @@ other noise at the configured value (so only the weighting changes):
 consecutive pairs share no sample (their differenced white noise is then independent, as the
 filter assumes) and the baseline is n times longer; ``pose_source_max_gap_s`` grows to match.
 
+``--fusion`` picks how the sources enter the filter (``EskfConfig.pose_source_fusion``):
+``velocity`` (odometry rows, the default) or ``drifting_frame`` (absolute poses against a
+drifting per-source frame, ``frontend.source_frames``), with the simulator's drift densities
+(``CameraModel`` / ``LidarModel`` ``drift_*_per_sqrt_m``) as the sources' datasheet drift.
+
 ATE: position RMSE against the simulator's truth over the filter epochs (no alignment),
 per run; ``ate_outage_m`` / ``ate_gnss_m`` split ``equal``'s error into epochs inside and
 outside GNSS outages (``gnss_outage`` labels), where relative sources can and cannot help.
 
     python benchmarks/source_weighting.py [--test-runs 10] [--stride 1]
         [--levels -3 -1.5 0 1.5 3] [--checkpoint checkpoints/covnet_weather.pt]
+        [--fusion velocity|drifting_frame]
 """
 
 from __future__ import annotations
@@ -44,6 +50,7 @@ from msf_torch.frontend.eskf import EskfNoise, EskfResult, run_eskf
 from msf_torch.learning.covnet import LOG_SCALE_SENSORS, scaled_noise
 from msf_torch.learning.data import SPLIT_SEED_STRIDE, simulate_labelled_weather_run
 from msf_torch.learning.inference import load_learned, run_piecewise, window_scales
+from msf_torch.sim.weather import CameraModel, LidarModel
 from msf_torch.types import Sequence
 
 try:
@@ -102,6 +109,14 @@ def in_outage(seq: Sequence, t: torch.Tensor) -> torch.Tensor:
     return out
 
 
+def source_drift() -> dict[str, list[float]]:
+    """The simulator's drift densities per source, [m/sqrt(m), rad/sqrt(m)]."""
+    return {
+        name: [model.drift_position_m_per_sqrt_m, model.drift_rotation_rad_per_sqrt_m]
+        for name, model in (("vo", CameraModel()), ("lidar", LidarModel()))
+    }
+
+
 def main() -> None:
     """Score every weighting per held-out run; table on stderr, one JSON line on stdout."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -109,6 +124,12 @@ def main() -> None:
     parser.add_argument("--test-runs", type=int, default=10)
     parser.add_argument("--stride", type=int, default=1, help="keyframe stride (samples)")
     parser.add_argument("--levels", type=float, nargs="+", default=[-3.0, -1.5, 0.0, 1.5, 3.0])
+    parser.add_argument(
+        "--fusion",
+        choices=("velocity", "drifting_frame"),
+        default="velocity",
+        help=("pose_source_fusion"),
+    )
     args = parser.parse_args()
     if args.stride < 1:
         parser.error("--stride must be >= 1")
@@ -135,7 +156,12 @@ def main() -> None:
             seq = keyframes(run, args.stride)
             cfg: EskfConfig = config_for_sequence(load_config(None), run.meta, set())
             gap = max(cfg.pose_source_max_gap_s, 1.5 * args.stride / 10.0)
-            cfg = dataclasses.replace(cfg, pose_source_max_gap_s=gap)
+            cfg = dataclasses.replace(
+                cfg,
+                pose_source_max_gap_s=gap,
+                pose_source_fusion=args.fusion,
+                pose_source_drift=source_drift(),
+            )
             base = EskfNoise.from_config(cfg)
 
             def fixed(vo: float, lidar: float, base: EskfNoise = base) -> EskfNoise:
@@ -197,6 +223,8 @@ def main() -> None:
         "sha256": learned.sha256,
         "test_seeds": seeds,
         "stride": args.stride,
+        "fusion": args.fusion,
+        "source_drift": source_drift() if args.fusion == "drifting_frame" else None,
         "levels": args.levels,
         "ate_per_run_m": per_run,
         "equal_error_split": split,

@@ -83,6 +83,18 @@ class EskfConfig:
     # also fuse the mean body rate of the relative rotation against the mean gyro rate (it
     # observes the gyro bias, hence bounds the heading drift)
     pose_source_rate_update: bool = True
+    # how pose sources enter: "velocity" (the odometry rows above) or "drifting_frame": each
+    # sample as an absolute pose against the source's own frame, whose offset (world
+    # translation t_o, body rotation phi_o: z_p = p + t_o, R_z = R Exp(phi_o)) is a 6-DoF
+    # state per source, a random walk in distance travelled, re-initialised from the current
+    # estimate at a source's first pair and after every gap (frontend.source_frames)
+    pose_source_fusion: str = "velocity"
+    # drifting_frame: the offset's random-walk densities (datasheet drift of the odometry,
+    # per sqrt(metre) travelled; times the source's variance scale) ...
+    pose_source_drift_position_m_per_sqrt_m: float = 0.01
+    pose_source_drift_rotation_rad_per_sqrt_m: float = 1e-3
+    # ... and per source name [m/sqrt(m), rad/sqrt(m)], overriding the two above
+    pose_source_drift: dict[str, list[float]] = field(default_factory=dict)
     # chi-square gating (probability of the acceptance region; 1.0 disables)
     gate_probability: float = 0.9999
     gate_pseudo_measurements: bool = False  # also gate NHC and zero-velocity updates
@@ -224,6 +236,7 @@ class EskfConfig:
             raise ValueError("config key 'gate_probability' must lie in (0, 1]")
         self._validate_adaptive()
         self._validate_source_faults()
+        self._validate_source_fusion()
         self._validate_calibration()
         for key in (
             "wheel_lever_arm_m",
@@ -335,6 +348,43 @@ class EskfConfig:
             raise ValueError(
                 f"config key 'calibration_imu_body_rotation_rad' must have 3 finite numbers, "
                 f"got {self.calibration_imu_body_rotation_rad!r}"
+            )
+
+    def _validate_source_fusion(self) -> None:
+        """Raise ``ValueError`` naming the first bad pose-source fusion key."""
+        if self.pose_source_fusion not in ("velocity", "drifting_frame"):
+            raise ValueError(
+                f"config key 'pose_source_fusion' must be velocity or drifting_frame, "
+                f"got {self.pose_source_fusion!r}"
+            )
+        for key in (
+            "pose_source_drift_position_m_per_sqrt_m",
+            "pose_source_drift_rotation_rad_per_sqrt_m",
+        ):
+            value = getattr(self, key)
+            if not (isinstance(value, (int, float)) and math.isfinite(value) and value >= 0):
+                raise ValueError(f"config key '{key}' must be a non-negative number, got {value!r}")
+        drift = self.pose_source_drift
+        if not isinstance(drift, dict) or not all(
+            isinstance(k, str)
+            and isinstance(v, list)
+            and len(v) == 2
+            and all(isinstance(x, (int, float)) and math.isfinite(x) and x >= 0 for x in v)
+            for k, v in drift.items()
+        ):
+            raise ValueError(
+                f"config key 'pose_source_drift' must map source names to two non-negative "
+                f"numbers [m/sqrt(m), rad/sqrt(m)], got {drift!r}"
+            )
+        calibrated = [
+            n
+            for n in (*self.calibrate_time_offsets, *self.calibrate_pose_extrinsics)
+            if n.startswith("pose:")
+        ]
+        if self.pose_source_fusion == "drifting_frame" and calibrated:
+            raise ValueError(
+                f"config key 'pose_source_fusion': drifting_frame does not calibrate pose "
+                f"sources (time offsets, extrinsics of {calibrated}); use velocity"
             )
 
     def _validate_source_faults(self) -> None:

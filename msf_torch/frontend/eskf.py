@@ -28,7 +28,8 @@ Per epoch (see ``frontend.schedule``) and for all B sequences at once:
 2. Update with every measurement that falls on the epoch end, stacked into one vector:
    wheel (3: body velocity; its yaw-rate row joins with ``wheel_yaw_rate_update``), NHC (2),
    zero velocity (3), GNSS (3), pose (6), then one block per pose source (6, or 3 without
-   ``pose_source_rate_update``; key ``"pose:<name>"``), each a residual from ``sensors``.
+   ``pose_source_rate_update``; drifting frames: 9 or 6; key ``"pose:<name>"``), each a
+   residual from ``sensors``.
    Each block is chi-square gated on its own innovation; the wheel block is also scaled by
    the slip factor (``frontend.slip``) and skipped below a threshold. Joseph-form covariance
    update, then the invariant error is injected (``R <- Exp(xi_R) R``,
@@ -49,7 +50,20 @@ mean body rate of the relative rotation is compared with the mean gyro rate over
 interval (``sensors.pose.mean_rate_residual``; it observes the gyro bias, so the heading
 stops drifting with it), covariance ``R_w = s C_w + sigma_g^2 / dt I`` (``sigma_g`` the gyro
 noise density). Only relative motion enters, so the source's drift stays out, up to its
-increment over ``dt``.
+increment over ``dt``. Each sample's white noise enters two neighbouring pairs with opposite
+signs, which the filter treats as independent: most of a source's position information is
+lost.
+
+With ``pose_source_fusion: drifting_frame`` the sample ending each pair is instead fused as
+an absolute pose against the source's own drifting frame (``frontend.source_frames``;
+residual ``sensors.pose.drifting_frame_pose_residual``, ``z_p = p + t_o``,
+``R_z = R Exp(phi_o)``, covariance ``s C`` of the declared 6x6 ``C``; the rate row joins with
+``pose_source_rate_update``). The error state grows by six offset states per source after
+the calibration states: identity transition, a random walk in distance travelled
+(``pose_source_drift*`` times ``s``), no invariant-coordinate change. At a source's first
+pair and after each gap the offset is re-initialised from the estimate with the
+cross-covariance of the linearised model (that sample is consumed, not fused). Consecutive
+samples then carry independent white noise and the drift sits in the offsets.
 
 With ``source_fault_detection`` the pose sources first go through the multi-model fault
 detector of ``frontend.gating`` (a UKF per source, the difference of the sources'
@@ -88,6 +102,13 @@ from msf_torch.frontend.guard import (
 from msf_torch.frontend.init import initial_state
 from msf_torch.frontend.schedule import Schedule, build_schedule
 from msf_torch.frontend.slip import slip_factor
+from msf_torch.frontend.source_frames import (
+    FRAME_DIM,
+    SourceFrames,
+    build_source_frames,
+    reinitialise,
+)
+from msf_torch.frontend.source_frames import inject as inject_frames
 from msf_torch.geometry import so3
 from msf_torch.geometry.conventions import ERROR_STATE_DIM, gravity_world
 from msf_torch.geometry.quaternion import matrix_to_quat
@@ -104,7 +125,12 @@ from msf_torch.sensors.calibration import (
 )
 from msf_torch.sensors.gnss import gnss_residual
 from msf_torch.sensors.imu import ImuNoise, Preintegrated, preintegrate, propagate_nominal
-from msf_torch.sensors.pose import mean_rate_residual, pose_residual
+from msf_torch.sensors.pose import (
+    drifting_frame_offset,
+    drifting_frame_pose_residual,
+    mean_rate_residual,
+    pose_residual,
+)
 from msf_torch.sensors.vehicle import nonholonomic_residual, zero_velocity_residual
 from msf_torch.sensors.wheel import body_velocity_residual, wheel_residual
 from msf_torch.types import NavState, Sequence, Trajectory
@@ -203,6 +229,11 @@ class EskfResult:
             it would have without measurements (``frontend.calibration.observability``).
         calibration_observable: state name -> (B,) bool, its ratio at the sequence's last
             epoch below ``calibration_observable_ratio``.
+        source_frame: ``"pose:<name>"`` -> (B, E + 1, 6) the offset ``[t_o (m, world),
+            phi_o (rad, body)]`` of the source's frame (``pose_source_fusion:
+            drifting_frame``, ``frontend.source_frames``; empty otherwise).
+        source_frame_covariance: ``"pose:<name>"`` -> (B, E + 1, 9, 9) joint covariance of
+            the (conventional) position error and the offset error ``[dt, dphi]``.
     """
 
     names: list[str]
@@ -231,6 +262,8 @@ class EskfResult:
     calibration_covariance: torch.Tensor | None = None
     calibration_variance_ratio: torch.Tensor | None = None
     calibration_observable: dict[str, torch.Tensor] = field(default_factory=dict)
+    source_frame: dict[str, torch.Tensor] = field(default_factory=dict)
+    source_frame_covariance: dict[str, torch.Tensor] = field(default_factory=dict)
 
     def trajectory(self) -> Trajectory:
         """Estimated poses as a :class:`~msf_torch.types.Trajectory` (B, E + 1)."""
@@ -421,6 +454,28 @@ def _source_covariance(
     return torch.cat((torch.cat((velocity, zeros), -1), torch.cat((zeros, rate), -1)), -2)
 
 
+def _frame_covariance(
+    sched: Schedule,
+    frames: SourceFrames,
+    noise: EskfNoise,
+    cfg: EskfConfig,
+    per_seq: Callable[[torch.Tensor], torch.Tensor],
+) -> torch.Tensor:
+    """Drifting-frame block covariances (B, E, S, d, d): the pose ``s C`` (6), and with
+    ``pose_source_rate_update`` (d = 9) the rate rows ``R_w`` of :func:`_source_covariance`."""
+    scale = _source_scale(sched, noise, per_seq)[:, None, :, None, None]
+    pose = scale * frames.covariance
+    if not cfg.pose_source_rate_update:
+        return pose
+    eye = torch.eye(3, dtype=scale.dtype, device=scale.device)
+    gyro_var = per_seq(noise.imu.gyro_noise_density)[:, None, None] ** 2 / sched.source_dt.where(
+        sched.source_mask, 1.0
+    )
+    rate = scale * sched.source_rate_covariance + gyro_var[..., None, None] * eye
+    cross = torch.zeros(*rate.shape[:-2], 6, 3, dtype=rate.dtype, device=rate.device)
+    return torch.cat((torch.cat((pose, cross), -1), torch.cat((cross.mT, rate), -1)), -2)
+
+
 def _source_scale(
     sched: Schedule, noise: EskfNoise, per_seq: Callable[[torch.Tensor], torch.Tensor]
 ) -> torch.Tensor:
@@ -457,6 +512,54 @@ def _source_gyro_change(sched: Schedule, tolerance_s: float = 1e-6) -> torch.Ten
     span = (0.5 * (sched.source_dt + prev_dt)).clamp_min(1e-9)
     change = (sched.source_gyro_mean - prev_mean) / span[..., None]
     return torch.where(adjacent[..., None], change, 0.0)
+
+
+def _reinitialise_frames(
+    state: NavState,
+    cov: torch.Tensor,
+    frame_value: torch.Tensor,
+    frames: SourceFrames,
+    source_cov: torch.Tensor,
+    to_conv: torch.Tensor,
+    frame_col: int,
+    epoch: int,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """(Re-)initialise the offsets of the sources whose pair at ``epoch`` starts a segment
+    (``frontend.source_frames``): the offset that zeroes the residual at the estimate, its
+    covariance rows from the linearised model. Returns the covariance (B, N, N) and the
+    offsets (B, S, 6)."""
+    batch, n_state = cov.shape[0], cov.shape[-1]
+    for s in range(len(frames.names)):
+        reset = frames.reset[:, epoch, s]
+        measured_p, measured_r = frames.position[:, epoch, s], frames.rotation[:, epoch, s]
+        t_o, phi_o = drifting_frame_offset(state.position, state.rotation, measured_p, measured_r)
+        _, h, _ = drifting_frame_pose_residual(
+            state.position, state.rotation, t_o, phi_o, measured_p, measured_r
+        )
+        h_body = torch.zeros(batch, FRAME_DIM, n_state, dtype=cov.dtype, device=cov.device)
+        h_body[..., :ERROR_STATE_DIM] = h @ to_conv
+        cov = reinitialise(
+            cov, h_body, source_cov[:, epoch, s, :FRAME_DIM, :FRAME_DIM], frame_col + 6 * s, reset
+        )
+        fresh = torch.cat((t_o, phi_o), -1)
+        frame_value = torch.where(
+            (reset[:, None] & (torch.arange(len(frames.names), device=cov.device) == s))[..., None],
+            fresh[:, None, :],
+            frame_value,
+        )
+    return cov, frame_value
+
+
+def _position_frame_covariance(
+    position: torch.Tensor, position_cov: torch.Tensor, full_cov: torch.Tensor, block: slice
+) -> torch.Tensor:
+    """(B, E + 1, 9, 9) joint covariance of the conventional position error
+    ``dp = xi_p - [p]x xi_R`` and the offset error in columns ``block`` of the
+    invariant-coordinate covariance ``full_cov`` (B, E + 1, N, N); ``position_cov``
+    (B, E + 1, 3, 3) is the conventional position block."""
+    cross = full_cov[..., 0:3, block] - so3.hat(position) @ full_cov[..., 6:9, block]
+    frame = full_cov[..., block, block]
+    return torch.cat((torch.cat((position_cov, cross), -1), torch.cat((cross.mT, frame), -1)), -2)
 
 
 def _segment_matrix(dims: list[int], dtype, device) -> torch.Tensor:
@@ -526,6 +629,11 @@ def run_eskf(
     noise = noise or EskfNoise.from_config(cfg, dtype, device)
     seq, dropped_samples = sanitize_sequence(seq)
     sched = build_schedule(seq, cfg)
+    frames = (
+        build_source_frames(seq, sched, cfg)
+        if cfg.pose_source_fusion == "drifting_frame" and sched.source_names
+        else None
+    )
     state, cov_conventional = initial if initial is not None else initial_state(seq, cfg)
     _, to_inv0 = _invariant_maps(state.position, state.velocity, state.rotation)
     cov = to_inv0 @ cov_conventional @ to_inv0.mT  # kept in invariant coordinates
@@ -543,9 +651,12 @@ def run_eskf(
     }
     source_col = {_SOURCE_PREFIX + n: s for s, n in enumerate(sched.source_names)}
     present.update({k: sched.source_mask[..., s] for k, s in source_col.items()})
+    if frames is not None:  # a sample that (re-)initialises its offset is not fused
+        present.update({k: present[k] & ~frames.reset[..., s] for k, s in source_col.items()})
     sensors = SENSORS + tuple(source_col)
     active = [k for k in sensors if bool(present[k].any())]
-    dims = dict(_DIMS) | dict.fromkeys(source_col, 6 if cfg.pose_source_rate_update else 3)
+    source_rows = (3 if frames is None else FRAME_DIM) + (3 if cfg.pose_source_rate_update else 0)
+    dims = dict(_DIMS) | dict.fromkeys(source_col, source_rows)
     if not (cfg.wheel_yaw_rate_update or cfg.calibrate_wheels):
         dims["wheel"] = 3  # the yaw-rate row then only feeds the slip factor
     thresholds = {k: chi2_threshold(dims[k], cfg.gate_probability) for k in sensors}
@@ -597,7 +708,11 @@ def run_eskf(
     nhc_var = (per_seq(noise.nhc_sigma) ** 2)[:, None].expand(batch, 2)
     zupt_var = (per_seq(noise.zupt_sigma) ** 2)[:, None].expand(batch, 3)
     gnss_var = (sched.gnss_sigma * per_seq(noise.gnss_sigma_scale)[:, None, None]) ** 2
-    source_cov = _source_covariance(sched, noise, cfg, per_seq)
+    source_cov = (
+        _source_covariance(sched, noise, cfg, per_seq)
+        if frames is None
+        else _frame_covariance(sched, frames, noise, cfg, per_seq)
+    )
     faults = None  # frontend.gating: multi-model source-fault detection over the pairs
     block_weight = None  # (B, E, K) 0/1 straight-through weight of each block
     if cfg.source_fault_detection and source_col:
@@ -633,8 +748,21 @@ def run_eskf(
             ),
             -2,
         )
-        eye_state = torch.eye(ERROR_STATE_DIM + n_calib, dtype=dtype, device=device)
         gyro_change = _source_gyro_change(sched)
+    # drifting source frames (frontend.source_frames): six offset states per source, after
+    # the calibration states; their prior is replaced at each source's first pair
+    n_frame = 0 if frames is None else frames.size
+    frame_col = ERROR_STATE_DIM + n_calib
+    frame_value = torch.zeros(batch, len(sched.source_names), FRAME_DIM, dtype=dtype, device=device)
+    if frames is not None:
+        frame_scale = _source_scale(sched, noise, per_seq)
+        cross = torch.zeros(batch, frame_col, n_frame, dtype=dtype, device=device)
+        prior = torch.eye(n_frame, dtype=dtype, device=device).expand(batch, n_frame, n_frame)
+        cov = torch.cat((torch.cat((cov, cross), -1), torch.cat((cross.mT, prior), -1)), -2)
+        reset_epochs = frames.reset.any(0).tolist()  # (E, S) host flags: one transfer
+    n_aug = n_calib + n_frame
+    if n_aug:
+        eye_state = torch.eye(ERROR_STATE_DIM + n_aug, dtype=dtype, device=device)
     frame_base = eye15.expand(batch, 15, 15)
     nav_frame = torch.zeros(batch, 9, 9, dtype=dtype, device=device)
     zeros_b = torch.zeros(batch, dtype=dtype, device=device)
@@ -646,7 +774,9 @@ def run_eskf(
         state, cov, cfg, active, segment, reopen, _invariant_maps, gate_memory
     )  # also counts each block's gate rejections in a row (guard.streak)
     divergence_out = [torch.zeros(batch, dtype=torch.long, device=device)]
-    out: dict[str, list[torch.Tensor]] = {k: [] for k in ("p", "v", "R", "bg", "ba", "P", "s", "c")}
+    out: dict[str, list[torch.Tensor]] = {
+        k: [] for k in ("p", "v", "R", "bg", "ba", "P", "s", "c", "f")
+    }
     accepted_out: list[torch.Tensor] = []
     nis_out: list[torch.Tensor] = []
 
@@ -659,6 +789,7 @@ def run_eskf(
         out["P"].append(p_cov)
         out["s"].append(slip_now)
         out["c"].append(calib_value)
+        out["f"].append(frame_value)
 
     record(state, cov, slip)
     no_blocks = torch.zeros(batch, len(active), dtype=dtype, device=device)
@@ -700,22 +831,33 @@ def run_eskf(
             noise_map[:, :, 6:9] = right
             q = q_loc[:, e].clone()
             q[:, 0:9, 0:9] = noise_map @ q_loc[:, e, 0:9, 0:9] @ noise_map.mT
-            if calib is None:
+            if not n_aug:
                 cov = transition @ cov @ transition.mT + q
-            else:  # calibration states: identity transition, random walk
+            else:  # calibration states and source frames: identity transition, random walk
                 full = eye_state.repeat(batch, 1, 1)
                 full[:, :ERROR_STATE_DIM, :ERROR_STATE_DIM] = transition
                 q_full = torch.zeros_like(full)
                 q_full[:, :ERROR_STATE_DIM, :ERROR_STATE_DIM] = q
-                q_full[:, ERROR_STATE_DIM:, ERROR_STATE_DIM:] = calib.process_noise(
-                    pre.delta_t[:, e]
-                )
+                if calib is not None:
+                    q_full[:, ERROR_STATE_DIM:frame_col, ERROR_STATE_DIM:frame_col] = (
+                        calib.process_noise(pre.delta_t[:, e])
+                    )
+                if frames is not None:  # random walk in distance travelled
+                    speed = 0.5 * (state.velocity.norm(dim=-1) + velocity.norm(dim=-1))
+                    q_full[:, frame_col:, frame_col:] = frames.process_noise(
+                        frame_scale, speed * pre.delta_t[:, e]
+                    )
                 q = q_full
                 cov = full @ cov @ full.mT + q
+            if calib is not None:
                 accel_world = (velocity - state.velocity) / pre.delta_t[:, e, None].clamp_min(1e-9)
             to_conv = frame_base.clone()
             to_conv[:, 0:9, 6:9] = torch.cat((-arms, rotation.mT), -2)
             state = NavState(position, velocity, rotation, state.gyro_bias, state.accel_bias)
+            if frames is not None and any(reset_epochs[e]):
+                cov, frame_value = _reinitialise_frames(
+                    state, cov, frame_value, frames, source_cov, to_conv, frame_col, e
+                )
             guard.propagated(state, cov)
 
             if not epoch_has_update[e]:
@@ -731,11 +873,12 @@ def run_eskf(
             # --- measurement blocks (residuals from sensors/, stacked) ---------------------
             residuals, jacobians, variances = [], [], []
             calib_jacobians = []  # (B, d, n) per block
+            frame_jacobians = []  # (B, d, 6 S) per block
             full_cov = []  # (row offset, (B, d, d) covariance) of blocks with full covariances
             offset = 0
             gyro_end = sched.gyro_end[:, e]
             for name in active:
-                h_calib = None
+                h_calib = h_frame = None
                 if name == "wheel":
                     if calib is not None and calib.imu_body_index is not None:
                         col_v = calib.imu_body_index
@@ -795,6 +938,8 @@ def run_eskf(
                                 ),
                                 -1,
                             )
+                        if n_frame:
+                            h_inv = torch.cat((h_inv, h.new_zeros(batch, h.shape[-2], n_frame)), -1)
                         innov = torch.diagonal(h_inv @ cov @ h_inv.mT, dim1=-2, dim2=-1) + var
                         new_slip = slip_factor(
                             r,
@@ -878,6 +1023,29 @@ def run_eskf(
                     )
                     var = zeros_b[:, None].expand(batch, 6)
                     full_cov.append((offset, sched.pose_covariance[:, e]))
+                elif frames is not None and name in source_col:
+                    col = source_col[name]
+                    value = frame_value[:, col]
+                    r, h, h_f = drifting_frame_pose_residual(
+                        state.position,
+                        state.rotation,
+                        value[:, :3],
+                        value[:, 3:],
+                        frames.position[:, e, col],
+                        frames.rotation[:, e, col],
+                    )
+                    if cfg.pose_source_rate_update:
+                        r_w, h_w = mean_rate_residual(
+                            sched.source_gyro_mean[:, e, col],
+                            state.gyro_bias,
+                            sched.source_rate[:, e, col],
+                        )
+                        r, h = torch.cat((r, r_w), -1), torch.cat((h, h_w), -2)
+                        h_f = torch.cat((h_f, h_f.new_zeros(batch, 3, FRAME_DIM)), -2)
+                    h_frame = torch.zeros(batch, r.shape[-1], n_frame, dtype=dtype, device=device)
+                    h_frame[..., FRAME_DIM * col : FRAME_DIM * (col + 1)] = h_f
+                    var = zeros_b[:, None].expand(batch, r.shape[-1])
+                    full_cov.append((offset, source_cov[:, e, col]))
                 elif calib is not None and name in calib.pose_extrinsic_index:
                     col = source_col[name]
                     col_x = calib.pose_extrinsic_index[name]
@@ -976,10 +1144,18 @@ def run_eskf(
                         if h_calib is not None
                         else torch.zeros(batch, r.shape[-1], n_calib, dtype=dtype, device=device)
                     )
+                if n_frame:
+                    frame_jacobians.append(
+                        h_frame
+                        if h_frame is not None
+                        else torch.zeros(batch, r.shape[-1], n_frame, dtype=dtype, device=device)
+                    )
             r_all = torch.cat(residuals, -1)
             h_all = torch.cat(jacobians, -2) @ to_conv  # w.r.t. the invariant error
             if calib is not None:
                 h_all = torch.cat((h_all, torch.cat(calib_jacobians, -2)), -1)
+            if n_frame:
+                h_all = torch.cat((h_all, torch.cat(frame_jacobians, -2)), -1)
             r_cov = torch.diag_embed(torch.cat(variances, -1))
             if full_cov:
                 r_cov = r_cov.clone()
@@ -1020,15 +1196,19 @@ def run_eskf(
             ikh = eye_state - gain @ h_m
             cov = ikh @ cov @ ikh.mT + gain @ (r_cov * rows_outer) @ gain.mT
             state = _inject_invariant(state, dx)
-            calib_before = calib_value
+            calib_before, frame_before = calib_value, frame_value
             if calib is not None:
-                calib_value = calib.inject(calib_value, dx[:, ERROR_STATE_DIM:])
+                calib_value = calib.inject(calib_value, dx[:, ERROR_STATE_DIM:frame_col])
+            if n_frame:
+                frame_value = inject_frames(frame_value, dx[:, frame_col:])
             cov = 0.5 * (cov + cov.mT)
             state, cov, ok, code = guard.updated(
                 state, cov, ok, nis, threshold, failed, here, white[..., 0]
             )
             if calib is not None:  # a reset also takes the calibration back
                 calib_value = torch.where((code != 0)[:, None], calib_before, calib_value)
+            if n_frame:  # ... and the source frames
+                frame_value = torch.where((code != 0)[:, None, None], frame_before, frame_value)
             divergence_out.append(code)
             accepted_out.append(ok)
             nis_out.append(nis)
@@ -1071,7 +1251,9 @@ def run_eskf(
     if calib is not None:  # information gained on each state by the last epoch of each run
         calib_ratio, observable = observability(
             calib,
-            torch.diagonal(full_covariances[..., nav.stop :, nav.stop :], dim1=-2, dim2=-1),
+            torch.diagonal(
+                full_covariances[..., nav.stop : frame_col, nav.stop : frame_col], dim1=-2, dim2=-1
+            ),
             t - t[:, :1],
             cfg.calibration_observable_ratio,
         )
@@ -1113,10 +1295,18 @@ def run_eskf(
         calibration=None if calib is None else torch.stack(out["c"], 1),
         calibration_covariance=None
         if calib is None
-        else full_covariances[..., ERROR_STATE_DIM:, ERROR_STATE_DIM:],
+        else full_covariances[..., ERROR_STATE_DIM:frame_col, ERROR_STATE_DIM:frame_col],
         calibration_variance_ratio=calib_ratio,
         calibration_observable=calib_observable,
     )
+    if frames is not None:
+        frame_out = torch.stack(out["f"], 1)  # (B, E + 1, S, 6)
+        for key, s in source_col.items():
+            block = slice(frame_col + FRAME_DIM * s, frame_col + FRAME_DIM * (s + 1))
+            result.source_frame[key] = frame_out[:, :, s]
+            result.source_frame_covariance[key] = _position_frame_covariance(
+                positions, covariances[..., 0:3, 0:3], full_covariances, block
+            )
     result.gate_memory = guard.memory()
     if interrupt.caught:
         raise EstimationInterrupted(result, done, n_epochs)
