@@ -167,36 +167,42 @@ def _series_matrix(
     """``a phi phi^T + b I + c [phi]x`` per sample, in the component-major layout.
 
     Exp, Gamma_1 and Gamma_2 are all of this form (``[phi]x^2 = phi phi^T - t^2 I``).
-    Args: phi (N, 3, L), a, b, c (N, L). Returns (N, 3, 3, L).
+    Args: phi (N, 3, L), a, b, c (N, L). Returns (N, 3, 3, L). (Any two outer dims work
+    alike: phi (L, 3, N) and a, b, c (L, N) give (L, 3, 3, N).)
     """
     out = (a[:, None] * phi)[:, :, None] * phi[:, None, :]
     out.diagonal(dim1=1, dim2=2).add_(b[..., None])
     return _add_hat(out, phi, c)
 
 
+# [v]x[row, col] = sign * v[comp]
+_HAT_ENTRIES = (
+    (0, 1, 2, -1.0),
+    (0, 2, 1, 1.0),
+    (1, 0, 2, 1.0),
+    (1, 2, 0, -1.0),
+    (2, 0, 1, -1.0),
+    (2, 1, 0, 1.0),
+)
+
+
 def _add_hat(out: torch.Tensor, vec: torch.Tensor, scale: torch.Tensor) -> torch.Tensor:
     """``out += scale [vec]x`` in place: out (N, 3, 3, L), vec (N, 3, L), scale (N, L)."""
-    scaled = scale[:, None] * vec
-    out[:, 0, 1] -= scaled[:, 2]
-    out[:, 0, 2] += scaled[:, 1]
-    out[:, 1, 0] += scaled[:, 2]
-    out[:, 1, 2] -= scaled[:, 0]
-    out[:, 2, 0] -= scaled[:, 1]
-    out[:, 2, 1] += scaled[:, 0]
+    for row, col, comp, sign in _HAT_ENTRIES:
+        out[:, row, col].addcmul_(scale, vec[:, comp], value=sign)
     return out
 
 
-def _prefix_rotations(steps: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """Prefix products ``R_0 = I``, ``R_{j+1} = R_j Exp_j`` of steps (N, 3, 3, L).
+def _prefix_rotations(by_sample: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Prefix products ``R_0 = I``, ``R_{j+1} = R_j Exp_j`` of steps (L, 3, 3, N).
 
     Sequential over samples, vectorised over N: the loop runs on (3, 3, N) slices, where
     a 3x3 product is a broadcast multiply-and-sum over long contiguous rows (much faster
     on the CPU than batched 3x3 matrix products).
     Returns ``R_0 .. R_{L-1}`` (N, 3, 3, L) and ``R_L`` (N, 3, 3).
     """
-    batch, length = steps.shape[0], steps.shape[-1]
-    by_sample = steps.permute(3, 1, 2, 0).contiguous()  # (L, 3, 3, N)
-    rot = so3.identity(steps.dtype, steps.device)[..., None].expand(3, 3, batch)
+    length, batch = by_sample.shape[0], by_sample.shape[-1]
+    rot = so3.identity(by_sample.dtype, by_sample.device)[..., None].expand(3, 3, batch)
     prefix = [rot]
     for k in range(length):
         rot = (rot[:, :, None] * by_sample[k][None]).sum(1)
@@ -211,12 +217,14 @@ def _rotate(rotation: torch.Tensor, vec: torch.Tensor) -> torch.Tensor:
     return out.addcmul_(rotation[:, :, 2], vec[:, 2:3])
 
 
-def _cross_gram(weighted: torch.Tensor, a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-    """``sum_j w_j [a_j]x [b_j]x^T = sum_j w_j ((a_j . b_j) I - b_j a_j^T)``, (N, 3, 3);
-    ``weighted`` = w a, a, b (N, 3, L)."""
-    eye = so3.identity(a.dtype, a.device)
-    dot = (weighted * b).sum((-2, -1))[:, None, None]
-    return dot * eye - b @ weighted.mT
+_CROSS_PAIRS = ((1, 2), (2, 0), (0, 1))  # (a x b)_m = a_i b_j - a_j b_i
+
+
+def _cross(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """``a_j x b_j`` per sample: a, b (N, 3, L) -> (N, 3, L)."""
+    return torch.stack(
+        [(a[:, i] * b[:, j]).addcmul_(a[:, j], b[:, i], value=-1.0) for i, j in _CROSS_PAIRS], 1
+    )
 
 
 def preintegrate(
@@ -278,19 +286,25 @@ def preintegrate(
     c0, c1, c2, c3, e1, e2, e3 = so3.series_coefficients(theta2)
     dt2 = dt * dt
     dt3 = dt2 * dt
-    # Exp = I + c0 [phi]x + c1 [phi]x^2, Gamma_1 dt, Gamma_2 dt^2 (same form, other weights)
+    # Exp = I + c0 [phi]x + c1 [phi]x^2, Gamma_1 dt, Gamma_2 dt^2 (same form, other weights);
+    # the steps Exp are built samples first, (L, 3, 3, N), for the prefix product's loop
     rot_start, delta_rotation = _prefix_rotations(  # R_j (N, 3, 3, L), R_L
-        _series_matrix(phi, c1, 1.0 - c1 * theta2, c0)
+        _series_matrix(
+            phi.permute(2, 1, 0).contiguous(),
+            *(x.T.contiguous() for x in (c1, 1.0 - c1 * theta2, c0)),
+        )
     )
     gam1_dt = _series_matrix(phi, c2 * dt, dt * (1.0 - c2 * theta2), c1 * dt)
 
     # Gamma_n f with [phi]x^2 f = (phi . f) phi - t^2 f
-    cross = torch.linalg.cross(phi, force, dim=1)  # phi x f
+    cross = _cross(phi, force)  # phi x f
     dot = (phi * force).sum(1)
 
     def series_vector(a: torch.Tensor, b: torch.Tensor, c: torch.Tensor) -> torch.Tensor:
         """``a f + b (phi x f) + c (phi . f) phi`` (N, 3, L)."""
-        return a[:, None] * force + b[:, None] * cross + (c * dot)[:, None] * phi
+        out = a[:, None] * force
+        out.addcmul_(b[:, None], cross)
+        return out.addcmul_((c * dot)[:, None], phi)
 
     local_vel = series_vector(dt * (1.0 - c2 * theta2), c1 * dt, c2 * dt)  # Gamma_1 f dt
     local_pos = series_vector(dt2 * (0.5 - c3 * theta2), c2 * dt2, c3 * dt2)  # Gamma_2 f dt^2
@@ -298,14 +312,21 @@ def preintegrate(
     pos_steps = _rotate(rot_start, local_pos)
     vel_after = torch.cumsum(vel_steps, -1)  # V_{j+1}
     vel_before = vel_after - vel_steps  # V_j
-    pos_after = torch.cumsum(vel_before * dt[:, None] + pos_steps, -1)  # P_{j+1}
+    pos_after = torch.cumsum(pos_steps.addcmul_(vel_before, dt[:, None]), -1)  # P_{j+1}
     time_after = torch.cumsum(dt, -1)  # T_{j+1}
     delta_t = time_after[:, -1]
     delta_velocity = vel_after[..., -1]
     delta_position = pos_after[..., -1]
     remaining = delta_t[:, None] - time_after  # T_L - T_{j+1}
     vel_lever = delta_velocity[..., None] - vel_after  # D_j
-    pos_lever = delta_position[..., None] - pos_after - remaining[:, None] * vel_after  # C_j
+    pos_lever = (delta_position[..., None] - pos_after).addcmul_(
+        remaining[:, None], vel_after, value=-1.0
+    )  # C_j
+    # the weights of the acc_v sums below: 1, T_L - T_{j+1} and the levers D_j, C_j
+    weights = torch.cat(
+        (torch.ones_like(remaining)[:, None], remaining[:, None], vel_lever, pos_lever), 1
+    )
+    levers = weights[:, 2:]
 
     # acc_v_j = R_j Gamma_1 dt (the accel-bias map of sample j), three rank-3 updates
     acc_v = rot_start[:, :, 0, None] * gam1_dt[:, None, 0]
@@ -332,7 +353,7 @@ def preintegrate(
     alpha_v, beta_v, vec_v = dt2 * c1, dt2 * c2, dt2[:, None] * u_1
     alpha_p = dt3 * c2 + remaining * alpha_v
     beta_p = dt3 * c3 + remaining * beta_v
-    vec_p = dt3[:, None] * u_2 + remaining[:, None] * vec_v
+    vec_p = (dt3[:, None] * u_2).addcmul_(remaining[:, None], vec_v)
 
     def jacobian_block(alpha: torch.Tensor, beta: torch.Tensor, vec: torch.Tensor):
         """Transposed block ``beta ((phi . f) I + f phi^T) + phi vec^T + alpha [f]x``."""
@@ -348,19 +369,16 @@ def preintegrate(
     # (sum_acc_v, and with sum_gam2 sum_acc_p), and the lever terms
     # sum [D_j]x acc_v_j = sum_m G_m W_m (hat(a) = sum_m a_m G_m) with
     # W_m = sum_j D_jm acc_v_j, and the same with C_j.
-    weights = torch.cat(
-        (torch.ones_like(remaining)[:, None], remaining[:, None], vel_lever, pos_lever), 1
-    )
     acc_sums = weights @ acc_v.reshape(batch, 9, length).mT  # (N, 8, 9)
     sum_acc_v = acc_sums[:, 0].reshape(batch, 3, 3)
     sum_acc_p = acc_sums[:, 1].reshape(batch, 3, 3) + sum_gam2
     lever_w = acc_sums[:, 2:]
     generators = so3.hat(so3.identity(dtype, device))  # (3, 3, 3): G_m[a, i]
     to_hat = generators.permute(1, 0, 2).reshape(3, 9)  # [a, (m, i)]
-    levers = to_hat @ lever_w.reshape(batch, 2, 9, 3)  # sum [D_j]x acc_v_j, [C_j]x acc_v_j
+    lever_terms = to_hat @ lever_w.reshape(batch, 2, 9, 3)  # sum [D_j]x acc_v_j, [C_j]x acc_v_j
     jac_theta_bg = -delta_rotation.mT @ sum_acc_v
-    jac_v_bg = levers[:, 0] - sum_in_v
-    jac_p_bg = levers[:, 1] - sum_in_p
+    jac_v_bg = lever_terms[:, 0] - sum_in_v
+    jac_p_bg = lever_terms[:, 1] - sum_in_p
     jac_v_ba = -sum_acc_v
     jac_p_ba = -sum_acc_p
     zeros = torch.zeros_like(jac_v_ba)
@@ -377,14 +395,23 @@ def preintegrate(
     weight = scale * dt  # discrete variance (1/dt) times dt^2 from the maps
     eye = so3.identity(dtype, device)
     w_sum = weight.sum(-1)[:, None, None]
-    weighted_vel = weight[:, None] * vel_lever
-    weighted_pos = weight[:, None] * pos_lever
+    weighted_levers = levers * weight[:, None]
+    lever_sums = weighted_levers.sum(-1)
     gg_tt = w_sum * eye
-    gg_vt = -so3.hat(weighted_vel.sum(-1)) @ delta_rotation
-    gg_pt = -so3.hat(weighted_pos.sum(-1)) @ delta_rotation
-    gg_vv = _cross_gram(weighted_vel, vel_lever, vel_lever)
-    gg_pv = _cross_gram(weighted_pos, pos_lever, vel_lever)
-    gg_pp = _cross_gram(weighted_pos, pos_lever, pos_lever)
+    gg_vt = -so3.hat(lever_sums[:, :3]) @ delta_rotation
+    gg_pt = -so3.hat(lever_sums[:, 3:]) @ delta_rotation
+    # sum_j w_j [a_j]x [b_j]x^T = sum_j w_j ((a_j . b_j) I - b_j a_j^T) for a, b in {D, C}:
+    # one product gram[b, a] = sum_j w_j b_j a_j^T, with a . b its block's trace
+    gram = torch.bmm(levers, weighted_levers.mT)  # (N, 6, 6)
+
+    def cross_gram(rows: slice, cols: slice) -> torch.Tensor:
+        block = gram[:, rows, cols]
+        return block.diagonal(dim1=-2, dim2=-1).sum(-1)[:, None, None] * eye - block
+
+    vel, pos = slice(0, 3), slice(3, 6)
+    gg_vv = cross_gram(vel, vel)
+    gg_pv = cross_gram(vel, pos)
+    gg_pp = cross_gram(pos, pos)
     cov_g = torch.cat(
         (
             torch.cat((gg_pp, gg_pv, gg_pt), -1),
