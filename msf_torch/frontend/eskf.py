@@ -104,6 +104,7 @@ from msf_torch.frontend.schedule import Schedule, build_schedule
 from msf_torch.frontend.slip import slip_factor
 from msf_torch.frontend.source_frames import (
     FRAME_DIM,
+    FrameMemory,
     SourceFrames,
     build_source_frames,
     reinitialise,
@@ -234,6 +235,8 @@ class EskfResult:
             drifting_frame``, ``frontend.source_frames``; empty otherwise).
         source_frame_covariance: ``"pose:<name>"`` -> (B, E + 1, 9, 9) joint covariance of
             the (conventional) position error and the offset error ``[dt, dphi]``.
+        frame_memory: the source frames after each sequence's last real epoch, for a next
+            chunk (``frontend.source_frames.FrameMemory``; None without drifting frames).
     """
 
     names: list[str]
@@ -264,6 +267,7 @@ class EskfResult:
     calibration_observable: dict[str, torch.Tensor] = field(default_factory=dict)
     source_frame: dict[str, torch.Tensor] = field(default_factory=dict)
     source_frame_covariance: dict[str, torch.Tensor] = field(default_factory=dict)
+    frame_memory: FrameMemory | None = None
 
     def trajectory(self) -> Trajectory:
         """Estimated poses as a :class:`~msf_torch.types.Trajectory` (B, E + 1)."""
@@ -550,6 +554,41 @@ def _reinitialise_frames(
     return cov, frame_value
 
 
+def _frame_memory(
+    frames: SourceFrames,
+    previous: FrameMemory | None,
+    sched: Schedule,
+    result: EskfResult,
+    full_cov: torch.Tensor,
+    frame_out: torch.Tensor,
+    frame_col: int,
+) -> FrameMemory:
+    """The source frames after each sequence's last real epoch (``result.mask``), with the
+    joint conventional covariance of the navigation state and the offsets there."""
+    batch = full_cov.shape[0]
+    epochs = torch.arange(result.mask.shape[1], device=full_cov.device)
+    last = torch.where(result.mask, epochs, 0).argmax(1)
+    rows = torch.arange(batch, device=full_cov.device)
+    full = full_cov[rows, last]
+    to_conv, _ = _invariant_maps(
+        result.position[rows, last], result.velocity[rows, last], result.rotation[rows, last]
+    )
+    nav = slice(0, ERROR_STATE_DIM)
+    cross = to_conv @ full[:, nav, frame_col:]
+    covariance = torch.cat(
+        (
+            torch.cat((result.covariance[rows, last], cross), -1),
+            torch.cat((cross.mT, full[:, frame_col:, frame_col:]), -1),
+        ),
+        -2,
+    )
+    used = sched.source_mask & result.mask[:, 1:, None]
+    stamps = torch.where(used, sched.t_end[:, :, None], -math.inf).amax(1)
+    if previous is not None:
+        stamps = torch.maximum(stamps, previous.last_time.to(stamps))
+    return FrameMemory(frames.names, frame_out[rows, last], covariance, stamps)
+
+
 def _position_frame_covariance(
     position: torch.Tensor, position_cov: torch.Tensor, full_cov: torch.Tensor, block: slice
 ) -> torch.Tensor:
@@ -593,6 +632,7 @@ def run_eskf(
     progress: Callable[[int, int], None] | None = None,
     initial: tuple[NavState, torch.Tensor] | None = None,
     gate_memory: GateMemory | None = None,
+    frame_memory: FrameMemory | None = None,
 ) -> EskfResult:
     """Run the ESKF over a batch of sequences.
 
@@ -606,6 +646,8 @@ def run_eskf(
             sequence's first IMU sample; default: ``frontend.init.initial_state``.
         gate_memory: the previous chunk's ``result.gate_memory`` when a run is filtered in
             chunks (``initial`` its last state): rejection streaks carry over.
+        frame_memory: the previous chunk's ``result.frame_memory`` (drifting source frames):
+            the offsets and their covariance with the state carry over.
     Returns:
         :class:`EskfResult` with (B, E + 1) per-epoch fields.
         Samples with non-finite values or repeated / backwards stamps are skipped and
@@ -630,7 +672,7 @@ def run_eskf(
     seq, dropped_samples = sanitize_sequence(seq)
     sched = build_schedule(seq, cfg)
     frames = (
-        build_source_frames(seq, sched, cfg)
+        build_source_frames(seq, sched, cfg, frame_memory)
         if cfg.pose_source_fusion == "drifting_frame" and sched.source_names
         else None
     )
@@ -760,6 +802,14 @@ def run_eskf(
         prior = torch.eye(n_frame, dtype=dtype, device=device).expand(batch, n_frame, n_frame)
         cov = torch.cat((torch.cat((cov, cross), -1), torch.cat((cross.mT, prior), -1)), -2)
         reset_epochs = frames.reset.any(0).tolist()  # (E, S) host flags: one transfer
+        if frame_memory is not None:  # the previous chunk's offsets, covariance rows
+            frame_value = frame_memory.value.to(dtype).clone()
+            carried = frame_memory.covariance.to(dtype)
+            cross = to_inv0 @ carried[:, :ERROR_STATE_DIM, ERROR_STATE_DIM:]
+            cov = cov.clone()
+            cov[:, :ERROR_STATE_DIM, frame_col:] = cross
+            cov[:, frame_col:, :ERROR_STATE_DIM] = cross.mT
+            cov[:, frame_col:, frame_col:] = carried[:, ERROR_STATE_DIM:, ERROR_STATE_DIM:]
     n_aug = n_calib + n_frame
     if n_aug:
         eye_state = torch.eye(ERROR_STATE_DIM + n_aug, dtype=dtype, device=device)
@@ -1301,6 +1351,9 @@ def run_eskf(
     )
     if frames is not None:
         frame_out = torch.stack(out["f"], 1)  # (B, E + 1, S, 6)
+        result.frame_memory = _frame_memory(
+            frames, frame_memory, sched, result, full_covariances, frame_out, frame_col
+        )
         for key, s in source_col.items():
             block = slice(frame_col + FRAME_DIM * s, frame_col + FRAME_DIM * (s + 1))
             result.source_frame[key] = frame_out[:, :, s]

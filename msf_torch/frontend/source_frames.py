@@ -28,11 +28,23 @@ origin, which that model does not have.
   ``P_qq = H_x P H_x^T + s C`` and ``P_qx = -H_x P``. The sample itself is consumed by the
   initialisation (not fused): no information is counted twice, and the old offset is
   forgotten.
+* Chunks: a run filtered chunk by chunk (``learning.inference.run_piecewise``) hands each
+  chunk's offsets, their joint covariance with the navigation state and each source's last
+  sample time to the next (:class:`FrameMemory`, ``EskfResult.frame_memory``); a chunk's
+  first pair then continues the offset when it starts at most ``pose_source_max_gap_s``
+  after that time (the pair across the chunk boundary is not formed).
 """
 
 from __future__ import annotations
 
-__all__ = ["FRAME_DIM", "SourceFrames", "build_source_frames", "inject", "reinitialise"]
+__all__ = [
+    "FRAME_DIM",
+    "FrameMemory",
+    "SourceFrames",
+    "build_source_frames",
+    "inject",
+    "reinitialise",
+]
 
 from dataclasses import dataclass
 
@@ -85,6 +97,24 @@ class SourceFrames:
         return torch.diag_embed(var.flatten(1))
 
 
+@dataclass
+class FrameMemory:
+    """The source frames at the last epoch of a chunk, for the next chunk's ``run_eskf``.
+
+    Attributes:
+        names: the S sources, in the order of the other fields.
+        value: (B, S, 6) offsets ``[t_o (m), phi_o (rad)]``.
+        covariance: (B, 15 + 6 S, 15 + 6 S) joint covariance of the conventional navigation
+            error and the offset errors (calibration states left out).
+        last_time: (B, S) stamp of each source's last used sample, s (-inf: none yet).
+    """
+
+    names: tuple[str, ...]
+    value: torch.Tensor
+    covariance: torch.Tensor
+    last_time: torch.Tensor
+
+
 def _drift_variance(cfg: EskfConfig, names: tuple[str, ...], dtype, device) -> torch.Tensor:
     """(S, 6) variance per metre of each source's offset (``pose_source_drift*``)."""
     rows = []
@@ -124,9 +154,12 @@ def _pair_end_samples(seq: Sequence, sched: Schedule, tol: float) -> np.ndarray:
     return out
 
 
-def _resets(sched: Schedule, tol: float) -> torch.Tensor:
+def _resets(
+    sched: Schedule, tol: float, max_gap: float, last_time: torch.Tensor | None
+) -> torch.Tensor:
     """(B, E, S) bool: a pair that does not start where the source's previous pair ended
-    (its first pair, or the first after a gap)."""
+    (its first pair, or the first after a gap); a chunk's first pair continues when it
+    starts at most ``max_gap`` after ``last_time`` (B, S) of the previous chunk."""
     batch, n_epochs, n_sources = sched.source_mask.shape
     mask = sched.source_mask
     index = torch.arange(n_epochs, device=mask.device)[None, :, None].expand_as(mask)
@@ -137,12 +170,22 @@ def _resets(sched: Schedule, tol: float) -> torch.Tensor:
     )
     start = sched.t_end[:, :, None] - sched.source_dt
     adjacent = (previous >= 0) & ((prev_end - start).abs() <= tol)
+    if last_time is not None:
+        carried = (start - last_time[:, None, :]) <= max_gap + tol
+        adjacent = adjacent | ((previous < 0) & carried)
     return mask & ~adjacent
 
 
-def build_source_frames(seq: Sequence, sched: Schedule, cfg: EskfConfig) -> SourceFrames:
+def build_source_frames(
+    seq: Sequence, sched: Schedule, cfg: EskfConfig, memory: FrameMemory | None = None
+) -> SourceFrames:
     """The absolute poses of the pair ends of ``sched`` (from the sanitised ``seq``), their
-    resets and the sources' drift densities; see the module docstring."""
+    resets and the sources' drift densities; see the module docstring. ``memory``: the
+    previous chunk's frames (its sources must be ``sched.source_names``)."""
+    if memory is not None and memory.names != sched.source_names:
+        raise ValueError(
+            f"frame_memory holds sources {memory.names}, the run fuses {sched.source_names}"
+        )
     dtype, device = sched.t_end.dtype, sched.t_end.device
     tol = cfg.time_tolerance_s
     names = sched.source_names
@@ -173,7 +216,9 @@ def build_source_frames(seq: Sequence, sched: Schedule, cfg: EskfConfig) -> Sour
         position=stack(positions, 3),
         rotation=stack(rotations, 3, 3),
         covariance=stack(covariances, 6, 6),
-        reset=_resets(sched, tol),
+        reset=_resets(
+            sched, tol, cfg.pose_source_max_gap_s, None if memory is None else memory.last_time
+        ),
         drift_variance=_drift_variance(cfg, names, dtype, device),
     )
 

@@ -272,7 +272,8 @@ def run_piecewise(
     chunk with ``scaled_noise`` of its scales and ``seq.poses`` covariances times
     ``exp(log_scale)`` of ``pose_source`` (``"vo"`` when None), starting from the previous
     chunk's last state and covariance and carrying the gate's rejection streaks and the
-    divergence guard's episode (``EskfResult.gate_memory``), so the chunks gate as one run.
+    divergence guard's episode (``EskfResult.gate_memory``), so the chunks gate as one run,
+    and the drifting source frames (``EskfResult.frame_memory``).
     The input rule of ``frontend.guard`` is applied to the whole run once (skipped samples
     counted in ``dropped_samples`` as by ``run_eskf``).
 
@@ -305,6 +306,7 @@ def run_piecewise(
     done = 0
     initial = initial_state(seq, cfg)  # from the whole run, as run_eskf(seq) starts
     memory = None  # the gate's rejection streaks and the guard's episode, chunk to chunk
+    frames = None  # drifting source frames (pose_source_fusion: drifting_frame), the same
     pose_column = LOG_SCALE_SENSORS.index(pose_source or "vo")
 
     def chunk_of(w0: int, w1: int | None) -> Sequence:
@@ -334,7 +336,13 @@ def run_piecewise(
         noise = scaled_noise(base, log_scales[w0].to(imu.t))
         try:
             result = run_eskf(
-                chunk_of(w0, w1), cfg, noise, callback, initial=initial, gate_memory=memory
+                chunk_of(w0, w1),
+                cfg,
+                noise,
+                callback,
+                initial=initial,
+                gate_memory=memory,
+                frame_memory=frames,
             )
         except EstimationInterrupted as stop:
             results.append(stop.result)
@@ -347,7 +355,7 @@ def run_piecewise(
                 done + stop.epochs_total + later,
             ) from None
         done += int(result.mask[0].sum()) - 1
-        initial, memory = _last(result), result.gate_memory
+        initial, memory, frames = _last(result), result.gate_memory, result.frame_memory
         results.append(result)
     return _concat(results, dropped_samples)
 

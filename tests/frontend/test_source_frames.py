@@ -15,6 +15,9 @@
 * The gradient of a loss w.r.t. a source's variance scale matches central finite
   differences; the offsets are (re-)initialised exactly at a source's first pair and after
   each gap longer than ``pose_source_max_gap_s``; config keys are validated.
+* A run filtered in two chunks with ``frame_memory`` carried over continues the offset: its
+  position RMSE after the cut equals the single run's to 1e-3 m (measured 0.23397 m both;
+  restarting the offset instead: 0.263 m).
 """
 
 from __future__ import annotations
@@ -26,7 +29,7 @@ import pytest
 import torch
 
 from msf_torch.frontend.config import EskfConfig, config_for_sequence, load_config
-from msf_torch.frontend.eskf import EskfNoise, run_eskf
+from msf_torch.frontend.eskf import EskfNoise, EskfResult, run_eskf
 from msf_torch.frontend.guard import sanitize_sequence
 from msf_torch.frontend.schedule import build_schedule
 from msf_torch.frontend.source_frames import build_source_frames
@@ -35,7 +38,7 @@ from msf_torch.geometry.quaternion import matrix_to_quat
 from msf_torch.learning.module import truth_at
 from msf_torch.sensors.pose import drifting_frame_offset, drifting_frame_pose_residual
 from msf_torch.sim import SimConfig, simulate_run
-from msf_torch.types import PoseMeasurements, Sequence, batch_sequences
+from msf_torch.types import NavState, PoseMeasurements, Sequence, batch_sequences
 
 try:
     from tests.frontend.test_pose_sources import odometry_run
@@ -292,3 +295,45 @@ def test_config_keys_are_validated():
     with pytest.raises(ValueError, match="'pose_source_fusion'"):
         load_config(pose_source_fusion="drifting_frame", calibrate_time_offsets=["pose:vo"])
     load_config(pose_source_fusion="drifting_frame", pose_source_drift={"vo": [0.01, 1e-3]})
+
+
+def test_frames_carry_over_between_chunks():
+    seq, _ = drifting_source_run(11, duration_s=40.0)
+    cfg = frame_config(seq, "drifting_frame")
+    whole = run_eskf(seq, cfg)
+    cut = int((seq.imu.t[0] <= 25.0).sum())  # the GNSS stopped at 15 s
+
+    def chunk(a: int, b: int | None) -> Sequence:
+        return dataclasses.replace(seq, imu=seq.imu.map(lambda x: x[:, a:b]))
+
+    first = run_eskf(chunk(0, cut), cfg)
+    last = int(first.mask[0].sum()) - 1
+    state = NavState(
+        *(getattr(first, k)[:, last] for k in ("position", "velocity", "rotation")),
+        first.gyro_bias[:, last],
+        first.accel_bias[:, last],
+    )
+    initial = (state, first.covariance[:, last])
+    carried = run_eskf(chunk(cut - 1, None), cfg, initial=initial, frame_memory=first.frame_memory)
+    fresh = run_eskf(chunk(cut - 1, None), cfg, initial=initial)
+    memory = first.frame_memory
+    assert memory.names == ("vo",) and float(memory.last_time[0, 0]) == pytest.approx(25.0)
+    assert torch.equal(carried.source_frame["pose:vo"][0, 0], memory.value[0, 0])
+    # carried: the chunk's first pair continues the offset (fused, not consumed), and the
+    # final position stays with the single run's; afresh, the offset restarts
+    assert bool(carried.present["pose:vo"][0, 1]) and not bool(fresh.present["pose:vo"][0, 1])
+
+    def rmse(result: EskfResult) -> float:
+        truth, _ = truth_at(seq.ground_truth, result.t)
+        here = result.mask & (result.t > 25.0)
+        return float(((result.position - truth) ** 2).sum(-1)[here].mean().sqrt())
+
+    errors = rmse(whole), rmse(carried), rmse(fresh)
+    assert abs(errors[1] - errors[0]) < 1e-3 < abs(errors[2] - errors[0]), errors
+    with pytest.raises(ValueError, match="frame_memory"):
+        run_eskf(
+            chunk(cut - 1, None),
+            cfg,
+            initial=initial,
+            frame_memory=dataclasses.replace(memory, names=("lidar",)),
+        )
