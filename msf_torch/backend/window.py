@@ -136,6 +136,7 @@ from msf_torch.geometry import so3
 from msf_torch.geometry.conventions import gravity_world
 from msf_torch.geometry.quaternion import matrix_to_quat
 from msf_torch.sensors.imu import Preintegrated, propagate_nominal
+from msf_torch.sensors.imu_gaps import interpolated_imu_samples
 from msf_torch.types import Sequence, Trajectory
 
 _GROUP = "state"
@@ -149,6 +150,7 @@ NOISE_KEYS = (
     "nhc_sigma_mps",
     "zupt_sigma_mps",
     "wheel_speed_sigma_mps",
+    "imu_gap_noise_scale",
 )
 """EskfConfig keys that ``SmootherConfig.noise`` may replace for the back end."""
 _YAW_OFF_VARIANCE = 1e4  # rad^2: the wheel yaw row carries no information
@@ -625,7 +627,12 @@ def build_graph(
     imu_t = seq.imu.t[0, imu_keep]
     gyro, accel = seq.imu.gyro[0, imu_keep], seq.imu.accel[0, imu_keep]
     spacing = torch.cat((imu_t[1:] - imu_t[:-1], imu_t.new_zeros(1)))
-    scale = torch.where(spacing > cfg.imu_gap_s, cfg.imu_gap_noise_scale, 1.0).to(dtype)
+    filled = torch.as_tensor(
+        interpolated_imu_samples(imu_t, gyro, accel, cfg.imu_interpolated_min_samples),
+        device=imu_t.device,
+    )
+    gap = (spacing > cfg.imu_gap_s) | filled
+    scale = torch.where(gap, cfg.imu_gap_noise_scale, 1.0).to(dtype)
     cut = cut_imu(imu_t, gyro, accel, t)
     noise_scale = _cut_channels(imu_t, scale[:, None], t).gyro[..., 0]
     intervals = ImuIntervals(cut.gyro[None], cut.accel[None], cut.dt[None])

@@ -45,6 +45,10 @@ class EskfConfig:
     # IMU gaps
     imu_gap_s: float = 0.1  # a sample interval longer than this is a gap
     imu_gap_noise_scale: float = 100.0  # variance multiplier over a gap
+    # runs of at least this many samples that lie exactly on the line through their
+    # neighbours in all six channels were filled in by the recorder, not measured
+    # (``sensors.imu_gaps``): they count as a gap too; 0 turns the check off
+    imu_interpolated_min_samples: int = 10
     # wheel odometry
     wheel_track_m: float = 0.55
     wheel_lever_arm_m: list[float] = field(default_factory=lambda: [0.0, 0.0, 0.0])
@@ -200,6 +204,7 @@ class EskfConfig:
             "nhc_sigma_mps",
             "zupt_sigma_mps",
             "imu_gap_s",
+            "imu_gap_noise_scale",
             "slip_sensitivity",
             "pose_source_max_gap_s",
             "divergence_nis_scale",
@@ -209,6 +214,11 @@ class EskfConfig:
             value = getattr(self, key)
             if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
                 raise ValueError(f"config key '{key}' must be a positive number, got {value!r}")
+        count = self.imu_interpolated_min_samples
+        if not (isinstance(count, int) and not isinstance(count, bool) and count >= 0):
+            raise ValueError(
+                f"config key 'imu_interpolated_min_samples' must be an integer >= 0, got {count!r}"
+            )
         if self.nhc not in ("auto", "on", "off"):
             raise ValueError(f"config key 'nhc' must be auto, on or off, got {self.nhc!r}")
         accel = self.pose_source_accel_sigma_mps2

@@ -41,6 +41,7 @@ import torch
 from msf_torch.frontend.config import EskfConfig
 from msf_torch.geometry import so3
 from msf_torch.geometry.quaternion import quat_to_matrix
+from msf_torch.sensors.imu_gaps import interpolated_imu_samples
 from msf_torch.types import PoseMeasurements, Sequence
 
 
@@ -324,7 +325,13 @@ def build_schedule(seq: Sequence, cfg: EskfConfig) -> Schedule:
         first = np.searchsorted(epoch, np.arange(updates.size), side="left")
         slot = np.arange(piece_start.size) - first[epoch]
         spacing = np.diff(imu_t, append=imu_t[-1])
-        gap_piece = spacing[sample] > cfg.imu_gap_s
+        filled = interpolated_imu_samples(
+            imu_t,
+            _np(seq.imu.gyro[b])[imu_sel],
+            _np(seq.imu.accel[b])[imu_sel],
+            cfg.imu_interpolated_min_samples,
+        )
+        gap_piece = (spacing[sample] > cfg.imu_gap_s) | filled[sample]
         end_sample = np.searchsorted(imu_t, updates + tol, side="right") - 1
         end_sample = np.clip(end_sample, 0, imu_t.size - 1)
         # measurements at each epoch end

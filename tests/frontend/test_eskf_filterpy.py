@@ -45,6 +45,9 @@ def _config() -> EskfConfig:
         zupt=False,
         gate_probability=1.0,
         slip_detection=False,
+        # the synthetic IMU is exactly constant, which is what a recorder's linear fill
+        # looks like (sensors.imu_gaps): the linear model here has no such stretches
+        imu_interpolated_min_samples=0,
     )
 
 

@@ -1,0 +1,89 @@
+"""Filled-in IMU stretches: samples a recorder synthesised by linear interpolation.
+
+Some logs bridge dropped IMU packets by writing samples interpolated linearly between the
+last real sample before the dropout and the first one after it, with evenly spaced
+timestamps, so the timestamps show no gap. The KITTI drive shipped by the gtsam wheel has
+eight such stretches of 1.5-1.6 s (155-165 samples each), six of them in turns: over the
+turn at 279-280.5 s the gyro's integral falls 13 degrees short of the GNSS track's change of
+course, because the real yaw rate peaked between the two end samples. A real sensor's
+noise makes six channels collinear to rounding for many samples in a row practically
+impossible, so such a run is a reliable signature.
+
+:func:`interpolated_imu_samples` finds the interior samples of every run of at least
+``min_samples`` consecutive samples that lie, in all six channels, on the straight line
+through their neighbours (to ``rtol`` relative to the channel's magnitude). The front end
+and the smoothers treat those samples as an IMU gap (``EskfConfig.imu_gap_noise_scale``):
+the interpolated values are still the best guess of the motion, but their noise is the
+vehicle's unknown motion, not the sensor's.
+"""
+
+from __future__ import annotations
+
+__all__ = ["interpolated_imu_samples"]
+
+import numpy as np
+import torch
+
+
+def interpolated_imu_samples(
+    t: torch.Tensor | np.ndarray,
+    gyro: torch.Tensor | np.ndarray,
+    accel: torch.Tensor | np.ndarray,
+    min_samples: int = 10,
+    rtol: float = 1e-6,
+) -> np.ndarray:
+    """(N,) bool: the samples of one IMU stream that were filled in by linear interpolation.
+
+    Args:
+        t: (N,) sample times, s, increasing.
+        gyro: (N, 3) angular rate, rad/s.
+        accel: (N, 3) specific force, m/s^2.
+        min_samples: shortest run of collinear interior samples that counts (0 disables).
+        rtol: a sample is collinear when every channel's distance from the line through its
+            two neighbours is at most ``rtol * max(1, |value|)`` (rounding of the file's
+            text, not sensor noise).
+
+    Returns:
+        (N,) numpy bool; the first and last samples of a stretch (the real samples it joins)
+        are not marked.
+    """
+    if min_samples < 0:
+        raise ValueError(f"min_samples must be >= 0, got {min_samples}")
+    times = np.asarray(t.detach().cpu() if isinstance(t, torch.Tensor) else t, dtype=np.float64)
+    values = [
+        np.asarray(x.detach().cpu() if isinstance(x, torch.Tensor) else x, dtype=np.float64)
+        for x in (gyro, accel)
+    ]
+    n = times.shape[0]
+    out = np.zeros(n, dtype=bool)
+    if min_samples == 0 or n < 3:
+        return out
+    span = times[2:] - times[:-2]
+    frac = (times[1:-1] - times[:-2]) / np.where(span > 0, span, np.inf)
+    gyro_np, accel_np = values
+
+    def runs(flags: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Start and end (exclusive) of the runs of True in ``flags`` that are long enough."""
+        edges = np.diff(flags.astype(np.int8), prepend=np.int8(0), append=np.int8(0))
+        starts, ends = np.nonzero(edges == 1)[0], np.nonzero(edges == -1)[0]
+        long = ends - starts >= min_samples
+        return starts[long], ends[long]
+
+    # candidates from one channel with the loosest tolerance of the stream (a superset)
+    gyro_z = gyro_np[:, 2]
+    line = gyro_z[:-2] + (gyro_z[2:] - gyro_z[:-2]) * frac
+    loose = rtol * max(1.0, float(np.abs(gyro_z).max()))
+    starts, ends = runs((np.abs(gyro_z[1:-1] - line) <= loose) & (span > 0))
+    if starts.size == 0:
+        return out
+    # every channel of every candidate sample, at its own tolerance
+    rows = np.concatenate([np.arange(a, b) for a, b in zip(starts, ends, strict=True)])
+    here = np.concatenate((gyro_np[rows + 1], accel_np[rows + 1]), axis=1)
+    before = np.concatenate((gyro_np[rows], accel_np[rows]), axis=1)
+    after = np.concatenate((gyro_np[rows + 2], accel_np[rows + 2]), axis=1)
+    off_line = np.abs(here - before - (after - before) * frac[rows, None])
+    confirmed = np.zeros(n - 2, dtype=bool)
+    confirmed[rows] = np.all(off_line <= rtol * np.maximum(1.0, np.abs(here)), axis=1)
+    for a, b in zip(*runs(confirmed), strict=True):
+        out[a + 1 : b + 1] = True  # index k of the interior arrays is sample k + 1
+    return out
