@@ -71,6 +71,7 @@ from msf_torch.eval.outage import outage_metrics, split_gnss_outage  # noqa: E40
 from msf_torch.frontend.config import EskfConfig, packaged_config  # noqa: E402
 from msf_torch.frontend.eskf import run_eskf  # noqa: E402
 from msf_torch.io import load_sequence  # noqa: E402
+from msf_torch.sensors.imu_gaps import interpolated_imu_samples  # noqa: E402
 from msf_torch.types import Sequence  # noqa: E402
 
 EPS_S = 1e-3  # window margin around the first / last withheld fix (fixes are ~1 s apart)
@@ -172,10 +173,14 @@ def turn_heading_check(seq, window_s: float = 10.0, min_turn_rad: float = 0.8) -
     For every 10-s span (5-s steps) at > 4 m/s whose GNSS course (central differences of
     the fixes) turns by more than ``min_turn_rad``, compare the integrated gyro z rate over
     the span with the course change. A causal IMU + NHC estimator cannot do better than
-    this heading loss while GNSS is out.
+    this heading loss while GNSS is out. Spans that hold an IMU stretch the recorder filled
+    in by linear interpolation (``msf_torch.sensors.imu_gaps``) are reported apart, and so
+    is each stretch: the course change from 2 s before it to 2 s after it against the gyro's.
     """
-    t = seq.imu.t[0].numpy()
-    gyro_z = seq.imu.gyro[0, :, 2].numpy()
+    keep = seq.imu.mask[0]
+    t = seq.imu.t[0, keep].numpy()
+    gyro_z = seq.imu.gyro[0, keep, 2].numpy()
+    filled = interpolated_imu_samples(t, seq.imu.gyro[0, keep], seq.imu.accel[0, keep])
     gt = seq.gnss.t[0].numpy()
     gp = seq.gnss.position[0].numpy()
     vel = (gp[2:] - gp[:-2]) / (gt[2:] - gt[:-2])[:, None]
@@ -185,20 +190,48 @@ def turn_heading_check(seq, window_s: float = 10.0, min_turn_rad: float = 0.8) -
     yaw = np.concatenate(([0.0], np.cumsum(gyro_z[:-1] * np.diff(t))))
     yaw_at = np.interp(tc, t, yaw)
     step = int(round(window_s))
-    ratios, losses = [], []
+    spans = {True: ([], []), False: ([], [])}  # holds a filled-in stretch -> ratios, losses
     for k in range(0, len(tc) - step, 5):
         if speed[k] > 4 and speed[k + step] > 4:
             turn = course[k + step] - course[k]
             if abs(turn) > min_turn_rad:
                 gyro_turn = yaw_at[k + step] - yaw_at[k]
-                ratios.append(gyro_turn / turn)
-                losses.append(abs(gyro_turn - turn))
+                inside = bool(filled[(t >= tc[k]) & (t <= tc[k + step])].any())
+                spans[inside][0].append(gyro_turn / turn)
+                spans[inside][1].append(abs(gyro_turn - turn))
+    edges = np.diff(filled.astype(np.int8), prepend=np.int8(0), append=np.int8(0))
+    stretches = []
+    for first, end in zip(np.nonzero(edges == 1)[0], np.nonzero(edges == -1)[0], strict=True):
+        start_s, end_s = t[first - 1] - t[0], t[end] - t[0]  # the real samples it joins
+        before = int(np.nonzero(tc - t[0] < start_s - 2.0)[0][-1])
+        after = int(np.nonzero(tc - t[0] > end_s + 2.0)[0][0])
+        turn = course[after] - course[before]
+        stretches.append(
+            {
+                "start_s": float(start_s),
+                "duration_s": float(end_s - start_s),
+                "samples": int(end - first),
+                "course_change_deg": float(np.degrees(turn)),
+                "gyro_short_by_deg": float(np.degrees(turn - (yaw_at[after] - yaw_at[before]))),
+            }
+        )
+
+    def summary(inside: bool) -> dict[str, Any]:
+        ratios, losses = spans[inside]
+        if not ratios:
+            return {"turns": 0}
+        return {
+            "turns": len(ratios),
+            "gyro_over_course_min": float(np.min(ratios)),
+            "gyro_over_course_max": float(np.max(ratios)),
+            "heading_loss_median_rad": float(np.median(losses)),
+            "heading_loss_max_rad": float(np.max(losses)),
+        }
+
     return {
-        "turns": len(ratios),
-        "gyro_over_course_min": float(np.min(ratios)),
-        "gyro_over_course_max": float(np.max(ratios)),
-        "heading_loss_median_rad": float(np.median(losses)),
-        "heading_loss_max_rad": float(np.max(losses)),
+        **summary(False),
+        "spans_with_filled_imu": summary(True),
+        "filled_imu_stretches": stretches,
     }
 
 
