@@ -325,10 +325,13 @@ def build_schedule(seq: Sequence, cfg: EskfConfig) -> Schedule:
         first = np.searchsorted(epoch, np.arange(updates.size), side="left")
         slot = np.arange(piece_start.size) - first[epoch]
         spacing = np.diff(imu_t, append=imu_t[-1])
+        # the samples in use are usually one block (padding at the end): read them as views
+        block = imu_sel[-1] - imu_sel[0] + 1 == imu_sel.size
+        rows = slice(imu_sel[0], imu_sel[-1] + 1) if block else imu_sel
         filled = interpolated_imu_samples(
             imu_t,
-            _np(seq.imu.gyro[b])[imu_sel],
-            _np(seq.imu.accel[b])[imu_sel],
+            _np(seq.imu.gyro[b])[rows],
+            _np(seq.imu.accel[b])[rows],
             cfg.imu_interpolated_min_samples,
         )
         gap_piece = (spacing[sample] > cfg.imu_gap_s) | filled[sample]
