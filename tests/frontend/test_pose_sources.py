@@ -12,8 +12,9 @@ fifth of the VO frames, a 5 s LiDAR block), so pairs across gaps are skipped.
   ~10^4 correlated pairs is ~1 %; consecutive pairs share a sample, and the velocity noise
   is treated as white).
 * A batch equals each sequence alone (1e-9); the gradient w.r.t. a source's variance scale
-  matches central finite differences; with no sources (absent, or ``pose_sources: []``) the
-  results are bit-for-bit those of the sequence without ``pose_sources``.
+  matches central finite differences in both fusion modes (velocity, drifting_frame); with
+  no sources (absent, or ``pose_sources: []``) the results are bit-for-bit those of the
+  sequence without ``pose_sources``.
 """
 
 from __future__ import annotations
@@ -140,10 +141,13 @@ def test_batch_equals_single_runs():
             assert float((one.nis[key][0] - batch.nis[key][b, :n]).abs().max()) < 1e-9
 
 
-def test_gradient_wrt_source_scale_matches_finite_differences():
+@pytest.mark.parametrize("fusion", ["velocity", "drifting_frame"])
+def test_gradient_wrt_source_scale_matches_finite_differences(fusion):
     seq = odometry_run(6, duration_s=5.0)
     # no gating: a decision flipping between the finite-difference runs would be a jump
-    cfg = config_for_sequence(EskfConfig(gate_probability=1.0), seq.meta, set())
+    cfg = config_for_sequence(
+        EskfConfig(gate_probability=1.0, pose_source_fusion=fusion), seq.meta, set()
+    )
     truth = seq.ground_truth
 
     def loss(scale_vo: torch.Tensor) -> torch.Tensor:
