@@ -64,6 +64,7 @@ from msf_torch.frontend.eskf import SENSORS, EskfResult, run_eskf
 from msf_torch.frontend.guard import DIVERGENCE_CODES, EstimationInterrupted
 from msf_torch.io.atomic import atomic_write
 from msf_torch.io.tum import write_tum
+from msf_torch.sensors.imu_gaps import interpolated_imu_samples
 from msf_torch.types import Sequence, Trajectory
 
 if TYPE_CHECKING:
@@ -248,6 +249,7 @@ def run_sequence(seq: Sequence, cfg: EskfConfig, options: RunOptions) -> dict[st
     if dropped:
         summary["dropped_nonfinite"] = dropped
     summary["imu_gaps"] = int((result.gap[0] & result.mask[0]).sum())
+    summary["imu_filled_stretches"] = _filled_summary(seq, cfg)
     summary.update(_fault_summary(result))
     summary.update(_calibration_summary(result))
     scored = [("", estimate)] + ([] if smoothed is None else [("frontend_", _single(trajectory))])
@@ -349,6 +351,25 @@ def _divergence(result: EskfResult) -> torch.Tensor:
     if result.divergence is None:
         return torch.zeros(result.mask.shape, dtype=torch.long)
     return result.divergence
+
+
+def _filled_summary(seq: Sequence, cfg: EskfConfig) -> dict[str, Any]:
+    """Stretches of the IMU log filled in by linear interpolation (``sensors.imu_gaps``),
+    which the front end bridged as gaps: ``{"count", "seconds", "start_s"}`` (start times
+    from the first IMU sample; ``count`` 0 when the check is off)."""
+    keep = seq.imu.mask[0]
+    t = seq.imu.t[0, keep]
+    flags = interpolated_imu_samples(
+        t, seq.imu.gyro[0, keep], seq.imu.accel[0, keep], cfg.imu_interpolated_min_samples
+    )
+    edges = np.diff(flags.astype(np.int8), prepend=np.int8(0), append=np.int8(0))
+    first, end = np.nonzero(edges == 1)[0], np.nonzero(edges == -1)[0]
+    times = t.detach().cpu().numpy()
+    return {
+        "count": int(first.size),
+        "seconds": round(float((times[end] - times[first - 1]).sum()), 3),
+        "start_s": [round(float(times[k - 1] - times[0]), 3) for k in first],
+    }
 
 
 def _calibration_summary(result: EskfResult) -> dict[str, Any]:

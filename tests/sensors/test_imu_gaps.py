@@ -6,6 +6,7 @@
 * The KITTI drive of the gtsam wheel: its eight filled-in stretches (1257 samples).
 * ``build_schedule`` gives the pieces held on those samples ``imu_gap_noise_scale`` and
   flags their epochs as gaps.
+* ``msf run``'s summary names the stretch (count, seconds, start).
 * Pure propagation (no measurements): the extra attitude variance the stretch adds equals
   the closed form ``3 (scale - 1) sigma_g^2 T`` (isotropic gyro noise keeps its trace under
   rotation).
@@ -127,3 +128,16 @@ def test_added_attitude_variance_matches_closed_form():
     expected = 3.0 * (base.imu_gap_noise_scale - 1.0) * base.gyro_noise_density**2 * duration
     assert extra == pytest.approx(expected, rel=1e-6)
     assert bool(on.gap[0].any()) and not bool(off.gap[0].any())
+
+
+def test_run_summary_reports_the_filled_stretch(tmp_path):
+    from msf_torch.runner import RunOptions, run_sequence
+
+    seq, t, first, last = _run_with_filled_stretch()
+    cfg = EskfConfig(nhc="off", zupt=False)
+    summary = run_sequence(seq, cfg, RunOptions(out_dir=tmp_path, plot=False))
+    stretch = summary["imu_filled_stretches"]
+    assert stretch["count"] == 1
+    assert stretch["seconds"] == pytest.approx(t[last] - t[first], abs=1e-3)
+    assert stretch["start_s"] == [pytest.approx(t[first] - t[0], abs=1e-3)]
+    assert summary["imu_gaps"] > 0
