@@ -332,7 +332,16 @@ def _cmd_run(args) -> dict[str, Any]:
         learned=_learned(args),
         exports=args.export,
     )
-    return run_sequence(seq, cfg, options)
+    summary = run_sequence(seq, cfg, options)
+    filled = summary.get("imu_filled_stretches", {})
+    if filled.get("count"):
+        print(
+            f"msf run: {filled['count']} IMU stretch(es), {filled['seconds']:.1f} s in all, "
+            "were filled in by the recorder (samples on a straight line); bridged as IMU gaps "
+            "(imu_interpolated_min_samples, imu_gap_noise_scale)",
+            file=sys.stderr,
+        )
+    return summary
 
 
 def _learned(args) -> Any:

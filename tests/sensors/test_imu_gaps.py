@@ -6,7 +6,7 @@
 * The KITTI drive of the gtsam wheel: its eight filled-in stretches (1257 samples).
 * ``build_schedule`` gives the pieces held on those samples ``imu_gap_noise_scale`` and
   flags their epochs as gaps.
-* ``msf run``'s summary names the stretch (count, seconds, start).
+* ``msf run``'s summary names the stretch (count, seconds, start) and says so on stderr.
 * Pure propagation (no measurements): the extra attitude variance the stretch adds equals
   the closed form ``3 (scale - 1) sigma_g^2 T`` (isotropic gyro noise keeps its trace under
   rotation).
@@ -141,3 +141,15 @@ def test_run_summary_reports_the_filled_stretch(tmp_path):
     assert stretch["seconds"] == pytest.approx(t[last] - t[first], abs=1e-3)
     assert stretch["start_s"] == [pytest.approx(t[first] - t[0], abs=1e-3)]
     assert summary["imu_gaps"] > 0
+
+
+def test_msf_run_says_so_on_stderr(tmp_path, capsys):
+    from msf_torch.cli import main
+    from msf_torch.io.native import write_native
+
+    seq, _, _, _ = _run_with_filled_stretch()
+    path = write_native(seq, tmp_path / "filled.npz")
+    args = ["run", str(path), "--out", str(tmp_path / "out"), "--no-plot", "--progress", "off"]
+    assert main(args) == 0
+    err = capsys.readouterr().err
+    assert "msf run: 1 IMU stretch(es)" in err and "bridged as IMU gaps" in err
