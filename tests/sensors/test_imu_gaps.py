@@ -3,7 +3,8 @@
 * A stretch of a noisy simulated IMU replaced by linear interpolation in time (jittered
   timestamps) is found sample for sample; plain noise, a stretch shorter than
   ``min_samples`` and ``min_samples = 0`` flag nothing.
-* The KITTI drive of the gtsam wheel: its eight filled-in stretches (1257 samples).
+* The KITTI drive of the gtsam wheel: its eight filled-in stretches (1257 samples); the real
+  EuRoC V1_01 IMU (6001 samples): none, even for runs of 3.
 * ``build_schedule`` gives the pieces held on those samples ``imu_gap_noise_scale`` and
   flags their epochs as gaps.
 * ``msf run``'s summary names the stretch (count, seconds, start) and says so on stderr.
@@ -81,6 +82,16 @@ def test_kitti_drive_has_eight_filled_stretches():
     starts = np.nonzero(edges == 1)[0]
     assert int(flags.sum()) == 1257 and starts.size == 8
     assert np.any(np.abs(t[starts] - t[0] - 278.99) < 0.01)  # the turn at 279-280.5 s
+
+
+def test_real_euroc_imu_has_none():
+    pytest.importorskip("gtsam")
+    from msf_torch.io.eqvio import load_eqvio
+
+    imu = load_eqvio().imu  # EuRoC V1_01, 6001 samples at 200 Hz
+    keep = imu.mask[0]
+    flags = interpolated_imu_samples(imu.t[0, keep], imu.gyro[0, keep], imu.accel[0, keep], 3)
+    assert int(keep.sum()) == 6001 and not flags.any()
 
 
 def _run_with_filled_stretch(seed: int = 12):
