@@ -71,7 +71,10 @@ from msf_torch.eval.outage import outage_metrics, split_gnss_outage  # noqa: E40
 from msf_torch.frontend.config import EskfConfig, packaged_config  # noqa: E402
 from msf_torch.frontend.eskf import run_eskf  # noqa: E402
 from msf_torch.io import load_sequence  # noqa: E402
-from msf_torch.sensors.imu_gaps import interpolated_imu_samples  # noqa: E402
+from msf_torch.sensors.imu_gaps import (  # noqa: E402
+    filled_stretches,
+    interpolated_imu_samples,
+)
 from msf_torch.types import Sequence  # noqa: E402
 
 EPS_S = 1e-3  # window margin around the first / last withheld fix (fixes are ~1 s apart)
@@ -199,9 +202,8 @@ def turn_heading_check(seq, window_s: float = 10.0, min_turn_rad: float = 0.8) -
                 inside = bool(filled[(t >= tc[k]) & (t <= tc[k + step])].any())
                 spans[inside][0].append(gyro_turn / turn)
                 spans[inside][1].append(abs(gyro_turn - turn))
-    edges = np.diff(filled.astype(np.int8), prepend=np.int8(0), append=np.int8(0))
     stretches = []
-    for first, end in zip(np.nonzero(edges == 1)[0], np.nonzero(edges == -1)[0], strict=True):
+    for first, end in zip(*filled_stretches(filled), strict=True):
         start_s, end_s = t[first - 1] - t[0], t[end] - t[0]  # the real samples it joins
         before = int(np.nonzero(tc - t[0] < start_s - 2.0)[0][-1])
         after = int(np.nonzero(tc - t[0] > end_s + 2.0)[0][0])

@@ -64,7 +64,7 @@ from msf_torch.frontend.eskf import SENSORS, EskfResult, run_eskf
 from msf_torch.frontend.guard import DIVERGENCE_CODES, EstimationInterrupted
 from msf_torch.io.atomic import atomic_write
 from msf_torch.io.tum import write_tum
-from msf_torch.sensors.imu_gaps import interpolated_imu_samples
+from msf_torch.sensors.imu_gaps import filled_stretches, interpolated_imu_samples
 from msf_torch.types import Sequence, Trajectory
 
 if TYPE_CHECKING:
@@ -362,8 +362,7 @@ def _filled_summary(seq: Sequence, cfg: EskfConfig) -> dict[str, Any]:
     flags = interpolated_imu_samples(
         t, seq.imu.gyro[0, keep], seq.imu.accel[0, keep], cfg.imu_interpolated_min_samples
     )
-    edges = np.diff(flags.astype(np.int8), prepend=np.int8(0), append=np.int8(0))
-    first, end = np.nonzero(edges == 1)[0], np.nonzero(edges == -1)[0]
+    first, end = filled_stretches(flags)
     times = t.detach().cpu().numpy()
     return {
         "count": int(first.size),

@@ -358,6 +358,23 @@ def _invariant_nav_transition(delta_t: torch.Tensor, gravity_mps2: float) -> tor
     return out
 
 
+def _with_mean_rate_row(
+    r: torch.Tensor,
+    h: torch.Tensor,
+    sched: Schedule,
+    epoch: int,
+    col: int,
+    gyro_bias: torch.Tensor,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """A pose source's block ``(r, h)`` (B, m), (B, m, 15) with the mean-rate row of its
+    pair at ``epoch`` appended (``sensors.pose.mean_rate_residual``): (B, m + 3),
+    (B, m + 3, 15)."""
+    r_w, h_w = mean_rate_residual(
+        sched.source_gyro_mean[:, epoch, col], gyro_bias, sched.source_rate[:, epoch, col]
+    )
+    return torch.cat((r, r_w), -1), torch.cat((h, h_w), -2)
+
+
 def _invariant_maps(
     position: torch.Tensor, velocity: torch.Tensor, rotation: torch.Tensor
 ) -> tuple[torch.Tensor, torch.Tensor]:
@@ -1085,12 +1102,7 @@ def run_eskf(
                         frames.rotation[:, e, col],
                     )
                     if cfg.pose_source_rate_update:
-                        r_w, h_w = mean_rate_residual(
-                            sched.source_gyro_mean[:, e, col],
-                            state.gyro_bias,
-                            sched.source_rate[:, e, col],
-                        )
-                        r, h = torch.cat((r, r_w), -1), torch.cat((h, h_w), -2)
+                        r, h = _with_mean_rate_row(r, h, sched, e, col, state.gyro_bias)
                         h_f = torch.cat((h_f, h_f.new_zeros(batch, 3, FRAME_DIM)), -2)
                     h_frame = torch.zeros(batch, r.shape[-1], n_frame, dtype=dtype, device=device)
                     h_frame[..., FRAME_DIM * col : FRAME_DIM * (col + 1)] = h_f
@@ -1176,12 +1188,7 @@ def run_eskf(
                         sched.source_velocity[:, e, col],
                     )
                     if cfg.pose_source_rate_update:
-                        r_w, h_w = mean_rate_residual(
-                            sched.source_gyro_mean[:, e, col],
-                            state.gyro_bias,
-                            sched.source_rate[:, e, col],
-                        )
-                        r, h = torch.cat((r, r_w), -1), torch.cat((h, h_w), -2)
+                        r, h = _with_mean_rate_row(r, h, sched, e, col, state.gyro_bias)
                     var = zeros_b[:, None].expand(batch, r.shape[-1])
                     full_cov.append((offset, source_cov[:, e, col]))
                 offset += r.shape[-1]

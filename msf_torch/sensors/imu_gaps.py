@@ -19,7 +19,7 @@ vehicle's unknown motion, not the sensor's.
 
 from __future__ import annotations
 
-__all__ = ["interpolated_imu_samples"]
+__all__ = ["filled_stretches", "interpolated_imu_samples"]
 
 import numpy as np
 import torch
@@ -64,8 +64,7 @@ def interpolated_imu_samples(
 
     def runs(flags: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Start and end (exclusive) of the runs of True in ``flags`` that are long enough."""
-        edges = np.diff(flags.astype(np.int8), prepend=np.int8(0), append=np.int8(0))
-        starts, ends = np.nonzero(edges == 1)[0], np.nonzero(edges == -1)[0]
+        starts, ends = filled_stretches(flags)
         long = ends - starts >= min_samples
         return starts[long], ends[long]
 
@@ -87,3 +86,14 @@ def interpolated_imu_samples(
     for a, b in zip(*runs(confirmed), strict=True):
         out[a + 1 : b + 1] = True  # index k of the interior arrays is sample k + 1
     return out
+
+
+def filled_stretches(flags: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Runs of True in a (N,) bool array, e.g. :func:`interpolated_imu_samples`' flags.
+
+    Returns:
+        (K,) first index and (K,) end index (exclusive) of each run; for filled-in IMU
+        samples, ``first - 1`` and ``end`` are the real samples the stretch joins.
+    """
+    edges = np.diff(np.asarray(flags).astype(np.int8), prepend=np.int8(0), append=np.int8(0))
+    return np.nonzero(edges == 1)[0], np.nonzero(edges == -1)[0]

@@ -25,12 +25,7 @@ DTYPE = torch.float64
 G = 9.80665
 
 
-@pytest.fixture(autouse=True)
-def _one_thread():
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 def test_weights_and_sigma_points_match_filterpy():

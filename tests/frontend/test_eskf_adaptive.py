@@ -21,13 +21,7 @@ from msf_torch.types import batch_sequences
 DTYPE = torch.float64
 
 
-@pytest.fixture(autouse=True)
-def _one_thread():
-    """One torch thread: the backward pass over tiny matrices is slowest when oversubscribed."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 def _position_rmse(result, runs, t_from: float = -1.0) -> torch.Tensor:

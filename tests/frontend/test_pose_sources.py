@@ -11,8 +11,9 @@ fifth of the VO frames, a 5 s LiDAR block), so pairs across gaps are skipped.
   present pairs lies within 10 % of 6 (the Monte-Carlo standard error of the mean over
   ~10^4 correlated pairs is ~1 %; consecutive pairs share a sample, and the velocity noise
   is treated as white).
-* A batch equals each sequence alone (1e-9); the gradient w.r.t. a source's variance scale
-  matches central finite differences in both fusion modes (velocity, drifting_frame); with
+* In both fusion modes (velocity, drifting_frame): a batch equals each sequence alone
+  (1e-9; with drifting frames, the offsets and their covariance too), and the gradient
+  w.r.t. a source's variance scale matches central finite differences; with
   no sources (absent, or ``pose_sources: []``) the results are bit-for-bit those of the
   sequence without ``pose_sources``.
 """
@@ -39,13 +40,7 @@ DURATION_S = 90.0
 GNSS_UNTIL_S = 15.0
 
 
-@pytest.fixture(autouse=True)
-def _one_thread():
-    """One torch thread: the backward pass over tiny matrices is slowest when oversubscribed."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 def _thin(source: PoseMeasurements, keep: np.ndarray) -> PoseMeasurements:
@@ -124,10 +119,11 @@ def test_schedule_pairs_skip_gaps(runs):
     assert float(sched.source_dt[..., 1][sched.source_mask[..., 1]].max()) > 0.15
 
 
-def test_batch_equals_single_runs():
+@pytest.mark.parametrize("fusion", ["velocity", "drifting_frame"])
+def test_batch_equals_single_runs(fusion):
     singles = [odometry_run(s, 6.0 + s, gnss_until_s=20.0) for s in (4, 5)]
     singles[1] = dataclasses.replace(singles[1], pose_sources={"vo": singles[1].pose_sources["vo"]})
-    cfg = config_for_sequence(EskfConfig(), singles[0].meta, set())
+    cfg = config_for_sequence(EskfConfig(pose_source_fusion=fusion), singles[0].meta, set())
     batch = run_eskf(batch_sequences(singles), cfg)
     for b, single_seq in enumerate(singles):
         one = run_eskf(single_seq, cfg)
@@ -139,6 +135,13 @@ def test_batch_equals_single_runs():
             assert torch.equal(one.present[key][0], batch.present[key][b, :n])
             assert torch.equal(one.accepted[key][0], batch.accepted[key][b, :n])
             assert float((one.nis[key][0] - batch.nis[key][b, :n]).abs().max()) < 1e-9
+        for key in one.source_frame:  # drifting_frame only: offsets and their covariance
+            diff = (one.source_frame[key][0] - batch.source_frame[key][b, :n]).abs().max()
+            assert float(diff) < 1e-9, (b, key, float(diff))
+            diff = (
+                one.source_frame_covariance[key][0] - batch.source_frame_covariance[key][b, :n]
+            ).abs()
+            assert float(diff.max()) < 1e-9, (b, key)
 
 
 @pytest.mark.parametrize("fusion", ["velocity", "drifting_frame"])

@@ -42,12 +42,7 @@ from msf_torch.sim.weather import WeatherSchedule, apply_weather
 DTYPE = torch.float64
 
 
-@pytest.fixture(autouse=True)
-def _one_thread():
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 # --- Z-test ----------------------------------------------------------------------------------

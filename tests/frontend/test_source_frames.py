@@ -3,7 +3,8 @@
 
 * The residual's Jacobians w.r.t. the body error (``dp``, ``dtheta``) and the offset error
   (``dt``, ``dphi``) equal central finite differences.
-* A batch equals each sequence alone (1e-9), sources present in only some sequences.
+* (A batch equals each sequence alone, sources present in only some sequences: checked for
+  both fusion modes in ``test_pose_sources.py``.)
 * Simulated 60 s drives (seeds 11-13, GNSS only over the first 15 s, no wheels) with one
   VO-like source whose error is exactly the model: an offset random walk in distance
   travelled (``q_p`` = 0.02 m/sqrt(m), ``q_theta`` = 2e-3 rad/sqrt(m)) plus white noise of
@@ -52,12 +53,7 @@ SIGMA_RAD = 5e-3
 GNSS_UNTIL_S = 15.0
 
 
-@pytest.fixture(autouse=True)
-def _one_thread():
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 def test_residual_jacobians_match_finite_differences():
@@ -202,32 +198,6 @@ def test_position_and_offset_nees_is_consistent(drifting_runs):
         nees = (error[:, None, :] @ torch.linalg.solve(cov, error[..., None]))[:, 0, 0]
         ratio = float(nees.mean()) / 9.0
         assert 0.7 < ratio < 1.3, (b, ratio)
-
-
-def test_batch_equals_single_runs():
-    singles = [odometry_run(s, 6.0 + s, gnss_until_s=20.0) for s in (4, 5)]
-    singles[1] = dataclasses.replace(singles[1], pose_sources={"vo": singles[1].pose_sources["vo"]})
-    cfg = config_for_sequence(
-        EskfConfig(pose_source_fusion="drifting_frame"), singles[0].meta, set()
-    )
-    batch = run_eskf(batch_sequences(singles), cfg)
-    for b, single_seq in enumerate(singles):
-        one = run_eskf(single_seq, cfg)
-        n = one.t.shape[1]
-        for name in ("position", "velocity", "rotation", "gyro_bias", "covariance"):
-            diff = (getattr(one, name)[0] - getattr(batch, name)[b, :n]).abs().max()
-            assert float(diff) < 1e-9, (b, name, float(diff))
-        for key in one.present:
-            assert torch.equal(one.present[key][0], batch.present[key][b, :n])
-            assert torch.equal(one.accepted[key][0], batch.accepted[key][b, :n])
-            assert float((one.nis[key][0] - batch.nis[key][b, :n]).abs().max()) < 1e-9
-        for key in one.source_frame:
-            diff = (one.source_frame[key][0] - batch.source_frame[key][b, :n]).abs().max()
-            assert float(diff) < 1e-9, (b, key, float(diff))
-            diff = (
-                one.source_frame_covariance[key][0] - batch.source_frame_covariance[key][b, :n]
-            ).abs()
-            assert float(diff.max()) < 1e-9, (b, key)
 
 
 def test_offsets_reset_at_first_pair_and_after_gaps():

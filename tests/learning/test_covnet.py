@@ -33,13 +33,7 @@ from msf_torch.sim.wheeled import SimConfig, simulate_run
 CFG = CovNetConfig()
 
 
-@pytest.fixture(autouse=True)
-def _one_thread():
-    """Run every test here on one torch thread (see the throughput test for why)."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 def _inputs(batch: int, seed: int = 0, scale: float = 1.0, config: CovNetConfig = CFG):

@@ -24,7 +24,7 @@ import torch
 from msf_torch.frontend.config import EskfConfig
 from msf_torch.frontend.eskf import run_eskf
 from msf_torch.frontend.schedule import build_schedule
-from msf_torch.sensors.imu_gaps import interpolated_imu_samples
+from msf_torch.sensors.imu_gaps import filled_stretches, interpolated_imu_samples
 from msf_torch.sim import SimConfig, simulate_run
 
 
@@ -78,8 +78,7 @@ def test_kitti_drive_has_eight_filled_stretches():
     keep = seq.imu.mask[0]
     t = seq.imu.t[0, keep].numpy()
     flags = interpolated_imu_samples(t, seq.imu.gyro[0, keep], seq.imu.accel[0, keep])
-    edges = np.diff(flags.astype(np.int8), prepend=np.int8(0), append=np.int8(0))
-    starts = np.nonzero(edges == 1)[0]
+    starts, _ = filled_stretches(flags)
     assert int(flags.sum()) == 1257 and starts.size == 8
     assert np.any(np.abs(t[starts] - t[0] - 278.99) < 0.01)  # the turn at 279-280.5 s
 

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import cv2
 import pytest
-import torch
 
 from msf_torch.sim import simulate_run
 from msf_torch.sim.render import RunRenderer, SceneConfig, render_sim_config
@@ -13,12 +12,9 @@ SCENE = SceneConfig(texture_count=4, texture_px=256, ground_texture_px=1024)
 
 
 @pytest.fixture(autouse=True)
-def _one_thread():
-    """One torch thread: LM on small systems is slowest when oversubscribed."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
+def _one_thread(one_torch_thread):
+    """One torch thread for every vision test (``tests/conftest.py``): LM on small systems
+    is slowest when oversubscribed."""
 
 
 @pytest.fixture(scope="package")
