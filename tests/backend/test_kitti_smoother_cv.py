@@ -10,7 +10,14 @@ from __future__ import annotations
 import numpy as np
 
 from benchmarks.kitti_outage import EPS_S
-from benchmarks.kitti_smoother_cv import GRID, candidates, training_windows
+from benchmarks.kitti_smoother_cv import (
+    FRONTEND_GAPS,
+    FRONTEND_GRID,
+    FRONTEND_GYRO_NOISE,
+    GRID,
+    candidates,
+    training_windows,
+)
 
 
 def _fix_times(count: int = 470, seed: int = 0) -> np.ndarray:
@@ -45,3 +52,23 @@ def test_candidates_cover_the_grid_once_with_the_dataset_values_first():
     assert len({tuple(sorted(r.items())) for r in rows}) == len(rows)
     assert rows[0] == {k: v[0] for k, v in GRID.items()}
     assert rows[0]["accel_bias_rw_density"] == 1.67e-4  # the metadata file's value
+
+
+def test_frontend_grid_pairs_every_gyro_density_with_every_gap_handling():
+    pairs = {
+        (
+            row["gyro_noise_density"],
+            row.get("imu_gap_noise_scale"),
+            row["imu_interpolated_min_samples"],
+        )
+        for row in FRONTEND_GRID
+    }
+    expected = {
+        (gyro, gaps.get("imu_gap_noise_scale"), gaps["imu_interpolated_min_samples"])
+        for gyro in FRONTEND_GYRO_NOISE
+        for gaps in FRONTEND_GAPS
+    }
+    assert len(FRONTEND_GRID) == len(FRONTEND_GYRO_NOISE) * len(FRONTEND_GAPS) == 16
+    assert pairs == expected
+    assert 1.75e-4 in FRONTEND_GYRO_NOISE  # the metadata file's gyro white noise
+    assert {1e2, 1e3, 1e4, None} == {gaps.get("imu_gap_noise_scale") for gaps in FRONTEND_GAPS}
