@@ -15,7 +15,7 @@ Per epoch (see ``frontend.schedule``) and for all B sequences at once:
               [0, 0,     0,       I,       0     ],
               [0, 0,     0,       0,       I     ]].
 
-   The covariance is kept in right-invariant coordinates (see :func:`_invariant_maps`):
+   The covariance is kept in right-invariant coordinates (see ``geometry.invariant``):
    ``P_inv`` propagates with ``T_j^-1 Phi T_i`` and updates with ``H T_j``, so the
    global-yaw direction that wheels and the NHC cannot observe stays unobservable
    whatever the estimate; results report the conventional covariance ``T P_inv T^T``.
@@ -112,6 +112,7 @@ from msf_torch.frontend.source_frames import (
 from msf_torch.frontend.source_frames import inject as inject_frames
 from msf_torch.geometry import so3
 from msf_torch.geometry.conventions import ERROR_STATE_DIM, gravity_world
+from msf_torch.geometry.invariant import invariant_maps, invariant_retract
 from msf_torch.geometry.quaternion import matrix_to_quat
 from msf_torch.sensors.calibration import (
     calibrated_wheel_residual,
@@ -375,50 +376,18 @@ def _with_mean_rate_row(
     return torch.cat((r, r_w), -1), torch.cat((h, h_w), -2)
 
 
-def _invariant_maps(
-    position: torch.Tensor, velocity: torch.Tensor, rotation: torch.Tensor
-) -> tuple[torch.Tensor, torch.Tensor]:
-    """Maps between the right-invariant error and the conventional error state.
-
-    The filter keeps its covariance in right-invariant (world-frame) coordinates
-    ``xi = [xi_p, xi_v, xi_R, db_g, db_a]`` with ``R = Exp(xi_R) R_hat``,
-    ``v = Exp(xi_R) v_hat + xi_v``, ``p = Exp(xi_R) p_hat + xi_p``. To first order the
-    conventional error of ``geometry.conventions`` is ``dx = T xi`` with
-    ``dtheta = R^T xi_R``, ``dv = xi_v - [v]x xi_R``, ``dp = xi_p - [p]x xi_R``. In these
-    coordinates the global-yaw direction, unobservable without a heading source, is a
-    constant vector whatever the estimate, so propagation and updates linearised at
-    different estimates cannot invent heading information (Barrau & Bonnabel 2017).
-
-    Args: (B, 3), (B, 3), (B, 3, 3) estimate.
-    Returns:
-        T (B, 15, 15) and its inverse.
-    """
-    batch = position.shape[0]
-    eye = so3.identity(position.dtype, position.device, ERROR_STATE_DIM)
-    hat_p, hat_v = so3.hat(position), so3.hat(velocity)
-    to_conv = eye.expand(batch, ERROR_STATE_DIM, ERROR_STATE_DIM).clone()
-    to_conv[:, 0:9, 6:9] = torch.cat((-hat_p, -hat_v, rotation.mT), -2)
-    to_inv = eye.expand(batch, ERROR_STATE_DIM, ERROR_STATE_DIM).clone()
-    to_inv[:, 0:9, 6:9] = (
-        torch.cat(
-            (hat_p, hat_v, so3.identity(position.dtype, position.device).expand(batch, 3, 3)), -2
-        )
-        @ rotation
-    )
-    return to_conv, to_inv
-
-
 def _conventional_covariance(
     position: torch.Tensor, velocity: torch.Tensor, rotation: torch.Tensor, cov: torch.Tensor
 ) -> torch.Tensor:
     """Conventional covariance ``T P T^T`` (N, 15, 15) of invariant-coordinate covariances
     ``cov`` (N, 15, 15) at estimates (N, 3) m, (N, 3) m/s, (N, 3, 3).
 
-    ``T`` (:func:`_invariant_maps`) differs from the identity only in its attitude columns
-    (``dp = xi_p - [p]x xi_R``, ``dv = xi_v - [v]x xi_R``, ``dtheta = R^T xi_R``), so the
-    product only mixes rows and columns 6:9 into 0:9. Those products have inner dimension
-    3 and run as three broadcast multiply-adds over all N at once (for many small matrices
-    much faster than batched matrix products, which go matrix by matrix).
+    ``T`` (``geometry.invariant.invariant_maps``) differs from the identity only in its
+    attitude columns (``dp = xi_p - [p]x xi_R``, ``dv = xi_v - [v]x xi_R``,
+    ``dtheta = R^T xi_R``), so the product only mixes rows and columns 6:9 into 0:9. Those
+    products have inner dimension 3 and run as three broadcast multiply-adds over all N at
+    once (for many small matrices much faster than batched matrix products, which go matrix
+    by matrix).
     """
 
     def times(left: torch.Tensor, right: torch.Tensor) -> torch.Tensor:
@@ -440,11 +409,13 @@ def _conventional_covariance(
 
 def _inject_invariant(state: NavState, xi: torch.Tensor) -> NavState:
     """Apply a right-invariant correction ``xi`` (B, 15) to the nominal state."""
-    turn = so3.exp(xi[:, 6:9])
+    position, velocity, rotation = invariant_retract(
+        state.position, state.velocity, state.rotation, xi
+    )
     return NavState(
-        position=(turn @ state.position[..., None]).squeeze(-1) + xi[:, 0:3],
-        velocity=(turn @ state.velocity[..., None]).squeeze(-1) + xi[:, 3:6],
-        rotation=turn @ state.rotation,
+        position=position,
+        velocity=velocity,
+        rotation=rotation,
         gyro_bias=state.gyro_bias + xi[:, 9:12],
         accel_bias=state.accel_bias + xi[:, 12:15],
     )
@@ -587,7 +558,7 @@ def _frame_memory(
     last = torch.where(result.mask, epochs, 0).argmax(1)
     rows = torch.arange(batch, device=full_cov.device)
     full = full_cov[rows, last]
-    to_conv, _ = _invariant_maps(
+    to_conv, _ = invariant_maps(
         result.position[rows, last], result.velocity[rows, last], result.rotation[rows, last]
     )
     nav = slice(0, ERROR_STATE_DIM)
@@ -694,7 +665,7 @@ def run_eskf(
         else None
     )
     state, cov_conventional = initial if initial is not None else initial_state(seq, cfg)
-    _, to_inv0 = _invariant_maps(state.position, state.velocity, state.rotation)
+    _, to_inv0 = invariant_maps(state.position, state.velocity, state.rotation)
     cov = to_inv0 @ cov_conventional @ to_inv0.mT  # kept in invariant coordinates
     pre = _preintegrate_chunked(sched, state.gyro_bias, state.accel_bias)
     q_loc = _local_process_noise(pre, noise)
@@ -838,7 +809,7 @@ def run_eskf(
     slip = torch.ones(batch, dtype=dtype, device=device)
     last_wheel_t = sched.t_start.clone()
     guard = DivergenceGuard(
-        state, cov, cfg, active, segment, reopen, _invariant_maps, gate_memory
+        state, cov, cfg, active, segment, reopen, invariant_maps, gate_memory
     )  # also counts each block's gate rejections in a row (guard.streak)
     divergence_out = [torch.zeros(batch, dtype=torch.long, device=device)]
     out: dict[str, list[torch.Tensor]] = {

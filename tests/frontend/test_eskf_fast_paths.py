@@ -1,7 +1,7 @@
 """The front end's shortcuts against the plain computations they replace.
 
 * ``_conventional_covariance`` (structured ``T P T^T``) equals the dense product with the
-  map of ``_invariant_maps`` on random estimates and covariances (1e-12), and its
+  map of ``invariant_maps`` on random estimates and covariances (1e-12), and its
   gradients pass ``gradcheck``.
 * ``sanitize_sequence``: the finite-sum shortcut still drops exactly the non-finite samples,
   keeps finite samples whose sums overflow (1e308 + 1e308 = inf) and returns the input
@@ -20,10 +20,11 @@ import numpy as np
 import torch
 
 from msf_torch.frontend.config import EskfConfig
-from msf_torch.frontend.eskf import _conventional_covariance, _invariant_maps
+from msf_torch.frontend.eskf import _conventional_covariance
 from msf_torch.frontend.guard import sanitize_sequence
 from msf_torch.frontend.schedule import build_schedule
 from msf_torch.geometry import so3
+from msf_torch.geometry.invariant import invariant_maps
 from msf_torch.sim import SimConfig, simulate_run
 from msf_torch.types import batch_sequences
 
@@ -36,7 +37,7 @@ def test_structured_covariance_map_equals_dense_product():
     rotation = so3.exp(torch.randn(n, 3, generator=gen, dtype=torch.float64))
     root = torch.randn(n, 15, 15, generator=gen, dtype=torch.float64)
     cov = root @ root.mT
-    to_conv, _ = _invariant_maps(position, velocity, rotation)
+    to_conv, _ = invariant_maps(position, velocity, rotation)
     dense = to_conv @ cov @ to_conv.mT
     fast = _conventional_covariance(position, velocity, rotation, cov)
     scale = float(dense.abs().max())

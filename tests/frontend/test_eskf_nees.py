@@ -7,6 +7,15 @@ filter's noise set to the simulator's (IMU densities from the run's metadata, wh
 inside the two-sided 95% chi-square interval at >= 90% of the epochs after a 5 s transient
 (the initial yaw, roll/pitch and position come from the first seconds of data).
 
+The error is measured in the filter's own coordinates, the right-invariant error of
+``geometry.invariant`` against the invariant covariance (``eval.nees.navigation_errors``).
+The conventional additive error agrees to first order only: the wheels pin the body
+velocity to millimetres per second, and a heading error ``psi`` puts ``|v| psi^2 / 2`` (about
+2 mm/s at 1.5 m/s and 0.05 rad) into the conventional velocity error, which no linear map of
+the covariance holds. Over 800 runs (seeds 100-899) random 20-run sets pass the
+epoch-fraction test 64 % of the time in invariant coordinates and 35 % in conventional ones
+(an ideal consistent filter with errors as correlated in time: 83 %).
+
 ``nees_consistency`` is importable for longer studies, e.g.::
 
     import sys; sys.path.insert(0, "tests/frontend")
@@ -22,7 +31,7 @@ from collections.abc import Iterable
 import numpy as np
 import torch
 
-from msf_torch.eval.nees import average_nees, chi2_interval, nees
+from msf_torch.eval.nees import average_nees, chi2_interval, navigation_errors, nees
 from msf_torch.frontend.config import EskfConfig, config_for_sequence
 from msf_torch.frontend.eskf import run_eskf
 from msf_torch.frontend.init import initial_state
@@ -116,13 +125,17 @@ def nees_consistency(
     sim_overrides: dict | None = None,
     cfg_overrides: dict | None = None,
     start_from_truth: bool = False,
+    coordinates: str = "invariant",
 ) -> NeesReport:
     """Simulate one run per seed, filter them as one batch, and score the NEES.
 
-    The error is truth minus estimate in the error-state convention: ``p_t - p``,
-    ``v_t - v``, ``Log(R^T R_t)``, ``b_t - b``; truth at the epoch times (IMU sample times).
+    The error is truth against estimate at the epoch times (IMU sample times), in
+    ``coordinates`` (``eval.nees.navigation_errors``): ``"invariant"``, the right-invariant
+    error the filter keeps its covariance in, or ``"conventional"`` (``p_t - p``,
+    ``v_t - v``, ``Log(R^T R_t)``, ``b_t - b`` against the reported covariance).
     """
     seeds = list(seeds)
+    fields = ("position", "velocity", "rotation", "gyro_bias", "accel_bias")
     sim = consistent_sim_config(duration_s, **(sim_overrides or {}))
     runs = [simulate_run(sim, seed=s) for s in seeds]
     cfg = matched_filter_config(sim, runs[0].sequence.meta)
@@ -134,7 +147,6 @@ def nees_consistency(
         # the classic Monte-Carlo consistency check: the filter starts at the truth with the
         # covariance the initialiser would use, which isolates propagation and updates
         # from the initialiser's own (non-Gaussian) errors
-        fields = ("position", "velocity", "rotation", "gyro_bias", "accel_bias")
         start = NavState(*(torch.cat([getattr(r.truth, n)[:, 0] for r in runs]) for n in fields))
         initial = (start, initial_state(batch, cfg)[1])
     res = run_eskf(batch, cfg, initial=initial)
@@ -150,18 +162,12 @@ def nees_consistency(
     def truth(name):
         return torch.stack([getattr(r.truth, name)[0, idx] for r in runs])
 
-    rot_est = res.rotation
-    error = torch.cat(
-        (
-            truth("position") - res.position,
-            truth("velocity") - res.velocity,
-            so3.log(rot_est.mT @ truth("rotation")),
-            truth("gyro_bias") - res.gyro_bias,
-            truth("accel_bias") - res.accel_bias,
-        ),
-        -1,
+    error, cov = navigation_errors(
+        NavState(*(truth(n) for n in fields)),
+        NavState(*(getattr(res, n) for n in fields)),
+        res.covariance,
+        coordinates,
     )
-    cov = res.covariance
     anees = average_nees(nees(error, cov)).numpy()
     components = {}
     for name, start in COMPONENTS.items():
@@ -190,8 +196,8 @@ def nees_consistency(
 
 
 def test_average_nees_inside_chi_square_bounds():
-    """Acceptance: 20 runs, >= 90% of epochs inside (measured 97.9% on seeds 100-119; other
-    20-run sets give 93.8% (300-319) and 68.9% (400-419), see the pooled test below)."""
+    """Acceptance: 20 runs, >= 90% of epochs inside (measured 91.6% on seeds 100-119, the rest
+    below the interval; other 20-run sets 99.2% (300-319) and 78.0% (400-419, all below))."""
     report = nees_consistency(seeds=range(100, 120), duration_s=40.0, skip_s=5.0)
     assert report.fraction_inside >= 0.90, (
         "ESKF inconsistent: 15-dim average NEES over 20 runs inside the 95% chi-square "
@@ -200,19 +206,28 @@ def test_average_nees_inside_chi_square_bounds():
     )
 
 
+def test_average_nees_conventional_coordinates():
+    """The same runs scored with the conventional additive error against the reported
+    covariance: 97.9% inside (300-319: 93.8%, 6.2% above; 400-419: 68.9%, 11.4% above)."""
+    report = nees_consistency(
+        seeds=range(100, 120), duration_s=40.0, skip_s=5.0, coordinates="conventional"
+    )
+    assert report.fraction_inside >= 0.90, report.summary()
+
+
 def test_average_nees_pooled_over_sixty_runs():
-    """Pooled over three 20-run seed sets the tighter 60-run interval holds at 84.5% of epochs
-    (6.8% above, 8.7% below); guard against regressions at 80%."""
+    """Pooled over three 20-run seed sets the tighter 60-run interval holds at 89.4% of epochs,
+    none above it (conventional coordinates: 84.5%, 6.8% above); guard at 85% and 2%."""
     seeds = [*range(100, 120), *range(300, 320), *range(400, 420)]
     report = nees_consistency(seeds=seeds, duration_s=40.0, skip_s=5.0)
-    assert report.fraction_inside >= 0.80, report.summary()
-    assert report.fraction_above <= 0.12, report.summary()
+    assert report.fraction_inside >= 0.85, report.summary()
+    assert report.fraction_above <= 0.02, report.summary()
 
 
 def test_nees_typical_epoch_consistent_on_long_runs():
     """Over 120 s runs the median average NEES lies inside the 95% interval and the filter is
     overconfident (above the interval) at under a quarter of the epochs (measured: median
-    13.1 in [12.7, 17.5], 1.4% above, 31% below)."""
+    13.1 in [12.7, 17.5], none above, 31.5% below: conservative)."""
     report = nees_consistency(seeds=range(100, 120), duration_s=120.0, skip_s=5.0)
     low, high = report.bounds
     median = float(np.median(report.anees[report.t >= report.skip_s]))
@@ -302,8 +317,8 @@ def test_nees_near_linear_monte_carlo_matches_the_state_dimension():
     whitened error's second moment has every eigenvalue near 1. The 20-run epoch-fraction
     test above is a weaker statistic: errors stay correlated for many seconds
     (autocorrelation 0.43 at 8 s), so a 20-run set holds few independent draws, and random
-    20-run subsets of 700 runs pass it only 35 % of the time although their pooled NEES is
-    15.26 +- 0.19."""
+    20-run subsets of 800 runs pass it 64 % of the time (invariant coordinates; conventional
+    35 %) although their pooled NEES is 14.76 (conventional 15.24)."""
     mean, stderr, eig = near_linear_monte_carlo(range(2000, 2100))
     assert abs(mean - 15.0) <= 3.0 * stderr + 0.3, (mean, stderr)
     # measured 0.66-1.48 on three 100-run sets; the exact-constraint rows at 1e-3 m/s give 0.34

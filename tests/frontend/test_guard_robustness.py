@@ -25,7 +25,7 @@ import torch
 from scipy.stats import beta
 
 from msf_torch.frontend.config import EskfConfig, config_for_sequence
-from msf_torch.frontend.eskf import _invariant_maps, run_eskf
+from msf_torch.frontend.eskf import run_eskf
 from msf_torch.frontend.gating import chi2_threshold
 from msf_torch.frontend.guard import (
     NOT_POSITIVE_DEFINITE,
@@ -34,6 +34,7 @@ from msf_torch.frontend.guard import (
     streak_offset,
 )
 from msf_torch.geometry import so3
+from msf_torch.geometry.invariant import invariant_maps
 from msf_torch.sim import SimConfig, simulate_run
 from msf_torch.sim.faults import simulate_fault_run
 from msf_torch.sim.noise_step import gnss_noise_step
@@ -109,7 +110,7 @@ def _guard_setup(cfg: EskfConfig):
             torch.tensor([[0.25] * 3 + [0.01] * 3 + [1e-4] * 3 + [1e-6] * 3 + [1e-4] * 3])
         ).double()
     )
-    _, to_inv = _invariant_maps(state.position, state.velocity, state.rotation)
+    _, to_inv = invariant_maps(state.position, state.velocity, state.rotation)
     cov = to_inv @ conventional @ to_inv.mT
     guard = DivergenceGuard(
         state,
@@ -118,13 +119,13 @@ def _guard_setup(cfg: EskfConfig):
         ["gnss"],
         torch.ones(3, 1, dtype=torch.float64),
         torch.tensor([True]),
-        _invariant_maps,
+        invariant_maps,
     )
     return state, cov, guard
 
 
 def _conventional(state: NavState, cov: torch.Tensor) -> torch.Tensor:
-    to_conv, _ = _invariant_maps(state.position, state.velocity, state.rotation)
+    to_conv, _ = invariant_maps(state.position, state.velocity, state.rotation)
     return to_conv @ cov @ to_conv.mT
 
 
