@@ -139,6 +139,22 @@ def candidates(grid: dict[str, tuple[float, ...]]) -> list[dict[str, float]]:
     return [dict(zip(keys, values, strict=True)) for values in itertools.product(*grid.values())]
 
 
+def scored_row(
+    key: str, values: dict[str, float], score: str, scores: list[float], started: float
+) -> dict[str, Any]:
+    """One candidate's JSON row: its settings under ``key``; ``train_mean_<score>`` and
+    ``train_<score>`` over the training windows (``scores[1:]``; ``scores[0]`` is the main
+    window); ``main_<score>_held_out``; and the seconds since ``started``
+    (``time.perf_counter``)."""
+    return {
+        key: values,
+        f"train_mean_{score}": statistics.fmean(scores[1:]),
+        f"train_{score}": scores[1:],
+        f"main_{score}_held_out": scores[0],
+        "seconds": time.perf_counter() - started,
+    }
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--quick", action="store_true", help="4 smoother candidates only")
@@ -154,8 +170,10 @@ def main(argv: list[str] | None = None) -> int:
     t_first = float(seq.start_time[0])
     main_window = make_windows(int(gps_t.shape[0]), gps_t, quick=True)[0]
     train = training_windows(gps_t, (main_window["i0"], main_window["i1"]))
-    log(f"main window fixes {main_window['i0']}:{main_window['i1']} held out; "
-        f"{len(train)} training windows: {', '.join(w['name'] for w in train)}")
+    log(
+        f"main window fixes {main_window['i0']}:{main_window['i1']} held out; "
+        f"{len(train)} training windows: {', '.join(w['name'] for w in train)}"
+    )
 
     windows = []
     for window in (main_window, *train):
@@ -177,13 +195,7 @@ def main(argv: list[str] | None = None) -> int:
             metrics = outage_metrics(frontend.trajectory(), withheld)
             results.append((frontend, metrics["outage_rmse_m"]))
             drifts.append(metrics["outage_drift_pct"])
-        row = {
-            "frontend": values,
-            "train_mean_drift_pct": statistics.fmean(drifts[1:]),
-            "train_drift_pct": drifts[1:],
-            "main_drift_pct_held_out": drifts[0],
-            "seconds": time.perf_counter() - started,
-        }
+        row = scored_row("frontend", values, "drift_pct", drifts, started)
         front_rows.append(row)
         if front_pick is None or row["train_mean_drift_pct"] < front_pick["train_mean_drift_pct"]:
             front_pick, pick_results = row, results
@@ -212,13 +224,7 @@ def main(argv: list[str] | None = None) -> int:
             with torch.no_grad():
                 result = smooth(reduced, frontend, cfg, smoother, "full")
             ratios.append(outage_metrics(result.output, withheld)["outage_rmse_m"] / front)
-        row = {
-            "noise": values,
-            "train_mean_ratio": statistics.fmean(ratios[1:]),
-            "train_ratios": ratios[1:],
-            "main_ratio_held_out": ratios[0],
-            "seconds": time.perf_counter() - started,
-        }
+        row = scored_row("noise", values, "ratio", ratios, started)
         rows.append(row)
         log(
             " ".join(f"{k}={v:g}" for k, v in values.items())
