@@ -287,15 +287,11 @@ def near_linear_monte_carlo(
     def truth(name):
         return torch.stack([getattr(r.truth, name)[0, idx] for r in runs])
 
-    error = torch.cat(
-        (
-            truth("position") - res.position,
-            truth("velocity") - res.velocity,
-            so3.log(res.rotation.mT @ truth("rotation")),
-            truth("gyro_bias") - res.gyro_bias,
-            truth("accel_bias") - res.accel_bias,
-        ),
-        -1,
+    error, _ = navigation_errors(
+        NavState(*(truth(n) for n in fields)),
+        NavState(*(getattr(res, n) for n in fields)),
+        res.covariance,
+        "conventional",
     )
     after = t >= t[0] + skip_s
     per_run = nees(error, res.covariance)[:, after].mean(-1)
