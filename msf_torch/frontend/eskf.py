@@ -97,6 +97,7 @@ from msf_torch.frontend.guard import (
     EstimationInterrupted,
     GateMemory,
     InterruptCatcher,
+    check_local_frame,
     sanitize_sequence,
 )
 from msf_torch.frontend.init import initial_state
@@ -658,6 +659,7 @@ def run_eskf(
     dtype, device = seq.imu.t.dtype, seq.imu.t.device
     noise = noise or EskfNoise.from_config(cfg, dtype, device)
     seq, dropped_samples = sanitize_sequence(seq)
+    check_local_frame(seq)
     sched = build_schedule(seq, cfg)
     frames = (
         build_source_frames(seq, sched, cfg, frame_memory)
