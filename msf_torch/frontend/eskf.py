@@ -19,6 +19,10 @@ Per epoch (see ``frontend.schedule``) and for all B sequences at once:
    ``P_inv`` propagates with ``T_j^-1 Phi T_i`` and updates with ``H T_j``, so the
    global-yaw direction that wheels and the NHC cannot observe stays unobservable
    whatever the estimate; results report the conventional covariance ``T P_inv T^T``.
+   The invariant errors are taken about the estimate's own position (the origin moves with
+   it: ``_move_origin`` after each correction, folded into the transition during
+   propagation), so ``T`` has no position arm and nothing depends on, or loses precision
+   to, where the world origin lies.
    In these coordinates the navigation block of ``T_j^-1 Phi T_i`` depends on ``dT`` only
    (:func:`_invariant_nav_transition`, precomputed for all epochs); the loop fills in the
    bias columns, which use the bias Jacobians and the estimate. The nominal state uses the
@@ -97,7 +101,6 @@ from msf_torch.frontend.guard import (
     EstimationInterrupted,
     GateMemory,
     InterruptCatcher,
-    check_local_frame,
     sanitize_sequence,
 )
 from msf_torch.frontend.init import initial_state
@@ -409,17 +412,36 @@ def _conventional_covariance(
 
 
 def _inject_invariant(state: NavState, xi: torch.Tensor) -> NavState:
-    """Apply a right-invariant correction ``xi`` (B, 15) to the nominal state."""
-    position, velocity, rotation = invariant_retract(
-        state.position, state.velocity, state.rotation, xi
+    """Apply a right-invariant correction ``xi`` (B, 15), in coordinates about the estimate's
+    own position (the filter's covariance origin), to the nominal state."""
+    offset, velocity, rotation = invariant_retract(
+        torch.zeros_like(state.position), state.velocity, state.rotation, xi
     )
     return NavState(
-        position=position,
+        position=state.position + offset,
         velocity=velocity,
         rotation=rotation,
         gyro_bias=state.gyro_bias + xi[:, 9:12],
         accel_bias=state.accel_bias + xi[:, 12:15],
     )
+
+
+def _move_origin(matrix: torch.Tensor, shift: torch.Tensor) -> torch.Tensor:
+    """``M matrix M^T`` for ``M`` = identity but ``M[0:3, 6:9] = [shift]x``: the covariance
+    (B, D, D) of invariant errors about an origin moved by ``-shift`` (B, 3) m
+    (``xi_p' = xi_p + [shift]x xi_R``, ``shift`` = old origin - new origin; rows and
+    columns past 15 carry over)."""
+    hat = so3.hat(shift)
+    left = torch.cat((matrix[:, 0:3] + hat @ matrix[:, 6:9], matrix[:, 3:]), 1)  # M P
+    return torch.cat((left[:, :, 0:3] + left[:, :, 6:9] @ hat.mT, left[:, :, 3:]), 2)
+
+
+def _maps_at_estimate(
+    position: torch.Tensor, velocity: torch.Tensor, rotation: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """``geometry.invariant.invariant_maps`` for the filter's covariances, whose origin is
+    the estimate's own position (the position arm vanishes): (B, 15, 15) each."""
+    return invariant_maps(torch.zeros_like(position), velocity, rotation)
 
 
 def _source_covariance(
@@ -559,7 +581,7 @@ def _frame_memory(
     last = torch.where(result.mask, epochs, 0).argmax(1)
     rows = torch.arange(batch, device=full_cov.device)
     full = full_cov[rows, last]
-    to_conv, _ = invariant_maps(
+    to_conv, _ = _maps_at_estimate(
         result.position[rows, last], result.velocity[rows, last], result.rotation[rows, last]
     )
     nav = slice(0, ERROR_STATE_DIM)
@@ -579,13 +601,13 @@ def _frame_memory(
 
 
 def _position_frame_covariance(
-    position: torch.Tensor, position_cov: torch.Tensor, full_cov: torch.Tensor, block: slice
+    position_cov: torch.Tensor, full_cov: torch.Tensor, block: slice
 ) -> torch.Tensor:
-    """(B, E + 1, 9, 9) joint covariance of the conventional position error
-    ``dp = xi_p - [p]x xi_R`` and the offset error in columns ``block`` of the
-    invariant-coordinate covariance ``full_cov`` (B, E + 1, N, N); ``position_cov``
-    (B, E + 1, 3, 3) is the conventional position block."""
-    cross = full_cov[..., 0:3, block] - so3.hat(position) @ full_cov[..., 6:9, block]
+    """(B, E + 1, 9, 9) joint covariance of the conventional position error and the offset
+    error in columns ``block`` of the invariant-coordinate covariance ``full_cov``
+    (B, E + 1, N, N), whose origin is the estimate's position (``dp = xi_p`` there);
+    ``position_cov`` (B, E + 1, 3, 3) is the conventional position block."""
+    cross = full_cov[..., 0:3, block]
     frame = full_cov[..., block, block]
     return torch.cat((torch.cat((position_cov, cross), -1), torch.cat((cross.mT, frame), -1)), -2)
 
@@ -659,7 +681,6 @@ def run_eskf(
     dtype, device = seq.imu.t.dtype, seq.imu.t.device
     noise = noise or EskfNoise.from_config(cfg, dtype, device)
     seq, dropped_samples = sanitize_sequence(seq)
-    check_local_frame(seq)
     sched = build_schedule(seq, cfg)
     frames = (
         build_source_frames(seq, sched, cfg, frame_memory)
@@ -667,8 +688,9 @@ def run_eskf(
         else None
     )
     state, cov_conventional = initial if initial is not None else initial_state(seq, cfg)
-    _, to_inv0 = invariant_maps(state.position, state.velocity, state.rotation)
-    cov = to_inv0 @ cov_conventional @ to_inv0.mT  # kept in invariant coordinates
+    # kept in invariant coordinates about the estimate's own position (moved every epoch)
+    _, to_inv0 = invariant_maps(torch.zeros_like(state.position), state.velocity, state.rotation)
+    cov = to_inv0 @ cov_conventional @ to_inv0.mT
     pre = _preintegrate_chunked(sched, state.gyro_bias, state.accel_bias)
     q_loc = _local_process_noise(pre, noise)
     nav_transition = _invariant_nav_transition(pre.delta_t, cfg.gravity_mps2)
@@ -811,7 +833,7 @@ def run_eskf(
     slip = torch.ones(batch, dtype=dtype, device=device)
     last_wheel_t = sched.t_start.clone()
     guard = DivergenceGuard(
-        state, cov, cfg, active, segment, reopen, invariant_maps, gate_memory
+        state, cov, cfg, active, segment, reopen, _maps_at_estimate, gate_memory
     )  # also counts each block's gate rejections in a row (guard.streak)
     divergence_out = [torch.zeros(batch, dtype=torch.long, device=device)]
     out: dict[str, list[torch.Tensor]] = {
@@ -858,9 +880,12 @@ def run_eskf(
             # invariant-coordinate transition: the navigation block depends on dT only
             # (precomputed); the bias columns are T_j^-1 [R_i J_p; R_i J_v; J_t]
             jac = pre.bias_jacobian[:, e]
-            arms = torch.cat((so3.hat(position), so3.hat(velocity)), -2)  # (B, 6, 3)
-            arm_rot = arms @ rotation
-            right = torch.cat((arm_rot, rotation), -2)  # (B, 9, 3): [[p]x R; [v]x R; R]
+            # errors are taken about the estimate's own position, so the transition maps
+            # errors about p_i to errors about p_j: ``_move_origin`` by p_i - p_j folded in on
+            # the left, which cancels the position arm of T_j^-1 and leaves [p_i - p_j]x in
+            # the position rows' attitude columns
+            hat_velocity = so3.hat(velocity)
+            right = torch.cat((torch.zeros_like(rotation), hat_velocity @ rotation, rotation), -2)
             rotated = state.rotation @ torch.cat((jac[:, 0:3], jac[:, 3:6]), -1)
             transition = nav_transition[:, e].clone()
             transition[:, 0:9, 9:15] = right @ jac[:, 6:9]
@@ -869,6 +894,7 @@ def run_eskf(
             noise_map[:, 0:3, 0:3] = state.rotation
             noise_map[:, 3:6, 3:6] = state.rotation
             noise_map[:, :, 6:9] = right
+            transition[:, 0:3, 6:9] += so3.hat(state.position - position)
             q = q_loc[:, e].clone()
             q[:, 0:9, 0:9] = noise_map @ q_loc[:, e, 0:9, 0:9] @ noise_map.mT
             if not n_aug:
@@ -891,8 +917,9 @@ def run_eskf(
                 cov = full @ cov @ full.mT + q
             if calib is not None:
                 accel_world = (velocity - state.velocity) / pre.delta_t[:, e, None].clamp_min(1e-9)
-            to_conv = frame_base.clone()
-            to_conv[:, 0:9, 6:9] = torch.cat((-arms, rotation.mT), -2)
+            to_conv = frame_base.clone()  # about the new origin p_j: no position arm
+            to_conv[:, 3:6, 6:9] = -hat_velocity
+            to_conv[:, 6:9, 6:9] = rotation.mT
             state = NavState(position, velocity, rotation, state.gyro_bias, state.accel_bias)
             if frames is not None and any(reset_epochs[e]):
                 cov, frame_value = _reinitialise_frames(
@@ -1226,6 +1253,7 @@ def run_eskf(
             ikh = eye_state - gain @ h_m
             cov = ikh @ cov @ ikh.mT + gain @ (r_cov * rows_outer) @ gain.mT
             state = _inject_invariant(state, dx)
+            cov = _move_origin(cov, -dx[:, 0:3])  # origin back on the corrected position
             calib_before, frame_before = calib_value, frame_value
             if calib is not None:
                 calib_value = calib.inject(calib_value, dx[:, ERROR_STATE_DIM:frame_col])
@@ -1257,7 +1285,7 @@ def run_eskf(
     nav = slice(0, ERROR_STATE_DIM)
     # all B (E + 1) epochs at once, flattened to 3-D operands
     covariances = _conventional_covariance(
-        positions.flatten(0, 1),
+        torch.zeros_like(positions).flatten(0, 1),  # each covariance is about its estimate
         velocities.flatten(0, 1),
         rotations.flatten(0, 1),
         full_covariances[..., nav, nav].flatten(0, 1),
@@ -1338,7 +1366,7 @@ def run_eskf(
             block = slice(frame_col + FRAME_DIM * s, frame_col + FRAME_DIM * (s + 1))
             result.source_frame[key] = frame_out[:, :, s]
             result.source_frame_covariance[key] = _position_frame_covariance(
-                positions, covariances[..., 0:3, 0:3], full_covariances, block
+                covariances[..., 0:3, 0:3], full_covariances, block
             )
     result.gate_memory = guard.memory()
     if interrupt.caught:

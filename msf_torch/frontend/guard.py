@@ -13,12 +13,6 @@ Dropped samples get ``mask = False`` and zero values, so nothing of them reaches
 even through padding; their count per stream and sequence is reported
 (``EskfResult.dropped_samples``). Samples that pass are untouched, bit for bit.
 
-Positions must be in a local frame (:func:`check_local_frame`): a GNSS fix or absolute pose
-farther than :data:`MAX_POSITION_M` from the origin is an error. The filter's covariance
-holds ``[p]x`` terms (``geometry.invariant``), and far from the origin round-off grows with
-the cube of the distance: a 30-s simulated run moved 10 km away matches the original to
-3e-7 m, 100 km to 4e-4 m, 1000 km (UTM northings) only to 0.25 m and 0.02 rad.
-
 Divergence (:class:`DivergenceGuard`, one check after propagation and one after the update of
 every epoch, for all B sequences at once). A sequence diverges when
 
@@ -108,25 +102,6 @@ DIVERGENCE_CODES = {
 
 _PSD_JITTER = 1e-9  # relative diagonal load of the semi-definiteness test
 _NAN_OK = {"gnss": ("sigma",)}  # fields where a non-finite value means "use the default"
-MAX_POSITION_M = 1e5
-"""Largest distance of a GNSS fix or absolute pose from the world origin, m."""
-
-
-def check_local_frame(seq: Sequence) -> None:
-    """Raise ``ValueError`` when a usable GNSS fix or absolute pose lies farther than
-    :data:`MAX_POSITION_M` from the origin (UTM or ECEF coordinates instead of a local
-    frame); the message names the stream, the sequence, the sample and the distance."""
-    for key, stream in (("gnss", seq.gnss), ("pose", seq.poses)):
-        if stream is None:
-            continue
-        distance = torch.where(stream.mask, stream.position.norm(dim=-1), 0.0)
-        if bool((distance > MAX_POSITION_M).any()):
-            b, n = torch.nonzero(distance > MAX_POSITION_M)[0].tolist()
-            raise ValueError(
-                f"{key} position of sequence {seq.names[b]!r} at sample {n} is "
-                f"{float(distance[b, n]):.0f} m from the origin (limit {MAX_POSITION_M:.0f} m): "
-                "give positions in a local frame, e.g. subtract the first fix"
-            )
 
 
 def _usable(stream, nan_ok: tuple[str, ...]) -> torch.Tensor:

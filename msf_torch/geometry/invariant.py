@@ -15,7 +15,9 @@ correction turns the velocity and the attitude and shifts the position, but neve
 position about the world origin. (Rotating ``p_hat`` about the origin, ``Exp(xi_R) p_hat``,
 adds ``1/2 [xi_R]x^2 p_hat`` at second order: 14 m for a 0.1 rad heading correction 2.8 km
 from the origin, enough to make the filter diverge; the two retractions agree to first order,
-so the covariance algebra is the same.) In these coordinates the unobservable global yaw is a
+so the covariance algebra is the same.) The front end goes one step further and keeps its
+covariance about that moving origin, where the ``[p]x`` terms vanish (passing a zero
+position to :func:`invariant_maps`). In these coordinates the unobservable global yaw is a
 constant direction whatever the estimate (Barrau & Bonnabel, "The invariant extended Kalman
 filter as a stable observer", IEEE TAC 62(4), 2017).
 
