@@ -12,6 +12,7 @@ __all__ = ["EskfConfig", "load_config", "config_for_sequence", "packaged_config"
 
 import dataclasses
 import math
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -210,10 +211,7 @@ class EskfConfig:
             "divergence_nis_scale",
             "divergence_max_sigma_factor",
         ]
-        for key in positive:
-            value = getattr(self, key)
-            if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
-                raise ValueError(f"config key '{key}' must be a positive number, got {value!r}")
+        self._require_numbers(positive, positive=True)
         count = self.imu_interpolated_min_samples
         if not (isinstance(count, int) and not isinstance(count, bool) and count >= 0):
             raise ValueError(
@@ -221,12 +219,7 @@ class EskfConfig:
             )
         if self.nhc not in ("auto", "on", "off"):
             raise ValueError(f"config key 'nhc' must be auto, on or off, got {self.nhc!r}")
-        accel = self.pose_source_accel_sigma_mps2
-        if not (isinstance(accel, (int, float)) and math.isfinite(accel) and accel >= 0):
-            raise ValueError(
-                f"config key 'pose_source_accel_sigma_mps2' must be a non-negative number, "
-                f"got {accel!r}"
-            )
+        self._require_numbers(("pose_source_accel_sigma_mps2",), positive=False)
         names = self.pose_sources
         if names != "auto" and not (
             isinstance(names, list)
@@ -260,24 +253,34 @@ class EskfConfig:
             if len(value) != 3:
                 raise ValueError(f"config key '{key}' must have 3 entries, got {value!r}")
 
+    def _require_numbers(self, keys: Iterable[str], positive: bool) -> None:
+        """Raise ``ValueError`` naming the first of ``keys`` whose value is not a finite
+        number above 0 (``positive``) or at least 0."""
+        for key in keys:
+            value = getattr(self, key)
+            ok = isinstance(value, (int, float)) and math.isfinite(value)
+            if not (ok and (value > 0 if positive else value >= 0)):
+                kind = "positive" if positive else "non-negative"
+                raise ValueError(f"config key '{key}' must be a {kind} number, got {value!r}")
+
     def _validate_calibration(self) -> None:
         """Raise ``ValueError`` naming the first bad online-calibration key."""
-        for key in (
-            "calibration_wheel_radius_sigma",
-            "calibration_wheel_track_sigma_m",
-            "calibration_time_offset_sigma_s",
-        ):
-            value = getattr(self, key)
-            if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
-                raise ValueError(f"config key '{key}' must be a positive number, got {value!r}")
-        for key in (
-            "calibration_wheel_rw_density",
-            "calibration_wheel_track_rw_density",
-            "calibration_time_offset_rw_density",
-        ):
-            value = getattr(self, key)
-            if not (isinstance(value, (int, float)) and math.isfinite(value) and value >= 0):
-                raise ValueError(f"config key '{key}' must be a non-negative number, got {value!r}")
+        self._require_numbers(
+            (
+                "calibration_wheel_radius_sigma",
+                "calibration_wheel_track_sigma_m",
+                "calibration_time_offset_sigma_s",
+            ),
+            positive=True,
+        )
+        self._require_numbers(
+            (
+                "calibration_wheel_rw_density",
+                "calibration_wheel_track_rw_density",
+                "calibration_time_offset_rw_density",
+            ),
+            positive=False,
+        )
         ratio = self.calibration_wheel_radius_ratio
         if not (
             isinstance(ratio, list)
@@ -314,14 +317,20 @@ class EskfConfig:
 
     def _validate_extrinsic_calibration(self) -> None:
         """Raise ``ValueError`` naming the first bad lever-arm / rotation calibration key."""
-        for key in ("calibration_lever_arm_sigma_m", "calibration_rotation_sigma_rad"):
-            value = getattr(self, key)
-            if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
-                raise ValueError(f"config key '{key}' must be a positive number, got {value!r}")
-        for key in ("calibration_lever_arm_rw_density", "calibration_rotation_rw_density"):
-            value = getattr(self, key)
-            if not (isinstance(value, (int, float)) and math.isfinite(value) and value >= 0):
-                raise ValueError(f"config key '{key}' must be a non-negative number, got {value!r}")
+        self._require_numbers(
+            (
+                "calibration_lever_arm_sigma_m",
+                "calibration_rotation_sigma_rad",
+            ),
+            positive=True,
+        )
+        self._require_numbers(
+            (
+                "calibration_lever_arm_rw_density",
+                "calibration_rotation_rw_density",
+            ),
+            positive=False,
+        )
         ratio = self.calibration_observable_ratio
         if not (isinstance(ratio, (int, float)) and 0 < ratio < 1):
             raise ValueError(
@@ -367,13 +376,13 @@ class EskfConfig:
                 f"config key 'pose_source_fusion' must be velocity or drifting_frame, "
                 f"got {self.pose_source_fusion!r}"
             )
-        for key in (
-            "pose_source_drift_position_m_per_sqrt_m",
-            "pose_source_drift_rotation_rad_per_sqrt_m",
-        ):
-            value = getattr(self, key)
-            if not (isinstance(value, (int, float)) and math.isfinite(value) and value >= 0):
-                raise ValueError(f"config key '{key}' must be a non-negative number, got {value!r}")
+        self._require_numbers(
+            (
+                "pose_source_drift_position_m_per_sqrt_m",
+                "pose_source_drift_rotation_rad_per_sqrt_m",
+            ),
+            positive=False,
+        )
         drift = self.pose_source_drift
         if not isinstance(drift, dict) or not all(
             isinstance(k, str)
@@ -403,19 +412,22 @@ class EskfConfig:
             value = getattr(self, key)
             if not (isinstance(value, int) and not isinstance(value, bool) and value >= 1):
                 raise ValueError(f"config key '{key}' must be an integer >= 1, got {value!r}")
-        for key in (
-            "source_fault_speed_factor",
-            "source_fault_min_threshold_m",
-            "source_fault_z_enter",
-            "source_fault_rotation_lever_m",
-        ):
-            value = getattr(self, key)
-            if not (isinstance(value, (int, float)) and math.isfinite(value) and value >= 0):
-                raise ValueError(f"config key '{key}' must be a non-negative number, got {value!r}")
-        for key in ("source_fault_accel_sigma_mps2", "source_fault_angular_accel_sigma_radps2"):
-            value = getattr(self, key)
-            if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
-                raise ValueError(f"config key '{key}' must be a positive number, got {value!r}")
+        self._require_numbers(
+            (
+                "source_fault_speed_factor",
+                "source_fault_min_threshold_m",
+                "source_fault_z_enter",
+                "source_fault_rotation_lever_m",
+            ),
+            positive=False,
+        )
+        self._require_numbers(
+            (
+                "source_fault_accel_sigma_mps2",
+                "source_fault_angular_accel_sigma_radps2",
+            ),
+            positive=True,
+        )
         if not 0 < self.source_fault_z_exit <= self.source_fault_z_enter:
             raise ValueError(
                 "config keys 'source_fault_z_exit' and 'source_fault_z_enter' must satisfy "
@@ -444,15 +456,14 @@ class EskfConfig:
             raise ValueError("config key 'adaptive_clip_probability' must lie in (0, 1]")
         if not self.strong_tracking_max_factor >= 1.0:
             raise ValueError("config key 'strong_tracking_max_factor' must be >= 1")
-        for key in ("adaptive_noise_floor", "strong_tracking_softening"):
-            value = getattr(self, key)
-            if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
-                raise ValueError(f"config key '{key}' must be a positive number, got {value!r}")
-        prior = self.adaptive_prior_samples
-        if not (isinstance(prior, (int, float)) and math.isfinite(prior) and prior >= 0):
-            raise ValueError(
-                f"config key 'adaptive_prior_samples' must be a non-negative number, got {prior!r}"
-            )
+        self._require_numbers(
+            (
+                "adaptive_noise_floor",
+                "strong_tracking_softening",
+            ),
+            positive=True,
+        )
+        self._require_numbers(("adaptive_prior_samples",), positive=False)
 
 
 def load_config(path: str | Path | None = None, **overrides: Any) -> EskfConfig:

@@ -381,17 +381,17 @@ def _with_mean_rate_row(
 
 
 def _conventional_covariance(
-    position: torch.Tensor, velocity: torch.Tensor, rotation: torch.Tensor, cov: torch.Tensor
+    velocity: torch.Tensor, rotation: torch.Tensor, cov: torch.Tensor
 ) -> torch.Tensor:
     """Conventional covariance ``T P T^T`` (N, 15, 15) of invariant-coordinate covariances
-    ``cov`` (N, 15, 15) at estimates (N, 3) m, (N, 3) m/s, (N, 3, 3).
+    ``cov`` (N, 15, 15) about their estimates' own positions, at estimates (N, 3) m/s,
+    (N, 3, 3).
 
-    ``T`` (``geometry.invariant.invariant_maps``) differs from the identity only in its
-    attitude columns (``dp = xi_p - [p]x xi_R``, ``dv = xi_v - [v]x xi_R``,
-    ``dtheta = R^T xi_R``), so the product only mixes rows and columns 6:9 into 0:9. Those
-    products have inner dimension 3 and run as three broadcast multiply-adds over all N at
-    once (for many small matrices much faster than batched matrix products, which go matrix
-    by matrix).
+    ``T`` (``geometry.invariant.invariant_maps`` with a zero position arm) differs from the
+    identity only in its attitude columns (``dv = xi_v - [v]x xi_R``, ``dtheta = R^T xi_R``),
+    so the product only mixes rows and columns 6:9 into 3:9. Those products have inner
+    dimension 3 and run as three broadcast multiply-adds over all N at once (for many small
+    matrices much faster than batched matrix products, which go matrix by matrix).
     """
 
     def times(left: torch.Tensor, right: torch.Tensor) -> torch.Tensor:
@@ -400,13 +400,13 @@ def _conventional_covariance(
         out.addcmul_(left[:, :, 1, None], right[:, None, 1])
         return out.addcmul_(left[:, :, 2, None], right[:, None, 2])
 
-    arms = -torch.cat((so3.hat(position), so3.hat(velocity)), -2)  # (N, 6, 3)
+    arm = -so3.hat(velocity)  # (N, 3, 3)
     att_rows = cov[:, 6:9]  # (N, 3, 15)
     out = cov.clone()  # T P, then (T P) T^T, in place: one (N, 15, 15) buffer
-    out[:, 0:6] += times(arms, att_rows)
+    out[:, 3:6] += times(arm, att_rows)
     out[:, 6:9] = times(rotation.mT, att_rows)
     att_cols = out[..., 6:9].clone()  # (N, 15, 3)
-    out[..., 0:6] += times(att_cols, arms.mT)
+    out[..., 3:6] += times(att_cols, arm.mT)
     out[..., 6:9] = times(att_cols, rotation)
     return out
 
@@ -1285,7 +1285,6 @@ def run_eskf(
     nav = slice(0, ERROR_STATE_DIM)
     # all B (E + 1) epochs at once, flattened to 3-D operands
     covariances = _conventional_covariance(
-        torch.zeros_like(positions).flatten(0, 1),  # each covariance is about its estimate
         velocities.flatten(0, 1),
         rotations.flatten(0, 1),
         full_covariances[..., nav, nav].flatten(0, 1),

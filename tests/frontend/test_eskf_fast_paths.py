@@ -1,7 +1,8 @@
 """The front end's shortcuts against the plain computations they replace.
 
 * ``_conventional_covariance`` (structured ``T P T^T``) equals the dense product with the
-  map of ``invariant_maps`` on random estimates and covariances (1e-12), and its
+  map of ``invariant_maps`` (no position arm: the filter's covariances are about their
+  estimates' positions) on random estimates and covariances (1e-12), and its
   gradients pass ``gradcheck``.
 * ``sanitize_sequence``: the finite-sum shortcut still drops exactly the non-finite samples,
   keeps finite samples whose sums overflow (1e308 + 1e308 = inf) and returns the input
@@ -32,18 +33,18 @@ from msf_torch.types import batch_sequences
 def test_structured_covariance_map_equals_dense_product():
     gen = torch.Generator().manual_seed(5)
     n = 40
-    position = 100.0 * torch.randn(n, 3, generator=gen, dtype=torch.float64)
     velocity = 10.0 * torch.randn(n, 3, generator=gen, dtype=torch.float64)
     rotation = so3.exp(torch.randn(n, 3, generator=gen, dtype=torch.float64))
     root = torch.randn(n, 15, 15, generator=gen, dtype=torch.float64)
     cov = root @ root.mT
-    to_conv, _ = invariant_maps(position, velocity, rotation)
+    # the filter's covariances are about their estimates' positions: no position arm
+    to_conv, _ = invariant_maps(torch.zeros_like(velocity), velocity, rotation)
     dense = to_conv @ cov @ to_conv.mT
-    fast = _conventional_covariance(position, velocity, rotation, cov)
+    fast = _conventional_covariance(velocity, rotation, cov)
     scale = float(dense.abs().max())
     assert float((fast - dense).abs().max()) < 1e-12 * scale
     # in-place block updates keep it differentiable (gradients reach estimate and cov)
-    inputs = tuple(x[:2].clone().requires_grad_() for x in (position, velocity, rotation, cov))
+    inputs = tuple(x[:2].clone().requires_grad_() for x in (velocity, rotation, cov))
     assert torch.autograd.gradcheck(_conventional_covariance, inputs)
 
 
