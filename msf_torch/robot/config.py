@@ -3,7 +3,7 @@
 The file is validated when it is loaded; an error is a
 :class:`~msf_torch.io.errors.DataError` that names the file, the line and the key path
 (``robot.yaml:14: field 'sensors.gps.origin': ...``). ``msf config check FILE`` runs the
-same validation. The README lists every key with its default.
+same validation. ``docs/ros-and-robots.md`` lists every key with its default.
 
 Top-level keys
 --------------
