@@ -22,6 +22,7 @@ __all__ = [
 ]
 
 import dataclasses
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any, TypeVar
 
@@ -54,11 +55,13 @@ class _Stream:
         """The fields as a name -> tensor dict."""
         return {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
 
-    def map(self: StreamT, fn) -> StreamT:
-        """A copy with ``fn`` applied to every tensor field."""
+    def map(self: StreamT, fn: Callable[[torch.Tensor], torch.Tensor]) -> StreamT:
+        """A copy with ``fn`` applied to every tensor field (shapes as ``fn`` returns them)."""
         return type(self)(**{k: fn(v) for k, v in self.tensors().items()})
 
-    def to(self: StreamT, device=None, dtype: torch.dtype | None = None) -> StreamT:
+    def to(
+        self: StreamT, device: torch.device | str | None = None, dtype: torch.dtype | None = None
+    ) -> StreamT:
         """Move to a device; floating fields also to ``dtype`` when given."""
 
         def move(x: torch.Tensor) -> torch.Tensor:
@@ -264,7 +267,9 @@ class Sequence:
             if value.dim() != 3 or value.shape[0] != batch or value.shape[2] != 2:
                 raise ValueError(f"labels[{key!r}] must be (B, K, 2), got {tuple(value.shape)}")
 
-    def to(self, device=None, dtype: torch.dtype | None = None) -> Sequence:
+    def to(
+        self, device: torch.device | str | None = None, dtype: torch.dtype | None = None
+    ) -> Sequence:
         """Move every stream (pose sources and labels too) to ``device`` / ``dtype``."""
         moved = {k: s.to(device, dtype) for k, s in self.streams().items()}
         labels = {k: v.to(device=device) for k, v in self.labels.items()}
