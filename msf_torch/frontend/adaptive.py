@@ -313,6 +313,7 @@ class BlockAdaptation:
         batch: B.
         forgetting: b in (0, 1).
         prior_samples, noise_floor, softening, clip_probability, max_factor: see above.
+        dtype, device: of the adapted R blocks and tracking state.
     """
 
     def __init__(

@@ -203,7 +203,12 @@ class AttitudeEstimate:
 
 
 def merwe_weights(
-    n: int, alpha: float, beta: float, kappa: float, dtype=torch.float64, device=None
+    n: int,
+    alpha: float,
+    beta: float,
+    kappa: float,
+    dtype: torch.dtype = torch.float64,
+    device: torch.device | str | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor, float]:
     """Merwe scaled sigma-point weights.
 

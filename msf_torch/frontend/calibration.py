@@ -81,7 +81,11 @@ class CalibrationLayout:
 
     @classmethod
     def from_config(
-        cls, cfg: EskfConfig, sensors: tuple[str, ...], dtype=torch.float64, device=None
+        cls,
+        cfg: EskfConfig,
+        sensors: tuple[str, ...],
+        dtype: torch.dtype = torch.float64,
+        device: torch.device | str | None = None,
     ) -> CalibrationLayout | None:
         """Layout for the switches in ``cfg`` (None when all are off).
 

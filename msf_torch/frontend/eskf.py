@@ -170,8 +170,13 @@ class EskfNoise:
     pose_source_scale: dict[str, torch.Tensor] = field(default_factory=dict)
 
     @classmethod
-    def from_config(cls, cfg: EskfConfig, dtype=torch.float64, device=None) -> EskfNoise:
-        """Noise tensors (scalars) from a config."""
+    def from_config(
+        cls,
+        cfg: EskfConfig,
+        dtype: torch.dtype = torch.float64,
+        device: torch.device | str | None = None,
+    ) -> EskfNoise:
+        """Noise tensors (scalars, in the config's units) from a config."""
 
         def t(x: float) -> torch.Tensor:
             return torch.tensor(x, dtype=dtype, device=device)

@@ -218,7 +218,9 @@ class GateMemory:
     episode: torch.Tensor
 
 
-def reset_sigma_cap(cfg: EskfConfig, dtype=torch.float64, device=None) -> torch.Tensor:
+def reset_sigma_cap(
+    cfg: EskfConfig, dtype: torch.dtype = torch.float64, device: torch.device | str | None = None
+) -> torch.Tensor:
     """(15,) sigma that a reset's inflation may raise each error state to:
     ``divergence_max_sigma_factor`` times its configured initial sigma (position m, velocity
     m/s, attitude rad (the larger of the roll/pitch and yaw sigmas, every axis, at most pi),
