@@ -79,10 +79,15 @@ def _for_kind(jacobian: torch.Tensor, kind: VariableKind) -> torch.Tensor:
 class _Evaluated:
     """Factors whose residual and Jacobians come from one ``_evaluate(values, jacobians)``."""
 
-    def residual(self, values):
+    def residual(self, values: list[torch.Tensor]) -> torch.Tensor:
+        """Residuals (B, F, R) of this type (R in the class docstring), no Jacobians."""
         return self._evaluate(values, jacobians=False)[0]
 
-    def residual_and_jacobians(self, values, kinds):
+    def residual_and_jacobians(
+        self, values: list[torch.Tensor], kinds: list[VariableKind] | None
+    ) -> tuple[torch.Tensor, list[torch.Tensor]]:
+        """Residuals (B, F, R) and analytic Jacobians (B, F, R, D_slot) per slot (the slots'
+        kinds are ``self.kinds``; ``kinds`` is not read)."""
         return self._evaluate(values, jacobians=True)
 
 
@@ -105,18 +110,32 @@ class PosePriorFactor(_Unary):
         group, index: variables (F,) (``nav_state`` or ``pose``).
         position: (B|1, F, 3) m. rotation: (B|1, F, 3, 3).
         covariance: (B|1, F, 6, 6) m^2 / rad^2.
+        kernel: robust kernel (:mod:`msf_torch.backend.robust`), or None for plain least squares.
     """
 
     batched = ("position", "rotation")
 
-    def __init__(self, group, index, position, rotation, covariance, kernel=None) -> None:
+    def __init__(
+        self,
+        group: str,
+        index: torch.Tensor,
+        position: torch.Tensor,
+        rotation: torch.Tensor,
+        covariance: torch.Tensor,
+        kernel: RobustKernel | None = None,
+    ) -> None:
         super().__init__(group, index, covariance, kernel)
         self.position, self.rotation = position, rotation
 
-    def residual(self, values):
+    def residual(self, values: list[torch.Tensor]) -> torch.Tensor:
+        """Residuals (B, F, 6): position error m, rotation error rad."""
         return self.residual_and_jacobians(values, None)[0]
 
-    def residual_and_jacobians(self, values, kinds):
+    def residual_and_jacobians(
+        self, values: list[torch.Tensor], kinds: list[VariableKind] | None
+    ) -> tuple[torch.Tensor, list[torch.Tensor]]:
+        """Residuals (B, F, 6) and the Jacobian (B, F, 6, D) w.r.t. the variable's tangent
+        (D = 15 for ``nav_state``, 6 for ``pose``); ``kinds`` is not read (``self.kinds``)."""
         kind = self.kinds[0]
         position, rotation = pose_of(kind, values[0])
         r, jac = pose_residual(
@@ -133,18 +152,31 @@ class NavStatePriorFactor(_Unary):
         group, index: ``nav_state`` variables (F,).
         prior: (B|1, F, 21) nav-state values (:func:`msf_torch.backend.variables.pack_nav_state`).
         covariance: (B|1, F, 15, 15).
+        kernel: robust kernel (:mod:`msf_torch.backend.robust`), or None for plain least squares.
     """
 
     batched = ("prior",)
 
-    def __init__(self, group, index, prior, covariance, kernel=None) -> None:
+    def __init__(
+        self,
+        group: str,
+        index: torch.Tensor,
+        prior: torch.Tensor,
+        covariance: torch.Tensor,
+        kernel: RobustKernel | None = None,
+    ) -> None:
         super().__init__(group, index, covariance, kernel)
         self.prior = prior
 
-    def residual(self, values):
+    def residual(self, values: list[torch.Tensor]) -> torch.Tensor:
+        """Residuals (B, F, 15) in the error-state order (m, m/s, rad, rad/s, m/s^2)."""
         return nav_state_local(self.prior.expand_as(values[0]), values[0])
 
-    def residual_and_jacobians(self, values, kinds):
+    def residual_and_jacobians(
+        self, values: list[torch.Tensor], kinds: list[VariableKind] | None
+    ) -> tuple[torch.Tensor, list[torch.Tensor]]:
+        """Residuals (B, F, 15) and the Jacobian (B, F, 15, 15) w.r.t. the nav-state tangent;
+        ``kinds`` is not read."""
         prior = self.prior.expand_as(values[0])
         return nav_state_local(prior, values[0]), [nav_state_local_jacobian(prior, values[0])]
 
@@ -172,19 +204,33 @@ class GnssFactor(_Unary):
     Args:
         group, index: variables (F,). measured: (B|1, F, 3) m. lever_arm: (3,) or (B|1, F, 3)
         m in the body frame. covariance: (B|1, F, 3, 3) m^2.
+        kernel: robust kernel (:mod:`msf_torch.backend.robust`), or None for plain least squares.
     """
 
     batched = ("measured", "lever_arm")
 
-    def __init__(self, group, index, measured, covariance, lever_arm=None, kernel=None) -> None:
+    def __init__(
+        self,
+        group: str,
+        index: torch.Tensor,
+        measured: torch.Tensor,
+        covariance: torch.Tensor,
+        lever_arm: torch.Tensor | None = None,
+        kernel: RobustKernel | None = None,
+    ) -> None:
         super().__init__(group, index, covariance, kernel)
         self.measured = measured
         self.lever_arm = _lever_arm_or_zero(lever_arm, measured)
 
-    def residual(self, values):
+    def residual(self, values: list[torch.Tensor]) -> torch.Tensor:
+        """Residuals (B, F, 3), m."""
         return self.residual_and_jacobians(values, None)[0]
 
-    def residual_and_jacobians(self, values, kinds):
+    def residual_and_jacobians(
+        self, values: list[torch.Tensor], kinds: list[VariableKind] | None
+    ) -> tuple[torch.Tensor, list[torch.Tensor]]:
+        """Residuals (B, F, 3) m and the Jacobian (B, F, 3, D) w.r.t. the variable's tangent
+        (D = 15 or 6); ``kinds`` is not read (``self.kinds``)."""
         kind = self.kinds[0]
         position, rotation = pose_of(kind, values[0])
         arm = self.lever_arm.expand_as(position)
@@ -193,14 +239,24 @@ class GnssFactor(_Unary):
 
 
 class ZeroVelocityFactor(_Unary):
-    """Zero velocity ``r = v`` (3,) on ``nav_state`` variables; covariance (B|1, F, 3, 3)."""
+    """Zero velocity ``r = v`` (3,) on ``nav_state`` variables.
+
+    Args:
+        group, index: ``nav_state`` variables (F,). covariance: (B|1, F, 3, 3) (m/s)^2.
+        kernel: robust kernel (:mod:`msf_torch.backend.robust`), or None for plain least squares.
+    """
 
     batched = ()
 
-    def residual(self, values):
+    def residual(self, values: list[torch.Tensor]) -> torch.Tensor:
+        """Residuals (B, F, 3), m/s."""
         return self.residual_and_jacobians(values, None)[0]
 
-    def residual_and_jacobians(self, values, kinds):
+    def residual_and_jacobians(
+        self, values: list[torch.Tensor], kinds: list[VariableKind] | None
+    ) -> tuple[torch.Tensor, list[torch.Tensor]]:
+        """Residuals (B, F, 3) m/s and the Jacobian (B, F, 3, 15) w.r.t. the nav-state tangent;
+        ``kinds`` is not read."""
         _, velocity, _, _, _ = unpack_nav_state(values[0])
         r, jac = zero_velocity_residual(velocity)
         return r, [jac]
@@ -214,19 +270,33 @@ class NonholonomicFactor(_Unary):
     Args:
         group, index: ``nav_state`` variables (F,). gyro: (B|1, F, 3) raw gyro rate at each
         state's time, rad/s. covariance: (B|1, F, 2, 2) (m/s)^2. lever_arm: (3,) m, body.
+        kernel: robust kernel (:mod:`msf_torch.backend.robust`), or None for plain least squares.
     """
 
     batched = ("gyro", "lever_arm")
 
-    def __init__(self, group, index, gyro, covariance, lever_arm=None, kernel=None) -> None:
+    def __init__(
+        self,
+        group: str,
+        index: torch.Tensor,
+        gyro: torch.Tensor,
+        covariance: torch.Tensor,
+        lever_arm: torch.Tensor | None = None,
+        kernel: RobustKernel | None = None,
+    ) -> None:
         super().__init__(group, index, covariance, kernel)
         self.gyro = gyro
         self.lever_arm = _lever_arm_or_zero(lever_arm, gyro)
 
-    def residual(self, values):
+    def residual(self, values: list[torch.Tensor]) -> torch.Tensor:
+        """Residuals (B, F, 2), m/s."""
         return self.residual_and_jacobians(values, None)[0]
 
-    def residual_and_jacobians(self, values, kinds):
+    def residual_and_jacobians(
+        self, values: list[torch.Tensor], kinds: list[VariableKind] | None
+    ) -> tuple[torch.Tensor, list[torch.Tensor]]:
+        """Residuals (B, F, 2) m/s and the Jacobian (B, F, 2, 15) w.r.t. the nav-state tangent;
+        ``kinds`` is not read."""
         _, velocity, rotation, gyro_bias, _ = unpack_nav_state(values[0])
         r, jac = nonholonomic_residual(
             velocity,
@@ -239,8 +309,17 @@ class NonholonomicFactor(_Unary):
 
 
 class _Binary(Factor):
-    def __init__(self, group, index_i, index_j, covariance, kernel, group_j=None) -> None:
-        self.slots = ((group, index_i.long()), (group_j or group, index_j.long()))
+    """Factor between two variables i and j of one group per factor."""
+
+    def __init__(
+        self,
+        group: str,
+        index_i: torch.Tensor,
+        index_j: torch.Tensor,
+        covariance: torch.Tensor,
+        kernel: RobustKernel | None,
+    ) -> None:
+        self.slots = ((group, index_i.long()), (group, index_j.long()))
         self.sqrt_information = sqrt_information(covariance)
         self.kernel = kernel
 
@@ -253,12 +332,20 @@ class BetweenFactor(_Evaluated, _Binary):
     Args:
         group, index_i, index_j: variables (F,). rotation: (B|1, F, 3, 3), translation:
         (B|1, F, 3) m, the measured ``T_i^-1 T_j``. covariance: (B|1, F, 6, 6) in [rho, phi].
+        kernel: robust kernel (:mod:`msf_torch.backend.robust`), or None for plain least squares.
     """
 
     batched = ("rotation", "translation")
 
     def __init__(
-        self, group, index_i, index_j, rotation, translation, covariance, kernel=None
+        self,
+        group: str,
+        index_i: torch.Tensor,
+        index_j: torch.Tensor,
+        rotation: torch.Tensor,
+        translation: torch.Tensor,
+        covariance: torch.Tensor,
+        kernel: RobustKernel | None = None,
     ) -> None:
         super().__init__(group, index_i, index_j, covariance, kernel)
         self.rotation, self.translation = rotation, translation
@@ -283,12 +370,15 @@ class PlaneFactor(_Binary):
     :func:`msf_torch.sensors.plane.plane_residual` (no relative roll, pitch or height change
     in the ground plane of pose i).
 
-    Args: group, index_i, index_j (F,); covariance (B|1, F, 3, 3) rad^2, rad^2, m^2.
+    Args: group, index_i, index_j (F,); covariance (B|1, F, 3, 3) rad^2, rad^2, m^2;
+    kernel: robust kernel (:mod:`msf_torch.backend.robust`), or None for plain least squares.
     """
 
     batched = ()
 
-    def residual(self, values):
+    def residual(self, values: list[torch.Tensor]) -> torch.Tensor:
+        """Residuals (B, F, 3): x and y of ``Log(R_i^T R_j)``, rad; height of ``p_j`` in pose
+        i's frame, m."""
         kind = self.kinds[0]
         return plane_residual(*pose_of(kind, values[0]), *pose_of(kind, values[1]))
 
@@ -303,27 +393,33 @@ class ImuPreintegrationFactor(_Binary):
         preintegrated: :class:`~msf_torch.sensors.imu.Preintegrated` with leading (B|1, F).
         covariance: (B|1, F, 15, 15) (see :func:`msf_torch.backend.preintegration.imu_covariance`).
         gravity: (3,) m/s^2 world.
+        kernel: robust kernel (:mod:`msf_torch.backend.robust`), or None for plain least squares.
     """
 
     batched = ("preintegrated",)
 
     def __init__(
         self,
-        group,
-        index_i,
-        index_j,
+        group: str,
+        index_i: torch.Tensor,
+        index_j: torch.Tensor,
         preintegrated: Preintegrated,
-        covariance,
-        gravity,
-        kernel=None,
+        covariance: torch.Tensor,
+        gravity: torch.Tensor,
+        kernel: RobustKernel | None = None,
     ) -> None:
         super().__init__(group, index_i, index_j, covariance, kernel)
         self.preintegrated, self.gravity = preintegrated, gravity
 
-    def residual(self, values):
+    def residual(self, values: list[torch.Tensor]) -> torch.Tensor:
+        """Residuals (B, F, 15): [r_p m, r_v m/s, r_theta rad, r_bg rad/s, r_ba m/s^2]."""
         return self.residual_and_jacobians(values, None)[0]
 
-    def residual_and_jacobians(self, values, kinds):
+    def residual_and_jacobians(
+        self, values: list[torch.Tensor], kinds: list[VariableKind] | None
+    ) -> tuple[torch.Tensor, list[torch.Tensor]]:
+        """Residuals (B, F, 15) and the Jacobians (B, F, 15, 15) w.r.t. the nav-state tangents
+        of states i and j; ``kinds`` is not read."""
         r, jac_i, jac_j = preintegration_residual(
             values[0], values[1], self.preintegrated, self.gravity
         )
@@ -354,19 +450,20 @@ class GtsamImuFactor(_Evaluated, _Binary):
         covariance: (B|1, F, 15, 15): ``imu_covariance(preintegrated, noise)`` gives
             GTSAM's ``residualCovariance`` and the random walk ``sigma_bw^2 dT``.
         gravity: (3,) m/s^2 world (``[0, 0, -g]`` for GTSAM's ``MakeSharedU(g)``).
+        kernel: robust kernel (:mod:`msf_torch.backend.robust`), or None for plain least squares.
     """
 
     batched = ("preintegrated",)
 
     def __init__(
         self,
-        group,
-        index_i,
-        index_j,
+        group: str,
+        index_i: torch.Tensor,
+        index_j: torch.Tensor,
         preintegrated: TangentPreintegrated,
-        covariance,
-        gravity,
-        kernel=None,
+        covariance: torch.Tensor,
+        gravity: torch.Tensor,
+        kernel: RobustKernel | None = None,
     ) -> None:
         super().__init__(group, index_i, index_j, covariance, kernel)
         self.preintegrated, self.gravity = preintegrated, gravity
@@ -488,7 +585,9 @@ class GtsamImuFactor(_Evaluated, _Binary):
             )
         return sqrt_info[..., 0:9, 0:9] if self._split else None
 
-    def normal_blocks(self, values, kinds, pairs):
+    def normal_blocks(
+        self, values: list[torch.Tensor], kinds: list[VariableKind], pairs: list[tuple[int, int]]
+    ) -> tuple[torch.Tensor, list[torch.Tensor], list[list[tuple[slice, slice, torch.Tensor]]]]:
         """Gauss-Newton share from the compact Jacobian rows when the whitening is
         block-diagonal (see :meth:`Factor.normal_blocks`); else the generic form."""
         white_nav = self._split_whitening()
@@ -529,25 +628,38 @@ class WheelOdometryFactor(_Binary):
     :func:`msf_torch.backend.preintegration.preintegrate_wheel`).
 
     Args: group, index_i, index_j (F,); increment (B|1, F, 3) m, m, rad; covariance
-    (B|1, F, 3, 3); lever_arm (3,) axle centre in the body frame, m.
+    (B|1, F, 3, 3); lever_arm (3,) axle centre in the body frame, m; kernel: robust kernel
+    (:mod:`msf_torch.backend.robust`), or None for plain least squares.
     """
 
     batched = ("increment", "lever_arm")
 
     def __init__(
-        self, group, index_i, index_j, increment, covariance, lever_arm=None, kernel=None
+        self,
+        group: str,
+        index_i: torch.Tensor,
+        index_j: torch.Tensor,
+        increment: torch.Tensor,
+        covariance: torch.Tensor,
+        lever_arm: torch.Tensor | None = None,
+        kernel: RobustKernel | None = None,
     ) -> None:
         super().__init__(group, index_i, index_j, covariance, kernel)
         self.increment = increment
         self.lever_arm = _lever_arm_or_zero(lever_arm, increment)
 
-    def residual(self, values):
+    def residual(self, values: list[torch.Tensor]) -> torch.Tensor:
+        """Residuals (B, F, 3): [x m, y m, yaw rad]."""
         kind = self.kinds[0]
         return wheel_increment_residual(
             *pose_of(kind, values[0]), *pose_of(kind, values[1]), self.increment, self.lever_arm
         )[0]
 
-    def residual_and_jacobians(self, values, kinds):
+    def residual_and_jacobians(
+        self, values: list[torch.Tensor], kinds: list[VariableKind] | None
+    ) -> tuple[torch.Tensor, list[torch.Tensor]]:
+        """Residuals (B, F, 3) and the Jacobians (B, F, 3, D) w.r.t. the tangents of poses i
+        and j (D = 15 or 6; by autodiff for ``se3`` variables)."""
         kind = self.kinds[0]
         if kind.name == "se3":
             return super().residual_and_jacobians(values, kinds)
@@ -580,23 +692,24 @@ class CalibratedWheelOdometryFactor(Factor):
         left, right: (B|1, F, L) nominal-radius rim speeds, m/s. dt: (B|1, F, L) s (0 =
         padding). covariance: (B|1, F, 3, 3) of the plain increment. nominal_track: D_0, m.
         lever_arm: (3,) axle centre, body frame, m.
+        kernel: robust kernel (:mod:`msf_torch.backend.robust`), or None for plain least squares.
     """
 
     batched = ("left", "right", "dt", "lever_arm")
 
     def __init__(
         self,
-        group,
-        index_i,
-        index_j,
-        calibration_group,
-        left,
-        right,
-        dt,
-        covariance,
-        nominal_track,
-        lever_arm=None,
-        kernel=None,
+        group: str,
+        index_i: torch.Tensor,
+        index_j: torch.Tensor,
+        calibration_group: str,
+        left: torch.Tensor,
+        right: torch.Tensor,
+        dt: torch.Tensor,
+        covariance: torch.Tensor,
+        nominal_track: float,
+        lever_arm: torch.Tensor | None = None,
+        kernel: RobustKernel | None = None,
     ) -> None:
         index_i = index_i.long()
         self.slots = (
@@ -638,10 +751,15 @@ class CalibratedWheelOdometryFactor(Factor):
         jac_i, jac_j = (_widen(jac, kind) * scale[..., None] for jac in (jac_i, jac_j))
         return residual, [jac_i, jac_j, jac_c]
 
-    def residual(self, values):
+    def residual(self, values: list[torch.Tensor]) -> torch.Tensor:
+        """Residuals (B, F, 3): [x m, y m, D times yaw, m rad]."""
         return self._evaluate(values, jacobians=False)[0]
 
-    def residual_and_jacobians(self, values, kinds):
+    def residual_and_jacobians(
+        self, values: list[torch.Tensor], kinds: list[VariableKind] | None
+    ) -> tuple[torch.Tensor, list[torch.Tensor]]:
+        """Residuals (B, F, 3) and the Jacobians w.r.t. poses i and j (B, F, 3, D) and the
+        calibration ``[k_l, k_r, D]`` (B, F, 3, 3); ``kinds`` is not read (``self.kinds``)."""
         return self._evaluate(values, jacobians=True)
 
 
@@ -651,18 +769,30 @@ class VectorPriorFactor(_Unary):
 
     Args:
         group, index: variables (F,). mean: (B|1, F, D). covariance: (B|1, F, D, D).
+        kernel: robust kernel (:mod:`msf_torch.backend.robust`), or None for plain least squares.
     """
 
     batched = ("mean",)
 
-    def __init__(self, group, index, mean, covariance, kernel=None) -> None:
+    def __init__(
+        self,
+        group: str,
+        index: torch.Tensor,
+        mean: torch.Tensor,
+        covariance: torch.Tensor,
+        kernel: RobustKernel | None = None,
+    ) -> None:
         super().__init__(group, index, covariance, kernel)
         self.mean = mean
 
-    def residual(self, values):
+    def residual(self, values: list[torch.Tensor]) -> torch.Tensor:
+        """Residuals (B, F, D), in the variable's units."""
         return values[0] - self.mean
 
-    def residual_and_jacobians(self, values, kinds):
+    def residual_and_jacobians(
+        self, values: list[torch.Tensor], kinds: list[VariableKind] | None
+    ) -> tuple[torch.Tensor, list[torch.Tensor]]:
+        """Residuals (B, F, D) and the identity Jacobian (B, F, D, D); ``kinds`` is not read."""
         residual = values[0] - self.mean
         eye = torch.eye(residual.shape[-1], dtype=residual.dtype, device=residual.device)
         return residual, [eye.expand(*residual.shape, residual.shape[-1])]
@@ -677,21 +807,23 @@ class ReprojectionFactor(_Evaluated, Factor):
         pose_group, pose_index: camera-carrying variables (F,) (``nav_state`` or ``pose``).
         point_group, point_index: ``point`` variables (F,).
         measured: (B|1, F, 2). covariance: (B|1, F, 2, 2) (normalized units or px^2).
-        body_rotation_cam (3, 3), body_translation_cam (3,): extrinsics.
+        body_rotation_cam (3, 3), body_translation_cam (3,): extrinsics (camera in the body
+        frame, m). intrinsics: ``(fx, fy, cx, cy)`` px, or None for normalized coordinates.
+        kernel: robust kernel (:mod:`msf_torch.backend.robust`), or None for plain least squares.
     """
 
     def __init__(
         self,
-        pose_group,
-        pose_index,
-        point_group,
-        point_index,
-        measured,
-        covariance,
-        body_rotation_cam,
-        body_translation_cam,
-        intrinsics=None,
-        kernel=None,
+        pose_group: str,
+        pose_index: torch.Tensor,
+        point_group: str,
+        point_index: torch.Tensor,
+        measured: torch.Tensor,
+        covariance: torch.Tensor,
+        body_rotation_cam: torch.Tensor,
+        body_translation_cam: torch.Tensor,
+        intrinsics: tuple[float, float, float, float] | None = None,
+        kernel: RobustKernel | None = None,
     ) -> None:
         self.slots = ((pose_group, pose_index.long()), (point_group, point_index.long()))
         self.sqrt_information = sqrt_information(covariance)
@@ -731,7 +863,13 @@ class MarginalPriorFactor(Factor):
         sqrt_hessian: ``S`` (B, 1, R, R). offset: ``e`` (B, 1, R).
     """
 
-    def __init__(self, slots, origin, sqrt_hessian, offset) -> None:
+    def __init__(
+        self,
+        slots: tuple[tuple[str, torch.Tensor], ...],
+        origin: list[torch.Tensor],
+        sqrt_hessian: torch.Tensor,
+        offset: torch.Tensor,
+    ) -> None:
         self.slots = tuple((g, i.long()) for g, i in slots)
         self.origin = origin
         dim = sqrt_hessian.shape[-1]
@@ -739,14 +877,18 @@ class MarginalPriorFactor(Factor):
         self.sqrt_hessian, self.offset = sqrt_hessian, offset
         self.kernel = None
 
-    def residual(self, values):
+    def residual(self, values: list[torch.Tensor]) -> torch.Tensor:
+        """Residuals (B, 1, R), already whitened (the factor's ``sqrt_information`` is I)."""
         local = torch.cat(
             [nav_state_local(o.expand_as(v), v) for o, v in zip(self.origin, values, strict=True)],
             -1,
         )
         return (self.sqrt_hessian @ local[..., None]).squeeze(-1) + self.offset
 
-    def residual_and_jacobians(self, values, kinds):
+    def residual_and_jacobians(
+        self, values: list[torch.Tensor], kinds: list[VariableKind] | None
+    ) -> tuple[torch.Tensor, list[torch.Tensor]]:
+        """Residuals (B, 1, R) and the Jacobians (B, 1, R, 15) per slot; ``kinds`` is not read."""
         origins = [o.expand_as(v) for o, v in zip(self.origin, values, strict=True)]
         local = torch.cat([nav_state_local(o, v) for o, v in zip(origins, values, strict=True)], -1)
         residual = (self.sqrt_hessian @ local[..., None]).squeeze(-1) + self.offset
