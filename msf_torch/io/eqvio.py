@@ -227,7 +227,9 @@ class EqvioRun:
         t = self.imu.t[0]
         return float(t[-1] - t[0]) if t.numel() else 0.0
 
-    def to(self, device=None, dtype: torch.dtype | None = None) -> EqvioRun:
+    def to(
+        self, device: torch.device | str | None = None, dtype: torch.dtype | None = None
+    ) -> EqvioRun:
         """A copy on ``device``; floating tensors also cast to ``dtype`` when given."""
 
         def move(x: Any) -> Any:

@@ -204,7 +204,9 @@ class PoseGraph:
         """(E, 2) int64 file ids ``[id_i, id_j]`` of every edge."""
         return self.vertex_ids[self.edge_index]
 
-    def to(self, device=None, dtype: torch.dtype | None = None) -> PoseGraph:
+    def to(
+        self, device: torch.device | str | None = None, dtype: torch.dtype | None = None
+    ) -> PoseGraph:
         """A copy on ``device``; floating tensors cast to ``dtype`` when given."""
 
         def move(x: torch.Tensor) -> torch.Tensor:
