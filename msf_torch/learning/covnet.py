@@ -206,6 +206,10 @@ class CovNet(nn.Module):
 
     See the module docstring for the inputs, the architecture and the outputs. Works in the
     dtype and on the device of its parameters (float32 by default).
+
+    Args:
+        config: sizes, pose sources and weather classes (:class:`CovNetConfig`; its defaults
+            when None). Validated here.
     """
 
     def __init__(self, config: CovNetConfig | None = None) -> None:

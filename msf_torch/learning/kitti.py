@@ -475,8 +475,10 @@ class KittiCovNetModule(CovNetModule):
 
     Args:
         drift_weight: weight of ``drift_l1`` (1/percent).
-        others: as :class:`CovNetModule` (``orientation_weight`` should be 0: the reference
-            has no orientation).
+        covnet, eskf_config, chunk_windows, noise_granularity, use_weather_labels,
+        position_weight, orientation_weight, nll_weight, weather_weight, lr, weight_decay,
+        max_figures: as :class:`CovNetModule` (``orientation_weight`` should be 0: the
+            reference has no orientation).
     """
 
     def __init__(

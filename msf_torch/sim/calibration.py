@@ -42,6 +42,7 @@ __all__ = [
 
 import dataclasses
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import torch
@@ -116,9 +117,10 @@ class CalibrationRun:
     run: SimulatedRun
 
 
-def calibration_sim_config(duration_s: float = 180.0, **overrides) -> SimConfig:
+def calibration_sim_config(duration_s: float = 180.0, **overrides: Any) -> SimConfig:
     """The benchmark's vehicle: a fast field robot (4 m/s mean, 0.6 m track, 0.2 m wheels)
-    with RTK-grade GNSS at 5 Hz (0.05 m / 0.1 m) and two 30-s GNSS outages, no slip."""
+    with RTK-grade GNSS at 5 Hz (0.05 m / 0.1 m) and two 30-s GNSS outages, no slip;
+    ``overrides`` replace any :class:`SimConfig` field (its units)."""
     settings = {
         "duration_s": duration_s,
         "mean_speed_mps": 4.0,
