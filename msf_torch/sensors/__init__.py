@@ -4,7 +4,6 @@ noise. The ESKF front end and the LM back end both call these."""
 from msf_torch.sensors.camera import reprojection_residual
 from msf_torch.sensors.gnss import gnss_residual
 from msf_torch.sensors.imu import ImuNoise, Preintegrated, preintegrate, propagate_nominal, zoh_step
-from msf_torch.sensors.noise import GaussianNoise
 from msf_torch.sensors.plane import plane_residual
 from msf_torch.sensors.pose import mean_rate_residual, pose_residual, relative_pose_residual
 from msf_torch.sensors.vehicle import nonholonomic_residual, zero_velocity_residual
@@ -16,7 +15,6 @@ from msf_torch.sensors.wheel import (
 )
 
 __all__ = [
-    "GaussianNoise",
     "ImuNoise",
     "Preintegrated",
     "body_velocity_residual",
