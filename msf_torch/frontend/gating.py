@@ -79,7 +79,6 @@ from __future__ import annotations
 
 __all__ = [
     "chi2_threshold",
-    "normalized_innovation",
     "two_tailed_p_value",
     "z_threshold",
     "MerweSigmaPoints",
@@ -110,13 +109,6 @@ def chi2_threshold(dof: int, probability: float) -> float:
     if probability >= 1.0:
         return math.inf
     return float(chi2.ppf(probability, dof))
-
-
-def normalized_innovation(residual: torch.Tensor, innovation_cov: torch.Tensor) -> torch.Tensor:
-    """``r^T S^-1 r`` (...,) for residual (..., m) and covariance (..., m, m)."""
-    chol = torch.linalg.cholesky(innovation_cov)
-    white = torch.linalg.solve_triangular(chol, residual[..., None], upper=False)
-    return (white * white).sum((-2, -1))
 
 
 def two_tailed_p_value(z: torch.Tensor) -> torch.Tensor:

@@ -35,8 +35,7 @@ class KeyframeConfig:
     """Thresholds of :func:`select_keyframes` (``math.inf`` switches one off).
 
     The defaults suit a small wheeled robot (about 1.5 m/s): a keyframe at least every
-    second, every metre or every 0.2 rad (11 degrees) of turn. :meth:`car` suits road
-    vehicles (10 m instead of 1 m).
+    second, every metre or every 0.2 rad (11 degrees) of turn.
 
     Attributes:
         max_interval_s: the longest time between keyframes, s.
@@ -47,11 +46,6 @@ class KeyframeConfig:
     max_interval_s: float = 1.0
     max_distance_m: float = 1.0
     max_rotation_rad: float = 0.2
-
-    @classmethod
-    def car(cls) -> KeyframeConfig:
-        """Road-vehicle thresholds: 1 s, 10 m, 0.2 rad."""
-        return cls(max_interval_s=1.0, max_distance_m=10.0, max_rotation_rad=0.2)
 
     def validate(self) -> None:
         """Raise ``ValueError`` naming the first threshold that is not a positive number."""
