@@ -28,7 +28,7 @@ _OUTAGE_COLOR = "tab:red"
 _DPI = 120
 
 
-def _as_numpy(x: Any, name: str) -> np.ndarray:
+def _as_numpy(x: Any) -> np.ndarray:
     """1-D float64 numpy copy of a tensor or array-like."""
     if isinstance(x, torch.Tensor):
         x = x.detach().cpu().to(torch.float64).numpy()
@@ -111,7 +111,7 @@ def overview_figure(
             continue
         if times is None:
             raise ValueError(f"{name} is given without {name}_t")
-        tt, vv = _as_numpy(times, f"{name}_t"), _as_numpy(values, name)
+        tt, vv = _as_numpy(times), _as_numpy(values)
         if tt.shape != vv.shape:
             raise ValueError(f"{name}_t has {tt.size} samples but {name} has {vv.size}")
         pairs[name] = (tt - t_origin, vv)

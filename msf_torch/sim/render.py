@@ -284,11 +284,6 @@ class Scene:
     material_cell_m: float
     config: SceneConfig
 
-    @property
-    def num_faces(self) -> int:
-        """P."""
-        return int(self.face_origin.shape[0])
-
 
 def mip_pyramid(texture: np.ndarray, levels: int) -> list[np.ndarray]:
     """Mip levels of a uint8 texture (n, n): level 0 and up to ``levels - 1`` 2x2-box

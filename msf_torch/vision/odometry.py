@@ -579,7 +579,7 @@ class StereoVisualOdometry:
             scale = np.sqrt(np.repeat([cfg.covariance_scale, cfg.rotation_covariance_scale], 3))
             covariance = scale[:, None] * covariance * scale[None, :]
         if status == "essential":
-            covariance = self._essential_covariance(position, covariance)
+            covariance = self._essential_covariance(position)
         if keyframe:
             self._store_keyframe(index, t, left, position, rotation)
         self._poses.append((rvec.copy(), tvec.copy()))
@@ -632,7 +632,7 @@ class StereoVisualOdometry:
         rvec, _ = cv2.Rodrigues(rot)
         return "essential", rvec.reshape(3), tvec, np.zeros((6, 6)), int(inlier.sum())
 
-    def _essential_covariance(self, position: np.ndarray, covariance: np.ndarray) -> np.ndarray:
+    def _essential_covariance(self, position: np.ndarray) -> np.ndarray:
         cfg = self.config
         previous = self.frames[-1].position if self.frames else position
         step = float(np.linalg.norm(position - previous))

@@ -52,7 +52,7 @@ def image_quality(image: np.ndarray, patch: int = 15) -> np.ndarray:
     values = image.astype(np.float32)
     mean, std = cv2.meanStdDev(values)
     laplacian = cv2.Laplacian(values, cv2.CV_32F, ksize=1)[1:-1, 1:-1]
-    lap_mean, lap_std = cv2.meanStdDev(laplacian)
+    _, lap_std = cv2.meanStdDev(laplacian)
     dark = cv2.erode(
         image, np.ones((patch, patch), np.uint8), borderType=cv2.BORDER_REPLICATE
     ).reshape(-1)
