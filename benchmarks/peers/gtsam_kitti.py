@@ -70,10 +70,7 @@ into their future) and are flagged ``causal=False`` in the result.
 
 from __future__ import annotations
 
-import importlib.resources
-import importlib.util
 import time
-from pathlib import Path
 from typing import Any
 
 import gtsam
@@ -94,64 +91,6 @@ INIT_VELOCITY_SIGMA = 1000.0
 
 INIT_BIAS_SIGMAS = (0.1, 5.0e-5)
 """Sigmas of the initial accelerometer / gyroscope bias prior."""
-
-IMU_FILE = "KittiEquivBiasedImu.txt"
-META_FILE = "KittiEquivBiasedImu_metadata.txt"
-GPS_FILE = "KittiGps_converted.txt"
-
-
-def gtsam_data_dir() -> Path:
-    """Return the ``Data`` directory shipped inside the installed ``gtsam`` package."""
-    try:
-        path = Path(str(importlib.resources.files("gtsam") / "Data"))
-        if path.is_dir():
-            return path
-    except (ModuleNotFoundError, TypeError):
-        pass
-    spec = importlib.util.find_spec("gtsam")
-    if spec is not None and spec.submodule_search_locations:
-        for loc in spec.submodule_search_locations:
-            path = Path(loc) / "Data"
-            if path.is_dir():
-                return path
-    return Path(gtsam.findExampleDataFile(IMU_FILE)).parent
-
-
-def read_kitti_files(data_dir: str | Path | None = None) -> dict[str, Any]:
-    """Load the KITTI IMU/GPS example files into numpy arrays.
-
-    Args:
-        data_dir: directory holding the three files; defaults to ``gtsam``'s ``Data``.
-
-    Returns:
-        ``{"imu_t": (N,), "imu_acc": (N, 3), "imu_gyro": (N, 3), "gps_t": (M,),
-        "gps_xyz": (M, 3), "meta": dict}`` where ``meta`` has ``accel_noise_sigma``,
-        ``gyro_noise_sigma``, ``integration_sigma``, ``accel_bias_rw_sigma``,
-        ``gyro_bias_rw_sigma``, ``body_p_sensor`` (``[tx, ty, tz, rx, ry, rz]``) and
-        ``average_delta_t``.
-    """
-    root = Path(data_dir) if data_dir is not None else gtsam_data_dir()
-    imu = np.loadtxt(root / IMU_FILE, skiprows=1, ndmin=2)
-    gps = np.loadtxt(root / GPS_FILE, skiprows=1, delimiter=",", ndmin=2)
-    lines = (root / META_FILE).read_text(encoding="utf-8").split("\n")
-    values = [float(v) for v in lines[1].split()]
-    meta = {
-        "body_p_sensor": values[0:6],
-        "accel_noise_sigma": values[6],
-        "gyro_noise_sigma": values[7],
-        "integration_sigma": values[8],
-        "accel_bias_rw_sigma": values[9],
-        "gyro_bias_rw_sigma": values[10],
-        "average_delta_t": values[11],
-    }
-    return {
-        "imu_t": imu[:, 0].copy(),
-        "imu_acc": imu[:, 2:5].copy(),
-        "imu_gyro": imu[:, 5:8].copy(),
-        "gps_t": gps[:, 0].copy(),
-        "gps_xyz": gps[:, 1:4].copy(),
-        "meta": meta,
-    }
 
 
 def make_imu_params(meta: dict[str, Any]) -> gtsam.PreintegrationCombinedParams:
@@ -191,7 +130,11 @@ def run_gtsam_kitti(
         imu_gyro: angular rate (N, 3), rad/s.
         gps_t: GPS timestamps (M,).
         gps_xyz: GPS positions (M, 3) in the navigation frame, m.
-        meta: noise/calibration dict as returned by :func:`read_kitti_files`.
+        meta: noise/calibration dict: ``accel_noise_sigma``, ``gyro_noise_sigma``,
+            ``integration_sigma``, ``accel_bias_rw_sigma``, ``gyro_bias_rw_sigma`` and
+            ``body_p_sensor`` (``[tx, ty, tz, rx, ry, rz]``), optionally ``average_delta_t``
+            (s, the first sample's dt), as ``benchmarks._common.peer_arrays`` takes it from
+            the data files' metadata.
         outage: ``(t0, t1)``; GPS fixes with ``t0 <= t <= t1`` are withheld.
         first_gps_index: index of the GPS time of the first state (the example uses 1).
         gps_skip: use a fix at state ``i`` only when ``i % gps_skip == 0`` (example: 10).
