@@ -85,9 +85,7 @@ def fuzz_reader(name: str, examples: int, run_seed: int) -> dict[str, Any]:
             signature = f"{outcome}: {detail.split(':')[0]}"
             signatures[signature] += 1
             if signatures[signature] == 1 and len(failures) < MAX_LISTED:
-                failures.append(
-                    {"outcome": outcome, "detail": detail, "mutations": case.mutations}
-                )
+                failures.append({"outcome": outcome, "detail": detail, "mutations": case.mutations})
 
     start = time.perf_counter()
     with warnings.catch_warnings():

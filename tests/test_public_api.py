@@ -117,6 +117,15 @@ def _own_members(cls: type) -> dict[str, object]:
     return members
 
 
+def _function_problems(function: object, where: str, is_method: bool) -> list[str]:
+    """A public function's or method's missing docstring and annotations."""
+    offenders = [] if _doc(function) else [f"{where}: docstring missing"]
+    return offenders + [
+        f"{where}: {p}"
+        for p in _signature_problems(function, is_method=is_method, needs_return=True)
+    ]
+
+
 def _class_problems(cls: type, where: str) -> list[str]:
     offenders = []
     class_doc = _doc(cls)
@@ -160,12 +169,7 @@ def _class_problems(cls: type, where: str) -> list[str]:
                 for p in _signature_problems(member, is_method=True, needs_return=False)
             ]
             continue
-        if not _doc(member):
-            offenders.append(f"{qualname}: docstring missing")
-        offenders += [
-            f"{qualname}: {p}"
-            for p in _signature_problems(member, is_method=is_method, needs_return=True)
-        ]
+        offenders += _function_problems(member, qualname, is_method)
     return offenders
 
 
@@ -184,12 +188,7 @@ def public_api_offenders() -> list[str]:
             if inspect.isclass(obj):
                 offenders += _class_problems(obj, where)
                 continue
-            if not _doc(obj):
-                offenders.append(f"{where}: docstring missing")
-            offenders += [
-                f"{where}: {p}"
-                for p in _signature_problems(obj, is_method=False, needs_return=True)
-            ]
+            offenders += _function_problems(obj, where, is_method=False)
     return offenders
 
 
@@ -245,8 +244,7 @@ def test_checker_catches_an_undocumented_untyped_function():
     found = _class_problems(Undocumented, "m.Undocumented")
     assert found == [
         "m.Undocumented: class docstring missing",
-        "m.Undocumented.__init__: no __init__ docstring and the class docstring does not name "
-        "gain",
+        "m.Undocumented.__init__: no __init__ docstring and the class docstring does not name gain",
         "m.Undocumented.__init__: parameter annotations missing: gain",
         "m.Undocumented.doubled: property docstring missing",
         "m.Undocumented.scaled: docstring missing",

@@ -298,9 +298,7 @@ def _parse_floats(path: str, tokens: list[str], line: int, names: tuple[str, ...
         raise  # pragma: no cover - float() failed above, so the loop raised
     if not all(map(math.isfinite, values)):
         k = next(k for k, v in enumerate(values) if not math.isfinite(v))
-        raise DataError(
-            path, f"not finite: {_tables.shown(tokens[k])}", line=line, field=names[k]
-        )
+        raise DataError(path, f"not finite: {_tables.shown(tokens[k])}", line=line, field=names[k])
     return values
 
 

@@ -43,4 +43,3 @@ def test_trajectory_moves_with_the_origin(
     scale = base.covariance.abs().amax((-2, -1), keepdim=True)
     change = float(((result.covariance - base.covariance) / scale).abs().max())
     assert change < covariance_tol, change
-
