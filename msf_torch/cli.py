@@ -1,4 +1,4 @@
-"""Command line: ``msf run | eval | simulate | posegraph | config check``.
+"""Command line: ``msf run | eval | simulate | config check | posegraph | lidar-map``.
 
 Each command parses its arguments, calls the library and prints its result as one JSON
 line last. Errors in the input (a bad file, a bad config key) end with a one-line message
@@ -31,9 +31,23 @@ def _outage(text: str) -> tuple[float, float]:
     return start, end
 
 
+def _version() -> str:
+    """``msf <msf_torch version> (torch <version>, <device>)``, for ``msf --version``."""
+    import torch
+
+    from msf_torch import __version__
+
+    device = "CUDA available" if torch.cuda.is_available() else "CPU only"
+    return f"msf {__version__} (torch {torch.__version__}, {device})"
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The ``msf`` argument parser."""
-    parser = argparse.ArgumentParser(prog="msf", description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(
+        prog="msf",
+        description="msf_torch: multi-sensor state estimation for wheeled robots and vehicles.",
+    )
+    parser.add_argument("--version", action="version", version=_version())
     sub = parser.add_subparsers(dest="command", required=True)
 
     run = sub.add_parser("run", help="run the ESKF front end on a recorded sequence")

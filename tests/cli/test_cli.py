@@ -120,3 +120,18 @@ def test_backwards_time_needs_sort(tmp_path, capsys):
     assert main(["run", str(folder), "--out", str(tmp_path / "o"), "--no-plot"]) == 2
     assert "imu.csv:" in capsys.readouterr().err
     assert main(["run", str(folder), "--out", str(tmp_path / "o"), "--no-plot", "--sort"]) == 0
+
+
+def test_version_matches_the_installed_distribution(capsys):
+    """``msf --version`` names the version pip installed (package metadata, read
+    independently of the code) and the torch it runs on."""
+    import importlib.metadata
+
+    import torch
+
+    with pytest.raises(SystemExit) as stop:
+        main(["--version"])
+    assert stop.value.code == 0
+    line = capsys.readouterr().out.strip()
+    assert line.startswith(f"msf {importlib.metadata.version('msf_torch')} ("), line
+    assert f"torch {torch.__version__}" in line
