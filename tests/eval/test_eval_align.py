@@ -66,13 +66,21 @@ def test_umeyama_batched_equals_looped_and_ignores_padding():
         assert abs(float(s_b[b]) - s_e) < 1e-10
 
 
-def test_umeyama_reflection_case_gives_rotation():
+@pytest.mark.parametrize("with_scale", [False, True])
+def test_umeyama_reflection_case_gives_rotation(with_scale):
+    """A scaled, noisy mirror image: the best proper rotation, with the sign fix of the
+    smallest singular value in the scale ``tr(D S) / sigma_x^2`` too, equal to evo's."""
     gen = torch.Generator().manual_seed(11)
-    src = torch.randn(1, 20, 3, generator=gen, dtype=DT)
-    dst = src * torch.tensor([1.0, 1.0, -1.0], dtype=DT)  # a mirror image
-    rot, _, _ = umeyama(src, dst)
+    src = torch.randn(1, 20, 3, generator=gen, dtype=DT) * torch.tensor([3.0, 2.0, 1.0], dtype=DT)
+    mirror = torch.tensor([1.0, 1.0, -1.0], dtype=DT)
+    dst = 1.7 * src * mirror + 0.05 * torch.randn(1, 20, 3, generator=gen, dtype=DT)
+    rot, trans, scale = umeyama(src, dst, with_scale=with_scale)
     torch.testing.assert_close(torch.linalg.det(rot), torch.ones(1, dtype=DT))
     torch.testing.assert_close(rot[0] @ rot[0].T, torch.eye(3, dtype=DT))
+    r_e, t_e, s_e = evo_geometry.umeyama_alignment(src[0].numpy().T, dst[0].numpy().T, with_scale)
+    np.testing.assert_allclose(rot[0].numpy(), r_e, rtol=0, atol=1e-10)
+    np.testing.assert_allclose(trans[0].numpy(), t_e, rtol=0, atol=1e-10)
+    assert float(scale[0]) == pytest.approx(s_e, rel=1e-12)
 
 
 def test_umeyama_degenerate_raises_or_falls_back():

@@ -266,19 +266,37 @@ def test_pose_covariance_and_fusion_weights():
 
 
 def test_gradient_reaches_the_network_through_the_filter():
-    """A 2 s simulated run: trajectory loss -> run_eskf -> scaled_noise -> CovNet."""
+    """A 2 s simulated run: trajectory loss -> run_eskf -> scaled_noise -> CovNet; the
+    gradient w.r.t. each log-scale output (the head's bias) equals central differences."""
     run = simulate_run(SimConfig(duration_s=2.0), seed=90)
     cfg = EskfConfig(gate_probability=1.0, slip_detection=False)
     torch.manual_seed(0)
-    model = CovNet()
-    out = model(*_inputs(1, seed=6)[:4])
-    noise = scaled_noise(EskfNoise.from_config(cfg), out.log_scales)
-    res = run_eskf(run.sequence, cfg, noise)
-    idx = torch.round(res.t[0] * run.config.imu_rate_hz).long()
-    loss = ((res.position[0] - run.truth.position[0, idx]) ** 2).sum()
-    loss.backward()
-    grad = model.log_scale_head.weight.grad
-    assert grad is not None and bool(torch.isfinite(grad).all()) and float(grad.abs().max()) > 0
+    model = CovNet().double()  # float64 for the finite difference
+    inputs = _inputs(1, seed=6)[:4]
+
+    def loss_of() -> torch.Tensor:
+        out = model(*inputs)
+        noise = scaled_noise(EskfNoise.from_config(cfg), out.log_scales)
+        res = run_eskf(run.sequence, cfg, noise)
+        idx = torch.round(res.t[0] * run.config.imu_rate_hz).long()
+        return ((res.position[0] - run.truth.position[0, idx]) ** 2).sum()
+
+    loss_of().backward()
+    assert float(model.log_scale_head.weight.grad.abs().max()) > 0
+    # per log-scale output: central differences through the head's bias
+    bias = model.log_scale_head.bias
+    grad = bias.grad.clone()
+    numeric = torch.zeros_like(grad)
+    step = 1e-5
+    with torch.no_grad():
+        for k in range(grad.numel()):
+            bias[k] += step
+            up = loss_of()
+            bias[k] -= 2.0 * step
+            down = loss_of()
+            bias[k] += step
+            numeric[k] = (up - down) / (2.0 * step)
+    torch.testing.assert_close(grad, numeric, rtol=1e-5, atol=1e-7 * float(grad.abs().max()))
 
 
 def test_frontend_does_not_import_learning():
