@@ -249,6 +249,26 @@ def test_right_jacobian_against_finite_differences(angle):
     torch.testing.assert_close(so3.right_jacobian(phi), numeric, rtol=0, atol=1e-9)
 
 
+@pytest.mark.parametrize("angle", [0.0, 1e-4, 0.5, 2.0, 3.0])
+def test_gamma_vector_jacobians_equal_central_differences(angle):
+    """d(Gamma_n(phi) x)/dphi of gamma_vector_jacobians, column by column against central
+    differences of gamma1 / gamma2 (below and above the small-angle switch)."""
+    gen = _gen(23)
+    phi = angle * _random_axis(4, gen)
+    vec = torch.randn(4, 3, generator=gen, dtype=DTYPE)
+    d_gamma1, d_gamma2 = so3.gamma_vector_jacobians(phi, vec)
+    h = 1e-6
+    for analytic, gamma in ((d_gamma1, so3.gamma1), (d_gamma2, so3.gamma2)):
+        cols = []
+        for i in range(3):
+            e = torch.zeros(3, dtype=DTYPE)
+            e[i] = h
+            plus = (gamma(phi + e) @ vec[..., None])[..., 0]
+            minus = (gamma(phi - e) @ vec[..., None])[..., 0]
+            cols.append((plus - minus) / (2 * h))
+        torch.testing.assert_close(analytic, torch.stack(cols, -1), rtol=0, atol=1e-8)
+
+
 def test_project_returns_the_nearest_rotation():
     gen = _gen(12)
     rot = so3.exp(_random_axis(10, gen) * 2.0)
