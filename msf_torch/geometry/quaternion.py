@@ -100,6 +100,7 @@ def yaw_matrix(yaw: torch.Tensor) -> torch.Tensor:
 
 
 @functools.lru_cache(maxsize=8)
+@torch.inference_mode(False)  # cached: an ordinary tensor, never an inference one
 def _product_table(dtype: torch.dtype, device: torch.device) -> torch.Tensor:
     """(4, 4, 4) T with ``(a (x) b)_k = sum_ij T_kij a_i b_j`` (Hamilton, scalar first)."""
     table = torch.zeros(4, 4, 4, dtype=dtype, device=device)

@@ -36,6 +36,7 @@ _SMALL_ANGLE = 2e-2  # Taylor branches below: truncation error < 2e-16 up to her
 
 
 @functools.lru_cache(maxsize=16)
+@torch.inference_mode(False)  # cached: an ordinary tensor, never an inference one
 def _hat_generators(dtype: torch.dtype, device: torch.device) -> torch.Tensor:
     """(3, 9) matrix G with ``hat(phi).reshape(9) = phi @ G``."""
     gen = torch.zeros(3, 3, 3, dtype=dtype, device=device)
@@ -46,6 +47,7 @@ def _hat_generators(dtype: torch.dtype, device: torch.device) -> torch.Tensor:
 
 
 @functools.lru_cache(maxsize=16)
+@torch.inference_mode(False)  # cached: an ordinary tensor, never an inference one
 def identity(dtype: torch.dtype, device: torch.device, size: int = 3) -> torch.Tensor:
     """A cached identity matrix (size, size); read-only by convention (never modify it)."""
     return torch.eye(size, dtype=dtype, device=device)
