@@ -727,7 +727,7 @@ def run_eskf(
     )
     state, cov_conventional = initial if initial is not None else initial_state(seq, cfg)
     # kept in invariant coordinates about the estimate's own position (moved every epoch)
-    _, to_inv0 = invariant_maps(torch.zeros_like(state.position), state.velocity, state.rotation)
+    _, to_inv0 = _maps_at_estimate(state.position, state.velocity, state.rotation)
     cov = to_inv0 @ cov_conventional @ to_inv0.mT
     pre = _preintegrate_chunked(sched, state.gyro_bias, state.accel_bias)
     q_loc = _local_process_noise(pre, noise)
