@@ -147,7 +147,7 @@ class Table:
             r, c = (int(x) for x in bad[0])
             raise DataError(
                 self.path,
-                f"non-finite value {data[r, c]!r}",
+                f"non-finite value {float(data[r, c])!r}",
                 line=int(self.lines[r]),
                 field=columns[c],
             )
@@ -507,7 +507,8 @@ def clean_stream(
                 here = f"sample {int(index[i])}: "
             raise DataError(
                 path,
-                f"{here}time goes backwards: {t[i]!r} s comes after {t[i - 1]!r} s on "
+                f"{here}time goes backwards: {float(t[i])!r} s comes after "
+                f"{float(t[i - 1])!r} s on "
                 f"{before} (load with sort=True to sort the streams by time)",
                 **_where(lines, i, field_prefix, time_name),
             )

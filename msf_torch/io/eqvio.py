@@ -407,7 +407,7 @@ def _read_features(
         i = int(bad_t[0])
         raise DataError(
             table.path,
-            f"t_abs {values[i, 0]!r} differs from {frame_t[obs_frame[i]]!r} on line "
+            f"t_abs {float(values[i, 0])!r} differs from {float(frame_t[obs_frame[i]])!r} on line "
             f"{int(lines[first[obs_frame[i]]])}, the first row of frame seq {int(seq[i])}",
             line=int(lines[i]),
             field="t_abs",
@@ -429,8 +429,8 @@ def _read_features(
         raise DataError(
             table.path,
             f"frame times must increase with seq: frame seq {int(frame_seq[k])} at "
-            f"{frame_t[k]!r} s does not come after seq {int(frame_seq[k - 1])} at "
-            f"{frame_t[k - 1]!r} s (line {int(lines[first[k - 1]])})",
+            f"{float(frame_t[k])!r} s does not come after seq {int(frame_seq[k - 1])} at "
+            f"{float(frame_t[k - 1])!r} s (line {int(lines[first[k - 1]])})",
             line=int(lines[first[k]]),
             field="t_abs",
         )

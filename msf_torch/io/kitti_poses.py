@@ -64,7 +64,7 @@ def write_kitti_poses(
     finite = np.isfinite(rows).all(axis=1) & np.isfinite(t)
     if not finite.all():
         i = int(np.flatnonzero(~finite)[0])
-        raise ValueError(f"trajectory pose {i} (t = {t[i]!r}) is not finite")
+        raise ValueError(f"trajectory pose {i} (t = {float(t[i])!r}) is not finite")
     target = Path(path)
     with atomic_write(target, newline="") as handle:
         for row in rows.tolist():
@@ -106,7 +106,10 @@ def read_kitti_poses(
         if back.size:
             i = int(back[0]) + 1
             raise DataError(
-                times.path, f"time {t[i]!r} does not increase", line=int(times.lines[i]), field="t"
+                times.path,
+                f"time {float(t[i])!r} does not increase",
+                line=int(times.lines[i]),
+                field="t",
             )
     matrices = data.reshape(n, 3, 4)
     rotations = matrices[:, :, :3]

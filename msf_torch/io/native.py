@@ -250,7 +250,7 @@ def _check_sigmas(table: Table, data: np.ndarray, columns: list[str], first: int
         r, c = (int(x) for x in bad[0])
         raise DataError(
             table.path,
-            f"a standard deviation must not be negative, got {block[r, c]!r}",
+            f"a standard deviation must not be negative, got {float(block[r, c])!r}",
             line=int(table.lines[r]),
             field=columns[c],
         )
@@ -330,7 +330,7 @@ def _check_interval(path: str, span: np.ndarray, *, line: int | None = None, key
     if span[1] < span[0]:
         raise DataError(
             path,
-            f"{prefix}t_end {span[1]!r} is before t_start {span[0]!r}",
+            f"{prefix}t_end {float(span[1])!r} is before t_start {float(span[0])!r}",
             line=line,
             field=None if line is None else "t_end",
         )

@@ -93,7 +93,7 @@ def write_tum(traj: Trajectory, path: str | os.PathLike[str]) -> Path:
     if not finite.all():
         i = int(np.flatnonzero(~finite)[0])
         raise ValueError(
-            f"trajectory pose {i} (t = {t[i]!r}) is not finite; a TUM file cannot hold it"
+            f"trajectory pose {i} (t = {float(t[i])!r}) is not finite; a TUM file cannot hold it"
         )
     target = Path(path)
     with atomic_write(target, newline="") as handle:
