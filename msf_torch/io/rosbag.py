@@ -51,6 +51,11 @@ GNSS
     counted in ``meta["dropped_no_fix"]``. The sigma per axis is the square root of the
     diagonal of ``position_covariance`` (ENU, m^2) unless its type is UNKNOWN or the sensor
     says ``use_message_covariance: false``: then NaN, i.e. the estimator's ``gnss_sigma_m``.
+    A fix whose altitude is NaN (the message's "no altitude available") is kept as a
+    horizontal fix: its altitude is taken as the origin's and its up component is not
+    fused (sigma :data:`UNFUSED_SIGMA`); such fixes are counted in
+    ``meta["gnss_no_altitude"]``. The origin's altitude is that of the earliest kept fix
+    with one (0 if none has).
 Pose covariance
     ROS orders a pose covariance ``[x, y, z, rot x, rot y, rot z]`` with both blocks about
     the parent (world) axes; msf_torch's is ``[dp (world), dtheta (body)]``
@@ -711,15 +716,25 @@ def _gnss_stream(r: _Raw, t: np.ndarray, layout: BagLayout, clean, meta) -> tupl
     dropped = int((~fix).sum())
     if dropped:
         meta.setdefault("dropped_no_fix", {})[spec.name] = dropped
-    finite = fix & np.isfinite(f["lat"]) & np.isfinite(f["lon"]) & np.isfinite(f["alt"])
+    horizontal = fix & np.isfinite(f["lat"]) & np.isfinite(f["lon"])
+    no_altitude = horizontal & np.isnan(f["alt"])
+    if no_altitude.any():
+        meta.setdefault("gnss_no_altitude", {})[spec.name] = int(no_altitude.sum())
     if layout.gnss_origin is not None:
         origin = tuple(float(x) for x in layout.gnss_origin)
-    elif finite.any():
-        first = int(np.flatnonzero(finite)[np.argmin(t[finite])])
-        origin = (float(f["lat"][first]), float(f["lon"][first]), float(f["alt"][first]))
+    elif horizontal.any():
+        first = int(np.flatnonzero(horizontal)[np.argmin(t[horizontal])])
+        vertical = horizontal & np.isfinite(f["alt"])
+        alt0 = (
+            float(f["alt"][np.flatnonzero(vertical)[np.argmin(t[vertical])]])
+            if vertical.any()
+            else 0.0
+        )
+        origin = (float(f["lat"][first]), float(f["lon"][first]), alt0)
     else:
         origin = (0.0, 0.0, 0.0)
-    position = geodetic_to_enu(f["lat"][fix], f["lon"][fix], f["alt"][fix], origin)
+    alt = np.where(no_altitude, origin[2], f["alt"])
+    position = geodetic_to_enu(f["lat"][fix], f["lon"][fix], alt[fix], origin)
     diag = f["cov"][fix][:, [0, 4, 8]]
     known = (f["cov_type"][fix] != 0)[:, None] & (diag > 0)
     use = spec.use_message_covariance
@@ -728,6 +743,7 @@ def _gnss_stream(r: _Raw, t: np.ndarray, layout: BagLayout, clean, meta) -> tupl
     for axis, component in enumerate(GNSS_COMPONENTS):
         if component not in fused:
             sigma[:, axis] = UNFUSED_SIGMA
+    sigma[no_altitude[fix], 2] = UNFUSED_SIGMA
     arrays = clean("gnss", {"t": t[fix], "position": position, "sigma": sigma}, nan_ok=("sigma",))
     return _tables.stream_from_arrays(GnssFixes, arrays), origin
 

@@ -651,3 +651,45 @@ def test_odometry_rosbag2_reads_back_in_evo(native: Path, tmp_path: Path) -> Non
     write_odometry_rosbag2(shorter, path)
     with Reader(path) as reader:
         assert reader.message_count == 10
+
+
+def test_fix_without_altitude_is_a_horizontal_fix(tmp_path: Path) -> None:
+    """NavSatFix altitude NaN means "no altitude available": east and north are kept, the
+    up component is not fused, and the origin's altitude comes from the first fix with one."""
+    store = _store(2)
+    t0 = 1_650_000_000_000_000_000
+    imu = [
+        (t0 + k * 10_000_000, _imu_msg(store, t0 + k * 10_000_000, "imu", [0, 0, 0], [0, 0, 9.8]))
+        for k in range(40)
+    ]
+    nan = float("nan")
+    fixes = [
+        (t0, _fix_msg(store, t0, "gps", 49.0, 8.4, nan)),
+        (t0 + 100_000_000, _fix_msg(store, t0 + 100_000_000, "gps", 49.0001, 8.4002, 113.0)),
+        (
+            t0 + 200_000_000,
+            _fix_msg(store, t0 + 200_000_000, "gps", 49.0003, 8.4005, nan, cov=[0.04, 0.09, 0.0]),
+        ),
+    ]
+    bag = _write_bag(
+        tmp_path / "nan_alt",
+        2,
+        {"/imu": ("sensor_msgs/msg/Imu", imu), "/fix": ("sensor_msgs/msg/NavSatFix", fixes)},
+    )
+    layout = BagLayout(
+        sensors=(SensorTopic("imu", "imu", "/imu"), SensorTopic("gps", "gnss", "/fix"))
+    )
+    seq = read_rosbag(bag, layout)
+    assert seq.meta["gnss_origin"] == [49.0, 8.4, 113.0]
+    assert seq.meta["gnss_no_altitude"] == {"gps": 2}
+    assert seq.gnss.length == 3
+    origin = (49.0, 8.4, 113.0)
+    got = seq.gnss.position[0].numpy()
+    assert not got[0].any()
+    np.testing.assert_allclose(got[1], _enu_reference(49.0001, 8.4002, 113.0, origin), atol=1e-9)
+    # the altitude-less fix: horizontal position on the origin's height
+    np.testing.assert_allclose(got[2], _enu_reference(49.0003, 8.4005, 113.0, origin), atol=1e-9)
+    sigma = seq.gnss.sigma[0].numpy()
+    assert sigma[0, 2] == UNFUSED_SIGMA and sigma[2, 2] == UNFUSED_SIGMA
+    np.testing.assert_allclose(sigma[2, :2], [0.2, 0.3])
+    assert np.isnan(sigma[1]).all()  # covariance UNKNOWN: the estimator's default
