@@ -6,6 +6,12 @@ The format of the KITTI odometry benchmark's ``poses/XX.txt`` (read by evo's
 (``p_world = R p_body + t``), space separated. The file has no times; KITTI keeps them in a
 separate ``times.txt`` (one time in s per line), which :func:`write_kitti_poses` writes
 alongside when asked. Poses are written as they are (not re-based on the first pose).
+
+The frames are whatever the file holds; nothing is re-oriented on read. The benchmark's
+ground truth is the left camera's pose in the first camera frame (camera axes: x right,
+y down, z forward), not a body pose in msf_torch's gravity-aligned ENU world (z up), so
+compare an estimate with it after an SE(3) alignment (:mod:`msf_torch.eval`) or after
+applying the camera-to-body calibration.
 """
 
 from __future__ import annotations
