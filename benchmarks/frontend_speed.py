@@ -13,6 +13,10 @@ What it measures
       per axis, seeded) and a time shift of all streams, so they are 32 distinct full-length
       sequences. Aggregate IMU samples per second vs the single run (target: >= 10x).
       Copy 0 of the batch is checked against the single run (``batch_copy0_max_diff_m``).
+      With two or more torch threads a batch of 16 or more preintegrates its IMU on a
+      worker thread while its epoch loop runs (``run_eskf``); the single run has too little
+      to preintegrate for that and runs on one thread. ``OMP_NUM_THREADS=1`` runs both on
+      one thread.
     * peer 1 (the ratio's peer): GTSAM CombinedImuFactor + GPSFactor under ISAM2
       (``benchmarks/peers/gtsam_kitti.py``) on the same arrays; wall time of the call
       (graph building, ISAM2 updates, estimate extraction). Target: ours below GTSAM's.

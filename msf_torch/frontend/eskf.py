@@ -24,10 +24,11 @@ Per epoch (see ``frontend.schedule``) and for all B sequences at once:
    propagation), so ``T`` has no position arm and nothing depends on, or loses precision
    to, where the world origin lies.
    In these coordinates the navigation block of ``T_j^-1 Phi T_i`` depends on ``dT`` only
-   (:func:`_invariant_nav_transition`, precomputed for all epochs); the loop fills in the
-   bias columns, which use the bias Jacobians and the estimate. The nominal state uses the
-   bias-corrected increments; a transition built from other increments would leak
-   heading information at every epoch.
+   (:func:`_invariant_nav_transition`, computed with the increments in chunks of epochs by
+   ``_EpochIncrements``, on a worker thread for large batches without gradients); the loop
+   fills in the bias columns, which use the bias Jacobians and the estimate. The nominal
+   state uses the bias-corrected increments; a transition built from other increments
+   would leak heading information at every epoch.
 
 2. Update with every measurement that falls on the epoch end, stacked into one vector:
    wheel (3: body velocity; its yaw-rate row joins with ``wheel_yaw_rate_update``), NHC (2),
@@ -83,8 +84,9 @@ Everything is a differentiable torch op: gradients reach the noise parameters
 
 from __future__ import annotations
 
-__all__ = ["EskfNoise", "EskfResult", "run_eskf", "SENSORS"]
+__all__ = ["EskfNoise", "EskfResult", "run_eskf", "SENSORS", "INCREMENT_CHUNK_SAMPLES"]
 
+import concurrent.futures
 import contextlib
 import copy
 import dataclasses
@@ -304,31 +306,99 @@ class EskfResult:
         return out
 
 
-def _preintegrate_chunked(
-    sched: Schedule, bias_g: torch.Tensor, bias_a: torch.Tensor, max_samples: int = 65536
-) -> Preintegrated:
-    """Preintegrate all epochs in chunks along E (bounded memory, cache-friendly)."""
-    batch, n_epochs, n_slots = sched.dt.shape
-    step = max(1, max_samples // max(1, batch * n_slots))
-    parts = []
-    for start in range(0, n_epochs, step):
-        sl = slice(start, start + step)
-        count = sched.dt[:, sl].shape[1]
-        gyro, accel = sched.held_imu(sl)  # gathered per chunk: cache-sized, no (B, E, L, 3)
-        parts.append(
-            preintegrate(
+INCREMENT_CHUNK_SAMPLES = 65536
+"""IMU pieces (B x epochs x slots) preintegrated per chunk by the filter."""
+
+
+@dataclass
+class _IncrementChunk:
+    """IMU increments of epochs ``start .. start + E_c - 1`` (leading dims (B, E_c)): the
+    preintegration, the local process noise (:func:`_local_process_noise`) and the
+    invariant navigation transition (:func:`_invariant_nav_transition`)."""
+
+    start: int
+    pre: Preintegrated
+    q_loc: torch.Tensor
+    nav_transition: torch.Tensor
+
+
+class _EpochIncrements:
+    """The epoch loop's IMU increments, computed in chunks along E (bounded memory,
+    cache-friendly: about ``max_samples`` IMU pieces per chunk).
+
+    With ``background`` the chunks are computed in order on a worker thread while the
+    epoch loop consumes them (:meth:`at` waits for a chunk not yet done): a large batch's
+    preintegration (about 0.4 us per IMU sample) then overlaps with its epoch loop on a
+    second core. The worker runs under inference mode with one intra-op thread; use it only
+    when no gradients are recorded. Without it every chunk is computed up front on the
+    calling thread. :meth:`close` cancels what is left (always call it, e.g. in a
+    ``finally``).
+    """
+
+    def __init__(
+        self,
+        sched: Schedule,
+        gyro_bias: torch.Tensor,
+        accel_bias: torch.Tensor,
+        noise: EskfNoise,
+        gravity_mps2: float,
+        background: bool = False,
+        max_samples: int | None = None,
+    ) -> None:
+        """Args: sched: the batch's schedule (B, E, L). gyro_bias, accel_bias: (B, 3)
+        linearisation biases. noise: the filter's noise. gravity_mps2: gravity, m/s^2.
+        background: see the class docstring. max_samples: IMU pieces per chunk (default
+        :data:`INCREMENT_CHUNK_SAMPLES`)."""
+        batch, n_epochs, n_slots = sched.dt.shape
+        max_samples = max_samples or INCREMENT_CHUNK_SAMPLES
+        self.step = max(1, max_samples // max(1, batch * n_slots))
+        starts = list(range(0, n_epochs, self.step))
+
+        def compute(start: int) -> _IncrementChunk:
+            sl = slice(start, start + self.step)
+            count = sched.dt[:, sl].shape[1]
+            gyro, accel = sched.held_imu(sl)  # gathered per chunk: no (B, E, L, 3)
+            pre = preintegrate(
                 gyro,
                 accel,
                 sched.dt[:, sl],
-                bias_g[:, None, :].expand(batch, count, 3),
-                bias_a[:, None, :].expand(batch, count, 3),
+                gyro_bias[:, None, :].expand(batch, count, 3),
+                accel_bias[:, None, :].expand(batch, count, 3),
                 sched.noise_scale[:, sl],
             )
-        )
-    if len(parts) == 1:
-        return parts[0]
-    names = Preintegrated.__dataclass_fields__.keys()
-    return Preintegrated(**{k: torch.cat([getattr(p, k) for p in parts], 1) for k in names})
+            return _IncrementChunk(
+                start,
+                pre,
+                _local_process_noise(pre, noise),
+                _invariant_nav_transition(pre.delta_t, gravity_mps2),
+            )
+
+        self._executor = None
+        if background:
+
+            def compute_in_worker(start: int) -> _IncrementChunk:
+                torch.set_num_threads(1)
+                with torch.inference_mode():
+                    return compute(start)
+
+            self._executor = concurrent.futures.ThreadPoolExecutor(1, "msf-increments")
+            self._chunks = [self._executor.submit(compute_in_worker, s) for s in starts]
+        else:
+            self._chunks = [compute(s) for s in starts]
+
+    def at(self, epoch: int) -> tuple[_IncrementChunk, int]:
+        """The chunk holding ``epoch`` and the epoch's index inside it."""
+        index, local = divmod(epoch, self.step)
+        chunk = self._chunks[index]
+        if isinstance(chunk, concurrent.futures.Future):
+            chunk = self._chunks[index] = chunk.result()
+        return chunk, local
+
+    def close(self) -> None:
+        """Stop the worker (pending chunks are cancelled); a no-op without one."""
+        if self._executor is not None:
+            self._executor.shutdown(wait=True, cancel_futures=True)
+            self._executor = None
 
 
 def _local_process_noise(pre: Preintegrated, noise: EskfNoise) -> torch.Tensor:
@@ -729,9 +799,6 @@ def run_eskf(
     # kept in invariant coordinates about the estimate's own position (moved every epoch)
     _, to_inv0 = _maps_at_estimate(state.position, state.velocity, state.rotation)
     cov = to_inv0 @ cov_conventional @ to_inv0.mT
-    pre = _preintegrate_chunked(sched, state.gyro_bias, state.accel_bias)
-    q_loc = _local_process_noise(pre, noise)
-    nav_transition = _invariant_nav_transition(pre.delta_t, cfg.gravity_mps2)
     gravity = gravity_world(cfg.gravity_mps2, dtype, device)
     batch, n_epochs = sched.t_end.shape
     present = {
@@ -901,15 +968,29 @@ def run_eskf(
         [False] * n_epochs if present_all is None else present_all.any(-1).any(0).tolist()
     )
     interrupt = InterruptCatcher()
-    with _intra_op_threads(1 if batch < 16 else torch.get_num_threads()), interrupt:
+    # a large batch on the CPU without gradients preintegrates on a second thread while the
+    # epochs run (each on one intra-op thread); otherwise all of it first, then the epochs
+    background = (
+        torch.is_inference_mode_enabled()
+        and device.type == "cpu"
+        and batch >= 16
+        and torch.get_num_threads() >= 2
+    )
+    loop_threads = 1 if batch < 16 or background else torch.get_num_threads()
+    increments = _EpochIncrements(
+        sched, state.gyro_bias, state.accel_bias, noise, cfg.gravity_mps2, background
+    )
+    with contextlib.closing(increments), _intra_op_threads(loop_threads), interrupt:
         for e in range(n_epochs):
             # --- propagation: nominal with bias-corrected increments -----------------------
-            d_rot, d_vel, d_pos = pre.corrected(state.gyro_bias, state.accel_bias, index=e)
+            chunk, k = increments.at(e)
+            pre, epoch_dt = chunk.pre, chunk.pre.delta_t[:, k]
+            d_rot, d_vel, d_pos = pre.corrected(state.gyro_bias, state.accel_bias, index=k)
             position, velocity, rotation = propagate_nominal(
                 state.position,
                 state.velocity,
                 state.rotation,
-                pre.delta_t[:, e],
+                epoch_dt,
                 d_rot,
                 d_vel,
                 d_pos,
@@ -917,7 +998,7 @@ def run_eskf(
             )
             # invariant-coordinate transition: the navigation block depends on dT only
             # (precomputed); the bias columns are T_j^-1 [R_i J_p; R_i J_v; J_t]
-            jac = pre.bias_jacobian[:, e]
+            jac = pre.bias_jacobian[:, k]
             # errors are taken about the estimate's own position, so the transition maps
             # errors about p_i to errors about p_j: ``_move_origin`` by p_i - p_j folded in on
             # the left, which cancels the position arm of T_j^-1 and leaves [p_i - p_j]x in
@@ -925,7 +1006,7 @@ def run_eskf(
             hat_velocity = so3.hat(velocity)
             right = torch.cat((torch.zeros_like(rotation), hat_velocity @ rotation, rotation), -2)
             rotated = state.rotation @ torch.cat((jac[:, 0:3], jac[:, 3:6]), -1)
-            transition = nav_transition[:, e].clone()
+            transition = chunk.nav_transition[:, k].clone()
             transition[:, 0:9, 9:15] = right @ jac[:, 6:9]
             transition[:, 0:6, 9:15] += torch.cat(rotated.split(6, -1), -2)
             noise_map = nav_frame.clone()
@@ -933,8 +1014,8 @@ def run_eskf(
             noise_map[:, 3:6, 3:6] = state.rotation
             noise_map[:, :, 6:9] = right
             transition[:, 0:3, 6:9] += so3.hat(state.position - position)
-            q = q_loc[:, e].clone()
-            q[:, 0:9, 0:9] = noise_map @ q_loc[:, e, 0:9, 0:9] @ noise_map.mT
+            q = chunk.q_loc[:, k].clone()
+            q[:, 0:9, 0:9] = noise_map @ chunk.q_loc[:, k, 0:9, 0:9] @ noise_map.mT
             if not n_aug:
                 cov = transition @ cov @ transition.mT + q
             else:  # calibration states and source frames: identity transition, random walk
@@ -944,17 +1025,17 @@ def run_eskf(
                 q_full[:, :ERROR_STATE_DIM, :ERROR_STATE_DIM] = q
                 if calib is not None:
                     q_full[:, ERROR_STATE_DIM:frame_col, ERROR_STATE_DIM:frame_col] = (
-                        calib.process_noise(pre.delta_t[:, e])
+                        calib.process_noise(epoch_dt)
                     )
                 if frames is not None:  # random walk in distance travelled
                     speed = 0.5 * (state.velocity.norm(dim=-1) + velocity.norm(dim=-1))
                     q_full[:, frame_col:, frame_col:] = frames.process_noise(
-                        frame_scale, speed * pre.delta_t[:, e]
+                        frame_scale, speed * epoch_dt
                     )
                 q = q_full
                 cov = full @ cov @ full.mT + q
             if calib is not None:
-                accel_world = (velocity - state.velocity) / pre.delta_t[:, e, None].clamp_min(1e-9)
+                accel_world = (velocity - state.velocity) / epoch_dt[:, None].clamp_min(1e-9)
             to_conv = frame_base.clone()  # about the new origin p_j: no position arm
             to_conv[:, 3:6, 6:9] = -hat_velocity
             to_conv[:, 6:9, 6:9] = rotation.mT
