@@ -53,10 +53,12 @@ def build_parser() -> argparse.ArgumentParser:
     run = sub.add_parser("run", help="run the ESKF front end on a recorded sequence")
     run.add_argument(
         "sequence",
-        nargs="?",
-        default=None,
+        nargs="*",
+        default=[],
         help="path (native .npz / CSV folder, EuRoC folder, ROS bag with --topics) or a named "
-        f"dataset ({', '.join(NAMED_DATASETS)}); default: the bundled sample",
+        f"dataset ({', '.join(NAMED_DATASETS)}); default: the bundled sample. Two or more "
+        "run as one batch (one config for all) with outputs in OUT/<name>/, runs.csv and a "
+        "batch summary",
     )
     run.add_argument(
         "--topics",
@@ -237,17 +239,17 @@ def _robust(text: str) -> RobustKernel:
         raise argparse.ArgumentTypeError(f"bad kernel scale in {text!r}: {err}") from err
 
 
-def _load(args) -> tuple[Any, Any, str]:
-    """Sequence, config and a label of the input for ``msf run``."""
+def _load(args, source: str | None) -> tuple[Any, Any, str]:
+    """Sequence, config and a label of the input ``source`` (None: the sample) for
+    ``msf run``."""
     import yaml
 
     from msf_torch.frontend.config import config_for_sequence, load_config, packaged_config
     from msf_torch.io import load_sequence
     from msf_torch.runner import DEFAULT_SAMPLE
 
-    source = args.sequence
     if args.topics is not None:
-        return _load_bag(args)
+        return _load_bag(args, source)
     if source is None:
         if not DEFAULT_SAMPLE.exists():
             from msf_torch.io.native import write_native
@@ -271,21 +273,21 @@ def _load(args) -> tuple[Any, Any, str]:
     return seq, cfg, source
 
 
-def _load_bag(args) -> tuple[Any, Any, str]:
+def _load_bag(args, source: str | None) -> tuple[Any, Any, str]:
     """Sequence and config for ``msf run BAG --topics ROBOT.yaml``."""
     from msf_torch.io.rosbag import read_rosbag
     from msf_torch.robot.config import load_robot_config
 
-    if args.sequence is None:
+    if source is None:
         raise ValueError("--topics needs the bag to read (msf run BAG --topics ROBOT.yaml)")
     if args.fmt is not None:
         raise ValueError("--format does not apply to a ROS bag read with --topics")
     robot = load_robot_config(args.topics)
-    seq = read_rosbag(args.sequence, robot.layout, sort=args.sort)
+    seq = read_rosbag(source, robot.layout, sort=args.sort)
     overrides = _config_overrides(args.config)
     if args.no_slip_detection:
         overrides["slip_detection"] = False
-    return seq, robot.eskf_config(seq.meta, overrides), args.sequence
+    return seq, robot.eskf_config(seq.meta, overrides), source
 
 
 def _config_overrides(path: Path | None) -> dict[str, Any]:
@@ -324,7 +326,9 @@ def _progress_factory(mode: str):
 def _cmd_run(args) -> dict[str, Any]:
     from msf_torch.runner import RunOptions, run_sequence
 
-    seq, cfg, source = _load(args)
+    if len(args.sequence) > 1:
+        return _cmd_run_batch(args)
+    seq, cfg, source = _load(args, args.sequence[0] if args.sequence else None)
     smoother = None
     if args.smooth is not None:
         from msf_torch.backend.window import load_smoother_config
@@ -356,6 +360,41 @@ def _cmd_run(args) -> dict[str, Any]:
             file=sys.stderr,
         )
     return summary
+
+
+def _cmd_run_batch(args) -> dict[str, Any]:
+    """``msf run A B ...``: one batched front-end run (``runner.run_batch``)."""
+    import dataclasses
+
+    from msf_torch.runner import RunOptions, run_batch
+
+    if args.topics is not None:
+        raise ValueError("--topics reads one bag at a time (give one SEQUENCE)")
+    if args.smooth is not None:
+        raise ValueError("--smooth runs one sequence at a time (give one SEQUENCE)")
+    loaded = [_load(args, source) for source in args.sequence]
+    _, cfg, first = loaded[0]
+    for _, other, source in loaded[1:]:
+        if other != cfg:
+            differ = [
+                f.name
+                for f in dataclasses.fields(cfg)
+                if getattr(cfg, f.name) != getattr(other, f.name)
+            ]
+            raise ValueError(
+                f"the sequences of one batch need one front-end config, but {source} differs "
+                f"from {first} in {', '.join(differ)} (each sequence's metadata can set "
+                "keys the --config file leaves out; run them one at a time or set those keys)"
+            )
+    options = RunOptions(
+        out_dir=args.out,
+        gnss_outage_s=args.gnss_outage,
+        plot=not args.no_plot,
+        progress=_progress_factory(args.progress),
+        learned=_learned(args),
+        exports=args.export,
+    )
+    return run_batch([seq for seq, _, _ in loaded], cfg, options)
 
 
 def _learned(args) -> Any:

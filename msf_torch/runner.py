@@ -1,4 +1,6 @@
-"""Run the front end on one recorded sequence and write its outputs.
+"""Run the front end on one recorded sequence (:func:`run_sequence`), or on several in one
+batch (:func:`run_batch`: each sequence's outputs in ``out_dir/<name>/``, plus ``runs.csv``
+and the batch's ``summary.json``), and write the outputs.
 
 Used by ``msf run``. Outputs in ``out_dir`` (each written atomically: temp file + rename):
 
@@ -42,8 +44,17 @@ inferred weather), else ``"noise": "config"``.
 
 from __future__ import annotations
 
-__all__ = ["RunOptions", "RunInterrupted", "run_sequence", "write_diagnostics", "DEFAULT_SAMPLE"]
+__all__ = [
+    "RunOptions",
+    "RunInterrupted",
+    "run_sequence",
+    "run_batch",
+    "write_diagnostics",
+    "DEFAULT_SAMPLE",
+    "BATCH_TABLE_COLUMNS",
+]
 
+import csv
 import json
 import math
 import time
@@ -65,7 +76,7 @@ from msf_torch.frontend.guard import DIVERGENCE_CODES, EstimationInterrupted
 from msf_torch.io.atomic import atomic_write
 from msf_torch.io.tum import write_tum
 from msf_torch.sensors.imu_gaps import filled_stretches, interpolated_imu_samples
-from msf_torch.types import Sequence, Trajectory
+from msf_torch.types import GnssFixes, Sequence, Trajectory, batch_sequences
 
 if TYPE_CHECKING:
     from msf_torch.learning.inference import LearnedModel
@@ -222,18 +233,8 @@ def run_sequence(seq: Sequence, cfg: EskfConfig, options: RunOptions) -> dict[st
         if close is not None:
             close()
     wall = time.perf_counter() - start
-    estimate = _single(trajectory) if smoothed is None else smoothed.output
-    duration = _duration(seq)
-    summary: dict[str, Any] = {
-        "sequence": seq.names[0],
-        "source": str(seq.meta.get("source", "")),
-        "duration_s": round(duration, 3),
-        "imu_samples": int(seq.imu.mask[0].sum()),
-        "epochs": int(result.mask[0].sum()),
-        "wall_s": round(wall, 4),
-        "realtime_factor": round(duration / wall, 1) if wall > 0 else math.inf,
-        "noise": "config" if learned is None else "learned",
-    }
+    summary = _header(seq, result, wall)
+    summary["noise"] = "config" if learned is None else "learned"
     if learned is not None:
         summary["learned"] = learned
     if smoothed is not None:
@@ -241,6 +242,154 @@ def run_sequence(seq: Sequence, cfg: EskfConfig, options: RunOptions) -> dict[st
         summary["smoother"] = {
             k: round(v, 4) if isinstance(v, float) else v for k, v in smoothed.summary().items()
         }
+    return _score_and_write(
+        seq, result, trajectory, smoothed, cfg, options, out_dir, summary, withheld
+    )
+
+
+BATCH_TABLE_COLUMNS = (
+    "sequence",
+    "source",
+    "duration_s",
+    "imu_samples",
+    "epochs",
+    "ate_rmse_m",
+    "ate_max_m",
+    "outage_rmse_m",
+    "outage_distance_m",
+    "outage_drift_pct",
+    "imu_gaps",
+    "slip_flagged_epochs",
+    "slip_f1",
+)
+"""Columns of ``runs.csv`` written by :func:`run_batch` (empty where a run lacks one)."""
+
+
+def run_batch(seqs: list[Sequence], cfg: EskfConfig, options: RunOptions) -> dict[str, Any]:
+    """Run the front end on B sequences in one batched ``run_eskf`` call and write each
+    sequence's outputs (as :func:`run_sequence`) to ``options.out_dir / <name>``.
+
+    All sequences share ``cfg``; ``options.gnss_outage_s`` applies to each (seconds from its
+    own first sample). Smoothing and learned noise run one sequence at a time
+    (:func:`run_sequence`) and are refused here. ``out_dir`` also receives ``runs.csv``
+    (one row per sequence, :data:`BATCH_TABLE_COLUMNS`) and ``summary.json`` (the batch's
+    summary). Ctrl-C stops the batch without partial outputs.
+
+    Args:
+        seqs: B >= 1 loaded sequences (B = 1 each); folder names are their names, made
+            unique with ``-2``, ``-3``, ... where two agree.
+        cfg: front-end settings for all of them.
+        options: outputs (``smooth`` and ``learned`` must be unset).
+    Returns:
+        The batch summary: ``sequences``, ``names``, ``out``, total ``duration_s`` and
+        ``imu_samples``, ``wall_s`` (the one batched run), ``realtime_factor`` (total
+        duration / wall), ``imu_samples_per_s`` and ``runs`` (per sequence, the
+        ``runs.csv`` row).
+    """
+    if not seqs:
+        raise ValueError("run_batch: no sequences")
+    if options.smooth is not None:
+        raise ValueError("--smooth runs one sequence at a time (give one SEQUENCE)")
+    if options.learned is not None:
+        raise ValueError(
+            "learned noise runs one sequence at a time (give one SEQUENCE, or --no-learned)"
+        )
+    out_dir = Path(options.out_dir)
+    names = _unique_names([seq.names[0] for seq in seqs])
+    withheld: list[GnssFixes | None] = [None] * len(seqs)
+    if options.gnss_outage_s is not None:
+        split = []
+        for seq, name in zip(seqs, names, strict=True):
+            try:
+                split.append(split_gnss_outage(seq, *options.gnss_outage_s))
+            except ValueError as err:
+                raise ValueError(f"sequence {name}: {err}") from None
+        seqs, withheld = [s for s, _ in split], [w for _, w in split]
+    callback, close = options.progress() if options.progress is not None else (None, None)
+    batch = batch_sequences(seqs)
+    start = time.perf_counter()
+    try:
+        with torch.no_grad():
+            result = run_eskf(batch, cfg, progress=callback)
+    finally:
+        if close is not None:
+            close()
+    wall = time.perf_counter() - start
+    rows = []
+    for index, (seq, name) in enumerate(zip(seqs, names, strict=True)):
+        own = result.select(index)
+        (out_dir / name).mkdir(parents=True, exist_ok=True)
+        summary = _header(seq, own, wall)
+        summary["noise"] = "config"
+        summary["batch"] = {"size": len(seqs), "index": index}
+        summary = _score_and_write(
+            seq, own, own.trajectory(), None, cfg, options, out_dir / name, summary, withheld[index]
+        )
+        row = {key: summary.get(key) for key in BATCH_TABLE_COLUMNS}
+        row["slip_f1"] = summary.get("slip_detection", {}).get("f1")
+        rows.append(row)
+    duration = sum(row["duration_s"] for row in rows)
+    samples = sum(row["imu_samples"] for row in rows)
+    out = {
+        "sequences": len(seqs),
+        "names": names,
+        "out": str(out_dir),
+        "duration_s": round(duration, 3),
+        "imu_samples": samples,
+        "wall_s": round(wall, 4),
+        "realtime_factor": round(duration / wall, 1) if wall > 0 else math.inf,
+        "imu_samples_per_s": round(samples / wall) if wall > 0 else math.inf,
+        "runs": rows,
+    }
+    with atomic_write(out_dir / "runs.csv", newline="") as handle:
+        table = csv.DictWriter(handle, BATCH_TABLE_COLUMNS)
+        table.writeheader()
+        table.writerows(rows)
+    with atomic_write(out_dir / "summary.json") as handle:
+        json.dump(out, handle, indent=2)
+        handle.write("\n")
+    return out
+
+
+def _unique_names(names: list[str]) -> list[str]:
+    """Folder-safe, unique names: path separators replaced, repeats suffixed ``-2``, ..."""
+    out, seen = [], {}
+    for name in names:
+        base = name.replace("/", "_").replace("\\", "_") or "sequence"
+        count = seen.get(base, 0) + 1
+        seen[base] = count
+        out.append(base if count == 1 else f"{base}-{count}")
+    return out
+
+
+def _header(seq: Sequence, result: EskfResult, wall: float) -> dict[str, Any]:
+    """The summary's first entries for one sequence (B = 1) and its result."""
+    duration = _duration(seq)
+    return {
+        "sequence": seq.names[0],
+        "source": str(seq.meta.get("source", "")),
+        "duration_s": round(duration, 3),
+        "imu_samples": int(seq.imu.mask[0].sum()),
+        "epochs": int(result.mask[0].sum()),
+        "wall_s": round(wall, 4),
+        "realtime_factor": round(duration / wall, 1) if wall > 0 else math.inf,
+    }
+
+
+def _score_and_write(
+    seq: Sequence,
+    result: EskfResult,
+    trajectory: Trajectory,
+    smoothed: Any,
+    cfg: EskfConfig,
+    options: RunOptions,
+    out_dir: Path,
+    summary: dict[str, Any],
+    withheld: GnssFixes | None,
+) -> dict[str, Any]:
+    """Add the counts and scores of one sequence (B = 1) to ``summary`` and write its
+    outputs to ``out_dir``; returns the summary."""
+    estimate = _single(trajectory) if smoothed is None else smoothed.output
     counts = result.counts()
     summary["measurements"] = {
         k: {n: v[0] for n, v in c.items()} for k, c in counts.items() if c["present"][0] > 0

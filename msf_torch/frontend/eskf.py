@@ -283,6 +283,41 @@ class EskfResult:
     source_frame_covariance: dict[str, torch.Tensor] = field(default_factory=dict)
     frame_memory: FrameMemory | None = None
 
+    def select(self, index: int) -> EskfResult:
+        """Sequence ``index`` of the batch as a result with B = 1 (views, not copies): every
+        per-sequence tensor, in the fields and in ``gate_memory`` / ``frame_memory``, cut
+        to ``[index : index + 1]``; epochs stay padded to the batch's E (see ``mask``)."""
+        batch = self.position.shape[0]
+        if not -batch <= index < batch:
+            raise IndexError(f"EskfResult.select: index {index} out of range for B = {batch}")
+        index = index % batch
+
+        def cut(value: object) -> object:
+            if isinstance(value, torch.Tensor):
+                return value[index : index + 1]
+            if isinstance(value, dict):
+                return {key: cut(item) for key, item in value.items()}
+            if isinstance(value, (GateMemory, FrameMemory)):
+                return dataclasses.replace(
+                    value,
+                    **{
+                        spec.name: cut(getattr(value, spec.name))
+                        for spec in dataclasses.fields(value)
+                        if spec.name != "names"
+                    },
+                )
+            return value
+
+        return dataclasses.replace(
+            self,
+            names=[self.names[index]],
+            **{
+                spec.name: cut(getattr(self, spec.name))
+                for spec in dataclasses.fields(self)
+                if spec.name not in ("names", "calibration_names")
+            },
+        )
+
     def trajectory(self) -> Trajectory:
         """Estimated poses as a :class:`~msf_torch.types.Trajectory` (B, E + 1)."""
         return Trajectory(
