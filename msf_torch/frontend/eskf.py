@@ -409,6 +409,7 @@ class _EpochIncrements:
             )
 
         self._executor = None
+        self._released = 0
         if background:
 
             def compute_in_worker(start: int) -> _IncrementChunk:
@@ -422,8 +423,15 @@ class _EpochIncrements:
             self._chunks = [compute(s) for s in starts]
 
     def at(self, epoch: int) -> tuple[_IncrementChunk, int]:
-        """The chunk holding ``epoch`` and the epoch's index inside it."""
+        """The chunk holding ``epoch`` and the epoch's index inside it. Epochs are visited in
+        order: the chunks before this one are released (a long run keeps one chunk's
+        increments in memory, not all of them)."""
         index, local = divmod(epoch, self.step)
+        if index < self._released:
+            raise IndexError(f"_EpochIncrements: epoch {epoch} lies in a released chunk")
+        for earlier in range(self._released, index):
+            self._chunks[earlier] = None
+        self._released = index
         chunk = self._chunks[index]
         if isinstance(chunk, concurrent.futures.Future):
             chunk = self._chunks[index] = chunk.result()

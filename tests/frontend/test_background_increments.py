@@ -87,3 +87,26 @@ def test_worker_stops_when_the_loop_ends_early(batch16, threads, monkeypatch):
     with torch.no_grad(), pytest.raises(RuntimeError, match="stop here"):
         run_eskf(batch16, progress=stop)
     assert _workers() == []  # shut down and joined
+
+
+def test_consumed_chunks_are_released(batch16):
+    from msf_torch.frontend.config import EskfConfig
+    from msf_torch.frontend.eskf import EskfNoise, _EpochIncrements
+    from msf_torch.frontend.schedule import build_schedule
+
+    cfg = EskfConfig()
+    sched = build_schedule(batch16, cfg)
+    zeros = torch.zeros(16, 3, dtype=torch.float64)
+    noise = EskfNoise.from_config(cfg, torch.float64, "cpu")
+    increments = _EpochIncrements(sched, zeros, zeros, noise, cfg.gravity_mps2, max_samples=500)
+    step = increments.step
+    assert sched.t_end.shape[1] > 3 * step
+    first, local = increments.at(1)
+    assert local == 1 and first.start == 0 and first.pre.delta_t.shape[1] == step
+    third, local = increments.at(2 * step + 1)
+    assert third.start == 2 * step and local == 1
+    assert increments._chunks[0] is None and increments._chunks[1] is None  # released
+    assert increments.at(2 * step)[0] is third
+    with pytest.raises(IndexError, match="released chunk"):
+        increments.at(step)
+    increments.close()
