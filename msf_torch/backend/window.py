@@ -300,7 +300,10 @@ def load_smoother_config(path: str | Path | None = None, **overrides: Any) -> Sm
         if key not in known:
             raise ValueError(f"{where}unknown config key 'smoother.{key}'")
     config = SmootherConfig(**values)
-    config.validate()
+    try:
+        config.validate()
+    except ValueError as err:
+        raise ValueError(f"{where}{err}") from None
     return config
 
 

@@ -193,6 +193,7 @@ class EskfConfig:
 
     def validate(self) -> None:
         """Raise ``ValueError`` naming the first bad key."""
+        self._validate_types()
         positive = [
             "gyro_noise_density",
             "accel_noise_density",
@@ -252,6 +253,47 @@ class EskfConfig:
             value = getattr(self, key)
             if len(value) != 3:
                 raise ValueError(f"config key '{key}' must have 3 entries, got {value!r}")
+
+    def _validate_types(self) -> None:
+        """Raise ``ValueError`` naming the first key whose value does not have its field's
+        type (``float``: a finite number, ``int``, ``bool``, ``str``, ``list[float]``: a list
+        or tuple of finite numbers, ``list[str]``), or that is a negative density or a sigma
+        not above 0."""
+
+        def number(x: Any) -> bool:
+            return isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x)
+
+        checks = {
+            "float": (number, "a finite number"),
+            "int": (lambda x: isinstance(x, int) and not isinstance(x, bool), "an integer"),
+            "bool": (lambda x: isinstance(x, bool), "true or false"),
+            "str": (lambda x: isinstance(x, str), "a string"),
+            "list[float]": (
+                lambda x: isinstance(x, (list, tuple)) and all(number(v) for v in x),
+                "a list of finite numbers",
+            ),
+            "list[str]": (
+                lambda x: isinstance(x, (list, tuple)) and all(isinstance(v, str) for v in x),
+                "a list of strings",
+            ),
+        }
+        for f in dataclasses.fields(self):
+            value = getattr(self, f.name)
+            if f.type in checks:
+                ok, what = checks[f.type]
+                if not ok(value):
+                    raise ValueError(f"config key '{f.name}' must be {what}, got {value!r}")
+            if f.type not in ("float", "list[float]"):
+                continue
+            values = value if isinstance(value, (list, tuple)) else [value]
+            if "density" in f.name and any(v < 0 for v in values):
+                raise ValueError(f"config key '{f.name}' must not be negative, got {value!r}")
+            if "sigma" in f.name and f.name not in _ZERO_SIGMA_ALLOWED:
+                if any(v <= 0 for v in values):
+                    raise ValueError(
+                        f"config key '{f.name}' is a standard deviation: it must be above 0, "
+                        f"got {value!r}"
+                    )
 
     def _require_numbers(self, keys: Iterable[str], positive: bool) -> None:
         """Raise ``ValueError`` naming the first of ``keys`` whose value is not a finite
@@ -466,6 +508,10 @@ class EskfConfig:
         self._require_numbers(("adaptive_prior_samples",), positive=False)
 
 
+_ZERO_SIGMA_ALLOWED = frozenset({"pose_source_accel_sigma_mps2"})
+"""Sigma keys that may be 0 (the other ``*sigma*`` keys must be above 0)."""
+
+
 def load_config(path: str | Path | None = None, **overrides: Any) -> EskfConfig:
     """Read an :class:`EskfConfig` from YAML (safe loader), then apply ``overrides``.
 
@@ -482,13 +528,16 @@ def load_config(path: str | Path | None = None, **overrides: Any) -> EskfConfig:
         values.update(loaded)
     values.update(overrides)
     values.pop("smoother", None)
+    where = f"{path}: " if path is not None else ""
     known = {f.name for f in dataclasses.fields(EskfConfig)}
     for key in values:
         if key not in known:
-            where = f"{path}: " if path is not None else ""
             raise ValueError(f"{where}unknown config key '{key}'")
     config = EskfConfig(**values)
-    config.validate()
+    try:
+        config.validate()
+    except ValueError as err:
+        raise ValueError(f"{where}{err}") from None
     return config
 
 

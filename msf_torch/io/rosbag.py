@@ -518,7 +518,7 @@ class _Frames:
         if self.tree is None:
             self.body_imu = torch.eye(4, dtype=torch.float64)
             return
-        for name in (self.imu_frame, self.body_frame):
+        for name in (self.body_frame, self.imu_frame):
             self._check_frame(name, layout.sensor("imu").name)
         moving = self.tree.joints_between(self.body_frame, self.imu_frame)
         if moving:
@@ -536,6 +536,15 @@ class _Frames:
                 self.path,
                 f"sensor '{sensor}' is in frame '{frame}', which the robot's frames do not "
                 f"define (known: {', '.join(self.tree.frames)})",
+                field=f"sensors.{sensor}.frame",
+            )
+        body = self.body_frame
+        if self.tree.root(frame) != self.tree.root(body):
+            raise DataError(
+                self.path,
+                f"sensor '{sensor}' is in frame '{frame}', which is not connected to the body "
+                f"frame '{body}': its tree starts at '{self.tree.root(frame)}', the body's at "
+                f"'{self.tree.root(body)}' (check the parents in frames.transforms)",
                 field=f"sensors.{sensor}.frame",
             )
 

@@ -71,6 +71,7 @@ from typing import Any
 import torch
 import yaml
 
+from msf_torch.backend.window import SmootherConfig
 from msf_torch.frontend.config import EskfConfig
 from msf_torch.geometry.quaternion import matrix_to_quat
 from msf_torch.io.errors import DataError
@@ -116,18 +117,22 @@ _PER_KIND = {
 _DERIVED = ("gnss_lever_arm_m", "wheel_lever_arm_m", "wheel_track_m")
 
 
-def _line_map(text: str) -> dict[tuple, int]:
-    """Key path -> 1-based line of every key and list item in a YAML document."""
+def _line_map(text: str) -> tuple[dict[tuple, int], list[tuple[tuple, int, int]]]:
+    """Key path -> 1-based line of every key and list item in a YAML document, and the
+    keys given twice in one mapping as (key path, line, line of the first)."""
     lines: dict[tuple, int] = {}
+    repeated: list[tuple[tuple, int, int]] = []
     try:
         root = yaml.compose(text, Loader=yaml.SafeLoader)
     except yaml.YAMLError:
-        return lines
+        return lines, repeated
 
     def walk(node, path: tuple) -> None:
         if isinstance(node, yaml.MappingNode):
             for key, value in node.value:
                 child = (*path, str(key.value))
+                if child in lines:
+                    repeated.append((child, key.start_mark.line + 1, lines[child]))
                 lines[child] = key.start_mark.line + 1
                 walk(value, child)
         elif isinstance(node, yaml.SequenceNode):
@@ -137,7 +142,7 @@ def _line_map(text: str) -> dict[tuple, int]:
 
     if root is not None:
         walk(root, ())
-    return lines
+    return lines, repeated
 
 
 class _Checker:
@@ -401,6 +406,18 @@ def _eskf_config(values: dict[str, Any], fail) -> EskfConfig:
     return config
 
 
+def _smoother_config(check: _Checker, section: Any) -> None:
+    """Validate the ``smoother`` section (SmootherConfig keys), naming key path and line."""
+    values = check.mapping(
+        section, ("smoother",), tuple(f.name for f in dataclasses.fields(SmootherConfig))
+    )
+    try:
+        SmootherConfig(**values).validate()
+    except (TypeError, ValueError) as err:
+        bad = next((k for k in values if f"'smoother.{k}'" in str(err)), None)
+        raise check.fail(("smoother",) if bad is None else ("smoother", bad), str(err)) from None
+
+
 def is_robot_config(path: str | os.PathLike[str]) -> bool:
     """Whether a YAML file is a robot config (it has a top-level ``sensors`` mapping)."""
     try:
@@ -432,7 +449,11 @@ def load_robot_config(path: str | os.PathLike[str]) -> RobotConfig:
             f"not valid YAML ({getattr(err, 'problem', err)})",
             line=None if mark is None else mark.line + 1,
         ) from None
-    check = _Checker(str(file), _line_map(text))
+    lines, repeated = _line_map(text)
+    check = _Checker(str(file), lines)
+    if repeated:
+        keys, _, first = repeated[0]
+        raise check.fail(keys, f"given twice (also on line {first}); YAML keeps only the last")
     top = check.mapping(loaded, (), ROBOT_KEYS)
     if "sensors" not in top:
         raise check.fail(("sensors",), "missing: a robot config maps sensors to topics")
@@ -471,6 +492,7 @@ def load_robot_config(path: str | os.PathLike[str]) -> RobotConfig:
         top.get("estimator"), ("estimator",), tuple(f.name for f in dataclasses.fields(EskfConfig))
     )
     _eskf_config(dict(estimator), check.fail)
+    _smoother_config(check, top.get("smoother"))
     sensors_section = top["sensors"]
     if not isinstance(sensors_section, dict) or not sensors_section:
         raise check.fail(("sensors",), "must be a non-empty mapping of sensor names to sensors")
@@ -646,6 +668,15 @@ def load_robot_config(path: str | os.PathLike[str]) -> RobotConfig:
                 ("sensors", imu.name, "frame"),
                 "missing: with frames, the imu sensor names its frame",
             )
+        reference = body or imu.frame
+        for sensor in layout.sensors:
+            if sensor.frame is not None and tree.root(sensor.frame) != tree.root(reference):
+                raise check.fail(
+                    ("sensors", sensor.name, "frame"),
+                    f"frame {sensor.frame!r} is not connected to the body frame {reference!r}: "
+                    f"its tree starts at {tree.root(sensor.frame)!r}, the body's at "
+                    f"{tree.root(reference)!r} (check the parents in frames.transforms)",
+                )
     config = RobotConfig(
         path=file,
         name=name,
@@ -681,11 +712,22 @@ def _frames(check: _Checker, section: dict[str, Any], folder: Path) -> FrameTree
         xyz = check.numbers(spec["xyz"], (*keys, "xyz"), 3)
         if "rpy" in spec:
             rpy = check.numbers(spec["rpy"], (*keys, "rpy"), 3)
+            for k, angle in enumerate(rpy):
+                if abs(angle) > 2 * math.pi:
+                    raise check.fail(
+                        (*keys, "rpy", k),
+                        f"{angle} rad is more than a full turn: rpy is in radians (as in a "
+                        f"URDF), not degrees ({angle} deg = {math.radians(angle)!r} rad)",
+                    )
             transforms.append(StaticTransform.from_xyz_rpy(parent, child, xyz, rpy))
         else:
             quat = check.numbers(spec["quaternion_xyzw"], (*keys, "quaternion_xyzw"), 4)
-            if math.hypot(*quat) < 1e-6:
-                raise check.fail((*keys, "quaternion_xyzw"), "has (near) zero norm")
+            norm = math.hypot(*quat)
+            if abs(norm - 1.0) > 1e-3:
+                raise check.fail(
+                    (*keys, "quaternion_xyzw"),
+                    f"must be a unit quaternion [x, y, z, w] (ROS order), its norm is {norm:.6g}",
+                )
             transforms.append(StaticTransform.from_xyz_quaternion(parent, child, xyz, quat))
     try:
         if "urdf" in section:

@@ -325,9 +325,17 @@ class FrameTree:
             result = result @ item.matrix.to(result)
         return result
 
-    def _root_name(self, frame: str) -> str:
+    def root(self, frame: str) -> str:
+        """The root of the tree that holds ``frame``: the URDF's root link, or the topmost
+        parent of a chain of static transforms not attached to the URDF.
+
+        Raises:
+            ValueError: ``frame`` is no frame of this tree.
+        """
         anchor = self._anchor(frame)
-        return "<urdf>" if anchor in self._chain_frames else anchor
+        if anchor in self._chain_frames:
+            return self.chain.get_frame_names(exclude_fixed=False)[0]
+        return anchor
 
     def transform(
         self,
@@ -350,7 +358,7 @@ class FrameTree:
         Raises:
             ValueError: an unknown frame, frames in unconnected trees, a missing joint value.
         """
-        if self._root_name(target) != self._root_name(source):
+        if self.root(target) != self.root(source):
             raise ValueError(
                 f"{self.source}: frames '{target}' and '{source}' are not connected by any "
                 "chain of transforms"

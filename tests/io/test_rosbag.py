@@ -626,6 +626,24 @@ def test_bag_errors_name_the_sensor(tmp_path: Path) -> None:
     )
     with pytest.raises(DataError, match="frame 'gps_link', which the robot's frames do not define"):
         read_rosbag(bag, unknown_frame)
+    # the fixes' frame (from the messages) below a parent that is not linked to base_link
+    detached = dataclasses.replace(
+        ROBOT_LAYOUT,
+        frames=FrameTree.from_transforms(
+            [
+                StaticTransform("base_link", "imu_link", torch.as_tensor(IMU_T)),
+                StaticTransform("mast", "gps_link", torch.as_tensor(GPS_T)),
+                StaticTransform("base_link", "camera_link", torch.as_tensor(CAM_T)),
+            ]
+        ),
+    )
+    with pytest.raises(
+        DataError,
+        match="frame 'gps_link', which is not connected to the body frame 'base_link': its "
+        "tree starts at 'mast'",
+    ) as caught:
+        read_rosbag(bag, detached)
+    assert caught.value.field == "sensors.gps.frame" and str(caught.value).startswith(str(bag))
     with pytest.raises(DataError, match="not a ROS bag"):
         read_rosbag(tmp_path, ROBOT_LAYOUT)
     with pytest.raises(ValueError, match="exactly one imu"):

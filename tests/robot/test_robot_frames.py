@@ -243,6 +243,11 @@ def test_frame_errors(tree: FrameTree) -> None:
     )
     with pytest.raises(ValueError, match="not connected"):
         separate.transform("b", "d")
+    assert [separate.root(f) for f in "abcd"] == ["a", "a", "c", "c"]
+    below_urdf = FrameTree.from_urdf(
+        URDF, [StaticTransform.from_xyz_rpy("camera_link", "lens", [0] * 3, [0] * 3)]
+    )
+    assert {below_urdf.root(f) for f in below_urdf.frames} == {"base_link"}
     floating = URDF.replace('type="revolute"', 'type="floating"')
     with pytest.raises(ValueError, match="type 'floating'"):
         FrameTree.from_urdf(floating)
