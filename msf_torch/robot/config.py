@@ -352,7 +352,16 @@ class RobotConfig:
         return _eskf_config(values, self._fail)
 
     def summary(self) -> dict[str, Any]:
-        """A JSON-ready description (what ``msf config check`` prints)."""
+        """A JSON-ready description (what ``msf config check`` prints).
+
+        With ``frames``: ``extrinsics_in_body`` gives each sensor frame that the YAML names
+        and no joint moves as its pose in ``frames.body`` (``xyz`` m from the body frame's
+        origin, ``quaternion_wxyz``); ``derived`` gives the estimator settings the frames
+        set: ``gnss_lever_arm_m`` and ``wheel_lever_arm_m`` (from the IMU, the estimator's
+        body origin, in the body axes), ``wheel_track_m`` (URDF) and
+        ``wheel_yaw_rate_update`` (the wheels' ``fuse``) where they differ from the
+        defaults.
+        """
         layout = self.layout
         out: dict[str, Any] = {
             "file": None if self.path is None else str(self.path),
@@ -369,11 +378,16 @@ class RobotConfig:
         }
         if layout.frames is not None:
             tree = layout.frames
-            body = layout.body_frame or layout.sensor("imu").frame
+            imu = layout.sensor("imu")
+            body = layout.body_frame or imu.frame
             out["frames"] = tree.frames
             out["joints"] = tree.joint_names
             out["body_frame"] = body
+            origin = None
+            if not tree.joints_between(body, imu.frame):
+                origin = tree.transform(body, imu.frame)[:3, 3]
             extrinsics = {}
+            from_imu = {}
             for sensor in layout.sensors:
                 if sensor.frame is None or tree.joints_between(body, sensor.frame):
                     continue
@@ -382,9 +396,17 @@ class RobotConfig:
                     "xyz": matrix[:3, 3].tolist(),
                     "quaternion_wxyz": matrix_to_quat(matrix[:3, :3]).tolist(),
                 }
+                if origin is not None:
+                    shifted = matrix.clone()
+                    shifted[:3, 3] -= origin
+                    from_imu[sensor.name] = shifted.tolist()
             out["extrinsics_in_body"] = extrinsics
-            derived = self.eskf_config(None)
+            derived = self.eskf_config({"extrinsics": from_imu})
             out["derived"] = {
+                key: getattr(derived, key)
+                for key, kind in (("gnss_lever_arm_m", "gnss"), ("wheel_lever_arm_m", "wheels"))
+                if layout.sensor(kind) is not None and layout.sensor(kind).name in from_imu
+            } | {
                 key: getattr(derived, key)
                 for key in ("wheel_track_m", "wheel_yaw_rate_update")
                 if getattr(derived, key) != getattr(EskfConfig(**self.estimator), key)
@@ -419,13 +441,16 @@ def _smoother_config(check: _Checker, section: Any) -> None:
 
 
 def is_robot_config(path: str | os.PathLike[str]) -> bool:
-    """Whether a YAML file is a robot config (it has a top-level ``sensors`` mapping)."""
+    """Whether a YAML file is meant as a robot config: a top-level mapping with ``sensors``
+    or with a key that only a robot config has (``robot``, ``frames``, ``time``,
+    ``estimator``), so that a misspelt ``sensors`` is reported as such."""
     try:
         with open(path, encoding="utf-8") as handle:
             loaded = yaml.safe_load(handle)
     except (OSError, yaml.YAMLError):
         return False
-    return isinstance(loaded, dict) and "sensors" in loaded
+    robot_only = ("sensors", "robot", "frames", "time", "estimator")
+    return isinstance(loaded, dict) and any(key in loaded for key in robot_only)
 
 
 def load_robot_config(path: str | os.PathLike[str]) -> RobotConfig:

@@ -743,7 +743,8 @@ def _place_intervals(
     if slack < 0:
         raise ValueError(
             f"SimConfig: {count} {what} of total {durations.sum():.1f} s with "
-            f"{gap} s gaps do not fit in [{low:.1f}, {high:.1f}] s"
+            f"{gap} s gaps do not fit in [{low:.1f}, {high:.1f}] s (use fewer {what} or a "
+            "longer duration_s)"
         )
     spare = rng.dirichlet(np.ones(count + 1)) * slack
     out = np.empty((count, 2))

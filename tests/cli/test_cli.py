@@ -135,3 +135,14 @@ def test_version_matches_the_installed_distribution(capsys):
     line = capsys.readouterr().out.strip()
     assert line.startswith(f"msf {importlib.metadata.version('msf_torch')} ("), line
     assert f"torch {torch.__version__}" in line
+
+
+def test_simulate_too_short_for_its_slip_episodes_says_what_to_change(tmp_path, capsys):
+    out = str(tmp_path / "s.npz")
+    assert main(["simulate", "--duration", "5", "--out", out]) == 2
+    err = capsys.readouterr().err
+    assert "3 slip episodes" in err and "use fewer slip episodes or a longer duration_s" in err
+    assert main(["simulate", "--duration", "5", "--slip-episodes", "0", "--out", out]) == 2
+    assert "use fewer GNSS outages or a longer duration_s" in capsys.readouterr().err
+    args = ["simulate", "--duration", "5", "--slip-episodes", "0", "--gnss-outages", "0"]
+    assert main([*args, "--out", out]) == 0

@@ -131,6 +131,7 @@ def test_config_check(robot_run, tmp_path, capsys) -> None:
     report = _last_json(capsys)
     assert report["ok"] and report["kind"] == "robot" and report["body_frame"] == "base_link"
     assert report["extrinsics_in_body"]["gps"]["xyz"] == list(LEVER)
+    assert report["derived"] == {"gnss_lever_arm_m": list(LEVER), "wheel_lever_arm_m": [0, 0, 0]}
     assert main(["config", "check", str(robot_run["native_cfg"])]) == 0
     report = _last_json(capsys)
     assert report["kind"] == "frontend" and report["estimator"] == {"gnss_lever_arm_m": list(LEVER)}
@@ -174,3 +175,15 @@ def test_config_value_errors_name_file_and_key(robot_run, tmp_path, capsys) -> N
         f"{robot}:{line}: field 'estimator.wheel_speed_sigma_mps': config key "
         "'wheel_speed_sigma_mps' is a standard deviation: it must be above 0, got -0.05"
     ) in capsys.readouterr().err
+
+
+def test_config_check_of_a_robot_yaml_with_sensors_misspelt(tmp_path, capsys) -> None:
+    """Without ``sensors`` the file used to be taken for a front-end config, and the error
+    named its first robot key ('unknown config key 'robot'') instead of the typo."""
+    bad = tmp_path / "robot.yaml"
+    (tmp_path / "rover.urdf").write_text(URDF)
+    text = ROBOT.replace("sensors:", "sensor:")
+    bad.write_text(text)
+    assert main(["config", "check", str(bad)]) == 2
+    line = next(i for i, row in enumerate(text.splitlines(), 1) if row == "sensor:")
+    assert f"{bad}:{line}: field 'sensor': unknown key" in capsys.readouterr().err

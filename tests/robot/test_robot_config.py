@@ -116,7 +116,15 @@ def test_full_robot_config(tmp_path: Path) -> None:
     assert cfg.gnss_sigma_m == [0.8, 0.8, 1.5] and cfg.gate_probability == 0.999
     summary = robot.summary()
     np.testing.assert_allclose(summary["extrinsics_in_body"]["gps"]["xyz"], [-0.3, 0.05, 1.1])
-    assert summary["derived"] == {"wheel_track_m": cfg.wheel_track_m, "wheel_yaw_rate_update": True}
+    derived = summary["derived"]
+    assert derived.pop("wheel_track_m") == cfg.wheel_track_m and derived.pop(
+        "wheel_yaw_rate_update"
+    )
+    # the lever arms the run will use, from the YAML alone: from the IMU (0.1, 0, 0.2) in
+    # base_link to the antenna (-0.3, 0.05, 1.0 + 0.1) and to base_link's origin (wheels)
+    assert derived.keys() == {"gnss_lever_arm_m", "wheel_lever_arm_m"}
+    np.testing.assert_allclose(derived["gnss_lever_arm_m"], [-0.4, 0.05, 0.9], atol=1e-15)
+    np.testing.assert_allclose(derived["wheel_lever_arm_m"], [-0.1, 0.0, -0.2], atol=1e-15)
     assert "vo" not in summary["extrinsics_in_body"]  # it moves with the pan joint
 
 
