@@ -344,6 +344,9 @@ class EskfResult:
 INCREMENT_CHUNK_SAMPLES = 65536
 """IMU pieces (B x epochs x slots) preintegrated per chunk by the filter."""
 
+_LOOKAHEAD_CHUNKS = 3
+"""Chunks the background worker may have done or queued beyond the loop's current one."""
+
 
 @dataclass
 class _IncrementChunk:
@@ -358,16 +361,19 @@ class _IncrementChunk:
 
 
 class _EpochIncrements:
-    """The epoch loop's IMU increments, computed in chunks along E (bounded memory,
-    cache-friendly: about ``max_samples`` IMU pieces per chunk).
+    """The epoch loop's IMU increments, computed in chunks along E as the loop reaches them
+    (about ``max_samples`` IMU pieces per chunk: cache-friendly, and memory for a few
+    chunks, not for the whole run).
 
-    With ``background`` the chunks are computed in order on a worker thread while the
-    epoch loop consumes them (:meth:`at` waits for a chunk not yet done): a large batch's
-    preintegration (about 0.4 us per IMU sample) then overlaps with its epoch loop on a
-    second core. The worker runs under inference mode with one intra-op thread; use it only
-    when no gradients are recorded. Without it every chunk is computed up front on the
-    calling thread. :meth:`close` cancels what is left (always call it, e.g. in a
-    ``finally``).
+    Without ``background`` a chunk is computed on the calling thread, with the torch thread
+    count in force at construction, when :meth:`at` first asks for it. With ``background``
+    a worker thread computes the chunks in order, up to :data:`_LOOKAHEAD_CHUNKS` ahead of
+    the loop, while the epoch loop consumes them (:meth:`at` waits for a chunk not yet
+    done): a large batch's preintegration (about 0.4 us per IMU sample) then overlaps with
+    its epoch loop on a second core. The worker runs under inference mode with one
+    intra-op thread; use it only when no gradients are recorded. Epochs are visited in
+    order; a chunk is released once the loop has moved past it. :meth:`close` stops the
+    worker (always call it, e.g. through ``contextlib.closing``).
     """
 
     def __init__(
@@ -387,7 +393,7 @@ class _EpochIncrements:
         batch, n_epochs, n_slots = sched.dt.shape
         max_samples = max_samples or INCREMENT_CHUNK_SAMPLES
         self.step = max(1, max_samples // max(1, batch * n_slots))
-        starts = list(range(0, n_epochs, self.step))
+        self._starts = list(range(0, n_epochs, self.step))
 
         def compute(start: int) -> _IncrementChunk:
             sl = slice(start, start + self.step)
@@ -408,32 +414,49 @@ class _EpochIncrements:
                 _invariant_nav_transition(pre.delta_t, gravity_mps2),
             )
 
-        self._executor = None
+        threads = torch.get_num_threads()
+
+        def compute_here(start: int) -> _IncrementChunk:
+            with _intra_op_threads(threads):
+                return compute(start)
+
+        def compute_in_worker(start: int) -> _IncrementChunk:
+            torch.set_num_threads(1)
+            with torch.inference_mode():
+                return compute(start)
+
+        self._compute = compute_in_worker if background else compute_here
+        self._chunks: list[_IncrementChunk | concurrent.futures.Future | None] = [None] * len(
+            self._starts
+        )
         self._released = 0
+        self._submitted = 0
+        self._executor = None
         if background:
-
-            def compute_in_worker(start: int) -> _IncrementChunk:
-                torch.set_num_threads(1)
-                with torch.inference_mode():
-                    return compute(start)
-
             self._executor = concurrent.futures.ThreadPoolExecutor(1, "msf-increments")
-            self._chunks = [self._executor.submit(compute_in_worker, s) for s in starts]
-        else:
-            self._chunks = [compute(s) for s in starts]
+            self._submit_through(_LOOKAHEAD_CHUNKS - 1)
+
+    def _submit_through(self, last: int) -> None:
+        """Queue the worker's chunks up to index ``last``."""
+        for index in range(self._submitted, min(last + 1, len(self._starts))):
+            self._chunks[index] = self._executor.submit(self._compute, self._starts[index])
+        self._submitted = max(self._submitted, min(last + 1, len(self._starts)))
 
     def at(self, epoch: int) -> tuple[_IncrementChunk, int]:
-        """The chunk holding ``epoch`` and the epoch's index inside it. Epochs are visited in
-        order: the chunks before this one are released (a long run keeps one chunk's
-        increments in memory, not all of them)."""
+        """The chunk holding ``epoch`` and the epoch's index inside it (epochs in order;
+        the chunks before this one are released)."""
         index, local = divmod(epoch, self.step)
         if index < self._released:
             raise IndexError(f"_EpochIncrements: epoch {epoch} lies in a released chunk")
         for earlier in range(self._released, index):
             self._chunks[earlier] = None
         self._released = index
+        if self._executor is not None:
+            self._submit_through(index + _LOOKAHEAD_CHUNKS)
         chunk = self._chunks[index]
-        if isinstance(chunk, concurrent.futures.Future):
+        if chunk is None:
+            chunk = self._chunks[index] = self._compute(self._starts[index])
+        elif isinstance(chunk, concurrent.futures.Future):
             chunk = self._chunks[index] = chunk.result()
         return chunk, local
 

@@ -101,12 +101,38 @@ def test_consumed_chunks_are_released(batch16):
     increments = _EpochIncrements(sched, zeros, zeros, noise, cfg.gravity_mps2, max_samples=500)
     step = increments.step
     assert sched.t_end.shape[1] > 3 * step
+    assert all(chunk is None for chunk in increments._chunks)  # computed when reached
     first, local = increments.at(1)
     assert local == 1 and first.start == 0 and first.pre.delta_t.shape[1] == step
     third, local = increments.at(2 * step + 1)
     assert third.start == 2 * step and local == 1
     assert increments._chunks[0] is None and increments._chunks[1] is None  # released
     assert increments.at(2 * step)[0] is third
+    assert increments._chunks[3] is None  # not reached yet
     with pytest.raises(IndexError, match="released chunk"):
         increments.at(step)
     increments.close()
+
+
+def test_worker_stays_a_few_chunks_ahead(batch16):
+    from msf_torch.frontend.config import EskfConfig
+    from msf_torch.frontend.eskf import _LOOKAHEAD_CHUNKS, EskfNoise, _EpochIncrements
+    from msf_torch.frontend.schedule import build_schedule
+
+    cfg = EskfConfig()
+    sched = build_schedule(batch16, cfg)
+    zeros = torch.zeros(16, 3, dtype=torch.float64)
+    noise = EskfNoise.from_config(cfg, torch.float64, "cpu")
+    with torch.inference_mode():
+        increments = _EpochIncrements(sched, zeros, zeros, noise, 9.81, True, max_samples=300)
+        try:
+            chunks = len(increments._chunks)
+            assert chunks > _LOOKAHEAD_CHUNKS + 3
+            assert sum(c is not None for c in increments._chunks) == _LOOKAHEAD_CHUNKS
+            increments.at(increments.step)  # chunk 1: queued through 1 + lookahead
+            queued = [c is not None for c in increments._chunks]
+            assert queued == [False] + [True] * (1 + _LOOKAHEAD_CHUNKS) + [False] * (
+                chunks - 2 - _LOOKAHEAD_CHUNKS
+            )
+        finally:
+            increments.close()
