@@ -27,9 +27,12 @@ Used by ``msf run``. Outputs in ``out_dir`` (each written atomically: temp file 
 - with ``exports`` (``msf run --export kitti,rosbag2``): ``trajectory.kitti`` and
   ``trajectory_times.txt`` (KITTI pose format, :mod:`msf_torch.io.kitti_poses`) and
   ``trajectory_rosbag2/`` (``nav_msgs/Odometry`` on ``/msf/odometry``, frame ``enu``,
-  child frame the sequence's body frame; stamped with the bag's time origin when the
-  sequence came from a bag; pose covariance and body velocity from the front end when
-  the trajectory is the front end's).
+  child frame the sequence's body frame, or, for a bag whose robot YAML names a body
+  frame other than the IMU's, the IMU's frame with the IMU's orientation: the estimate is
+  the body axes at the IMU's origin, i.e. exactly the IMU frame's pose, and tf relates
+  that to the body frame; stamped with the bag's time origin when the sequence came from
+  a bag; pose covariance and body velocity from the front end when the trajectory is the
+  front end's).
 
 Ctrl-C (SIGINT) during the front end or the smoother writes ``trajectory.tum`` (the epochs
 completed), ``diagnostics.csv`` and ``summary.json`` (with an ``interrupted`` entry saying
@@ -55,6 +58,7 @@ __all__ = [
 ]
 
 import csv
+import dataclasses
 import json
 import math
 import time
@@ -461,14 +465,45 @@ def _export(
             rows = torch.tensor([0, 1, 2, 6, 7, 8])
             covariance = result.covariance[:1, keep][..., rows[:, None], rows]
             velocity = result.velocity[:1, keep]
+        child = str(seq.meta.get("body_frame") or "base_link")
+        imu_frame = seq.meta.get("imu_frame")
+        if imu_frame and imu_frame != child:
+            # the estimate is the body axes at the IMU's origin: written as the IMU frame's
+            # own pose (R_world_imu = R_world_body R_body_imu), which tf relates to the body
+            estimate, covariance = _as_imu_frame(
+                estimate, covariance, seq.meta["body_imu_rotation"]
+            )
+            child = str(imu_frame)
         write_odometry_rosbag2(
             estimate,
             out_dir / "trajectory_rosbag2",
-            child_frame_id=str(seq.meta.get("body_frame") or "base_link"),
+            child_frame_id=child,
             time_origin_ns=int(seq.meta.get("time_origin_ns", 0)),
             covariance=covariance,
             velocity=velocity,
         )
+
+
+def _as_imu_frame(
+    estimate: Trajectory, covariance: torch.Tensor | None, body_imu_rotation: Any
+) -> tuple[Trajectory, torch.Tensor | None]:
+    """The estimate (body axes, origin at the IMU) as the IMU frame's pose.
+
+    Orientation ``R_world_imu = R_world_body R_body_imu``; the position is the IMU's
+    already; the covariance (1, N, 6, 6) over ``[dp (world), dtheta (body)]`` gets its
+    attitude rows and columns in IMU axes (``dtheta_imu = R_body_imu^T dtheta_body``). The
+    world velocity is the IMU origin's already.
+    """
+    from msf_torch.geometry.quaternion import matrix_to_quat, quat_to_matrix
+
+    body_imu = torch.as_tensor(body_imu_rotation, dtype=estimate.quaternion.dtype)
+    rotation = quat_to_matrix(estimate.quaternion) @ body_imu
+    moved = dataclasses.replace(estimate, quaternion=matrix_to_quat(rotation))
+    if covariance is None:
+        return moved, None
+    to_imu = torch.eye(6, dtype=covariance.dtype)
+    to_imu[3:, 3:] = body_imu.to(covariance.dtype).mT
+    return moved, to_imu @ covariance @ to_imu.mT
 
 
 class RunInterrupted(KeyboardInterrupt):

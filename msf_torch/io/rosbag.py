@@ -618,8 +618,8 @@ def read_rosbag(path: str | os.PathLike[str], layout: BagLayout, sort: bool = Fa
         ``poses``, ``ground_truth`` and named ``pose_sources``, in the body frame (module
         docstring); ``names == [bag stem]``; ``meta`` with ``source``, ``format``
         (``"rosbag1"`` / ``"rosbag2"``), ``time_origin_ns``, ``body_frame``,
-        ``imu_frame``, ``topics``, ``extrinsics``, ``gnss_origin``, ``references`` and the
-        cleaning counts.
+        ``imu_frame``, ``body_imu_rotation`` (3x3, the IMU's axes in the body frame),
+        ``topics``, ``extrinsics``, ``gnss_origin``, ``references`` and the cleaning counts.
 
     Raises:
         DataError: naming the bag and the sensor key (a missing topic, a wrong message
@@ -648,6 +648,7 @@ def read_rosbag(path: str | os.PathLike[str], layout: BagLayout, sort: bool = Fa
         "time_origin_ns": origin_ns,
         "body_frame": frames.body_frame,
         "imu_frame": frames.imu_frame,
+        "body_imu_rotation": frames.body_imu[:3, :3].tolist(),
         "topics": {},
         "extrinsics": {},
     }

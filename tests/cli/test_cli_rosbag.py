@@ -187,3 +187,68 @@ def test_config_check_of_a_robot_yaml_with_sensors_misspelt(tmp_path, capsys) ->
     assert main(["config", "check", str(bad)]) == 2
     line = next(i for i, row in enumerate(text.splitlines(), 1) if row == "sensor:")
     assert f"{bad}:{line}: field 'sensor': unknown key" in capsys.readouterr().err
+
+
+URDF_IMU = f"""<robot name="rover">
+  <link name="base_link"/><link name="gps_link"/><link name="imu_link"/>
+  <joint name="gps_joint" type="fixed"><parent link="base_link"/><child link="gps_link"/>
+    <origin xyz="{LEVER[0]} {LEVER[1]} {LEVER[2]}" rpy="0 0 0"/></joint>
+  <joint name="imu_joint" type="fixed"><parent link="base_link"/><child link="imu_link"/>
+    <origin xyz="0 0 0" rpy="0 0 1.5707963267948966"/></joint>
+</robot>
+"""
+
+
+def test_rosbag2_export_is_the_imu_frame_when_the_body_frame_is_another(tmp_path, capsys):
+    # the IMU turned 90 deg in yaw on base_link: the estimate is base_link's axes at the
+    # IMU's origin, so the export is the IMU frame's pose (R_world_imu = R R_body_imu),
+    # labelled imu_link, and tf relates it to base_link
+    from rosbags.rosbag2 import Reader
+    from rosbags.typesys import Stores, get_typestore
+
+    (tmp_path / "rover.urdf").write_text(URDF_IMU)
+    robot_yaml = tmp_path / "robot.yaml"
+    text = ROBOT.replace("urdf: rover.urdf", "urdf: rover.urdf\n  body: base_link")
+    robot_yaml.write_text(text.replace("frame: base_link}", "frame: imu_link}", 1))
+    robot = load_robot_config(robot_yaml)
+    seq = simulate_run(SimConfig(duration_s=12.0, slip_episodes=0, gnss_lever_arm_m=LEVER), 4)
+    bag = write_rosbag(
+        seq.sequence,
+        tmp_path / "run",
+        robot.layout,
+        version=2,
+        gnss_origin=robot.layout.gnss_origin,
+    )
+    out = tmp_path / "out"
+    args = ["run", str(bag), "--topics", str(robot_yaml), "--out", str(out), "--no-plot"]
+    assert main([*args, "--export", "rosbag2", "--no-learned", "--progress", "off"]) == 0
+    capsys.readouterr()
+    estimate = read_tum(out / "trajectory.tum")
+    store = get_typestore(Stores.ROS2_HUMBLE)
+    with Reader(out / "trajectory_rosbag2") as reader:
+        messages = [store.deserialize_cdr(raw, conn.msgtype) for conn, _, raw in reader.messages()]
+    assert len(messages) == estimate.length
+    assert {m.child_frame_id for m in messages} == {"imu_link"}
+    position = np.array(
+        [[m.pose.pose.position.x, m.pose.pose.position.y, m.pose.pose.position.z] for m in messages]
+    )
+    np.testing.assert_allclose(position, estimate.position[0].numpy(), atol=1e-12)
+    xyzw = np.array(
+        [
+            [
+                m.pose.pose.orientation.x,
+                m.pose.pose.orientation.y,
+                m.pose.pose.orientation.z,
+                m.pose.pose.orientation.w,
+            ]
+            for m in messages
+        ]
+    )
+    from scipy.spatial.transform import Rotation
+
+    body = Rotation.from_quat(estimate.quaternion[0].numpy()[:, [1, 2, 3, 0]])
+    expected = (body * Rotation.from_euler("z", 90, degrees=True)).as_matrix()
+    np.testing.assert_allclose(Rotation.from_quat(xyzw).as_matrix(), expected, atol=1e-9)
+    # the rotation covariance (about the world axes in ROS) does not depend on the label
+    cov = np.array([np.array(m.pose.covariance).reshape(6, 6) for m in messages])
+    assert np.all(np.linalg.eigvalsh(cov) > -1e-12) and cov[:, 5, 5].min() > 0
