@@ -142,7 +142,12 @@ def build_parser() -> argparse.ArgumentParser:
         default=None,
         help="default 3; with --weather, drawn from the ground friction of the schedule",
     )
-    sim.add_argument("--gnss-outages", type=int, default=1)
+    sim.add_argument(
+        "--gnss-outages",
+        type=int,
+        default=1,
+        help="GNSS outages in the run (default 1; 0 for none, e.g. for runs under about 45 s)",
+    )
     sim.add_argument(
         "--weather",
         action="store_true",
