@@ -561,6 +561,14 @@ class _Frames:
         """``T_body_sensor``: (4, 4), or (N, 4, 4) at times ``t`` when joints move it."""
         if self.tree is None:
             return torch.eye(4, dtype=torch.float64)
+        if raw.msgtype == "nav_msgs/msg/Odometry" and not (raw.spec.frame or raw.child_frame_id):
+            raise DataError(
+                self.path,
+                f"the nav_msgs/Odometry messages on '{raw.spec.topic}' have an empty "
+                "child_frame_id (the frame whose pose they give; header.frame_id is the parent "
+                f"frame): set sensors.{raw.spec.name}.frame",
+                field=f"sensors.{raw.spec.name}.frame",
+            )
         frame = self.sensor_frame(raw) or self.body_frame
         self._check_frame(frame, raw.spec.name)
         moving = self.tree.joints_between(self.body_frame, frame)

@@ -711,3 +711,63 @@ def test_fix_without_altitude_is_a_horizontal_fix(tmp_path: Path) -> None:
     assert sigma[0, 2] == UNFUSED_SIGMA and sigma[2, 2] == UNFUSED_SIGMA
     np.testing.assert_allclose(sigma[2, :2], [0.2, 0.3])
     assert np.isnan(sigma[1]).all()  # covariance UNKNOWN: the estimator's default
+
+
+def test_odometry_without_child_frame_needs_the_sensor_frame(tmp_path: Path) -> None:
+    """An Odometry's pose is that of its child_frame_id; header.frame_id is the parent. With
+    the child left empty and no ``frame`` for the sensor, the reader asks for one (it used to
+    take the parent frame and fail as an unknown frame)."""
+    store = _store(2)
+    t0 = 1_600_000_000_000_000_000
+    imu = [
+        (
+            t0 + k * 10_000_000,
+            _imu_msg(store, t0 + k * 10_000_000, "imu_link", [0, 0, 0], [0, 0, 9.81]),
+        )
+        for k in range(30)
+    ]
+    odometry = store.types["nav_msgs/msg/Odometry"]
+    with_cov = store.types["geometry_msgs/msg/PoseWithCovariance"]
+    twist = store.types["geometry_msgs/msg/TwistWithCovariance"](
+        twist=store.types["geometry_msgs/msg/Twist"](
+            linear=_v3(store, [0, 0, 0]), angular=_v3(store, [0, 0, 0])
+        ),
+        covariance=np.zeros(36),
+    )
+    poses = [
+        (
+            t0 + k * 100_000_000,
+            odometry(
+                header=_header(store, t0 + k * 100_000_000, "odom"),
+                child_frame_id="",
+                pose=with_cov(
+                    pose=_pose_msg(store, [0.1 * k, 0.0, 0.0], np.eye(3)),
+                    covariance=(np.eye(6) * 1e-4).reshape(36),
+                ),
+                twist=twist,
+            ),
+        )
+        for k in range(3)
+    ]
+    bag = _write_bag(
+        tmp_path / "odom_bag",
+        2,
+        {"/imu": ("sensor_msgs/msg/Imu", imu), "/vo": ("nav_msgs/msg/Odometry", poses)},
+    )
+    layout = BagLayout(
+        sensors=(SensorTopic("imu", "imu", "/imu"), SensorTopic("vo", "pose", "/vo")),
+        frames=FRAMES,
+        body_frame="base_link",
+    )
+    with pytest.raises(DataError, match="empty child_frame_id .* set sensors.vo.frame") as caught:
+        read_rosbag(bag, layout)
+    assert caught.value.field == "sensors.vo.frame"
+    named = dataclasses.replace(
+        layout,
+        sensors=(
+            SensorTopic("imu", "imu", "/imu"),
+            SensorTopic("vo", "pose", "/vo", frame="base_link"),
+        ),
+    )
+    seq = read_rosbag(bag, named)
+    assert seq.pose_sources["vo"].t.shape[-1] == 3
