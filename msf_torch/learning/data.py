@@ -54,7 +54,7 @@ import torch
 from torch.utils.data import DataLoader
 
 from msf_torch.frontend.config import config_for_sequence, load_config
-from msf_torch.io import load_sequence
+from msf_torch.io import DataError, load_sequence
 from msf_torch.learning.features import RunFeatures, pose_source_of, run_features
 from msf_torch.sim import (
     SimConfig,
@@ -208,8 +208,12 @@ class RunDataModule(L.LightningDataModule):
     """Train / val / test runs (files or simulated) as :class:`RunBatch` batches.
 
     Args:
-        train_files, val_files, test_files: runs to load per split; an empty list means
-            simulated runs for that split.
+        train_files, val_files, test_files: runs to load per split (any format
+            :func:`~msf_torch.io.load_sequence` reads); each needs ground truth covering its
+            IMU span to within one window and more than ``window_length`` IMU samples
+            (``setup`` raises :class:`~msf_torch.io.DataError` naming the file otherwise);
+            ``weather:<c>`` labels are optional (unlabelled windows add no weather loss).
+            An empty list means simulated runs for that split.
         train_runs, val_runs, test_runs: simulated runs per split (< ``SPLIT_SEED_STRIDE``).
         duration_s: simulated run length, s.
         imu_rate_hz: simulated IMU rate, Hz.
@@ -282,9 +286,50 @@ class RunDataModule(L.LightningDataModule):
         offset = self.seed + SPLITS.index(split) * SPLIT_SEED_STRIDE
         return [offset + i for i in range(self.counts[split])]
 
+    def _load(self, path: str) -> Sequence:
+        """One run of a file list, checked for what training needs.
+
+        Raises:
+            DataError: naming the file: it has no ground truth (field ``ground_truth``), the
+                ground truth does not cover the IMU span (start or end more than one window
+                away), or the run has no more than ``window_length`` IMU samples (field
+                ``imu``).
+        """
+        seq = load_sequence(path)
+        imu_t = seq.imu.compact().t[0]
+        if imu_t.numel() <= self.window_length:
+            raise DataError(
+                path,
+                f"{imu_t.numel()} IMU samples, training needs more than window_length = "
+                f"{self.window_length} (one window)",
+                field="imu",
+            )
+        truth = seq.ground_truth
+        if truth is None or int(truth.counts()[0]) < 2:
+            raise DataError(
+                path,
+                "no ground truth (at least 2 samples): training scores the filter against it "
+                "(native .npz keys ground_truth/t, ground_truth/position, "
+                "ground_truth/quaternion; native folder ground_truth.csv)",
+                field="ground_truth",
+            )
+        truth_t = truth.compact().t[0]
+        window_s = float(imu_t[self.window_length] - imu_t[0])
+        start_gap, end_gap = float(truth_t[0] - imu_t[0]), float(imu_t[-1] - truth_t[-1])
+        if max(start_gap, end_gap) > window_s:
+            raise DataError(
+                path,
+                f"ground truth spans {float(truth_t[0]):.3f}-{float(truth_t[-1]):.3f} s, the "
+                f"IMU {float(imu_t[0]):.3f}-{float(imu_t[-1]):.3f} s: more than one window "
+                f"({window_s:.3f} s) of the run would be scored against a held pose "
+                "(crop the run to the ground truth's span)",
+                field="ground_truth",
+            )
+        return seq
+
     def _build(self, split: str) -> list[tuple[Sequence, RunFeatures]]:
         if self.files[split]:
-            sequences = [load_sequence(path) for path in self.files[split]]
+            sequences = [self._load(path) for path in self.files[split]]
         else:
             sequences = [
                 simulate_labelled_run(
@@ -311,8 +356,36 @@ class RunDataModule(L.LightningDataModule):
             for seq in sequences
         ]
 
+    def check_model(self) -> None:
+        """Compare the window length, pose sources and weather classes with the trainer's
+        model's ``CovNetConfig`` (a model without a ``net`` CovNet, or no trainer: nothing
+        to compare).
+
+        Raises:
+            ValueError: naming the ``data.*`` and ``model.covnet.*`` keys that differ.
+        """
+        net = getattr(getattr(self.trainer, "lightning_module", None), "net", None)
+        config = getattr(net, "config", None)
+        if config is None:
+            return
+        differ = [
+            f"data.{key} = {ours} but model.covnet.{key} = {theirs}"
+            for key, ours, theirs in (
+                ("window_length", self.window_length, config.window_length),
+                ("pose_sources", list(self.pose_sources), list(config.pose_sources)),
+                ("weather_classes", list(self.weather_classes), list(config.weather_classes)),
+            )
+            if ours != theirs
+        ]
+        if differ:
+            raise ValueError(
+                "RunDataModule: " + "; ".join(differ) + " (set both to the same value)"
+            )
+
     def setup(self, stage: str | None = None) -> None:
-        """Build (once) the runs of the splits that ``stage`` needs."""
+        """Build (once) the runs of the splits that ``stage`` needs, after
+        :meth:`check_model`."""
+        self.check_model()
         needed = {"fit": ("train", "val"), "validate": ("val",), "test": ("test",)}
         for split in needed.get(stage or "", SPLITS):
             if split not in self.runs:

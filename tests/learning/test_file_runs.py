@@ -1,0 +1,159 @@
+"""Training on the user's own recorded runs: RunDataModule file lists, their checks, and the
+trained checkpoint applied with ``msf run --checkpoint``."""
+
+from __future__ import annotations
+
+import dataclasses
+import importlib.util
+import json
+import sys
+from pathlib import Path
+
+import lightning as L
+import pytest
+import torch
+from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+from msf_torch.cli import main as msf_main
+from msf_torch.io import DataError
+from msf_torch.io.native import write_native
+from msf_torch.learning import CovNetConfig, load_checkpoint
+from msf_torch.learning.data import RunDataModule, simulate_labelled_run
+from msf_torch.learning.features import run_features
+from msf_torch.learning.module import CovNetModule
+
+ROOT = Path(__file__).resolve().parents[2]
+SMOKE = ROOT / "training" / "configs" / "smoke.yaml"
+TRAIN = ROOT / "training" / "train.py"
+WEATHER = ("sunny", "rain", "fog", "night", "snow")
+
+
+@pytest.fixture(scope="module")
+def recorded(tmp_path_factory) -> dict[str, Path]:
+    """Three 4-s labelled runs written as native .npz files (the user's recordings)."""
+    folder = tmp_path_factory.mktemp("recorded")
+    paths = {}
+    for name, seed in (("field_a", 11), ("field_b", 12), ("field_c", 13)):
+        paths[name] = write_native(simulate_labelled_run(seed, 4.0), folder / f"{name}.npz")
+    return paths
+
+
+def _module(train: list[Path], val: list[Path]) -> RunDataModule:
+    return RunDataModule(train_files=[str(p) for p in train], val_files=[str(p) for p in val])
+
+
+def test_file_lists_load_the_files_not_simulated_runs(recorded) -> None:
+    data = _module([recorded["field_a"], recorded["field_b"]], [recorded["field_c"]])
+    data.setup("fit")
+    assert data.split_seeds("train") == [] and data.split_seeds("val") == []
+    assert [s.names[0] for s, _ in data.runs["train"]] == ["field_a", "field_b"]
+    assert [s.names[0] for s, _ in data.runs["val"]] == ["field_c"]
+    # the weather labels come from the file: same windows as the in-memory run
+    reference = run_features(simulate_labelled_run(13, 4.0), 100, ("gnss", "vo", "lidar"), WEATHER)
+    assert torch.equal(data.runs["val"][0][1].weather, reference.weather)
+    assert bool((reference.weather < len(WEATHER)).any())
+
+
+def test_run_without_ground_truth_is_named_with_its_field(recorded, tmp_path) -> None:
+    seq = dataclasses.replace(simulate_labelled_run(11, 4.0), ground_truth=None)
+    bare = write_native(seq, tmp_path / "no_truth.npz")
+    data = _module([recorded["field_a"], bare], [recorded["field_c"]])
+    with pytest.raises(DataError, match="no ground truth") as err:
+        data.setup("fit")
+    assert err.value.path == str(bare) and err.value.field == "ground_truth"
+
+
+def test_ground_truth_that_stops_early_is_an_error(tmp_path) -> None:
+    seq = simulate_labelled_run(11, 4.0)
+    # truth for the first 2 s of a 4 s run: 2 s short, windows are 1 s (100 samples, 100 Hz)
+    half = seq.ground_truth.map(lambda x: x[:, :201])
+    part = write_native(dataclasses.replace(seq, ground_truth=half), tmp_path / "part.npz")
+    with pytest.raises(DataError, match=r"ground truth spans 0\.000-2\.000 s") as err:
+        _module([part], [part]).setup("fit")
+    assert err.value.path == str(part) and err.value.field == "ground_truth"
+    # one IMU sample short of the end is within one window: accepted
+    most = seq.ground_truth.map(lambda x: x[:, :-1])
+    fine = write_native(dataclasses.replace(seq, ground_truth=most), tmp_path / "most.npz")
+    _module([fine], [fine]).setup("fit")
+
+
+def test_run_shorter_than_one_window_is_named(recorded, tmp_path) -> None:
+    seq = simulate_labelled_run(11, 4.0)
+    short = dataclasses.replace(seq, imu=seq.imu.map(lambda x: x[:, :100]))
+    path = write_native(short, tmp_path / "short.npz")
+    with pytest.raises(DataError, match="100 IMU samples") as err:
+        _module([path], [recorded["field_c"]]).setup("fit")
+    assert err.value.path == str(path) and err.value.field == "imu"
+
+
+def test_missing_file_is_named(recorded, tmp_path) -> None:
+    missing = tmp_path / "nowhere.npz"
+    with pytest.raises(DataError, match="no such file") as err:
+        _module([missing], [recorded["field_c"]]).setup("fit")
+    assert err.value.path == str(missing)
+
+
+def test_fit_on_files_then_msf_run_with_the_checkpoint(
+    recorded, tmp_path, monkeypatch, capsys
+) -> None:
+    monkeypatch.setattr(sys, "argv", [str(TRAIN)])  # the CLI reads only ``args``
+    spec = importlib.util.spec_from_file_location("train_script", TRAIN)
+    train = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(train)
+    train.main(
+        [
+            "fit",
+            "--config",
+            str(SMOKE),
+            f"--data.train_files=[{recorded['field_a']}, {recorded['field_b']}]",
+            f"--data.val_files=[{recorded['field_c']}]",
+            f"--trainer.logger.init_args.save_dir={tmp_path}",
+            f"--trainer.default_root_dir={tmp_path}",
+        ]
+    )
+    (log_dir,) = sorted((tmp_path / "smoke").iterdir())
+    events = EventAccumulator(str(log_dir), size_guidance={"scalars": 0, "images": 0})
+    events.Reload()
+    assert {"train/loss", "val/loss", "val/weather_accuracy"} <= set(events.Tags()["scalars"])
+    assert events.Tags()["images"] == ["val_trajectory/field_c"]  # validated on the file
+    checkpoint = log_dir / "covnet.pt"
+    plain = torch.load(checkpoint, weights_only=True)
+    assert set(plain) == {"format", "config", "state_dict"}
+    assert load_checkpoint(checkpoint).config.window_length == 100
+    code = msf_main(
+        [
+            "run",
+            str(recorded["field_c"]),
+            "--checkpoint",
+            str(checkpoint),
+            "--out",
+            str(tmp_path / "out"),
+            "--no-plot",
+            "--progress",
+            "off",
+        ]
+    )
+    assert code == 0
+    summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert summary["noise"] == "learned"
+    assert summary["learned"]["checkpoint"] == str(checkpoint)
+    assert summary["learned"]["windows"] == 4  # (401 - 1) // 100
+
+
+def test_window_length_differing_from_the_model_is_named_before_loading(tmp_path) -> None:
+    data = RunDataModule(train_files=[str(tmp_path / "unread.npz")], window_length=100)
+    module = CovNetModule(CovNetConfig(window_length=50, pose_sources=("gnss",)))
+    trainer = L.Trainer(
+        accelerator="cpu",
+        max_epochs=1,
+        logger=False,
+        enable_checkpointing=False,
+        enable_progress_bar=False,
+        enable_model_summary=False,
+    )
+    message = (
+        r"data.window_length = 100 but model.covnet.window_length = 50; "
+        r"data.pose_sources = \['gnss', 'vo', 'lidar'\] but model.covnet.pose_sources = \['gnss'\]"
+    )
+    with pytest.raises(ValueError, match=message):  # not the DataError of the unread file
+        trainer.fit(module, datamodule=data)
