@@ -51,6 +51,7 @@ from typing import Any
 import lightning as L
 import numpy as np
 import torch
+import yaml
 from torch.utils.data import DataLoader
 
 from msf_torch.frontend.config import config_for_sequence, load_config
@@ -223,7 +224,8 @@ class RunDataModule(L.LightningDataModule):
         gnss_outage_count, gnss_outage_duration_s: random GNSS outages per simulated run
             (:func:`simulate_labelled_run`).
         eskf_config: YAML of filter settings for the reference pass that gives the
-            innovation features (as the module's ``eskf_config``; None = defaults).
+            innovation features (as the module's ``eskf_config``; None = defaults); a run's
+            metadata fills the keys the file leaves out, as in ``msf run --config``.
         seed: base seed of the simulated runs.
         batch_size: runs per batch.
         window_length: L, IMU samples per CovNet window (``CovNetConfig.window_length``).
@@ -271,6 +273,10 @@ class RunDataModule(L.LightningDataModule):
         self.gnss_outage_count = gnss_outage_count
         self.gnss_outage_duration_s = tuple(gnss_outage_duration_s)
         self.eskf_base = load_config(eskf_config)
+        self.eskf_explicit: set[str] = set()
+        if eskf_config is not None:
+            with open(eskf_config, encoding="utf-8") as handle:
+                self.eskf_explicit = set(yaml.safe_load(handle) or {})
         self.seed = seed
         self.batch_size = batch_size
         self.window_length = window_length
@@ -350,7 +356,7 @@ class RunDataModule(L.LightningDataModule):
                     self.window_length,
                     self.pose_sources,
                     self.weather_classes,
-                    cfg=config_for_sequence(self.eskf_base, seq.meta, set()),
+                    cfg=config_for_sequence(self.eskf_base, seq.meta, self.eskf_explicit),
                 ),
             )
             for seq in sequences
@@ -358,14 +364,14 @@ class RunDataModule(L.LightningDataModule):
 
     def check_model(self) -> None:
         """Compare the window length, pose sources and weather classes with the trainer's
-        model's ``CovNetConfig`` (a model without a ``net`` CovNet, or no trainer: nothing
-        to compare).
+        model's ``CovNetConfig``, and the filter settings of ``eskf_config`` with the
+        model's (a model without a ``net`` CovNet, or no trainer: nothing to compare).
 
         Raises:
-            ValueError: naming the ``data.*`` and ``model.covnet.*`` keys that differ.
+            ValueError: naming the ``data.*`` and ``model.*`` keys that differ.
         """
-        net = getattr(getattr(self.trainer, "lightning_module", None), "net", None)
-        config = getattr(net, "config", None)
+        model = getattr(self.trainer, "lightning_module", None)
+        config = getattr(getattr(model, "net", None), "config", None)
         if config is None:
             return
         differ = [
@@ -377,6 +383,13 @@ class RunDataModule(L.LightningDataModule):
             )
             if ours != theirs
         ]
+        theirs = (getattr(model, "eskf_base", None), getattr(model, "eskf_explicit", None))
+        if theirs[0] is not None and theirs != (self.eskf_base, self.eskf_explicit):
+            differ.append(
+                "data.eskf_config and model.eskf_config give different filter settings "
+                "(the reference pass that feeds the network and the filter it trains through; "
+                "msf run uses one --config for both)"
+            )
         if differ:
             raise ValueError(
                 "RunDataModule: " + "; ".join(differ) + " (set both to the same value)"

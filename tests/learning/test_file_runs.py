@@ -15,6 +15,7 @@ import torch
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
 from msf_torch.cli import main as msf_main
+from msf_torch.frontend.config import config_for_sequence, load_config
 from msf_torch.io import DataError
 from msf_torch.io.native import write_native
 from msf_torch.learning import CovNetConfig, load_checkpoint
@@ -157,3 +158,39 @@ def test_window_length_differing_from_the_model_is_named_before_loading(tmp_path
     )
     with pytest.raises(ValueError, match=message):  # not the DataError of the unread file
         trainer.fit(module, datamodule=data)
+
+
+def test_reference_pass_keeps_the_keys_the_eskf_yaml_sets(recorded, tmp_path) -> None:
+    # the run's metadata gives the IMU noise (gyro 9.9e-5); the YAML sets 50x that, which
+    # msf run --config and the module's filter keep, so the features' reference pass must too
+    config = tmp_path / "robot.yaml"
+    config.write_text("gyro_noise_density: 5.0e-3\n")
+    data = RunDataModule(
+        train_files=[str(recorded["field_a"])],
+        val_files=[str(recorded["field_a"])],
+        eskf_config=str(config),
+    )
+    data.setup("fit")
+    seq = data.runs["train"][0][0]
+    base = load_config(str(config))
+    kept = config_for_sequence(base, seq.meta, {"gyro_noise_density"})
+    overridden = config_for_sequence(base, seq.meta, set())
+    assert kept.gyro_noise_density == 5.0e-3 != overridden.gyro_noise_density
+    sources, stats = ("gnss", "vo", "lidar"), data.runs["train"][0][1].residual_stats
+    want = run_features(seq, 100, sources, WEATHER, cfg=kept).residual_stats
+    other = run_features(seq, 100, sources, WEATHER, cfg=overridden).residual_stats
+    assert not torch.equal(want, other)
+    assert torch.equal(stats, want)
+
+
+def test_eskf_config_differing_from_the_model_is_named(tmp_path) -> None:
+    config = tmp_path / "robot.yaml"
+    config.write_text("gyro_noise_density: 5.0e-3\n")
+    data = RunDataModule(train_files=[str(tmp_path / "unread.npz")])  # default settings
+    module = CovNetModule(eskf_config=str(config))
+    trainer = L.Trainer(accelerator="cpu", max_epochs=1, logger=False, enable_progress_bar=False)
+    with pytest.raises(ValueError, match="data.eskf_config and model.eskf_config"):
+        trainer.fit(module, datamodule=data)
+    same = RunDataModule(train_files=[str(tmp_path / "unread.npz")], eskf_config=str(config))
+    with pytest.raises(DataError, match="unread.npz"):  # the check passes; the file is next
+        trainer.fit(module, datamodule=same)
