@@ -4,9 +4,7 @@ trained checkpoint applied with ``msf run --checkpoint``."""
 from __future__ import annotations
 
 import dataclasses
-import importlib.util
 import json
-import sys
 from pathlib import Path
 
 import lightning as L
@@ -25,7 +23,6 @@ from msf_torch.learning.module import CovNetModule
 
 ROOT = Path(__file__).resolve().parents[2]
 SMOKE = ROOT / "training" / "configs" / "smoke.yaml"
-TRAIN = ROOT / "training" / "train.py"
 WEATHER = ("sunny", "rain", "fog", "night", "snow")
 
 
@@ -95,13 +92,9 @@ def test_missing_file_is_named(recorded, tmp_path) -> None:
 
 
 def test_fit_on_files_then_msf_run_with_the_checkpoint(
-    recorded, tmp_path, monkeypatch, capsys
+    recorded, tmp_path, train_script, capsys
 ) -> None:
-    monkeypatch.setattr(sys, "argv", [str(TRAIN)])  # the CLI reads only ``args``
-    spec = importlib.util.spec_from_file_location("train_script", TRAIN)
-    train = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(train)
-    train.main(
+    train_script.main(
         [
             "fit",
             "--config",

@@ -6,8 +6,6 @@ chunks, and the LightningCLI config."""
 from __future__ import annotations
 
 import dataclasses
-import importlib.util
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -172,12 +170,8 @@ def test_drive_scales_are_chunk_means_in_outage_only(drive) -> None:
         torch.testing.assert_close(scales[block], expected.expand(5, 7).double())
 
 
-def test_kitti_yaml_builds_through_the_training_cli(monkeypatch) -> None:
-    monkeypatch.setattr(sys, "argv", ["train.py"])
-    spec = importlib.util.spec_from_file_location("train_script", ROOT / "training" / "train.py")
-    train = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(train)
-    cli = train.main(["--config", str(KITTI_YAML)], run=False)
+def test_kitti_yaml_builds_through_the_training_cli(train_script) -> None:
+    cli = train_script.main(["--config", str(KITTI_YAML)], run=False)
     assert isinstance(cli.model, KittiCovNetModule) and isinstance(cli.datamodule, KittiDataModule)
     assert cli.model.weights["orientation"] == 0.0 and cli.model.chunk_windows == 5
     assert cli.datamodule.fix_ranges(470) == {
@@ -189,17 +183,13 @@ def test_kitti_yaml_builds_through_the_training_cli(monkeypatch) -> None:
 
 @pytest.mark.slow
 def test_kitti_fit_through_cli_writes_a_loadable_network(
-    drive, tmp_path: Path, monkeypatch
+    drive, tmp_path: Path, train_script
 ) -> None:
     from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
     from msf_torch.learning import load_checkpoint
 
-    monkeypatch.setattr(sys, "argv", ["train.py"])
-    spec = importlib.util.spec_from_file_location("train_script", ROOT / "training" / "train.py")
-    train = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(train)
-    train.main(
+    train_script.main(
         [
             "fit",
             "--config",

@@ -4,7 +4,6 @@ loss going down on a fixed problem, the data module's seeds, windows and labels.
 from __future__ import annotations
 
 import dataclasses
-import importlib.util
 import math
 import os
 import subprocess
@@ -47,12 +46,8 @@ def _version_dir(save_dir: Path, name: str) -> Path:
     return version
 
 
-def test_smoke_fit_through_cli_logs_expected_tags(tmp_path: Path, monkeypatch) -> None:
-    monkeypatch.setattr(sys, "argv", [str(TRAIN)])  # the CLI reads only ``args``
-    spec = importlib.util.spec_from_file_location("train_script", TRAIN)
-    train = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(train)
-    train.main(
+def test_smoke_fit_through_cli_logs_expected_tags(tmp_path: Path, train_script) -> None:
+    train_script.main(
         [
             "fit",
             "--config",
