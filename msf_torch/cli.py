@@ -369,7 +369,6 @@ def _cmd_run(args) -> dict[str, Any]:
 
 def _cmd_run_batch(args) -> dict[str, Any]:
     """``msf run A B ...``: one batched front-end run (``runner.run_batch``)."""
-    import dataclasses
 
     from msf_torch.runner import RunOptions, run_batch
 
@@ -380,12 +379,8 @@ def _cmd_run_batch(args) -> dict[str, Any]:
     loaded = [_load(args, source) for source in args.sequence]
     _, cfg, first = loaded[0]
     for _, other, source in loaded[1:]:
-        if other != cfg:
-            differ = [
-                f.name
-                for f in dataclasses.fields(cfg)
-                if getattr(cfg, f.name) != getattr(other, f.name)
-            ]
+        differ = other.differing_keys(cfg)
+        if differ:
             raise ValueError(
                 f"the sequences of one batch need one front-end config, but {source} differs "
                 f"from {first} in {', '.join(differ)} (each sequence's metadata can set "
@@ -483,7 +478,6 @@ def _cmd_simulate(args) -> dict[str, Any]:
 
 def _cmd_config(args) -> dict[str, Any]:
     """``msf config check FILE``: a robot config (top-level ``sensors``) or a front-end one."""
-    import dataclasses
 
     from msf_torch.backend.window import load_smoother_config
     from msf_torch.frontend.config import EskfConfig, load_config
@@ -497,12 +491,7 @@ def _cmd_config(args) -> dict[str, Any]:
         return {"ok": True, "kind": "robot", **robot.summary()}
     cfg = load_config(args.file)
     load_smoother_config(args.file)
-    default = EskfConfig()
-    changed = {
-        f.name: getattr(cfg, f.name)
-        for f in dataclasses.fields(cfg)
-        if getattr(cfg, f.name) != getattr(default, f.name)
-    }
+    changed = {key: getattr(cfg, key) for key in cfg.differing_keys(EskfConfig())}
     return {"ok": True, "kind": "frontend", "file": str(args.file), "estimator": changed}
 
 

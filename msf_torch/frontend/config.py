@@ -191,6 +191,14 @@ class EskfConfig:
         """A copy with ``changes`` applied (names are checked)."""
         return dataclasses.replace(self, **changes)
 
+    def differing_keys(self, other: EskfConfig) -> list[str]:
+        """Names of the settings whose values differ from ``other``'s, in field order."""
+        return [
+            f.name
+            for f in dataclasses.fields(self)
+            if getattr(self, f.name) != getattr(other, f.name)
+        ]
+
     def validate(self) -> None:
         """Raise ``ValueError`` naming the first bad key."""
         self._validate_types()

@@ -192,6 +192,13 @@ def _imu_msg(store, stamp, frame, gyro, accel):
     )
 
 
+def _still_imu(store, t0: int, frame: str, count: int, gravity: float) -> list:
+    """``count`` Imu messages at 100 Hz from ``t0`` (ns) of a still IMU: zero rate, specific
+    force ``[0, 0, gravity]``; ``(stamp, message)`` pairs for :func:`_write_bag`."""
+    stamps = [t0 + k * 10_000_000 for k in range(count)]
+    return [(t, _imu_msg(store, t, frame, [0, 0, 0], [0, 0, gravity])) for t in stamps]
+
+
 def _fix_msg(store, stamp, frame, lat, lon, alt, status=0, cov=None):
     return store.types["sensor_msgs/msg/NavSatFix"](
         header=_header(store, stamp, frame),
@@ -491,13 +498,7 @@ def test_pan_camera_with_joint_states(tmp_path: Path) -> None:
     tree = FrameTree.from_urdf(urdf)
     store = _store(2)
     t0 = 1_000_000_000
-    imu = [
-        (
-            t0 + k * 10_000_000,
-            _imu_msg(store, t0 + k * 10_000_000, "base_link", [0, 0, 0], [0, 0, 9.8]),
-        )
-        for k in range(40)
-    ]
+    imu = _still_imu(store, t0, "base_link", 40, 9.8)
     state = store.types["sensor_msgs/msg/JointState"]
     # pan angle 0.5 t (t in s after t0), published at 10 Hz
     joints = [
@@ -569,10 +570,7 @@ def test_pan_camera_with_joint_states(tmp_path: Path) -> None:
 def test_twist_wheels_and_time_offset(tmp_path: Path) -> None:
     store = _store(1)
     t0 = 5_000_000_000
-    imu = [
-        (t0 + k * 10_000_000, _imu_msg(store, t0 + k * 10_000_000, "imu", [0, 0, 0], [0, 0, 9.8]))
-        for k in range(10)
-    ]
+    imu = _still_imu(store, t0, "imu", 10, 9.8)
     twist = store.types["geometry_msgs/msg/TwistStamped"]
     tw = store.types["geometry_msgs/msg/Twist"]
     twists = [
@@ -676,10 +674,7 @@ def test_fix_without_altitude_is_a_horizontal_fix(tmp_path: Path) -> None:
     up component is not fused, and the origin's altitude comes from the first fix with one."""
     store = _store(2)
     t0 = 1_650_000_000_000_000_000
-    imu = [
-        (t0 + k * 10_000_000, _imu_msg(store, t0 + k * 10_000_000, "imu", [0, 0, 0], [0, 0, 9.8]))
-        for k in range(40)
-    ]
+    imu = _still_imu(store, t0, "imu", 40, 9.8)
     nan = float("nan")
     fixes = [
         (t0, _fix_msg(store, t0, "gps", 49.0, 8.4, nan)),
@@ -719,13 +714,7 @@ def test_odometry_without_child_frame_needs_the_sensor_frame(tmp_path: Path) -> 
     take the parent frame and fail as an unknown frame)."""
     store = _store(2)
     t0 = 1_600_000_000_000_000_000
-    imu = [
-        (
-            t0 + k * 10_000_000,
-            _imu_msg(store, t0 + k * 10_000_000, "imu_link", [0, 0, 0], [0, 0, 9.81]),
-        )
-        for k in range(30)
-    ]
+    imu = _still_imu(store, t0, "imu_link", 30, 9.81)
     odometry = store.types["nav_msgs/msg/Odometry"]
     with_cov = store.types["geometry_msgs/msg/PoseWithCovariance"]
     twist = store.types["geometry_msgs/msg/TwistWithCovariance"](
