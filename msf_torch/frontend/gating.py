@@ -590,7 +590,9 @@ def detect_source_faults(
         t_state = torch.where(here, now, t_state)
         seen = seen | here
         good = seen & ~new_flagged
-        sync = new_flagged & good.any(-1, keepdim=True)
+        # only a sequence with a sample at this epoch: another sequence's epochs must not move
+        # it (two syncs of one model with two healthy ones differ from one sync later)
+        sync = new_flagged & good.any(-1, keepdim=True) & here.any(-1, keepdim=True)
         if bool(sync.any()):
             lag = (now - t_state).clamp_min(0.0)
             cov_now = cov + torch.diag_embed(q_rate * lag[..., None])

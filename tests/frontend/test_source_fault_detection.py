@@ -216,6 +216,29 @@ def test_batch_equals_each_sequence_alone():
     assert bool(both.flagged[0, 32:50, 1].all()) and bool(both.flagged[1, 82:100, 1].all())
 
 
+def test_batch_member_without_pairs_at_an_epoch_is_not_moved_by_the_others():
+    """Three sources, the second frozen; the first run has no pair at all at every other
+    epoch of its fault while the second run has pairs at every epoch. The excluded model is
+    re-synchronised only at its own run's epochs: its Z scores equal those of the run alone
+    (a sync at the other run's epochs used to change them by up to 0.7)."""
+
+    def three(freeze, seed):
+        x, y = _synthetic(freeze, seed=seed), _synthetic(None, seed=seed + 100)
+        pairs = zip(x, y, strict=True)
+        return [u if u.dim() == 2 else torch.cat((u, v[:, :, :1]), 2) for u, v in pairs]
+
+    gappy = three((30, 60), 4)
+    gappy[-1] = gappy[-1].clone()
+    gappy[-1][:, 33:58:2] = False
+    both = detect_source_faults(
+        *(torch.cat((a, b), 0) for a, b in zip(gappy, three(None, 5), strict=True))
+    )
+    alone = detect_source_faults(*gappy)
+    assert bool(alone.flagged[0, 32:60, 1].all())
+    assert torch.equal(both.flagged[0], alone.flagged[0])
+    torch.testing.assert_close(both.z[0], alone.z[0], rtol=1e-12, atol=1e-12)
+
+
 def test_weight_gradient_is_the_surrogate_gradient():
     """d(sum of weights)/d(noise scale) by autograd equals central finite differences of the
     surrogate sum(sigmoid((z_gate - z) / tau)), decisions held (they do not flip)."""
