@@ -186,8 +186,9 @@ def error_compensation_fusion(
         max_correlation: bound on ``|P_ij| / sqrt(P_i P_j)``.
         passes: re-linearisations at the fused attitude.
     Returns:
-        :class:`FusedAttitude`; its covariance is diagonal, the per-axis BLUE variance
-        ``1 / (1^T Sigma^-1 1)`` (world attitude axes, body rate axes).
+        :class:`FusedAttitude`; its covariance is diagonal, per axis the variance
+        ``w^T Sigma w`` of the weights used (world attitude axes, body rate axes): the BLUE
+        variance ``1 / (1^T Sigma^-1 1)`` where no weight was clipped, more where one was.
     """
     _check(quats, rates)
     n_imu = quats.shape[-2]
@@ -199,15 +200,16 @@ def error_compensation_fusion(
     sigma = torch.where(eye, var_i.expand_as(cross), cross).movedim(-1, -3)  # (..., 6, N, N)
     ones = torch.ones(*sigma.shape[:-1], 1, dtype=quats.dtype, device=quats.device)
     solved = torch.linalg.solve(sigma, ones)[..., 0]  # (..., 6, N)
-    blue_var = 1.0 / solved.sum(-1)
     weights = solved.clamp_min(0.0)
-    weights = (weights / weights.sum(-1, keepdim=True)).movedim(-2, -1)  # (..., N, 6)
+    weights = weights / weights.sum(-1, keepdim=True)  # (..., 6, N)
+    fused_var = (weights[..., None, :] @ sigma @ weights[..., :, None])[..., 0, 0]
+    weights = weights.movedim(-2, -1)  # (..., N, 6)
     reference = quats[..., 0, :]
     for _ in range(passes):
         theta = _qlog(_qmul(quats, _qconj(reference)[..., None, :]))  # world side
         reference = _qmul(_qexp((weights[..., :3] * theta).sum(-2)), reference)
     rate = (weights[..., 3:] * rates).sum(-2)
-    return FusedAttitude(_canonical(reference), rate, torch.diag_embed(blue_var))
+    return FusedAttitude(_canonical(reference), rate, torch.diag_embed(fused_var))
 
 
 def weighted_fusion(

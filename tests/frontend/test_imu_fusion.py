@@ -110,6 +110,9 @@ def test_error_compensation_never_extrapolates():
         _z_rotations(angles), torch.zeros(1, 2, 3, dtype=DTYPE), cov, c
     )
     assert float(quat_log(fused.quaternion)[0, 2]) == pytest.approx(0.0, abs=1e-12)
+    # the fused attitude is x1 on that axis: its variance is P1 (the clipped BLUE's
+    # 1 / (1^T Sigma^-1 1) = 2.45e-6 would be 40 times too confident)
+    assert float(fused.covariance[0, 2, 2]) == pytest.approx(1e-4, rel=1e-10)
 
 
 def test_weighted_fusion_per_axis():
