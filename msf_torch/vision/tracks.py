@@ -16,9 +16,9 @@ complement). Two ways in:
   observations and a nearly unaccelerated IMU leave open), from the odometry itself: the
   odometry's
   keyframe poses and stereo map points, turned into a gravity-aligned world by the mean
-  specific force over the first ``init_window_s`` (roll and pitch stay free in the
-  solve), velocities by central differences of the odometry positions, zero biases; then
-  one batched LM solve with the landmarks eliminated.
+  specific force over ``init_window_s`` from the first keyframe inside the IMU span (roll
+  and pitch stay free in the solve), velocities by central differences of the odometry
+  positions, zero biases; then one batched LM solve with the landmarks eliminated.
 """
 
 from __future__ import annotations
@@ -154,15 +154,16 @@ def bundle_adjust(
         imu_noise: IMU noise densities.
         pixel_sigma: feature sigma, px.
         min_observations: keyframe observations a landmark needs.
-        init_window_s: accelerometer averaging for the initial roll and pitch, s.
+        init_window_s: accelerometer averaging for the initial roll and pitch, from the
+            first keyframe inside the IMU span, s.
         lm: LM settings (default: 30 iterations, landmarks eliminated).
         prior: first-state prior sigmas (:func:`~msf_torch.backend.vio.first_state_prior`).
         kernel: robust kernel of the reprojection factors (default Huber at 2.45 sigma).
     Returns:
         :class:`VisualInertialBa`.
     Raises:
-        ValueError: B is not 1, fewer than two keyframes lie in the IMU span, or no
-            landmark has enough observations.
+        ValueError: B is not 1, fewer than two keyframes lie in the IMU span, no IMU
+            sample lies in the gravity window, or no landmark has enough observations.
     """
     if imu.batch_size != 1:
         raise ValueError(f"bundle_adjust: needs B = 1 IMU samples, got B = {imu.batch_size}")
@@ -177,9 +178,18 @@ def bundle_adjust(
     frames = np.nonzero(result.keyframe & result.valid & (result.t >= t0) & (result.t <= t1))[0]
     if len(frames) < 2:
         raise ValueError(f"bundle_adjust: {len(frames)} keyframes in the IMU span, need 2")
-    start = result.t[0]
+    # gravity in the body at the first keyframe inside the IMU span, carried to the
+    # odometry frame by that keyframe's attitude (the IMU may start after the odometry)
+    first = frames[0]
+    start = result.t[first]
     rest = (imu_t >= start) & (imu_t <= start + init_window_s)
-    to_world = gravity_aligned_rotation(accel[rest].mean(0)).numpy()
+    if not bool(rest.any()):
+        raise ValueError(
+            f"bundle_adjust: no IMU sample in [{start:.3f}, {start + init_window_s:.3f}] s "
+            f"(init_window_s after the first keyframe in the IMU span)"
+        )
+    level = gravity_aligned_rotation(accel[rest].mean(0)).numpy()
+    to_world = level @ result.rotation[first].T
     position = result.position @ to_world.T
     velocity = np.gradient(position, result.t, axis=0)
     rotation = to_world @ result.rotation
