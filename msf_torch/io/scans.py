@@ -5,7 +5,8 @@ Keys (float64):
 * ``t`` (N,): scan times, s, strictly increasing;
 * ``angles`` (K,): beam angles in the sensor frame, rad, evenly spaced and increasing
   (0 = sensor x axis, counter-clockwise);
-* ``ranges`` (N, K): ranges, m; NaN (or inf) where a beam returned nothing;
+* ``ranges`` (N, K): ranges, m; NaN (or inf) where a beam returned nothing (the scan
+  matcher and the grid also read 0 as no return);
 * ``odometry`` (N, 3), optional: wheel-odometry pose ``[x, y, yaw]`` at each scan (m, rad),
   used as PLICP's initial guesses; finite;
 * ``truth`` (N, 3), optional: true pose at each scan, for evaluation; finite.

@@ -10,7 +10,8 @@ point gets ``l_miss = log(p_miss / (1 - p_miss))``, the cell holding the end poi
 ``l_hit``; a cell crossed by several beams of a scan gets one update per beam. Scans are
 applied in order and the log-odds are clamped to ``[logit(p_min), logit(p_max)]`` after each
 scan. Defaults are OctoMap's (``p_hit = 0.7``, ``p_miss = 0.4``, clamping 0.12 and 0.97).
-Beams without a return are skipped (a dropout cannot be told from open space).
+Beams without a return (NaN, inf or a range <= 0) are skipped (a dropout cannot be told
+from open space).
 
 Ray traversal is exact and vectorised: the parameters ``s in (0, 1)`` at which a beam's
 segment crosses the vertical grid lines ``x = x0 + k res`` and the horizontal ones are
@@ -225,7 +226,7 @@ def occupancy_grid(
 
     Args:
         poses: (N, 3) sensor poses ``[x, y, yaw]`` in the map frame, m and rad.
-        ranges: (N, K) ranges, m; NaN = no return (skipped).
+        ranges: (N, K) ranges, m; NaN, inf or <= 0 = no return (skipped).
         angles: (K,) beam angles in the sensor frame, rad.
         config: settings (default :class:`GridConfig`).
         extent: ``(x_min, y_min, x_max, y_max)`` of the grid, m; default the bounding box of
@@ -241,7 +242,7 @@ def occupancy_grid(
             f"{tuple(poses.shape)} and {tuple(ranges.shape)}"
         )
     res = config.resolution_m
-    valid = torch.isfinite(ranges)
+    valid = torch.isfinite(ranges) & (ranges > 0)
     r = torch.where(valid, ranges, 0.0)
     local = torch.stack((r * torch.cos(angles), r * torch.sin(angles)), -1)  # (N, K, 2)
     ends = transform_points(poses, local)

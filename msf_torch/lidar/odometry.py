@@ -77,7 +77,7 @@ def scan_odometry(
 
     Args:
         t: (N,) scan times, s.
-        ranges: (N, K) ranges, m (NaN = no return).
+        ranges: (N, K) ranges, m (NaN, inf or <= 0 = no return).
         angles: (K,) beam angles, rad.
         odometry: (N, 3) wheel-odometry poses at the scan times (initial guesses), or None
             for identity guesses.

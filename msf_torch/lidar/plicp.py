@@ -212,9 +212,10 @@ class PlicpResult:
 
 
 def scan_points(ranges: torch.Tensor, angles: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """Scans (B, K) of ranges (m, NaN = no return) at beam angles (K,) rad -> points
-    (B, K, 2) in the sensor frame (0 where invalid) and validity (B, K)."""
-    valid = torch.isfinite(ranges)
+    """Scans (B, K) of ranges (m; NaN, inf or <= 0 = no return, as scanners that report 0
+    for a missing echo) at beam angles (K,) rad -> points (B, K, 2) in the sensor frame (0
+    where invalid) and validity (B, K)."""
+    valid = torch.isfinite(ranges) & (ranges > 0)
     r = torch.where(valid, ranges, 0.0)
     points = torch.stack((r * torch.cos(angles), r * torch.sin(angles)), -1)
     return points, valid

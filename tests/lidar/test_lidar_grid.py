@@ -99,6 +99,20 @@ def test_log_odds_of_one_and_repeated_beams():
     assert float(mixed.log_odds[0, 5]) == pytest.approx(expected)
 
 
+def test_zero_and_non_finite_ranges_are_no_return():
+    """Beams reporting 0 m, NaN or inf change no cell: only the 1 m beam updates the grid
+    (the previous code counted a 0 m beam as a hit in the sensor's own cell)."""
+    config = GridConfig(resolution_m=0.1, margin_m=0.5)
+    poses = torch.tensor([[0.05, 0.05, 0.0]], dtype=F64)
+    angles = torch.tensor([0.0, 1.0, 2.0, 3.0], dtype=F64)
+    extent = (-2.0, -2.0, 2.0, 2.0)
+    ranges = torch.tensor([[1.0, 0.0, math.nan, math.inf]], dtype=F64)
+    grid = occupancy_grid(poses, ranges, angles, config, extent=extent)
+    alone = occupancy_grid(poses, ranges[:, :1], angles[:1], config, extent=extent)
+    assert torch.equal(grid.log_odds, alone.log_odds)
+    assert float(grid.log_odds[20, 20]) == pytest.approx(logit(0.4))  # the sensor's cell
+
+
 def test_beams_in_a_room_mark_walls_occupied_and_inside_free():
     from msf_torch.sim.lidar2d import LidarSpec, SegmentMap, scan_at
 
