@@ -179,6 +179,17 @@ class AttitudeUkfConfig:
                 raise ValueError(f"AttitudeUkfConfig.{name}: unknown blocks {unknown}")
         if self.init_samples < 1:
             raise ValueError("AttitudeUkfConfig.init_samples must be >= 1")
+        for name, ok, rule in (
+            ("forgetting", 0.0 < self.forgetting < 1.0, "lie in (0, 1)"),
+            ("clip_probability", 0.0 < self.clip_probability <= 1.0, "lie in (0, 1]"),
+            ("noise_floor", self.noise_floor > 0, "be > 0"),
+            ("softening", self.softening > 0, "be > 0"),
+            ("prior_samples", self.prior_samples >= 0, "be >= 0"),
+            ("max_factor", self.max_factor >= 1.0, "be >= 1"),
+        ):
+            if not ok:
+                value = getattr(self, name)
+                raise ValueError(f"AttitudeUkfConfig.{name} must {rule}, got {value!r}")
 
 
 @dataclass

@@ -209,6 +209,13 @@ def test_quaternion_fixes_make_yaw_observable():
         ({"adaptive_noise_blocks": ("mag",)}, "adaptive_noise_blocks"),
         ({"init_samples": 0}, "init_samples"),
         ({"init_yaw_sigma_rad": -1.0}, "init_yaw_sigma_rad"),
+        # below 1 the fading factor was silently 1 (strong tracking off)
+        ({"max_factor": 0.5}, "max_factor"),
+        ({"softening": -1.0}, "softening"),
+        ({"noise_floor": 0.0}, "noise_floor"),
+        ({"clip_probability": 0.0}, "clip_probability"),
+        ({"forgetting": 1.0}, "forgetting"),
+        ({"prior_samples": -0.5}, "prior_samples"),
     ],
 )
 def test_config_validation(changes, match):
