@@ -94,7 +94,9 @@ def solve_pnp(
         min_inliers: fewer inliers fail.
         sigma_floor_px: least reprojection sigma for the covariance, px.
     Returns:
-        :class:`PnpResult` (``ok`` False with the guess when it fails).
+        :class:`PnpResult` (``ok`` False with the guess when it fails: too few inliers, or
+        the inliers leave a direction of the pose unconstrained, the Gauss-Newton
+        information's eigenvalue ratio below 1e-12, e.g. collinear points).
     """
     count = len(points_world)
     fail = PnpResult(
@@ -136,6 +138,9 @@ def solve_pnp(
     rows = np.repeat(inliers, 2)
     jac = jacobian[rows, :6]
     information = jac.T @ jac
+    eigen = np.linalg.eigvalsh(information)
+    if not eigen[0] > 1e-12 * eigen[-1]:
+        return fail  # a direction the points leave free (collinear: rotation about the line)
     covariance = sigma**2 * np.linalg.inv(information)
     return PnpResult(True, rvec.reshape(3), tvec.reshape(3), inliers, covariance, sigma, rms)
 
