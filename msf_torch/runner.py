@@ -40,7 +40,8 @@ where it stopped) and raises :class:`RunInterrupted`, with learned noise too
 (``learning.inference.run_piecewise`` hands on the epochs of the chunks it finished).
 
 With ``RunOptions.learned`` set, the filter's noise comes from a trained CovNet, per chunk
-of windows (:mod:`msf_torch.learning.inference`); ``summary.json`` then has ``"noise":
+of windows, applied as the checkpoint's training did (``learning.inference.learned_scales``;
+a sequence at another IMU rate is refused); ``summary.json`` then has ``"noise":
 "learned"`` and a ``learned`` entry (checkpoint path and sha256, mean log-variance scales,
 inferred weather), else ``"noise": "config"``.
 """
@@ -204,9 +205,9 @@ def run_sequence(seq: Sequence, cfg: EskfConfig, options: RunOptions) -> dict[st
                 wall = time.perf_counter() - start
                 _write_interrupted(seq, stop.result, out_dir, "frontend", stop.epochs_total, wall)
         else:
-            from msf_torch.learning.inference import run_piecewise, scales_summary, window_scales
+            from msf_torch.learning.inference import learned_scales, run_piecewise, scales_summary
 
-            scales = window_scales(seq, options.learned.model, cfg)
+            scales = learned_scales(seq, options.learned, cfg)
             try:
                 result = run_piecewise(
                     seq, cfg, scales.log_scales, scales.window_length, scales.pose_source, callback

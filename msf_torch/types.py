@@ -51,6 +51,15 @@ class _Stream:
         """Real samples per sequence, (B,) int64."""
         return self.mask.sum(-1)
 
+    def median_rate_hz(self) -> torch.Tensor:
+        """(B,) one over the median interval between consecutive real samples, Hz (NaN for
+        a sequence with fewer than two)."""
+        if self.length < 2:
+            return torch.full((self.batch_size,), torch.nan, dtype=self.t.dtype)
+        both = self.mask[:, 1:] & self.mask[:, :-1]
+        interval = torch.where(both, self.t.diff(dim=1), torch.nan)
+        return 1.0 / torch.nanmedian(interval, dim=1).values
+
     def tensors(self) -> dict[str, torch.Tensor]:
         """The fields as a name -> tensor dict."""
         return {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}

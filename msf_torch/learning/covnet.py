@@ -68,8 +68,10 @@ __all__ = [
     "scaled_noise",
     "scaled_pose_covariance",
     "apply_fusion_weights",
+    "NoiseApplication",
     "save_checkpoint",
     "load_checkpoint",
+    "read_checkpoint",
 ]
 
 import dataclasses
@@ -415,20 +417,83 @@ def apply_fusion_weights(
     return log_scales + penalty
 
 
-def save_checkpoint(path: str | Path, model: CovNet) -> None:
-    """Write the config (plain types) and the weights, loadable with ``weights_only=True``."""
+@dataclass(frozen=True)
+class NoiseApplication:
+    """How training applied a network's scales; inference applies them the same way.
+
+    Stored in the checkpoint beside the weights (plain types). A checkpoint written before
+    this record existed loads with the defaults below (those of
+    ``training/configs/default.yaml``) and no IMU rate.
+
+    Attributes:
+        imu_rate_hz: median IMU rate of the training runs, Hz; a window of
+            ``CovNetConfig.window_length`` samples spans ``window_length / imu_rate_hz`` s.
+            None: not recorded.
+        chunk_windows: windows per noise chunk (the truncated-backpropagation chunk).
+        noise_granularity: ``"chunk"``: scales averaged per chunk; ``"run"``: per run.
+        innovation_features: the network saw the innovation statistics of a reference filter
+            pass with the run's configured noise (False: those features were zero).
+        gnss_outages_only: the scales applied only in chunks holding no GNSS fix, the
+            configured noise elsewhere (``msf_torch.learning.kitti.gate_outage_chunks``).
+    """
+
+    imu_rate_hz: float | None = None
+    chunk_windows: int = 10
+    noise_granularity: str = "chunk"
+    innovation_features: bool = True
+    gnss_outages_only: bool = False
+
+    def __post_init__(self) -> None:
+        if self.chunk_windows < 1:
+            raise ValueError(
+                f"NoiseApplication.chunk_windows must be >= 1, got {self.chunk_windows}"
+            )
+        if self.noise_granularity not in ("chunk", "run"):
+            raise ValueError(
+                "NoiseApplication.noise_granularity must be 'chunk' or 'run', "
+                f"got {self.noise_granularity!r}"
+            )
+        if self.imu_rate_hz is not None and not (
+            math.isfinite(self.imu_rate_hz) and self.imu_rate_hz > 0
+        ):
+            raise ValueError(
+                f"NoiseApplication.imu_rate_hz must be a positive rate, got {self.imu_rate_hz!r}"
+            )
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain Python types, loadable with ``torch.load(weights_only=True)``."""
+        return dataclasses.asdict(self)
+
+    @classmethod
+    def from_dict(cls, values: dict[str, Any]) -> NoiseApplication:
+        """Inverse of :meth:`to_dict`; unknown keys raise ``ValueError``."""
+        known = {f.name for f in dataclasses.fields(cls)}
+        unknown = set(values) - known
+        if unknown:
+            raise ValueError(f"unknown NoiseApplication keys {sorted(unknown)}")
+        return cls(**values)
+
+
+def save_checkpoint(
+    path: str | Path, model: CovNet, application: NoiseApplication | None = None
+) -> None:
+    """Write the config and the application record (plain types) and the weights, loadable
+    with ``weights_only=True``. ``application`` None stores the defaults of
+    :class:`NoiseApplication`."""
     torch.save(
         {
             "format": _CHECKPOINT_FORMAT,
             "config": model.config.to_dict(),
+            "application": (application or NoiseApplication()).to_dict(),
             "state_dict": model.state_dict(),
         },
         path,
     )
 
 
-def load_checkpoint(path: str | Path) -> CovNet:
-    """A :class:`CovNet` from :func:`save_checkpoint`'s file, on the CPU, in eval mode.
+def read_checkpoint(path: str | Path) -> tuple[CovNet, NoiseApplication]:
+    """A :class:`CovNet` from :func:`save_checkpoint`'s file (CPU, eval mode) and how its
+    training applied it.
 
     Uses ``torch.load(weights_only=True)``, so the file cannot run code; move the model
     with ``.to(device)``.
@@ -439,6 +504,20 @@ def load_checkpoint(path: str | Path) -> CovNet:
     payload = torch.load(path, map_location="cpu", weights_only=True)
     if not isinstance(payload, dict) or payload.get("format") != _CHECKPOINT_FORMAT:
         raise ValueError(f"{path}: not a CovNet checkpoint (format {_CHECKPOINT_FORMAT})")
-    model = CovNet(CovNetConfig.from_dict(payload["config"]))
+    try:
+        model = CovNet(CovNetConfig.from_dict(payload["config"]))
+        application = NoiseApplication.from_dict(payload.get("application", {}))
+    except ValueError as err:
+        raise ValueError(f"{path}: {err}") from err
     model.load_state_dict(payload["state_dict"])
-    return model.eval()
+    return model.eval(), application
+
+
+def load_checkpoint(path: str | Path) -> CovNet:
+    """The :class:`CovNet` of :func:`read_checkpoint` (CPU, eval mode), without the
+    application record.
+
+    Raises:
+        ValueError: the file is not a CovNet checkpoint (the message names it).
+    """
+    return read_checkpoint(path)[0]

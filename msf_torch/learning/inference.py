@@ -10,8 +10,13 @@ with its own :func:`~msf_torch.learning.covnet.scaled_noise` and pose-stream cov
 scale, starting from the previous chunk's last state and covariance (the training's chunking,
 without the gradient truncation that only matters for training).
 
-The checkpoint does not store the training's chunking: :data:`DEFAULT_CHUNK_WINDOWS` matches
-``training/configs/default.yaml`` (``chunk_windows: 10``, ``noise_granularity: chunk``).
+:func:`learned_scales` applies a checkpoint as its training did
+(:class:`~msf_torch.learning.covnet.NoiseApplication`, stored in the checkpoint): the chunking,
+whether the network saw innovation features, whether the scales apply only where GNSS is
+out; it refuses a sequence whose IMU rate differs from the training runs' (a window of
+``window_length`` samples would span another time, and each sample's noise differs).
+Checkpoints written before that record existed load with
+``training/configs/default.yaml``'s chunking (:data:`DEFAULT_CHUNK_WINDOWS`) and no rate.
 """
 
 from __future__ import annotations
@@ -19,9 +24,12 @@ from __future__ import annotations
 __all__ = [
     "DEFAULT_CHECKPOINT",
     "DEFAULT_CHUNK_WINDOWS",
+    "IMU_RATE_TOLERANCE",
     "LearnedModel",
     "WindowScales",
     "load_learned",
+    "check_imu_rate",
+    "learned_scales",
     "window_scales",
     "run_piecewise",
     "scales_summary",
@@ -45,8 +53,9 @@ from msf_torch.frontend.schedule import build_schedule
 from msf_torch.learning.covnet import (
     LOG_SCALE_SENSORS,
     CovNet,
+    NoiseApplication,
     apply_fusion_weights,
-    load_checkpoint,
+    read_checkpoint,
     scaled_noise,
     scaled_pose_covariance,
 )
@@ -58,8 +67,11 @@ DEFAULT_CHECKPOINT = (
 )
 """The shipped network (``msf run`` uses it when the file exists)."""
 
-DEFAULT_CHUNK_WINDOWS = 10
+DEFAULT_CHUNK_WINDOWS = NoiseApplication().chunk_windows
 """Windows per noise chunk, as in ``training/configs/default.yaml``."""
+
+IMU_RATE_TOLERANCE = 0.05
+"""Largest relative difference between a sequence's IMU rate and the training runs'."""
 
 
 @dataclass
@@ -70,11 +82,13 @@ class LearnedModel:
         model: the network, eval mode, CPU.
         path: the checkpoint file.
         sha256: hex digest of the file's bytes.
+        application: how its training applied the scales (the checkpoint's record).
     """
 
     model: CovNet
     path: Path
     sha256: str
+    application: NoiseApplication = dataclasses.field(default_factory=NoiseApplication)
 
 
 @dataclass
@@ -91,6 +105,8 @@ class WindowScales:
             unlabelled).
         from_labels: the network was conditioned on the labels (where present).
         inferred: (W,) argmax of the weather head.
+        gnss_outages_only: the scales were zeroed (configured noise) in chunks holding a
+            GNSS fix.
     """
 
     log_scales: torch.Tensor
@@ -100,6 +116,7 @@ class WindowScales:
     labels: torch.Tensor
     from_labels: bool
     inferred: torch.Tensor
+    gnss_outages_only: bool = False
 
 
 def load_learned(path: str | Path) -> LearnedModel:
@@ -114,10 +131,74 @@ def load_learned(path: str | Path) -> LearnedModel:
         raise FileNotFoundError(f"CovNet checkpoint {path}: no such file")
     digest = hashlib.sha256(path.read_bytes()).hexdigest()
     try:
-        model = load_checkpoint(path)
+        model, application = read_checkpoint(path)
     except (RuntimeError, pickle.UnpicklingError, EOFError, KeyError, TypeError) as err:
         raise ValueError(f"CovNet checkpoint {path}: cannot be read ({err})") from err
-    return LearnedModel(model, path, digest)
+    return LearnedModel(model, path, digest, application)
+
+
+def check_imu_rate(seq: Sequence, learned: LearnedModel) -> float:
+    """The IMU rate of a B = 1 sequence, checked against the checkpoint's training runs.
+
+    Returns:
+        the sequence's median IMU rate, Hz.
+
+    Raises:
+        ValueError: the rates differ by more than :data:`IMU_RATE_TOLERANCE` (relative);
+            the message names the sequence, both rates and the window spans. A checkpoint
+            that recorded no rate passes.
+    """
+    rate = float(seq.imu.median_rate_hz()[0])
+    trained = learned.application.imu_rate_hz
+    if trained is None or abs(rate / trained - 1.0) <= IMU_RATE_TOLERANCE:
+        return rate
+    length = learned.model.config.window_length
+    raise ValueError(
+        f"sequence '{seq.names[0]}': its IMU runs at {rate:.6g} Hz, but CovNet checkpoint "
+        f"{learned.path} was trained on {trained:.6g} Hz (windows of {length} samples: "
+        f"{length / trained:.3g} s there, {length / rate:.3g} s here, and each sample's noise "
+        f"differs). Resample the IMU to {trained:.6g} Hz, train a network on your rate, or "
+        "run without learned noise (msf run --no-learned)."
+    )
+
+
+def learned_scales(
+    seq: Sequence, learned: LearnedModel, cfg: EskfConfig | None, use_labels: bool = True
+) -> WindowScales:
+    """The network's noise per window of a B = 1 sequence, applied as its training did.
+
+    :func:`check_imu_rate` first; then :func:`window_scales` with the checkpoint's chunking,
+    with the innovation features of a reference pass under ``cfg`` only where the network
+    was trained with them; with ``gnss_outages_only`` the scales of chunks that hold a GNSS
+    fix are zeroed (``msf_torch.learning.kitti.gate_outage_chunks``).
+
+    Args:
+        seq: one run (B = 1).
+        learned: the checkpoint.
+        cfg: the run's filter settings.
+        use_labels: as :func:`window_scales`.
+
+    Raises:
+        ValueError: the IMU rate differs from the training runs', or the run is shorter
+            than one window.
+    """
+    application = learned.application
+    check_imu_rate(seq, learned)
+    scales = window_scales(
+        seq,
+        learned.model,
+        cfg if application.innovation_features else None,
+        chunk_windows=application.chunk_windows,
+        granularity=application.noise_granularity,
+        use_labels=use_labels,
+    )
+    if not application.gnss_outages_only:
+        return scales
+    from msf_torch.learning.kitti import gate_outage_chunks, gnss_free_windows
+
+    free = gnss_free_windows(seq, scales.window_length)
+    gated = gate_outage_chunks(scales.log_scales[None], free[None], scales.chunk_windows)[0]
+    return dataclasses.replace(scales, log_scales=gated, gnss_outages_only=True)
 
 
 def window_scales(
@@ -372,6 +453,8 @@ def scales_summary(scales: WindowScales, learned: LearnedModel) -> dict[str, Any
         "windows": int(scales.log_scales.shape[0]),
         "window_length": scales.window_length,
         "chunk_windows": scales.chunk_windows,
+        "trained_imu_rate_hz": learned.application.imu_rate_hz,
+        "gnss_outages_only": scales.gnss_outages_only,
         "mean_log_scales": {
             s: round(float(v), 4) for s, v in zip(LOG_SCALE_SENSORS, mean, strict=True)
         },

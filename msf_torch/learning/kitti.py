@@ -75,6 +75,7 @@ from msf_torch.learning.covnet import (
     CovNet,
     CovNetConfig,
     CovNetOutput,
+    NoiseApplication,
     apply_fusion_weights,
     save_checkpoint,
 )
@@ -593,11 +594,19 @@ class KittiCovNetModule(CovNetModule):
             self._best_state = copy.deepcopy(self.net.state_dict())
         self._log_reduced("val/best_drift_pct", self._best_drift)
 
+    def noise_application(self) -> NoiseApplication:
+        """The parent's record, with the KITTI network's inputs (no innovation features)
+        and its scales applied in GNSS-free chunks only."""
+        return dataclasses.replace(
+            super().noise_application(), innovation_features=False, gnss_outages_only=True
+        )
+
     def on_fit_end(self) -> None:
-        """Write the network of the best validation epoch to ``<log_dir>/covnet.pt``."""
+        """Write the network of the best validation epoch and :meth:`noise_application` to
+        ``<log_dir>/covnet.pt``."""
         if self._best_state is not None:
             self.net.load_state_dict(self._best_state)
         log_dir = self.trainer.log_dir
         if self.trainer.is_global_zero and log_dir is not None:
             Path(log_dir).mkdir(parents=True, exist_ok=True)
-            save_checkpoint(Path(log_dir) / "covnet.pt", self.net)
+            save_checkpoint(Path(log_dir) / "covnet.pt", self.net, self.noise_application())

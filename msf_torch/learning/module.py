@@ -43,6 +43,7 @@ from __future__ import annotations
 __all__ = ["CovNetModule", "truth_at"]
 
 import dataclasses
+import statistics
 from pathlib import Path
 from typing import Any, Literal
 
@@ -63,6 +64,7 @@ from msf_torch.learning.covnet import (
     CovNet,
     CovNetConfig,
     CovNetOutput,
+    NoiseApplication,
     apply_fusion_weights,
     save_checkpoint,
     scaled_noise,
@@ -190,6 +192,7 @@ class CovNetModule(L.LightningModule):
         self._val_stats: dict[str, torch.Tensor] = {}
         self._figures_done = 0
         self._val_cfg = self.eskf_base
+        self._imu_rates_hz: list[float] = []
 
     # ------------------------------------------------------------------------------------
     def forward(self, batch: RunBatch) -> tuple[CovNetOutput, torch.Tensor]:
@@ -337,6 +340,8 @@ class CovNetModule(L.LightningModule):
         """One batch: forward, filter, loss (logged as ``train/*``)."""
         terms, extra = self._losses(batch)
         batch_size = batch.imu.shape[0]
+        rates = batch.sequence.imu.median_rate_hz()
+        self._imu_rates_hz.extend(rates[rates.isfinite()].tolist())
         self._log_terms("train", terms, batch_size)
         slip = torch.cat([r.slip_factor[r.mask] for r in extra["results"]])
         self.log("train/slip_factor_mean", slip.mean().float(), batch_size=batch_size)
@@ -465,9 +470,20 @@ class CovNetModule(L.LightningModule):
         """Adam over the network's parameters."""
         return torch.optim.Adam(self.net.parameters(), lr=self.lr, weight_decay=self.weight_decay)
 
+    def noise_application(self) -> NoiseApplication:
+        """How this module applied the network's scales in training (stored in
+        ``covnet.pt``): its chunking and the median IMU rate of the training runs seen."""
+        rates = self._imu_rates_hz
+        return NoiseApplication(
+            imu_rate_hz=round(statistics.median(rates), 6) if rates else None,
+            chunk_windows=self.chunk_windows,
+            noise_granularity=self.noise_granularity,
+        )
+
     def on_fit_end(self) -> None:
-        """Write the trained network to ``<log_dir>/covnet.pt`` (global rank 0)."""
+        """Write the trained network and :meth:`noise_application` to
+        ``<log_dir>/covnet.pt`` (global rank 0)."""
         log_dir = self.trainer.log_dir
         if self.trainer.is_global_zero and log_dir is not None:
             Path(log_dir).mkdir(parents=True, exist_ok=True)
-            save_checkpoint(Path(log_dir) / "covnet.pt", self.net)
+            save_checkpoint(Path(log_dir) / "covnet.pt", self.net, self.noise_application())

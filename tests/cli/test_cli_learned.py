@@ -9,6 +9,7 @@ import pytest
 import torch
 
 from msf_torch.cli import main
+from msf_torch.eval.outage import split_gnss_outage
 from msf_torch.frontend.config import config_for_sequence, load_config
 from msf_torch.frontend.eskf import EskfNoise, run_eskf
 from msf_torch.io import load_sequence
@@ -18,11 +19,13 @@ from msf_torch.learning import (
     LOG_SCALE_SENSORS,
     CovNet,
     CovNetConfig,
+    NoiseApplication,
     apply_fusion_weights,
     save_checkpoint,
     scaled_noise,
 )
 from msf_torch.learning.data import simulate_labelled_run
+from msf_torch.learning.features import pose_source_of
 from msf_torch.learning.inference import run_piecewise
 
 SCALES = (0.8, -0.6, 1.2, 0.3, -0.9, 0.5, -0.4)
@@ -51,6 +54,17 @@ def constant_checkpoint(tmp_path_factory):
     return path, net
 
 
+def _constant_scales(net: CovNet) -> torch.Tensor:
+    """(7,) the effective log scales of the constant network: bounded heads, fusion weights
+    folded in."""
+    bound = torch.tensor(net.config.log_scale_bounds)
+    raw = bound * torch.tanh(torch.tensor(SCALES) / bound)
+    weight = torch.sigmoid(6.0 * torch.tanh(torch.tensor(2.0) / 6.0))
+    return apply_fusion_weights(
+        raw[None], weight.expand(1, len(net.config.pose_sources)), net.config.pose_sources
+    )[0].double()
+
+
 def _run(args, capsys):
     code = main(["run", *map(str, args), "--no-plot", "--progress", "off"])
     captured = capsys.readouterr()
@@ -74,12 +88,7 @@ def test_checkpoint_sets_noise_as_the_scales_say(
     assert learned["sha256"] == hashlib.sha256(path.read_bytes()).hexdigest()
     assert learned["weather_from_labels"] is True
     assert set(learned["inferred_weather"]) == set(net.config.weather_classes)
-    bound = torch.tensor(net.config.log_scale_bounds)
-    raw = bound * torch.tanh(torch.tensor(SCALES) / bound)
-    weight = torch.sigmoid(6.0 * torch.tanh(torch.tensor(2.0) / 6.0))
-    expected = apply_fusion_weights(
-        raw[None], weight.expand(1, len(net.config.pose_sources)), net.config.pose_sources
-    )[0].double()
+    expected = _constant_scales(net)
     for sensor, value in zip(LOG_SCALE_SENSORS, expected, strict=True):
         assert learned["mean_log_scales"][sensor] == pytest.approx(float(value), abs=1e-4)
 
@@ -92,6 +101,59 @@ def test_checkpoint_sets_noise_as_the_scales_say(
         direct = run_eskf(seq, cfg, scaled_noise(base, expected))
     write_tum(direct.trajectory().select(0).compact(), tmp_path / "direct.tum")
     assert (tmp_path / "trajectory.tum").read_text() == (tmp_path / "direct.tum").read_text()
+
+
+@pytest.mark.parametrize("trained_hz", [200.0, 104.0])
+def test_checkpoint_trained_at_another_imu_rate(
+    weather_run, constant_checkpoint, tmp_path, capsys, trained_hz
+):
+    _, net = constant_checkpoint
+    path = tmp_path / "rate.pt"
+    save_checkpoint(path, net, NoiseApplication(imu_rate_hz=trained_hz))
+    code, captured = _run([weather_run, "--out", tmp_path / "o", "--checkpoint", path], capsys)
+    if trained_hz == 104.0:  # within IMU_RATE_TOLERANCE (5 %) of the run's 100 Hz
+        assert code == 0, captured.err
+        summary = json.loads(captured.out.strip().splitlines()[-1])
+        assert summary["learned"]["trained_imu_rate_hz"] == 104.0
+        return
+    assert code == 2
+    for part in ("'run'", "100 Hz", "200 Hz", "0.25 s there, 0.5 s here", "--no-learned"):
+        assert part in captured.err, part
+    assert not (tmp_path / "o" / "trajectory.tum").exists()
+
+
+def test_outage_only_checkpoint_keeps_the_configured_noise_where_fixes_are(
+    weather_run, constant_checkpoint, tmp_path, capsys
+):
+    _, net = constant_checkpoint
+    path = tmp_path / "outage.pt"
+    record = NoiseApplication(imu_rate_hz=100.0, chunk_windows=2, gnss_outages_only=True)
+    save_checkpoint(path, net, record)
+    out = tmp_path / "o"
+    code, captured = _run(
+        [weather_run, "--out", out, "--checkpoint", path, "--gnss-outage", "1.5:3.5"], capsys
+    )
+    assert code == 0, captured.err
+    learned = json.loads(captured.out.strip().splitlines()[-1])["learned"]
+    assert learned["gnss_outages_only"] is True and learned["chunk_windows"] == 2
+
+    # by hand: chunks of 2 windows x 50 samples (1 s at 100 Hz, end sample included); a
+    # chunk holding a fix keeps the configured noise (log scale 0)
+    seq, _ = split_gnss_outage(load_sequence(weather_run), 1.5, 3.5)
+    imu_t = seq.imu.t[0].tolist()
+    fixes = seq.gnss.t[0, seq.gnss.mask[0]].tolist()
+    scales = torch.zeros(12, 7, dtype=torch.float64)
+    free_chunks = 0
+    for chunk in range(6):
+        start, end = imu_t[100 * chunk], imu_t[100 * chunk + 100]
+        if not any(start <= f <= end for f in fixes):
+            scales[2 * chunk : 2 * chunk + 2] = _constant_scales(net)
+            free_chunks += 1
+    assert free_chunks == 1  # the only whole second without a fix: [2, 3] s
+    with torch.no_grad():
+        direct = run_piecewise(seq, _cfg(seq), scales, 50, pose_source_of(seq))
+    write_tum(direct.trajectory().select(0).compact(), tmp_path / "direct.tum")
+    assert (out / "trajectory.tum").read_text() == (tmp_path / "direct.tum").read_text()
 
 
 def test_no_learned_is_the_plain_filter(weather_run, tmp_path, capsys):

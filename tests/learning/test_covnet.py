@@ -22,8 +22,10 @@ from msf_torch.learning import (
     LOG_SCALE_SENSORS,
     CovNet,
     CovNetConfig,
+    NoiseApplication,
     apply_fusion_weights,
     load_checkpoint,
+    read_checkpoint,
     save_checkpoint,
     scaled_noise,
     scaled_pose_covariance,
@@ -163,6 +165,44 @@ def test_checkpoint_round_trip_with_weights_only(tmp_path):
     torch.save({"state_dict": model.state_dict()}, tmp_path / "other.pt")
     with pytest.raises(ValueError, match="other.pt"):
         load_checkpoint(tmp_path / "other.pt")
+
+
+def test_checkpoint_keeps_how_training_applied_the_scales(tmp_path):
+    torch.manual_seed(0)
+    model = CovNet(CovNetConfig()).eval()
+    record = NoiseApplication(
+        imu_rate_hz=200.0,
+        chunk_windows=3,
+        noise_granularity="run",
+        innovation_features=False,
+        gnss_outages_only=True,
+    )
+    save_checkpoint(tmp_path / "a.pt", model, record)
+    assert torch.load(tmp_path / "a.pt", weights_only=True)["application"] == {
+        "imu_rate_hz": 200.0,
+        "chunk_windows": 3,
+        "noise_granularity": "run",
+        "innovation_features": False,
+        "gnss_outages_only": True,
+    }
+    loaded, application = read_checkpoint(tmp_path / "a.pt")
+    assert application == record and loaded.config == model.config
+
+    # a file from before the record: training/configs/default.yaml's chunking, no rate
+    payload = torch.load(tmp_path / "a.pt", weights_only=True)
+    del payload["application"]
+    torch.save(payload, tmp_path / "old.pt")
+    _, application = read_checkpoint(tmp_path / "old.pt")
+    assert application == NoiseApplication(None, 10, "chunk", True, False)
+
+    payload["application"] = {"chunk_windows": 0}
+    torch.save(payload, tmp_path / "bad.pt")
+    with pytest.raises(ValueError, match=r"bad\.pt.*chunk_windows must be >= 1"):
+        read_checkpoint(tmp_path / "bad.pt")
+    payload["application"] = {"imu_rate": 100.0}
+    torch.save(payload, tmp_path / "typo.pt")
+    with pytest.raises(ValueError, match=r"typo\.pt.*unknown NoiseApplication keys \['imu_rate'\]"):
+        read_checkpoint(tmp_path / "typo.pt")
 
 
 def test_weather_head_learns_a_separable_problem():

@@ -8,6 +8,7 @@ import json
 from pathlib import Path
 
 import lightning as L
+import numpy as np
 import pytest
 import torch
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
@@ -112,7 +113,12 @@ def test_fit_on_files_then_msf_run_with_the_checkpoint(
     assert events.Tags()["images"] == ["val_trajectory/field_c"]  # validated on the file
     checkpoint = log_dir / "covnet.pt"
     plain = torch.load(checkpoint, weights_only=True)
-    assert set(plain) == {"format", "config", "state_dict"}
+    assert set(plain) == {"format", "config", "application", "state_dict"}
+    # the training runs' IMU rate: simulate_labelled_run's 100 Hz, read back from the files
+    stamps = [np.load(recorded[name])["imu/t"] for name in ("field_a", "field_b")]
+    rate = 1.0 / float(np.median(np.concatenate([np.diff(t) for t in stamps])))
+    assert plain["application"]["imu_rate_hz"] == pytest.approx(rate, rel=1e-9)
+    assert rate == pytest.approx(100.0, rel=1e-9)
     assert load_checkpoint(checkpoint).config.window_length == 100
     code = msf_main(
         [

@@ -33,6 +33,7 @@ from msf_torch.sim import SimConfig, simulate_run
 ROOT = Path(__file__).resolve().parents[2]
 KITTI_YAML = ROOT / "training" / "configs" / "kitti.yaml"
 ESKF_YAML = ROOT / "msf_torch" / "configs" / "kitti-gtsam.yaml"
+CHECKPOINTS = ROOT / "checkpoints"
 WINDOW = 100
 
 
@@ -170,6 +171,27 @@ def test_drive_scales_are_chunk_means_in_outage_only(drive) -> None:
         torch.testing.assert_close(scales[block], expected.expand(5, 7).double())
 
 
+def test_shipped_kitti_network_is_applied_as_trained(drive) -> None:
+    from msf_torch.learning.inference import learned_scales, load_learned
+
+    learned = load_learned(CHECKPOINTS / "covnet_kitti.pt")
+    application = learned.application
+    assert (application.chunk_windows, application.noise_granularity) == (5, "chunk")
+    assert application.gnss_outages_only and not application.innovation_features
+    assert application.imu_rate_hz == pytest.approx(100.0225, abs=1e-4)
+    part = dataclasses.replace(drive, imu=drive.imu.map(lambda x: x[:, :6001]))
+    keep = (drive.gnss.t[0] < float(drive.imu.t[0, 1000])) | (
+        drive.gnss.t[0] > float(drive.imu.t[0, 4000])
+    )
+    part = dataclasses.replace(part, gnss=drive.gnss.map(lambda x: x[:, keep]))
+    scales = learned_scales(part, learned, cfg=None)
+    assert scales.gnss_outages_only and scales.chunk_windows == 5
+    torch.testing.assert_close(
+        scales.log_scales, drive_scales(part, learned.model, 5), rtol=0.0, atol=0.0
+    )
+    assert bool((scales.log_scales[10:30] != 0).all()) and not bool(scales.log_scales[:10].any())
+
+
 def test_kitti_yaml_builds_through_the_training_cli(train_script) -> None:
     cli = train_script.main(["--config", str(KITTI_YAML)], run=False)
     assert isinstance(cli.model, KittiCovNetModule) and isinstance(cli.datamodule, KittiDataModule)
@@ -187,7 +209,7 @@ def test_kitti_fit_through_cli_writes_a_loadable_network(
 ) -> None:
     from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
-    from msf_torch.learning import load_checkpoint
+    from msf_torch.learning import read_checkpoint
 
     train_script.main(
         [
@@ -202,8 +224,11 @@ def test_kitti_fit_through_cli_writes_a_loadable_network(
         ]
     )
     (version,) = sorted((tmp_path / "kitti").iterdir())
-    net = load_checkpoint(version / "covnet.pt")
+    net, application = read_checkpoint(version / "covnet.pt")
     assert net.config.pose_sources == ("gnss",)
+    assert application.gnss_outages_only and not application.innovation_features
+    assert application.chunk_windows == 5
+    assert application.imu_rate_hz == pytest.approx(100.0, abs=0.1)
     events = EventAccumulator(str(version), size_guidance={"scalars": 0})
     events.Reload()
     drift = [e.value for e in events.Scalars("val/drift_pct")]

@@ -16,7 +16,12 @@ from tensorboard.backend.event_processing.event_accumulator import EventAccumula
 
 from msf_torch.frontend.config import config_for_sequence, load_config
 from msf_torch.frontend.eskf import run_eskf
-from msf_torch.learning import LOG_SCALE_SENSORS, CovNetConfig, load_checkpoint
+from msf_torch.learning import (
+    LOG_SCALE_SENSORS,
+    CovNetConfig,
+    NoiseApplication,
+    read_checkpoint,
+)
 from msf_torch.learning.data import (
     SPLIT_SEED_STRIDE,
     RunDataModule,
@@ -82,8 +87,12 @@ def test_smoke_fit_through_cli_logs_expected_tags(tmp_path: Path, train_script) 
         assert 0.05 * math.exp(-1.5) <= wheel <= 0.05 * math.exp(1.5)
     images = events.Tags()["images"]
     assert len(images) == 1 and images[0].startswith("val_trajectory/sim-")
-    model = load_checkpoint(log_dir / "covnet.pt")
+    model, application = read_checkpoint(log_dir / "covnet.pt")
     assert model.config.window_length == 100
+    # how training applied the scales: smoke.yaml's chunking, the simulated 100 Hz IMU
+    assert application == NoiseApplication(
+        imu_rate_hz=100.0, chunk_windows=4, noise_granularity="chunk"
+    )
 
 
 def test_ddp_two_cpu_processes_one_step(tmp_path: Path) -> None:

@@ -1,0 +1,43 @@
+"""Stream helpers in ``msf_torch.types`` against hand-made time stamps."""
+
+from __future__ import annotations
+
+import math
+
+import torch
+
+from msf_torch.types import ImuSamples
+
+
+def _imu(t: torch.Tensor, mask: torch.Tensor) -> ImuSamples:
+    zeros = torch.zeros(*t.shape, 3, dtype=torch.float64)
+    return ImuSamples(t=t, gyro=zeros, accel=zeros.clone(), mask=mask)
+
+
+def test_median_rate_is_one_over_the_median_interval_of_real_samples() -> None:
+    # sequence 0: 200 Hz with one late sample (a 7 ms interval, then 3 ms) and padding;
+    # sequence 1: 50 Hz, shorter, with a masked sample in the middle (its two intervals
+    # are not real ones) and padding stamped 0
+    fast = torch.arange(12, dtype=torch.float64) * 0.005
+    fast[5] += 0.002
+    slow = torch.zeros(12, dtype=torch.float64)
+    slow[:6] = torch.arange(6, dtype=torch.float64) * 0.02
+    slow[3] = 9.0
+    mask = torch.ones(2, 12, dtype=torch.bool)
+    mask[0, 10:] = False
+    mask[1, 6:] = False
+    mask[1, 3] = False
+    rate = _imu(torch.stack([fast, slow]), mask).median_rate_hz()
+    torch.testing.assert_close(rate, torch.tensor([200.0, 50.0], dtype=torch.float64))
+
+
+def test_median_rate_of_too_short_streams_is_nan() -> None:
+    one = _imu(torch.zeros(2, 1, dtype=torch.float64), torch.ones(2, 1, dtype=torch.bool))
+    assert all(math.isnan(r) for r in one.median_rate_hz().tolist())
+    padded = _imu(
+        torch.tensor([[0.0, 0.01, 0.02], [0.0, 0.0, 0.0]], dtype=torch.float64),
+        torch.tensor([[True, True, True], [True, False, False]]),
+    )
+    rate = padded.median_rate_hz()
+    assert math.isclose(rate[0].item(), 100.0, rel_tol=1e-12)
+    assert math.isnan(rate[1].item())
