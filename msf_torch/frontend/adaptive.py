@@ -206,19 +206,29 @@ def inflate_along_measurements(
         jacobian: (..., m, n) H.
         factor: (...) lambda >= 1.
         row_mask: (..., m) 1/0 (or bool), the rows that count; None = all.
+    Where M is singular because rows measure the same direction (two strong-tracking blocks
+    at one epoch: two pose sources' rate rows, GNSS and a pose position), ``M^-1`` is
+    replaced by ``(M + eps I)^-1`` with ``eps = 1e-10 max diag M``: the same inflation,
+    ``P H^T M^+ H P``, to within about ``eps`` over M's smallest non-zero eigenvalue.
+
     Returns:
-        (..., n, n); ``propagated`` unchanged where M is singular (no inflation there).
+        (..., n, n); ``propagated`` unchanged where even that fails (no inflation there).
     """
     if row_mask is not None:
         mask = row_mask.to(jacobian.dtype)
         jacobian = jacobian * mask[..., :, None]
     cross = propagated @ jacobian.mT  # (..., n, m)
     seen = jacobian @ cross
+    eye = torch.eye(seen.shape[-1], dtype=seen.dtype, device=seen.device)
+    jitter = 1e-10 * torch.diagonal(seen, dim1=-2, dim2=-1).amax(-1)
     if row_mask is not None:
         seen = seen + torch.diag_embed(1.0 - mask)
     chol, info = torch.linalg.cholesky_ex(seen)
     ok = info == 0
-    eye = torch.eye(seen.shape[-1], dtype=seen.dtype, device=seen.device)
+    if not bool(ok.all()):  # rank-deficient M: regularised (see above)
+        chol_reg, info_reg = torch.linalg.cholesky_ex(seen + jitter[..., None, None] * eye)
+        chol = torch.where(ok[..., None, None], chol, chol_reg)
+        ok = ok | (info_reg == 0)
     chol = torch.where(ok[..., None, None], chol, eye)
     explained = cross @ torch.cholesky_solve(cross.mT, chol)
     extra = (factor - 1.0).where(ok, 0.0)[..., None, None] * explained

@@ -72,6 +72,24 @@ def test_masked_rows_are_left_out():
     torch.testing.assert_close(out, kept, rtol=1e-10, atol=1e-12)
 
 
+def test_rows_measuring_the_same_direction_inflate_as_one_block():
+    """Two strong-tracking blocks seeing the same direction (two pose sources' rate rows, GNSS
+    and a pose position) make M singular; the inflation is that of the block alone (it was
+    dropped: ``propagated`` came back unchanged while the fading factor said lambda > 1)."""
+    gen = torch.Generator().manual_seed(24)
+    propagated = _spd(gen, 1, 6)
+    block = torch.randn(1, 3, 6, generator=gen, dtype=DTYPE)
+    factor = torch.tensor([3.0], dtype=DTYPE)
+    alone = inflate_along_measurements(propagated, block, factor)
+    for twice in (torch.cat((block, block), 1), torch.cat((block, -2.0 * block[:, :2]), 1)):
+        out = inflate_along_measurements(propagated, twice, factor)
+        torch.testing.assert_close(out, alone, rtol=1e-8, atol=1e-10)
+    rows = torch.tensor([[True, True, True, True, False, True]])
+    masked = torch.cat((block, block), 1)
+    out = inflate_along_measurements(propagated, masked, factor, rows)
+    torch.testing.assert_close(out, alone, rtol=1e-8, atol=1e-10)
+
+
 def test_sage_husa_floor_is_a_fraction_of_the_smallest_nominal_eigenvalue():
     adaptation = BlockAdaptation(
         ["gnss"], [2], ["gnss"], [], batch=1, forgetting=0.9, prior_samples=0.0, noise_floor=0.1
