@@ -233,13 +233,23 @@ def occupancy_grid(
             the poses and end points plus ``margin_m``.
         chunk: scans traversed in one vectorised block (memory grows with the cells their
             rays cross).
+
+    Raises:
+        ValueError: the shapes disagree (names them), no scan and no ``extent``, or a
+            setting is out of range.
     """
     config = config or GridConfig()
     config.validate()
-    if poses.ndim != 2 or poses.shape[-1] != 3 or ranges.shape[0] != poses.shape[0]:
+    if (
+        poses.ndim != 2
+        or poses.shape[-1] != 3
+        or ranges.ndim != 2
+        or ranges.shape[0] != poses.shape[0]
+        or angles.shape != ranges.shape[1:]
+    ):
         raise ValueError(
-            f"occupancy_grid: poses (N, 3) and ranges (N, K) needed, got "
-            f"{tuple(poses.shape)} and {tuple(ranges.shape)}"
+            f"occupancy_grid: poses (N, 3), ranges (N, K) and angles (K,) needed, got "
+            f"{tuple(poses.shape)}, {tuple(ranges.shape)} and {tuple(angles.shape)}"
         )
     res = config.resolution_m
     valid = torch.isfinite(ranges) & (ranges > 0)
@@ -247,6 +257,8 @@ def occupancy_grid(
     local = torch.stack((r * torch.cos(angles), r * torch.sin(angles)), -1)  # (N, K, 2)
     ends = transform_points(poses, local)
     if extent is None:
+        if poses.shape[0] == 0:
+            raise ValueError("occupancy_grid: no scan to size the grid by; give extent")
         both = torch.cat((ends[valid], poses[:, :2]))
         low = both.min(0).values - config.margin_m
         high = both.max(0).values + config.margin_m

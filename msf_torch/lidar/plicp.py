@@ -214,7 +214,16 @@ class PlicpResult:
 def scan_points(ranges: torch.Tensor, angles: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """Scans (B, K) of ranges (m; NaN, inf or <= 0 = no return, as scanners that report 0
     for a missing echo) at beam angles (K,) rad -> points (B, K, 2) in the sensor frame (0
-    where invalid) and validity (B, K)."""
+    where invalid) and validity (B, K).
+
+    Raises:
+        ValueError: ``angles`` is not (K,) for ranges (..., K) (names both shapes).
+    """
+    if angles.ndim != 1 or ranges.shape[-1:] != angles.shape:
+        raise ValueError(
+            f"scan_points: ranges (..., K) and angles (K,) needed, got ranges "
+            f"{tuple(ranges.shape)} and angles {tuple(angles.shape)}"
+        )
     valid = torch.isfinite(ranges) & (ranges > 0)
     r = torch.where(valid, ranges, 0.0)
     points = torch.stack((r * torch.cos(angles), r * torch.sin(angles)), -1)
@@ -439,6 +448,9 @@ def plicp(
         initial: (B, 3) initial guess of the current scan's pose in the reference frame
             (e.g. from wheel odometry; zeros = identity).
         config: settings (default :class:`PlicpConfig`).
+
+    Raises:
+        ValueError: the shapes disagree (names them) or a setting is out of range.
     """
     config = config or PlicpConfig()
     config.validate()
@@ -455,6 +467,15 @@ def plicp(
             )
     if initial.ndim != 2 or initial.shape[-1] != 3:
         raise ValueError(f"plicp: initial must be (B, 3), got {tuple(initial.shape)}")
+    for kind, points, valid in (
+        ("reference", reference_points, reference_valid),
+        ("current", current_points, current_valid),
+    ):
+        if points.shape[-1] != 2 or valid.shape != points.shape[:-1]:
+            raise ValueError(
+                f"plicp: {kind}_points must be (B, n, 2) and {kind}_valid (B, n), got "
+                f"{tuple(points.shape)} and {tuple(valid.shape)}"
+            )
     lines = fit_lines(reference_points, reference_valid, config)
     pose = initial.clone()
     device = initial.device

@@ -113,6 +113,17 @@ def test_zero_and_non_finite_ranges_are_no_return():
     assert float(grid.log_odds[20, 20]) == pytest.approx(logit(0.4))  # the sensor's cell
 
 
+def test_bad_shapes_are_named():
+    """Angles of another beam count than the ranges, or no scan without an extent: a
+    ValueError naming what is wrong (the previous code failed inside a broadcast or a
+    reduction)."""
+    poses = torch.zeros(3, 3, dtype=F64)
+    with pytest.raises(ValueError, match=r"got \(3, 3\), \(3, 10\) and \(9,\)"):
+        occupancy_grid(poses, torch.ones(3, 10, dtype=F64), torch.zeros(9, dtype=F64))
+    with pytest.raises(ValueError, match="give extent"):
+        occupancy_grid(poses[:0], torch.ones(0, 4, dtype=F64), torch.zeros(4, dtype=F64))
+
+
 def test_beams_in_a_room_mark_walls_occupied_and_inside_free():
     from msf_torch.sim.lidar2d import LidarSpec, SegmentMap, scan_at
 

@@ -11,6 +11,7 @@ import torch
 from scipy.optimize import least_squares
 
 from msf_torch.geometry.se2 import between
+from msf_torch.lidar.odometry import scan_odometry
 from msf_torch.lidar.plicp import (
     PlicpConfig,
     correspondences,
@@ -217,6 +218,15 @@ def test_bad_input_is_named():
               torch.ones(1, 5, dtype=torch.bool), torch.zeros(1, 2))  # fmt: skip
     with pytest.raises(ValueError, match="keep_fraction"):
         PlicpConfig(keep_fraction=0.0).validate()
+    # points and validity of different lengths, ranges and angles of different beam
+    # counts: the message names both shapes (the previous code failed inside a broadcast)
+    with pytest.raises(ValueError, match=r"current_valid \(B, n\), got \(2, 6, 2\) and \(2, 5\)"):
+        plicp(torch.zeros(2, 5, 2), torch.ones(2, 5, dtype=torch.bool), torch.zeros(2, 6, 2),
+              torch.ones(2, 5, dtype=torch.bool), torch.zeros(2, 3))  # fmt: skip
+    with pytest.raises(ValueError, match=r"got ranges \(3, 10\) and angles \(9,\)"):
+        scan_points(torch.ones(3, 10), torch.linspace(0.0, 1.0, 9))
+    with pytest.raises(ValueError, match=r"got ranges \(3, 10\) and angles \(9,\)"):
+        scan_odometry(torch.arange(3.0), torch.ones(3, 10), torch.linspace(0.0, 1.0, 9))
 
 
 def test_zero_ranges_are_no_return():
