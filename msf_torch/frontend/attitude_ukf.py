@@ -432,10 +432,12 @@ def run_attitude_ukf(
         :class:`AttitudeEstimate`.
     """
     cfg.validate()
-    if gyro.shape != accel.shape or gyro.shape[-1] != 3:
+    if gyro.shape != accel.shape or gyro.dim() < 2 or gyro.shape[-1] != 3:
         raise ValueError(
             f"gyro {tuple(gyro.shape)} and accel {tuple(accel.shape)} must be (..., T, 3)"
         )
+    if gyro.shape[-2] == 0:
+        raise ValueError(f"gyro and accel {tuple(gyro.shape)} hold no samples (T = 0)")
     lead, n_samples = gyro.shape[:-2], gyro.shape[-2]
     dtype, device = gyro.dtype, gyro.device
     gyro_f, accel_f = gyro.reshape(-1, n_samples, 3), accel.reshape(-1, n_samples, 3)

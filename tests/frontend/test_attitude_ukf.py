@@ -222,3 +222,10 @@ def test_config_validation(changes, match):
     values = {"gyro_noise_density": 1e-4, "accel_noise_density": 1e-3} | changes
     with pytest.raises(ValueError, match=match):
         AttitudeUkfConfig(**values).validate()
+
+
+def test_no_samples_is_a_clear_error():
+    """T = 0 used to fail inside torch (a reshape of 0 elements)."""
+    empty = torch.zeros(2, 0, 3, dtype=DTYPE)
+    with pytest.raises(ValueError, match="no samples"):
+        run_attitude_ukf(empty, empty, 0.01, AttitudeUkfConfig(1e-4, 1e-3))
