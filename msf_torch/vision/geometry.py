@@ -196,10 +196,19 @@ def triangulate_stereo(
         left, right: (N, 2) px in the left and right images (same rows).
         camera_matrix: (3, 3) of both cameras.
         baseline_m: b, m.
+    Raises:
+        ValueError: a disparity is not positive (a point at infinity or behind the rig;
+            names the first such row).
     """
     fx, fy = camera_matrix[0, 0], camera_matrix[1, 1]
     cx, cy = camera_matrix[0, 2], camera_matrix[1, 2]
     disparity = left[:, 0].astype(np.float64) - right[:, 0]
+    if not np.all(disparity > 0):
+        row = int(np.argmin(disparity > 0))
+        raise ValueError(
+            f"triangulate_stereo: disparity u_left - u_right must be > 0 px, row {row} has "
+            f"{float(disparity[row])!r}"
+        )
     z = fx * baseline_m / disparity
     return np.stack(((left[:, 0] - cx) * z / fx, (left[:, 1] - cy) * z / fy, z), -1)
 

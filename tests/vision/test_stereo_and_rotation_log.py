@@ -2,7 +2,7 @@
 
 * ``triangulate_stereo`` with ``fx != fy`` (the rendered runs use square pixels, where
   the two focal lengths are interchangeable): points projected into a rectified pair by
-  hand come back exactly.
+  hand come back exactly; a zero or negative disparity is refused.
 * ``rotation_log`` against scipy's ``Rotation.as_rotvec`` from 1e-7 rad to just below pi
   (its callers gate loop closures on its angle).
 """
@@ -10,6 +10,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 from scipy.spatial.transform import Rotation
 
 from msf_torch.vision.geometry import rotation_log, triangulate_stereo
@@ -25,6 +26,18 @@ def test_triangulate_stereo_recovers_points_with_unequal_focal_lengths():
     np.testing.assert_allclose(
         triangulate_stereo(left, right, camera, baseline), points, rtol=1e-12, atol=1e-12
     )
+
+
+def test_triangulate_stereo_refuses_non_positive_disparity():
+    """Zero disparity (a point at infinity) or a negative one (behind the rig): a ValueError
+    naming the row (the previous code returned inf and a negative depth silently)."""
+    camera = np.array([[400.0, 0.0, 320.0], [0.0, 400.0, 240.0], [0.0, 0.0, 1.0]])
+    left = np.array([[330.0, 200.0], [300.0, 210.0], [310.0, 220.0]])
+    for row, shift in ((1, 0.0), (2, -2.5)):
+        right = left - [8.0, 0.0]
+        right[row, 0] = left[row, 0] - shift
+        with pytest.raises(ValueError, match=f"row {row} has {shift}"):
+            triangulate_stereo(left, right, camera, 0.12)
 
 
 def test_rotation_log_matches_scipy():
