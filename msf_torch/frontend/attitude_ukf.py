@@ -430,6 +430,9 @@ def run_attitude_ukf(
             default from the first ``init_samples`` samples (:func:`initial_attitude`).
     Returns:
         :class:`AttitudeEstimate`.
+    Raises:
+        ValueError: a bad setting, bad shapes, no samples, or a non-finite gyro / accel
+            sample or a negative ``dt`` (naming the first one).
     """
     cfg.validate()
     if gyro.shape != accel.shape or gyro.dim() < 2 or gyro.shape[-1] != 3:
@@ -444,6 +447,14 @@ def run_attitude_ukf(
     count = gyro_f.shape[0]
     dt_f = torch.as_tensor(dt, dtype=dtype, device=device).expand(*lead, n_samples)
     dt_f = dt_f.reshape(count, n_samples)
+    for name, bad, what in (
+        ("gyro", ~torch.isfinite(gyro).all(-1), "not finite"),
+        ("accel", ~torch.isfinite(accel).all(-1), "not finite"),
+        ("dt", ~(torch.isfinite(dt_f) & (dt_f >= 0)).reshape(*lead, n_samples), "not >= 0"),
+    ):
+        if bool(bad.any()):  # one bad sample would stop every filter of the batch later
+            where = [int(i) for i in bad.nonzero()[0]]
+            raise ValueError(f"run_attitude_ukf: {name}{where} is {what}")
     if quaternion is not None:
         fixes = quaternion.reshape(count, n_samples, 4)
         fixes = fixes / fixes.norm(dim=-1, keepdim=True)

@@ -229,3 +229,28 @@ def test_no_samples_is_a_clear_error():
     empty = torch.zeros(2, 0, 3, dtype=DTYPE)
     with pytest.raises(ValueError, match="no samples"):
         run_attitude_ukf(empty, empty, 0.01, AttitudeUkfConfig(1e-4, 1e-3))
+
+
+@pytest.mark.parametrize(
+    ("field", "index", "match"),
+    [("gyro", (1, 20, 0), r"gyro\[1, 20\]"), ("accel", (0, 7, 2), r"accel\[0, 7\]")],
+)
+def test_a_non_finite_sample_is_named(field, index, match):
+    """A NaN sample of one filter used to stop the whole batch later with 'covariance lost
+    positive definiteness', naming neither the filter nor the sample."""
+    data = {
+        "gyro": torch.zeros(2, 50, 3, dtype=DTYPE),
+        "accel": torch.tensor([0.0, 0.0, G], dtype=DTYPE).repeat(2, 50, 1),
+    }
+    data[field][index] = math.nan
+    with pytest.raises(ValueError, match=match):
+        run_attitude_ukf(data["gyro"], data["accel"], 0.01, AttitudeUkfConfig(1e-4, 1e-3))
+    dt = torch.full((2, 50), 0.01, dtype=DTYPE)
+    dt[0, 3] = -0.01
+    with pytest.raises(ValueError, match=r"dt\[0, 3\] is not >= 0"):
+        run_attitude_ukf(
+            torch.zeros(2, 50, 3, dtype=DTYPE),
+            data["accel"].nan_to_num(),
+            dt,
+            AttitudeUkfConfig(1e-4, 1e-3),
+        )
