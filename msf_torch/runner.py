@@ -31,8 +31,9 @@ Used by ``msf run``. Outputs in ``out_dir`` (each written atomically: temp file 
   frame other than the IMU's, the IMU's frame with the IMU's orientation: the estimate is
   the body axes at the IMU's origin, i.e. exactly the IMU frame's pose, and tf relates
   that to the body frame; stamped with the bag's time origin when the sequence came from
-  a bag; pose covariance and body velocity from the front end when the trajectory is the
-  front end's).
+  a bag; when the trajectory is the front end's, the pose covariance and the twist in the
+  child frame's axes with its covariance: velocity ``R^T v`` and the bias-corrected gyro
+  rate interpolated at the epoch, see ``_body_twist``).
 
 Ctrl-C (SIGINT) during the front end or the smoother writes ``trajectory.tum`` (the epochs
 completed), ``diagnostics.csv`` and ``summary.json`` (with an ``interrupted`` entry saying
@@ -435,7 +436,7 @@ def _score_and_write(
             }
     summary["slip_detection_enabled"] = bool(cfg.slip_detection)
     write_tum(estimate, out_dir / "trajectory.tum")
-    _export(options.exports, out_dir, seq, estimate, None if smoothed is not None else result)
+    _export(options.exports, out_dir, seq, estimate, None if smoothed is not None else result, cfg)
     write_diagnostics(result, out_dir / "diagnostics.csv")
     if options.plot:
         _plot(out_dir / "overview.png", seq, estimate, result, withheld, options, summary)
@@ -451,6 +452,7 @@ def _export(
     seq: Sequence,
     estimate: Trajectory,
     result: EskfResult | None,
+    cfg: EskfConfig,
 ) -> None:
     """Write ``estimate`` in the extra formats (see the module docstring)."""
     if "kitti" in formats:
@@ -460,20 +462,26 @@ def _export(
     if "rosbag2" in formats:
         from msf_torch.io.rosbag import write_odometry_rosbag2
 
-        covariance = velocity = None
+        covariance = velocity = angular = twist_covariance = None
         if result is not None:
             keep = result.mask[0]
             rows = torch.tensor([0, 1, 2, 6, 7, 8])
             covariance = result.covariance[:1, keep][..., rows[:, None], rows]
             velocity = result.velocity[:1, keep]
+            twist, twist_covariance = _body_twist(seq, result, cfg.gyro_noise_density)
+            angular = twist[..., 3:]
         child = str(seq.meta.get("body_frame") or "base_link")
         imu_frame = seq.meta.get("imu_frame")
         if imu_frame and imu_frame != child:
             # the estimate is the body axes at the IMU's origin: written as the IMU frame's
             # own pose (R_world_imu = R_world_body R_body_imu), which tf relates to the body
-            estimate, covariance = _as_imu_frame(
-                estimate, covariance, seq.meta["body_imu_rotation"]
-            )
+            body_imu = seq.meta["body_imu_rotation"]
+            estimate, covariance = _as_imu_frame(estimate, covariance, body_imu)
+            if angular is not None:
+                to_imu = torch.as_tensor(body_imu, dtype=angular.dtype).mT
+                angular = angular @ to_imu.mT
+                both = torch.block_diag(to_imu, to_imu)
+                twist_covariance = both @ twist_covariance @ both.mT
             child = str(imu_frame)
         write_odometry_rosbag2(
             estimate,
@@ -482,7 +490,52 @@ def _export(
             time_origin_ns=int(seq.meta.get("time_origin_ns", 0)),
             covariance=covariance,
             velocity=velocity,
+            angular_velocity=angular,
+            twist_covariance=twist_covariance,
         )
+
+
+def _body_twist(
+    seq: Sequence, result: EskfResult, gyro_noise_density: float
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Body-axes twist at the real epochs of a B = 1 front-end result, and its covariance.
+
+    ``v_b = R^T v`` (m/s); ``w_b = w(t) - b_g`` (rad/s), ``w(t)`` the gyro interpolated
+    linearly between the IMU samples around the epoch time (the nearest end sample outside
+    them). With the error state ``[dp, dv, dtheta, db_g, db_a]`` (``R = R_hat Exp(dtheta)``,
+    ``b = b_hat + db``), ``dv_b = R^T dv + [v_b]x dtheta`` and ``dw_b = -db_g - n_g``, so the
+    covariance is ``J P J^T`` plus one gyro sample's white noise
+    ``gyro_noise_density^2 x IMU rate`` on the rate block.
+
+    Args:
+        seq: the sequence the result was run on (B = 1).
+        result: its front-end result.
+        gyro_noise_density: rad/s/sqrt(Hz).
+
+    Returns:
+        twist (1, N, 6) ``[v_b, w_b]`` and covariance (1, N, 6, 6), N real epochs.
+    """
+    from msf_torch.geometry.so3 import hat
+
+    keep = result.mask[0]
+    rotation = result.rotation[:1, keep]
+    linear = (rotation.mT @ result.velocity[:1, keep, :, None])[..., 0]
+    imu = seq.imu.compact()
+    times = result.t[0, keep].cpu().numpy()
+    stamps = imu.t[0].cpu().numpy()
+    gyro = imu.gyro[0].cpu().numpy()
+    sampled = np.stack([np.interp(times, stamps, gyro[:, axis]) for axis in range(3)], -1)
+    rate = torch.as_tensor(sampled, dtype=linear.dtype, device=linear.device)[None]
+    angular = rate - result.gyro_bias[:1, keep]
+    epochs = linear.shape[1]
+    jacobian = torch.zeros(1, epochs, 6, 15, dtype=linear.dtype, device=linear.device)
+    jacobian[..., :3, 3:6] = rotation.mT
+    jacobian[..., :3, 6:9] = hat(linear)
+    jacobian[..., 3:, 9:12] = -torch.eye(3, dtype=linear.dtype, device=linear.device)
+    covariance = jacobian @ result.covariance[:1, keep] @ jacobian.mT
+    sample_variance = gyro_noise_density**2 * float(imu.median_rate_hz()[0])
+    covariance[..., 3:, 3:] += sample_variance * torch.eye(3, dtype=linear.dtype)
+    return torch.cat([linear, angular], -1), covariance
 
 
 def _as_imu_frame(

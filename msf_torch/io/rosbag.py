@@ -1195,6 +1195,8 @@ def write_odometry_rosbag2(
     time_origin_ns: int = 0,
     covariance: torch.Tensor | None = None,
     velocity: torch.Tensor | None = None,
+    angular_velocity: torch.Tensor | None = None,
+    twist_covariance: torch.Tensor | None = None,
 ) -> Path:
     """Write a B = 1 trajectory as ``nav_msgs/Odometry`` in a new rosbag2 folder (sqlite3).
 
@@ -1209,7 +1211,12 @@ def write_odometry_rosbag2(
         time_origin_ns: stamps are ``time_origin_ns + round(t * 1e9)``.
         covariance: optional (1, N, 6, 6) over ``[dp (world), dtheta (body)]``, written in
             ROS order (rotation about the world axes); zeros when None.
-        velocity: optional (1, N, 3) world velocity, m/s, written as the body-frame twist.
+        velocity: optional (1, N, 3) world velocity, m/s, written as the twist's linear
+            part in the child frame's axes (``R^T v``); zeros when None.
+        angular_velocity: optional (1, N, 3) angular rate in the child frame's axes, rad/s,
+            the twist's angular part; zeros when None.
+        twist_covariance: optional (1, N, 6, 6) over ``[linear, angular]`` in the child
+            frame's axes (ROS order); zeros when None.
 
     Returns:
         the folder written.
@@ -1230,9 +1237,13 @@ def write_odometry_rosbag2(
     cov = None
     if covariance is not None:
         cov = _np(_native_to_ros_covariance(covariance[0, keep].to(torch.float64), rot))
-    body_velocity = None
+    body_velocity = angular = twist_cov_rows = None
     if velocity is not None:
         body_velocity = _np((rot.mT @ velocity[0, keep].to(torch.float64)[..., None])[..., 0])
+    if angular_velocity is not None:
+        angular = _np(angular_velocity[0, keep].to(torch.float64))
+    if twist_covariance is not None:
+        twist_cov_rows = _np(twist_covariance[0, keep].to(torch.float64)).reshape(-1, 36)
     store = get_typestore(Stores.ROS2_HUMBLE)
     m = _Messages(store)
     odom = store.types["nav_msgs/msg/Odometry"]
@@ -1248,6 +1259,8 @@ def write_odometry_rosbag2(
             stamps = _stamps(t, time_origin_ns, 0.0)
             for k, stamp in enumerate(stamps.tolist()):
                 linear = [0.0] * 3 if body_velocity is None else body_velocity[k]
+                rate = [0.0] * 3 if angular is None else angular[k]
+                spread = np.zeros(36) if twist_cov_rows is None else twist_cov_rows[k].copy()
                 msg = odom(
                     header=m.header(stamp, frame_id),
                     child_frame_id=child_frame_id,
@@ -1255,7 +1268,7 @@ def write_odometry_rosbag2(
                         pose=m.pose(position[k], xyzw[k]),
                         covariance=np.zeros(36) if cov is None else cov[k].reshape(36).copy(),
                     ),
-                    twist=twist_cov(twist=m.twist(linear, [0.0] * 3), covariance=np.zeros(36)),
+                    twist=twist_cov(twist=m.twist(linear, rate), covariance=spread),
                 )
                 writer.write(conn, stamp, store.serialize_cdr(msg, "nav_msgs/msg/Odometry"))
         if target.exists():

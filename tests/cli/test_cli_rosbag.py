@@ -252,3 +252,31 @@ def test_rosbag2_export_is_the_imu_frame_when_the_body_frame_is_another(tmp_path
     # the rotation covariance (about the world axes in ROS) does not depend on the label
     cov = np.array([np.array(m.pose.covariance).reshape(6, 6) for m in messages])
     assert np.all(np.linalg.eigvalsh(cov) > -1e-12) and cov[:, 5, 5].min() > 0
+
+    # the twist, in imu_link's axes, against the exported poses' own finite differences:
+    # R^T dp / dt and Log(R_k^T R_k+1) / dt (mid-interval, against the mean of the ends)
+    t = estimate.t[0].numpy()
+    rotation = Rotation.from_quat(xyzw)
+    linear = np.array(
+        [[m.twist.twist.linear.x, m.twist.twist.linear.y, m.twist.twist.linear.z] for m in messages]
+    )
+    angular = np.array(
+        [
+            [m.twist.twist.angular.x, m.twist.twist.angular.y, m.twist.twist.angular.z]
+            for m in messages
+        ]
+    )
+    dt = np.diff(t)[:, None]
+    rate_fd = (rotation[:-1].inv() * rotation[1:]).as_rotvec() / dt
+    velocity_fd = rotation[:-1].apply(np.diff(position, axis=0) / dt, inverse=True)
+    mid_rate = 0.5 * (angular[:-1] + angular[1:])
+    mid_velocity = 0.5 * (linear[:-1] + linear[1:])
+    assert np.abs(angular[:, 2]).max() > 0.2  # the run turns (imu z = base_link z)
+    assert np.median(np.abs(mid_rate - rate_fd)) < 0.003
+    assert np.median(np.abs(mid_velocity - velocity_fd)) < 0.03
+    assert np.abs(linear[:, 0]).max() < 0.2 < np.abs(linear[:, 1]).max()  # forward = imu -y
+    twist_cov = np.array([np.array(m.twist.covariance).reshape(6, 6) for m in messages])
+    np.testing.assert_allclose(twist_cov, twist_cov.transpose(0, 2, 1), atol=1e-15)
+    assert np.all(np.linalg.eigvalsh(twist_cov) > 0)
+    one_sample = EskfConfig().gyro_noise_density ** 2 * 100.0
+    assert np.diagonal(twist_cov[:, 3:, 3:], axis1=1, axis2=2).min() >= one_sample
