@@ -174,16 +174,21 @@ def sparsification_problem(
         pair_j.append(points[b])
         pair_w.append(np.exp(-gap2[a, b] / (2.0 * radius**2)))
     count = len(keyframe_points)
+    none = [np.zeros(0, np.int64)]  # no keyframe or no point: an empty programme
     coverage = sparse.csr_matrix(
-        (np.ones(sum(len(c) for c in cols)), (np.concatenate(rows), np.concatenate(cols))),
+        (
+            np.ones(sum(len(c) for c in cols)),
+            (np.concatenate(none + rows), np.concatenate(none + cols)),
+        ),
         shape=(count, num_points),
     )
     coverage.data[:] = 1.0
     observed = np.asarray(coverage.sum(1)).reshape(-1).astype(np.int64)
     required = np.minimum(observed, config.min_points)
     track = np.asarray(coverage.sum(0)).reshape(-1)
-    linear = 1.0 - config.track_discount * track / max(float(track.max()), 1.0)
-    i, j, w = np.concatenate(pair_i), np.concatenate(pair_j), np.concatenate(pair_w)
+    linear = 1.0 - config.track_discount * track / max(float(track.max(initial=0.0)), 1.0)
+    i, j = np.concatenate(none + pair_i), np.concatenate(none + pair_j)
+    w = np.concatenate([np.zeros(0), *pair_w])
     upper = sparse.coo_matrix((config.pair_weight * w, (i, j)), shape=(num_points, num_points))
     quadratic = (upper + upper.T).tocsr()
     quadratic.sum_duplicates()
@@ -352,6 +357,8 @@ def sparsify_relaxation(problem: SparsificationProblem) -> SparsifyResult:
     """LP relaxation of the linearised programme (HiGHS), threshold 1/2, greedy repair and
     the drop pass (module docstring); ``lower_bound`` is the LP optimum."""
     start = time.perf_counter()
+    if problem.num_points == 0:
+        return SparsifyResult(np.zeros(0, bool), 0.0, 0.0, 0.0, "relaxation", "no points")
     objective, matrix, lower, upper, _ = _linearisation(problem)
     split = problem.coverage.shape[0]
     cover_rows, link_rows = matrix[:split], matrix[split:]
@@ -373,6 +380,8 @@ def sparsify_exact(problem: SparsificationProblem, time_limit_s: float = 60.0) -
     stopped after ``time_limit_s``: ``keep`` is the best selection found and
     ``lower_bound`` the proven bound (equal to ``cost`` when solved to optimality)."""
     start = time.perf_counter()
+    if problem.num_points == 0:
+        return SparsifyResult(np.zeros(0, bool), 0.0, 0.0, 0.0, "exact", "no points")
     objective, matrix, lower, upper, pairs = _linearisation(problem)
     integrality = np.concatenate((np.ones(problem.num_points), np.zeros(pairs)))
     solution = milp(

@@ -96,6 +96,20 @@ def test_keyframes_with_fewer_points_than_b_keep_all():
     assert result.keep[[0, 1]].all() and result.keep.sum() == 4
 
 
+def test_empty_maps_give_empty_selections():
+    """A map without points (a run that never triangulated) or without keyframes: every
+    solver keeps nothing at cost 0 (the previous code failed in numpy reductions and
+    concatenations with messages that named neither)."""
+    no_points = sparsification_problem([np.zeros(0, np.int64)], [np.zeros((0, 2))], 0)
+    no_keyframes = sparsification_problem([], [], 5)
+    assert no_keyframes.coverage.shape == (0, 5) and no_keyframes.linear.tolist() == [1.0] * 5
+    for problem in (no_points, no_keyframes):
+        for solver in (sparsify_greedy, sparsify_relaxation, sparsify_exact):
+            result = solver(problem)
+            assert result.keep.shape == (problem.num_points,) and not result.keep.any()
+            assert result.cost == 0.0
+
+
 def test_odometry_map_programme_and_greedy_cover(odometry):
     """The programme over a rendered run's map: A's rows are the keyframes' features that
     have map points (looked up by track id one at a time), and the greedy's selection meets
