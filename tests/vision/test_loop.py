@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
+from msf_torch.sensors.camera import CameraRig
 from msf_torch.sim.render import RunRenderer, render_radiance
 from msf_torch.vision.geometry import rotation_log
 from msf_torch.vision.loop import (
@@ -15,6 +16,7 @@ from msf_torch.vision.loop import (
     LoopClosure,
     LoopConfig,
     LoopDetector,
+    PlaceFeatures,
     TemporalConsistencyCache,
     close_loops,
     consistent_loops,
@@ -101,6 +103,65 @@ def test_different_scene_is_refused(rendered, places, vocabulary):
     loop, record = detector.process(frames[15].t, foreign)
     assert record["candidate"] == 0 and record["consistent"]
     assert loop is None and not record["verified"]
+
+
+def _synthetic_place(rng, rig, body_pose, world, descriptors) -> PlaceFeatures:
+    """What a camera on ``rig`` at body pose (4, 4) sees of world points (P, 3) with their
+    descriptors: pixels with 0.3 px noise, exact camera-frame points, 5 % of the bytes with
+    one bit flipped."""
+    mount = np.eye(4)
+    mount[:3, :3], mount[:3, 3] = rig.body_rotation_cam(), rig.body_translation_cam()
+    camera = body_pose @ mount
+    points = (world - camera[:3, 3]) @ camera[:3, :3]
+    pixels = rig.project(points)
+    seen = (points[:, 2] > 0.5) & (pixels >= 0).all(1)
+    seen &= (pixels[:, 0] < rig.width) & (pixels[:, 1] < rig.height)
+    flips = (rng.random((seen.sum(), 32)) < 0.05) << rng.integers(0, 8, (seen.sum(), 32))
+    return PlaceFeatures(
+        pixels[seen] + rng.normal(0.0, 0.3, (seen.sum(), 2)),
+        descriptors[seen] ^ flips.astype(np.uint8),
+        points[seen],
+        np.ones(seen.sum()),
+    )
+
+
+def test_loop_on_a_synthetic_scene_with_an_offset_pitched_mount():
+    """Two views of known 3-D points from a camera mounted off-axis (0.1 m left, 1 m up,
+    pitched 25 deg, cx != cy): the loop is ``T_match^-1 T_query`` of the bodies; the same
+    descriptors on another scene's points, or the query's depths scaled by 1.3, are
+    refused."""
+    rng = np.random.default_rng(0)
+    rig = CameraRig(
+        fx=420.0, fy=410.0, cx=310.0, cy=250.0, mount_position_m=(0.4, 0.1, 1.0),
+        mount_pitch_deg=25.0,
+    )  # fmt: skip
+    world = rng.uniform([3.0, -6.0, -1.0], [15.0, 6.0, 2.0], (600, 3))
+    descriptors = rng.integers(0, 256, (600, 32), dtype=np.uint8)
+    poses = []
+    for yaw, position in ((0.0, [0.0, 0.0, 0.0]), (0.12, [0.6, 0.3, 0.05])):
+        pose = np.eye(4)
+        pose[:3, :3] = Rotation.from_euler("zyx", [yaw, 0.02, -0.01]).as_matrix()
+        pose[:3, 3] = position
+        poses.append(pose)
+    truth = np.linalg.inv(poses[0]) @ poses[1]
+    vocabulary = build_vocabulary(descriptors, np.arange(600) // 60, branching=4, depth=2)
+    config = LoopConfig(min_gap_s=1.0, min_consistent=0, min_normalized_score=0.0)
+    match = _synthetic_place(rng, rig, poses[0], world, descriptors)
+    other_world = rng.uniform([3.0, -6.0, -1.0], [15.0, 6.0, 2.0], (600, 3))
+    query = _synthetic_place(rng, rig, poses[1], world, descriptors)
+    scaled = PlaceFeatures(query.pixels, query.descriptors, 1.3 * query.points, query.scales)
+    loops = []
+    for place in (query, _synthetic_place(rng, rig, poses[1], other_world, descriptors), scaled):
+        detector = LoopDetector(vocabulary, rig, config)
+        detector.process(0.0, match)
+        loop, record = detector.process(30.0, place)
+        assert record["candidate"] == 0
+        loops.append(loop)
+    loop = loops[0]
+    assert loop is not None and loops[1] is None and loops[2] is None
+    # measured: 1.1 mm and 0.006 deg
+    assert np.abs(loop.translation - truth[:3, 3]).max() < 0.005
+    assert np.degrees(np.linalg.norm(rotation_log(loop.rotation.T @ truth[:3, :3]))) < 0.05
 
 
 def test_temporal_consistency_cache():
