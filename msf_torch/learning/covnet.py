@@ -68,6 +68,7 @@ __all__ = [
     "scaled_noise",
     "scaled_pose_covariance",
     "apply_fusion_weights",
+    "IMU_RATE_TOLERANCE",
     "NoiseApplication",
     "save_checkpoint",
     "load_checkpoint",
@@ -415,6 +416,11 @@ def apply_fusion_weights(
         -1, columns, -torch.log(fusion_weights.to(log_scales))
     )
     return log_scales + penalty
+
+
+IMU_RATE_TOLERANCE = 0.05
+"""Largest relative difference between IMU rates one network's windows may mix (training
+runs among themselves, a run at inference against the training runs)."""
 
 
 @dataclass(frozen=True)

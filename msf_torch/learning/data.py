@@ -56,6 +56,7 @@ from torch.utils.data import DataLoader
 
 from msf_torch.frontend.config import config_for_sequence, load_config
 from msf_torch.io import DataError, load_sequence
+from msf_torch.learning.covnet import IMU_RATE_TOLERANCE
 from msf_torch.learning.features import RunFeatures, pose_source_of, run_features
 from msf_torch.sim import (
     SimConfig,
@@ -212,7 +213,8 @@ class RunDataModule(L.LightningDataModule):
         train_files, val_files, test_files: runs to load per split (any format
             :func:`~msf_torch.io.load_sequence` reads); each needs ground truth covering its
             IMU span to within one window and more than ``window_length`` IMU samples
-            (``setup`` raises :class:`~msf_torch.io.DataError` naming the file otherwise);
+            (``setup`` raises :class:`~msf_torch.io.DataError` naming the file otherwise),
+            and all runs of all splits one IMU rate (within ``IMU_RATE_TOLERANCE``);
             ``weather:<c>`` labels are optional (unlabelled windows add no weather loss).
             An empty list means simulated runs for that split.
         train_runs, val_runs, test_runs: simulated runs per split (< ``SPLIT_SEED_STRIDE``).
@@ -403,6 +405,37 @@ class RunDataModule(L.LightningDataModule):
         for split in needed.get(stage or "", SPLITS):
             if split not in self.runs:
                 self.runs[split] = self._build(split)
+        self._check_imu_rates()
+
+    def _check_imu_rates(self) -> None:
+        """All built runs share one IMU rate (within ``IMU_RATE_TOLERANCE``): a window of
+        ``window_length`` samples must span the same time in every run the network sees.
+
+        Raises:
+            DataError: a file's rate differs from the first file's (naming both).
+            ValueError: simulated runs (``imu_rate_hz``) and files differ in rate.
+        """
+        first: tuple[str, float, bool] | None = None
+        for split in SPLITS:
+            files = self.files[split]
+            for index, (seq, _) in enumerate(self.runs.get(split, [])):
+                name = files[index] if files else f"simulated {split} run {index}"
+                rate = float(seq.imu.median_rate_hz()[0])
+                if first is None:
+                    first = (name, rate, not files)
+                if abs(rate / first[1] - 1.0) <= IMU_RATE_TOLERANCE:
+                    continue
+                message = (
+                    f"IMU at {rate:.6g} Hz, but {first[0]} runs at {first[1]:.6g} Hz: one "
+                    f"network's windows of {self.window_length} samples must span the same "
+                    "time in every run (resample the runs to one rate"
+                )
+                if first[2] or not files:
+                    raise ValueError(
+                        f"RunDataModule: {name}: {message}, or set data.imu_rate_hz to the "
+                        "files' rate for the simulated splits)"
+                    )
+                raise DataError(name, message + ")", field="imu")
 
     def _loader(self, split: str, shuffle: bool) -> DataLoader:
         return DataLoader(

@@ -51,6 +51,7 @@ from msf_torch.frontend.guard import EstimationInterrupted, sanitize_sequence
 from msf_torch.frontend.init import initial_state
 from msf_torch.frontend.schedule import build_schedule
 from msf_torch.learning.covnet import (
+    IMU_RATE_TOLERANCE,
     LOG_SCALE_SENSORS,
     CovNet,
     NoiseApplication,
@@ -69,9 +70,6 @@ DEFAULT_CHECKPOINT = (
 
 DEFAULT_CHUNK_WINDOWS = NoiseApplication().chunk_windows
 """Windows per noise chunk, as in ``training/configs/default.yaml``."""
-
-IMU_RATE_TOLERANCE = 0.05
-"""Largest relative difference between a sequence's IMU rate and the training runs'."""
 
 
 @dataclass

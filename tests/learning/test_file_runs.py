@@ -85,6 +85,20 @@ def test_run_shorter_than_one_window_is_named(recorded, tmp_path) -> None:
     assert err.value.path == str(path) and err.value.field == "imu"
 
 
+def test_runs_at_different_imu_rates_are_refused(recorded, tmp_path) -> None:
+    fast = write_native(simulate_labelled_run(14, 4.0, imu_rate_hz=200.0), tmp_path / "f.npz")
+    with pytest.raises(DataError, match=r"IMU at 200 Hz, but .*field_a\.npz runs at 100 Hz") as err:
+        _module([recorded["field_a"], fast], [recorded["field_c"]]).setup("fit")
+    assert err.value.path == str(fast) and err.value.field == "imu"
+    # 200 Hz files validated on simulated runs at the default 100 Hz: name the setting
+    data = RunDataModule(train_files=[str(fast)], val_runs=1, duration_s=4.0)
+    with pytest.raises(ValueError, match=r"simulated val run 0: IMU at 100 Hz.*data\.imu_rate_hz"):
+        data.setup("fit")
+    # within 5 %: one network's windows span nearly the same time
+    near = write_native(simulate_labelled_run(15, 4.0, imu_rate_hz=104.0), tmp_path / "n.npz")
+    _module([recorded["field_a"], near], [recorded["field_c"]]).setup("fit")
+
+
 def test_missing_file_is_named(recorded, tmp_path) -> None:
     missing = tmp_path / "nowhere.npz"
     with pytest.raises(DataError, match="no such file") as err:
