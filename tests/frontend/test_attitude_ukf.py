@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 import torch
-from filterpy.kalman import KalmanFilter, MerweScaledSigmaPoints
+from filterpy.kalman import KalmanFilter, MerweScaledSigmaPoints, UnscentedKalmanFilter
 
 from msf_torch.frontend.attitude_ukf import (
     AttitudeUkfConfig,
@@ -89,6 +89,52 @@ def test_linear_case_equals_filterpy_kalman_filter():
         assert float(theta[:2].abs().max()) < 1e-9
         ours = cov[0][[2, 5]][:, [2, 5]].numpy()
         np.testing.assert_allclose(ours, kf.P, atol=1e-12, rtol=1e-9)
+
+
+def test_accelerometer_update_equals_filterpy_ukf():
+    """Roll only (the other axes' variances 1e-20): the error-state chart is additive, so the
+    UKF with the gyro and the accelerometer as a gravity sensor, ``h = [omega, g (0, sin r,
+    cos r)]``, a nonlinear model, is filterpy's UnscentedKalmanFilter on ``[theta, omega]``
+    with the same sigma points (1e-12)."""
+    dt, tiny = 0.01, 1e-20
+    rng = np.random.default_rng(3)
+
+    def fx(x: np.ndarray, step: float) -> np.ndarray:
+        return x + np.concatenate((x[3:] * step, np.zeros(3)))
+
+    def hx(x: np.ndarray) -> np.ndarray:
+        return np.concatenate((x[3:], G * np.array([0.0, np.sin(x[0]), np.cos(x[0])])))
+
+    ukf = UnscentedKalmanFilter(6, 6, dt, hx, fx, MerweScaledSigmaPoints(6, 0.5, 2.0, 0.0))
+    p0 = np.diag([0.05**2, tiny, tiny, 0.2**2, tiny, tiny])
+    p0[0, 3] = p0[3, 0] = 0.003
+    ukf.x, ukf.P = np.array([0.4, 0.0, 0.0, 0.5, 0.0, 0.0]), p0.copy()
+    ukf.Q = np.diag([1e-6, tiny, tiny, 1e-2, tiny, tiny])
+    ukf.R = np.diag([1e-4] * 3 + [0.05, 0.02, 0.2])  # anisotropic: Wc_0 then matters
+    weights = merwe_weights(6, 0.5, 2.0, 0.0)
+    quat = quat_exp(torch.tensor([[0.4, 0.0, 0.0]], dtype=DTYPE))
+    rate = torch.tensor([[0.5, 0.0, 0.0]], dtype=DTYPE)
+    cov, process = torch.as_tensor(p0)[None], torch.as_tensor(ukf.Q)[None]
+    r_cov = torch.diag(torch.as_tensor(np.concatenate((np.ones(3), np.diag(ukf.R)))))[None]
+    present = torch.tensor([[False, True, True]])
+    identity = torch.tensor([[1.0, 0.0, 0.0, 0.0]], dtype=DTYPE)
+    truth = np.array([0.4, 0.0, 0.0, 0.9, 0.0, 0.0])
+    for _ in range(100):
+        truth = fx(truth, dt)
+        ukf.predict()
+        quat, rate, cov = ukf_predict(
+            quat, rate, cov, process, torch.tensor([dt], dtype=DTYPE), weights
+        )
+        z = hx(truth) + rng.normal(size=6) * np.sqrt(np.diag(ukf.R))
+        ukf.update(z)
+        measurement = torch.as_tensor(np.concatenate((np.zeros(3), z)))[None]
+        quat, rate, cov = ukf_update(
+            quat, rate, cov, measurement, identity, r_cov, present, weights, G
+        )
+        ours = torch.cat((quat_log(quat)[0], rate[0])).numpy()
+        np.testing.assert_allclose(ours, ukf.x, rtol=0, atol=1e-12)
+        idx = np.ix_([0, 3], [0, 3])
+        np.testing.assert_allclose(cov[0].numpy()[idx], ukf.P[idx], rtol=0, atol=1e-12)
 
 
 def _static_imu(batch: int, n_samples: int, dt: float, seed: int, gyro_d: float, accel_d: float):
