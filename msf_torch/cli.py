@@ -126,12 +126,24 @@ def build_parser() -> argparse.ArgumentParser:
     )
 
     ev = sub.add_parser("eval", help="ATE and RPE of an estimate against a reference (TUM)")
-    ev.add_argument("estimate", type=Path)
-    ev.add_argument("reference", type=Path)
-    ev.add_argument("--align", choices=("se3", "sim3", "none"), default="se3")
+    ev.add_argument("estimate", type=Path, help="estimated trajectory (TUM)")
+    ev.add_argument("reference", type=Path, help="reference trajectory (TUM)")
+    ev.add_argument(
+        "--align",
+        choices=("se3", "sim3", "none"),
+        default="se3",
+        help="align the estimate to the reference first: rigid (default), with scale, or not",
+    )
     ev.add_argument("--max-dt", type=float, default=0.01, help="association tolerance, s")
     ev.add_argument("--delta", type=float, default=1.0, help="RPE step")
     ev.add_argument("--delta-unit", choices=("frames", "m", "s"), default="frames")
+    ev.add_argument(
+        "--plot",
+        type=Path,
+        default=None,
+        metavar="PNG",
+        help="write a figure: aligned estimate and reference from above, error over time",
+    )
 
     sim = sub.add_parser("simulate", help="write a simulated labelled wheeled-robot run")
     sim.add_argument("--duration", type=float, default=120.0, help="seconds")
@@ -179,6 +191,13 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="KERNEL[:SCALE]",
         help="robust kernel on every edge: huber, cauchy, geman_mcclure or tukey; scale in "
         "sigmas (default: the kernel's 95%%-efficiency constant, geman_mcclure 1)",
+    )
+    pg.add_argument(
+        "--plot",
+        type=Path,
+        default=None,
+        metavar="PNG",
+        help="write a figure: top and side views before and after, cost per iteration",
     )
     pg.add_argument("--max-iterations", type=int, default=100, help="most linear solves")
     pg.add_argument(
@@ -421,6 +440,7 @@ def _cmd_eval(args) -> dict[str, Any]:
         max_dt=args.max_dt,
         delta=args.delta,
         delta_unit=args.delta_unit,
+        plot=args.plot,
     )
 
 
@@ -525,6 +545,20 @@ def _cmd_posegraph(args) -> dict[str, Any]:
     }
     if args.out is not None:
         summary["out"] = str(write_g2o(args.out, result.graph))
+    if args.plot is not None:
+        from msf_torch.eval.plots import pose_graph_figure
+
+        summary["plot"] = str(
+            pose_graph_figure(
+                args.plot,
+                graph.positions,
+                result.graph.positions,
+                graph.edge_index,
+                result.log,
+                result.initial_cost,
+                title=Path(source).name,
+            )
+        )
     return summary
 
 

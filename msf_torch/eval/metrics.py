@@ -29,19 +29,22 @@ __all__ = [
     "error_statistics",
     "translation_errors",
     "position_errors",
+    "aligned_estimate",
     "ate",
     "rpe",
     "evaluate_files",
 ]
 
+import dataclasses
 import os
+from pathlib import Path
 from typing import Any
 
 import torch
 
 from msf_torch.eval.align import apply_similarity, associate, umeyama
 from msf_torch.geometry import so3
-from msf_torch.geometry.quaternion import quat_to_matrix
+from msf_torch.geometry.quaternion import matrix_to_quat, quat_to_matrix
 from msf_torch.types import Trajectory
 
 ALIGN_MODES = ("se3", "sim3", "none")
@@ -181,6 +184,27 @@ def _matched(est: Trajectory, ref: Trajectory, align: str, max_dt: float) -> dic
 
 def _floats(stats: dict[str, torch.Tensor]) -> dict[str, float]:
     return {k: float(stats[k][0]) for k in _STAT_KEYS}
+
+
+def aligned_estimate(
+    est: Trajectory, ref: Trajectory, align: str = "se3", max_dt: float = 0.01
+) -> Trajectory:
+    """The whole estimate moved by the alignment the ATE uses (float64, B = 1).
+
+    ``p' = s R p + t`` and ``R_est' = R R_est`` with ``(R, t, s)`` from
+    :func:`~msf_torch.eval.align.umeyama` over the matched poses (``"none"``: unchanged).
+
+    Args:
+        est: estimated trajectory, B = 1.
+        ref: reference trajectory, B = 1.
+        align: ``"se3"``, ``"sim3"`` or ``"none"``.
+        max_dt: association tolerance, s.
+    """
+    m = _matched(est, ref, align, max_dt)
+    moved = est.to(dtype=torch.float64)
+    position = m["scale"] * moved.position @ m["rotation"].T + m["translation"]
+    rotation = m["rotation"] @ quat_to_matrix(moved.quaternion)
+    return dataclasses.replace(moved, position=position, quaternion=matrix_to_quat(rotation))
 
 
 def position_errors(
@@ -341,6 +365,7 @@ def evaluate_files(
     max_dt: float = 0.01,
     delta: float = 1,
     delta_unit: str = "frames",
+    plot: str | os.PathLike | None = None,
 ) -> dict[str, Any]:
     """ATE and RPE of a TUM estimate file against a TUM reference file.
 
@@ -353,10 +378,13 @@ def evaluate_files(
         align: ``"se3"``, ``"sim3"`` or ``"none"``.
         max_dt: association tolerance, s.
         delta, delta_unit: RPE pair spacing (see :func:`rpe`).
+        plot: optional PNG path: the estimate moved by the ATE's alignment against the
+            reference (top-down) and the position error over time
+            (:func:`msf_torch.eval.plots.overview_figure`, no slip panel).
 
     Returns:
         ``{"ate": ate(...), "rpe": rpe(...), "matched": n, "align": align,
-        "estimate": str, "reference": str}``.
+        "estimate": str, "reference": str}``, and ``"plot": str`` with ``plot``.
     """
     from msf_torch.io.tum import read_tum
 
@@ -364,7 +392,7 @@ def evaluate_files(
     ref = read_tum(reference_path)
     ate_out = ate(est, ref, align=align, max_dt=max_dt)
     rpe_out = rpe(est, ref, delta=delta, delta_unit=delta_unit, align=align, max_dt=max_dt)
-    return {
+    out = {
         "ate": ate_out,
         "rpe": rpe_out,
         "matched": ate_out["matched"],
@@ -372,3 +400,20 @@ def evaluate_files(
         "estimate": os.fspath(estimate_path),
         "reference": os.fspath(reference_path),
     }
+    if plot is not None:
+        from msf_torch.eval.plots import overview_figure
+
+        error_t, error = position_errors(est, ref, align, max_dt)
+        out["plot"] = str(
+            overview_figure(
+                plot,
+                aligned_estimate(est, ref, align, max_dt),
+                ref,
+                error_t=error_t,
+                error=error,
+                title=f"{Path(estimate_path).name} vs {Path(reference_path).name} "
+                f"(align {align}, ATE RMSE {ate_out['rmse']:.3f} m)",
+                slip_panel=False,
+            )
+        )
+    return out

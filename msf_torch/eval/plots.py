@@ -1,4 +1,5 @@
-"""Overview figure of one run: top-down trajectory, position error, wheel slip factor.
+"""Figures: the overview of one run (top-down trajectory, position error, wheel slip factor)
+and a pose graph before and after optimisation.
 
 Drawn with matplotlib's object API on an Agg canvas (no pyplot state, no display needed) and
 written atomically: a temporary file in the target directory, then ``os.replace``, so a reader
@@ -7,7 +8,7 @@ never sees a half-written PNG and a failed save leaves no stray file.
 
 from __future__ import annotations
 
-__all__ = ["overview_figure"]
+__all__ = ["overview_figure", "pose_graph_figure"]
 
 import os
 import tempfile
@@ -64,12 +65,14 @@ def overview_figure(
     slip: torch.Tensor | np.ndarray | None = None,
     outage: SequenceABC[float] | None = None,
     title: str = "",
+    slip_panel: bool = True,
 ) -> Path:
     """Write a three-panel PNG overview of one run.
 
     Panels: (left) top-down x-y trajectory, estimate against reference, equal axes, with the
     estimate's part inside ``outage`` drawn in red; (top right) position error over time with
-    the outage shaded; (bottom right) wheel slip factor over time, or "no wheel data".
+    the outage shaded; (bottom right) wheel slip factor over time, or "no wheel data"
+    (``slip_panel=False``: no such panel, the error panel takes the right column).
 
     All times are seconds on the estimate's clock and are drawn relative to the estimate's
     first real time.
@@ -86,6 +89,8 @@ def overview_figure(
         slip: (L,) wheel slip factor, dimensionless; None hides the curve.
         outage: ``(t0, t1)`` s, a sensor outage to highlight, or None.
         title: figure title.
+        slip_panel: draw the wheel-slip panel (a figure of a run without wheels, as
+            ``msf eval`` draws, leaves it out).
 
     Returns:
         The written path.
@@ -124,9 +129,9 @@ def overview_figure(
     FigureCanvasAgg(fig)
     grid = fig.add_gridspec(2, 2, width_ratios=(1.15, 1.0))
     ax_xy = fig.add_subplot(grid[:, 0])
-    ax_err = fig.add_subplot(grid[0, 1])
+    ax_err = fig.add_subplot(grid[0, 1] if slip_panel else grid[:, 1])
     both = pairs["error"] is not None and pairs["slip"] is not None
-    ax_slip = fig.add_subplot(grid[1, 1], sharex=ax_err if both else None)
+    ax_slip = fig.add_subplot(grid[1, 1], sharex=ax_err if both else None) if slip_panel else None
 
     # Top-down trajectory.
     if p_ref is not None:
@@ -171,7 +176,10 @@ def overview_figure(
     ax_err.set_title("position error")
 
     # Slip factor.
-    if pairs["slip"] is not None:
+    if ax_slip is None:
+        if pairs["error"] is not None:
+            ax_err.set_xlabel("time since start [s]")
+    elif pairs["slip"] is not None:
         tt, vv = pairs["slip"]
         ax_slip.plot(tt, vv, color="tab:purple", lw=1.2, label="slip factor")
         if span is not None:
@@ -184,10 +192,16 @@ def overview_figure(
         _no_data(ax_slip, "no wheel data")
         if pairs["error"] is not None:
             ax_err.set_xlabel("time since start [s]")
-    ax_slip.set_title("wheel slip")
+    if ax_slip is not None:
+        ax_slip.set_title("wheel slip")
     if title:
         fig.suptitle(title)
 
+    return _save_png(fig, path)
+
+
+def _save_png(fig: Figure, path: Path) -> Path:
+    """Write ``fig`` to ``path`` atomically (temporary file in the directory, then rename)."""
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     try:
@@ -200,3 +214,92 @@ def overview_figure(
             os.unlink(tmp)
         raise
     return path
+
+
+def pose_graph_figure(
+    path: str | os.PathLike[str],
+    initial_positions: Any,
+    optimised_positions: Any,
+    edge_index: Any,
+    log: SequenceABC[dict[str, Any]],
+    initial_cost: float,
+    title: str | None = None,
+) -> Path:
+    """Write a PNG of a pose graph before and after optimisation.
+
+    Panels: top view (x-y) and side view (x-z) of the vertex positions, initial in grey and
+    optimised in blue, with the edges between non-consecutive vertices (loop closures) drawn
+    faintly on the optimised poses; and the cost per iteration (log scale, rejected steps
+    marked), starting from ``initial_cost``.
+
+    Args:
+        path: the PNG file (parent folders are created; written atomically).
+        initial_positions, optimised_positions: (N, 3) m, vertex positions.
+        edge_index: (E, 2) vertex rows of each edge.
+        log: one dict per iteration with ``cost`` and ``accepted``
+            (:class:`~msf_torch.backend.posegraph.PoseGraphResult`'s ``log``).
+        initial_cost: cost before the first iteration.
+        title: figure title.
+
+    Returns:
+        the path written.
+
+    Raises:
+        ValueError: the position arrays are not (N, 3) of one N, or ``edge_index`` is not
+            (E, 2) rows into them.
+    """
+    path = Path(path)
+    before = np.asarray(torch.as_tensor(initial_positions).detach().cpu(), dtype=np.float64)
+    after = np.asarray(torch.as_tensor(optimised_positions).detach().cpu(), dtype=np.float64)
+    edges = np.asarray(torch.as_tensor(edge_index).detach().cpu(), dtype=np.int64)
+    if before.ndim != 2 or before.shape[1] != 3 or before.shape != after.shape:
+        raise ValueError(f"positions must be (N, 3) of one N, got {before.shape} and {after.shape}")
+    if (
+        edges.ndim != 2
+        or edges.shape[1] != 2
+        or (edges.size and not (edges.min() >= 0 and edges.max() < before.shape[0]))
+    ):
+        raise ValueError(f"edge_index must be (E, 2) rows of the {before.shape[0]} vertices")
+    loops = edges[np.abs(edges[:, 0] - edges[:, 1]) > 1]
+
+    from matplotlib.collections import LineCollection
+
+    fig = Figure(figsize=(15.0, 5.2), dpi=_DPI, layout="constrained")
+    FigureCanvasAgg(fig)
+    axes = fig.subplots(1, 3, width_ratios=(1.0, 1.0, 0.9))
+    for ax, (u, v), name in zip(axes[:2], ((0, 1), (0, 2)), ("top view", "side view"), strict=True):
+        if loops.size:
+            segments = after[loops][:, :, [u, v]]
+            ax.add_collection(
+                LineCollection(segments, colors="tab:orange", linewidths=0.4, alpha=0.35)
+            )
+        ax.plot(before[:, u], before[:, v], color="0.6", lw=0.8, label="initial")
+        ax.plot(after[:, u], after[:, v], color=_EST_COLOR, lw=1.0, label="optimised")
+        if loops.size:
+            ax.plot([], [], color="tab:orange", lw=0.8, label=f"loop edges ({len(loops)})")
+        ax.set_aspect("equal", adjustable="datalim")
+        ax.set_xlabel("xyz"[u] + " [m]")
+        ax.set_ylabel("xyz"[v] + " [m]")
+        ax.set_title(f"{name} ({before.shape[0]} poses, {edges.shape[0]} edges)")
+        ax.grid(True, alpha=0.35)
+        ax.legend(loc="best", fontsize=8)
+    ax_cost = axes[2]
+    costs = np.array([initial_cost] + [float(entry["cost"]) for entry in log])
+    accepted = np.array([True] + [bool(entry["accepted"]) for entry in log])
+    steps = np.arange(costs.size)
+    kept = np.minimum.accumulate(np.where(accepted, costs, np.inf))
+    ax_cost.plot(steps, kept, color=_EST_COLOR, marker="o", ms=4, lw=1.2, label="cost")
+    if not accepted.all():
+        ax_cost.plot(
+            steps[~accepted], costs[~accepted], "x", color="tab:red", ms=7, label="rejected step"
+        )
+    if (costs > 0).all():
+        ax_cost.set_yscale("log")
+    ax_cost.set_xlabel("iteration")
+    ax_cost.set_ylabel("cost 0.5 sum |W r|^2")
+    ax_cost.set_title(f"cost {costs[0]:.4g} -> {kept[-1]:.4g}")
+    ax_cost.grid(True, alpha=0.35, which="both")
+    ax_cost.legend(loc="best", fontsize=8)
+    if title:
+        fig.suptitle(title)
+    return _save_png(fig, path)

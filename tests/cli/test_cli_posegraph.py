@@ -53,6 +53,15 @@ def test_posegraph_named_file_and_robust_kernel(gtsam, capsys):
     assert "out" not in summary
 
 
+def test_posegraph_plot(gtsam, tmp_path, capsys):
+    figure = tmp_path / "figs" / "grid.png"
+    assert main(["posegraph", "pose3example-grid.txt", "--plot", str(figure)]) == 0
+    summary = _last_json(capsys)
+    assert summary["plot"] == str(figure)
+    assert figure.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and figure.stat().st_size > 20_000
+    assert sorted(p.name for p in figure.parent.iterdir()) == ["grid.png"]
+
+
 def test_posegraph_bad_input(tmp_path, capsys):
     with pytest.raises(SystemExit) as exit_info:
         main(["posegraph", "graph.g2o", "--robust", "l1"])

@@ -188,3 +188,35 @@ def test_evaluate_files_matches_evo(tum_pair, align):
     _assert_stats(out["rpe"], _evo_stats(rpe_metric))
     assert out["matched"] == est.num_poses
     assert out["align"] == align
+
+
+@pytest.mark.parametrize("align", ["se3", "sim3"])
+def test_aligned_estimate_and_the_eval_plot(tmp_path, align, run_factory, read_local):
+    # the reference moved by a known similarity: aligning the moved copy gives it back
+    from scipy.spatial.transform import Rotation
+
+    from msf_torch.eval.metrics import aligned_estimate
+
+    def write_tum(path, t, xyz, quat_xyzw):
+        np.savetxt(path, np.column_stack((t, xyz, quat_xyzw)), fmt="%.17g")
+        return path
+
+    run = run_factory(3)
+    rotation = Rotation.from_rotvec([0.3, -0.2, 1.1])
+    scale = 1.7 if align == "sim3" else 1.0
+    xyz = scale * rotation.apply(run["ref_xyz"]) + np.array([5.0, -2.0, 0.5])
+    quat = (rotation * Rotation.from_quat(run["ref_q"])).as_quat()
+    est_path = write_tum(tmp_path / "est.tum", run["ref_t"], xyz, quat)
+    ref_path = write_tum(tmp_path / "ref.tum", run["ref_t"], run["ref_xyz"], run["ref_q"])
+    est, ref = read_local(est_path), read_local(ref_path)
+    back = aligned_estimate(est, ref, align=align)
+    torch.testing.assert_close(back.position, ref.position, atol=1e-9, rtol=0)
+    relative = Rotation.from_quat(back.quaternion[0].numpy()[:, [1, 2, 3, 0]]).inv() * (
+        Rotation.from_quat(run["ref_q"])
+    )
+    assert relative.magnitude().max() < 1e-9
+    unmoved = aligned_estimate(est, ref, align="none")
+    torch.testing.assert_close(unmoved.position, est.position, atol=0, rtol=0)
+    out = evaluate_files(est_path, ref_path, align=align, plot=tmp_path / "eval.png")
+    assert out["plot"] == str(tmp_path / "eval.png") and out["ate"]["rmse"] < 1e-9
+    assert (tmp_path / "eval.png").read_bytes()[:4] == b"\x89PNG"

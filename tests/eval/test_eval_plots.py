@@ -63,3 +63,25 @@ def test_failed_save_keeps_old_file_and_leaves_no_temp(tmp_path, tum_pair, read_
         overview_figure(target, est, ref)
     assert target.read_bytes() == b"old"
     assert [p.name for p in target.parent.iterdir()] == ["overview.png"]
+
+
+def test_pose_graph_figure_and_its_input_checks(tmp_path):
+    from msf_torch.eval.plots import pose_graph_figure
+
+    angle = torch.linspace(0.0, 6.0, 60, dtype=torch.float64)
+    after = torch.stack([10 * angle.cos(), 10 * angle.sin(), 0.1 * angle], -1)
+    before = after + 0.3 * angle[:, None]
+    chain = torch.stack([torch.arange(59), torch.arange(1, 60)], -1)
+    edges = torch.cat([chain, torch.tensor([[0, 50], [5, 55]])])
+    log = [
+        {"cost": 10.0, "accepted": True},
+        {"cost": 10.0, "accepted": False},
+        {"cost": 0.5, "accepted": True},
+    ]
+    path = pose_graph_figure(tmp_path / "g.png", before, after, edges, log, 1e3, title="ring")
+    assert path.read_bytes()[:8] == PNG_MAGIC and path.stat().st_size > 20_000
+    with pytest.raises(ValueError, match=r"\(N, 3\) of one N"):
+        pose_graph_figure(tmp_path / "h.png", before[:10], after, edges, log, 1e3)
+    with pytest.raises(ValueError, match="rows of the 60 vertices"):
+        pose_graph_figure(tmp_path / "h.png", before, after, edges + 10, log, 1e3)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["g.png"]
