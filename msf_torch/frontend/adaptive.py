@@ -201,16 +201,16 @@ def inflate_along_measurements(
     ``A = Phi P Phi^T H^T``, ``M = H Phi P Phi^T H^T`` over the rows in ``row_mask``.
     With ``H = I`` this is ``lambda Phi P Phi^T``, the classic full fading.
 
+    Where M is singular because rows measure the same direction (two strong-tracking blocks
+    at one epoch: two pose sources' rate rows, GNSS and a pose position), ``M^-1`` is
+    replaced by ``(M + eps I)^-1`` with ``eps = 1e-12 max diag M``: the same inflation,
+    ``P H^T M^+ H P``, to within about ``eps`` over M's smallest non-zero eigenvalue.
+
     Args:
         propagated: (..., n, n) ``Phi P Phi^T``.
         jacobian: (..., m, n) H.
         factor: (...) lambda >= 1.
         row_mask: (..., m) 1/0 (or bool), the rows that count; None = all.
-    Where M is singular because rows measure the same direction (two strong-tracking blocks
-    at one epoch: two pose sources' rate rows, GNSS and a pose position), ``M^-1`` is
-    replaced by ``(M + eps I)^-1`` with ``eps = 1e-10 max diag M``: the same inflation,
-    ``P H^T M^+ H P``, to within about ``eps`` over M's smallest non-zero eigenvalue.
-
     Returns:
         (..., n, n); ``propagated`` unchanged where even that fails (no inflation there).
     """
@@ -220,7 +220,7 @@ def inflate_along_measurements(
     cross = propagated @ jacobian.mT  # (..., n, m)
     seen = jacobian @ cross
     eye = torch.eye(seen.shape[-1], dtype=seen.dtype, device=seen.device)
-    jitter = 1e-10 * torch.diagonal(seen, dim1=-2, dim2=-1).amax(-1)
+    jitter = 1e-12 * torch.diagonal(seen, dim1=-2, dim2=-1).amax(-1)
     if row_mask is not None:
         seen = seen + torch.diag_embed(1.0 - mask)
     chol, info = torch.linalg.cholesky_ex(seen)
