@@ -98,6 +98,13 @@ _CHECKPOINT_FORMAT = "msf_torch.covnet/1"
 _SIGNAL_CHANNELS = 9  # gyro (3), accel (3), wheel speeds (2), wheel presence (1)
 
 
+def _require_known_keys(cls: type, values: dict[str, Any]) -> None:
+    """Raise ``ValueError`` naming the keys of ``values`` that are not fields of ``cls``."""
+    unknown = set(values) - {f.name for f in dataclasses.fields(cls)}
+    if unknown:
+        raise ValueError(f"unknown {cls.__name__} keys {sorted(unknown)}")
+
+
 @dataclass
 class CovNetConfig:
     """CovNet sizes, bounds and input scales (plain types, stored in checkpoints).
@@ -175,10 +182,7 @@ class CovNetConfig:
     @classmethod
     def from_dict(cls, values: dict[str, Any]) -> CovNetConfig:
         """Inverse of :meth:`to_dict`; unknown keys raise ``ValueError``."""
-        known = {f.name for f in dataclasses.fields(cls)}
-        unknown = set(values) - known
-        if unknown:
-            raise ValueError(f"unknown CovNetConfig keys {sorted(unknown)}")
+        _require_known_keys(cls, values)
         config = cls(**{k: tuple(v) if isinstance(v, list) else v for k, v in values.items()})
         config.validate()
         return config
@@ -473,10 +477,7 @@ class NoiseApplication:
     @classmethod
     def from_dict(cls, values: dict[str, Any]) -> NoiseApplication:
         """Inverse of :meth:`to_dict`; unknown keys raise ``ValueError``."""
-        known = {f.name for f in dataclasses.fields(cls)}
-        unknown = set(values) - known
-        if unknown:
-            raise ValueError(f"unknown NoiseApplication keys {sorted(unknown)}")
+        _require_known_keys(cls, values)
         return cls(**values)
 
 
