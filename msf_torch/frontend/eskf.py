@@ -1405,7 +1405,10 @@ def run_eskf(
                     size = block.shape[-1]
                     r_cov[:, start : start + size, start : start + size] = block
             if adaptation.enabled:  # frontend.adaptive: Sage-Husa R, strong tracking
-                cov, r_cov = adaptation.step(e, cov - q, q, h_all, r_all, r_cov, present_all[:, e])
+                teaching = present_all[:, e]
+                if block_weight is not None:  # an excluded source teaches the noise nothing
+                    teaching = teaching & (block_weight[:, e] > 0.5)
+                cov, r_cov = adaptation.step(e, cov - q, q, h_all, r_all, r_cov, teaching)
             s_all = h_all @ cov @ h_all.mT + r_cov
 
             # --- gating: NIS of every block at once through the block-diagonal part of S ----

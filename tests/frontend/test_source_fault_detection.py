@@ -363,6 +363,35 @@ def test_eskf_excludes_a_faulty_lidar_during_its_fault_and_not_outside(lidar_fau
     assert errors[0] < 0.5 * errors[1]
 
 
+def test_an_excluded_source_does_not_adapt_the_noise(lidar_fault_run):
+    # Sage-Husa and strong tracking on the LiDAR block: while the detector excludes the
+    # sliding LiDAR, its noise estimate holds (it grew from 0.31 to 1.38 m/s when the
+    # excluded rows still fed the adaptation) and they raise no fading factor
+    _, seq, cfg = lidar_fault_run
+    adaptive = cfg.replace(
+        source_fault_detection=True,
+        adaptive_noise_sensors=["pose:lidar"],
+        strong_tracking_sensors=["pose:lidar"],
+    )
+    with torch.no_grad():
+        result = run_eskf(seq, adaptive)
+    flagged = result.source_fault["pose:lidar"][0]
+    estimate = result.noise_estimate["pose:lidar"][0]
+    assert int(flagged.sum()) > 50
+    held = 0
+    for e in torch.nonzero(flagged[1:]).flatten().tolist():
+        epoch = e + 1
+        if bool(flagged[epoch - 1]):  # excluded after epoch - 1: epoch adapts nothing
+            assert torch.equal(estimate[epoch], estimate[epoch - 1]), epoch
+            assert float(result.fading_factor[0, epoch]) == 1.0, epoch
+            held += 1
+    assert held > 50
+    # outside the exclusion the LiDAR does adapt its noise
+    free = ~flagged[1:] & ~flagged[:-1]
+    changed = (estimate[1:] != estimate[:-1]).flatten(-2).any(-1)
+    assert bool((changed & free).any())
+
+
 def test_detection_off_or_with_one_source_changes_nothing(lidar_fault_run):
     _, seq, cfg = lidar_fault_run
     short = dataclasses.replace(seq, imu=seq.imu.map(lambda x: x[:, :1000]))  # 10 s
