@@ -138,7 +138,15 @@ class RunOptions:
 
 
 def write_diagnostics(result: EskfResult, path: Path, index: int = 0) -> None:
-    """Write the per-epoch diagnostics table of sequence ``index`` as CSV."""
+    """Write the per-epoch diagnostics table of sequence ``index`` as CSV.
+
+    Columns: ``t``; the 15 error-state variances; ``slip_factor``, ``imu_gap``,
+    ``divergence``; per sensor present / accepted / NIS; ``fading_factor`` (strong
+    tracking, 1 where nothing was adapted); per Sage-Husa block ``<block>_noise_sigma<i>``,
+    the square roots of the estimated R's diagonal (units of the block's rows, 0 before its
+    first measurement); per pose source the fault flag and Z; the online-calibration states
+    and their sigmas.
+    """
     keep = result.mask[index]
     t = result.t[index, keep].numpy()
     var = torch.diagonal(result.covariance[index, keep], dim1=-2, dim2=-1).numpy()
@@ -156,6 +164,12 @@ def write_diagnostics(result: EskfResult, path: Path, index: int = 0) -> None:
         cols.append(result.accepted[name][index, keep].numpy()[:, None].astype(float))
         cols.append(result.nis[name][index, keep].numpy()[:, None])
         header += [f"{name}_present", f"{name}_accepted", f"{name}_nis"]
+    cols.append(result.fading_factor[index, keep].numpy()[:, None])  # 1: nothing adapted
+    header.append("fading_factor")
+    for name, estimate in result.noise_estimate.items():  # Sage-Husa R_hat per block
+        sigma = torch.diagonal(estimate[index, keep], dim1=-2, dim2=-1).clamp_min(0.0).sqrt()
+        cols.append(sigma.numpy())
+        header += [f"{name}_noise_sigma{i}" for i in range(sigma.shape[-1])]
     for name, flags in result.source_fault.items():  # frontend.gating, source_fault_detection
         cols.append(flags[index, keep].numpy()[:, None].astype(float))
         cols.append(result.source_fault_z[name][index, keep].numpy()[:, None])

@@ -66,6 +66,33 @@ def test_sage_husa_lowers_rmse_after_a_noise_step(noise_step_runs):
     assert bool((adaptive.fading_factor == 1.0).all())
 
 
+def test_diagnostics_table_carries_the_adaptation(noise_step_runs, tmp_path):
+    """msf run's diagnostics.csv: the fading factor and Sage-Husa's sigmas per epoch, of the
+    sequence asked for."""
+    import numpy as np
+
+    from msf_torch.runner import write_diagnostics
+
+    _, batch, base = noise_step_runs
+    cfg = base.replace(adaptive_noise_sensors=["gnss"], strong_tracking_sensors=["gnss"])
+    with torch.no_grad():
+        result = run_eskf(batch, cfg)
+    write_diagnostics(result, tmp_path / "d.csv", index=1)
+    table = np.genfromtxt(tmp_path / "d.csv", delimiter=",", names=True, deletechars="")
+    keep = result.mask[1]
+    np.testing.assert_allclose(table["fading_factor"], result.fading_factor[1, keep], rtol=1e-9)
+    assert table["fading_factor"].max() > 1.0
+    estimate = result.noise_estimate["gnss"][1, keep]
+    for i in range(3):
+        np.testing.assert_allclose(
+            table[f"gnss_noise_sigma{i}"], estimate[:, i, i].sqrt(), rtol=1e-9, atol=1e-12
+        )
+    write_diagnostics(run_eskf(batch.select(0), base), tmp_path / "plain.csv")
+    plain = np.genfromtxt(tmp_path / "plain.csv", delimiter=",", names=True, deletechars="")
+    assert (plain["fading_factor"] == 1.0).all()
+    assert not any("noise_sigma" in name for name in plain.dtype.names)
+
+
 def test_strong_tracking_recovers_from_a_wrong_initial_position():
     """Start 18 m off with a 0.2 m sigma (model mismatch): over 10-30 s the faded filter's
     error is less than half the plain one's, which the gate and its confidence hold back."""
