@@ -71,13 +71,17 @@ and a fixed-lag estimate does not see beyond the window. On 30-s simulated runs 
 windows (the default), 0.09-0.29 m with 20 and 0.5-0.6 m with 10 (the filter's last epoch:
 0.14-0.20 m). Through a GNSS outage longer than the window a window learns of the outage's
 end only when it gets there, so there its error is a filter's, not a smoother's (bundled
-sample, 30-s outage: ATE 0.34 m with 40 keyframes, 0.81 m with 20; the front end 0.50 m).
+sample, 30-s outage: ATE 0.33 m with 40 keyframes, 0.80 m with 20; the front end 0.50 m).
 
 Output: the smoothed keyframe states, and (``output="frontend"``, the default) the
 trajectory at every front-end epoch: between keyframes ``i`` and ``j`` each epoch's pose is
 the front end's pose carried by the correction of keyframe ``i`` and by that of ``j``
 (``T_s T_fe^-1 T_fe(t)``), blended by time (linear in position, geodesic in rotation), so
-the front end's local motion fills in between smoothed keyframes.
+the front end's local motion fills in between smoothed keyframes. Keyframe ``j``'s
+correction is taken against the front end's pose there *before* its measurement update
+(:func:`update_free_poses`: the previous epoch carried through the IMU), since the
+posterior also holds the update's jump (metres at the first fix after an outage), which
+would otherwise ramp into every epoch since keyframe ``i``.
 
 These smoothers take one sequence (B = 1): keyframe counts differ between sequences.
 """
@@ -97,6 +101,7 @@ __all__ = [
     "chain_covariance",
     "bordered_chain_covariance",
     "smooth_full_calibrated",
+    "update_free_poses",
     "densify",
 ]
 
@@ -1133,17 +1138,78 @@ def smooth_window(
     return output, (variance if smoother.covariance else None), results
 
 
-def densify(keyframe_epoch: torch.Tensor, states: torch.Tensor, frontend: EskfResult) -> Trajectory:
+def update_free_poses(
+    seq: Sequence, frontend: EskfResult, cfg: EskfConfig, keyframe_epoch: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """The front end's pose at each keyframe epoch before that epoch's measurement update.
+
+    The front end's state at an epoch is the posterior: it already holds the jump of the
+    update applied there (at the first fix after a GNSS outage, metres). This is the
+    posterior at the previous real epoch carried to the keyframe's time through the IMU
+    samples between them (zero-order hold, the front end's biases at the previous epoch,
+    :func:`~msf_torch.sensors.imu.propagate_nominal`): the front end's own motion over
+    that step, without the update. The first keyframe keeps its posterior.
+
+    Args:
+        seq: the sequence the front end ran on (B = 1).
+        frontend: its result.
+        cfg: the front end's settings (gravity).
+        keyframe_epoch: (K,) keyframe indices into the front end's epochs.
+    Returns:
+        positions (K, 3) m world and rotations (K, 3, 3) body -> world.
+    """
+    real = torch.nonzero(frontend.mask[0]).squeeze(-1)
+    after = keyframe_epoch[1:]
+    before = real[torch.searchsorted(real, after) - 1]
+    position, rotation = frontend.position[0, keyframe_epoch], frontend.rotation[0, keyframe_epoch]
+    if after.numel() == 0:
+        return position, rotation
+    keep = seq.imu.mask[0]
+    # cut at [t_before_1, t_1, t_before_2, t_2, ...]: the even intervals are the steps
+    times = torch.stack((frontend.t[0, before], frontend.t[0, after]), -1).reshape(-1)
+    cut = cut_imu(seq.imu.t[0, keep], seq.imu.gyro[0, keep], seq.imu.accel[0, keep], times)
+    steps = ImuIntervals(cut.gyro[None, 0::2], cut.accel[None, 0::2], cut.dt[None, 0::2])
+    pre = preintegrate_imu(
+        steps,
+        frontend.gyro_bias[:, before],
+        frontend.accel_bias[:, before],
+        covariance="closed_form",
+    )
+    moved, _, turned = propagate_nominal(
+        frontend.position[:, before],
+        frontend.velocity[:, before],
+        frontend.rotation[:, before],
+        pre.delta_t,
+        pre.delta_rotation,
+        pre.delta_velocity,
+        pre.delta_position,
+        gravity_world(cfg.gravity_mps2, position.dtype).to(position.device),
+    )
+    return torch.cat((position[:1], moved[0])), torch.cat((rotation[:1], turned[0]))
+
+
+def densify(
+    keyframe_epoch: torch.Tensor,
+    states: torch.Tensor,
+    frontend: EskfResult,
+    anchor: tuple[torch.Tensor, torch.Tensor] | None = None,
+) -> Trajectory:
     """The smoothed trajectory at every front-end epoch (B = 1).
 
     Between keyframes i and j an epoch's pose is the front end's pose moved by keyframe
-    i's correction ``T_s,i T_fe,i^-1`` and by keyframe j's, blended by time: position
-    linearly, rotation along the geodesic. At keyframes it is the smoothed pose.
+    i's correction ``T_s,i T_fe,i^-1`` and by keyframe j's ``T_s,j A_j^-1``, blended by
+    time: position linearly, rotation along the geodesic. At keyframes it is the smoothed
+    pose. ``A_j`` is the front end's pose at keyframe j before its measurement update
+    (``anchor``, :func:`update_free_poses`): the front end's posterior there also holds
+    the update's jump, which keyframe j's correction would otherwise carry back to every
+    epoch since keyframe i, as a ramp growing towards j.
 
     Args:
         keyframe_epoch: (K,) keyframe indices into the front end's epochs.
         states: (1, K, 21) smoothed nav states.
         frontend: the front end's result.
+        anchor: the front end's update-free poses at the keyframes, positions (K, 3) m and
+            rotations (K, 3, 3); default its posteriors ``T_fe`` (no update at keyframes).
     Returns:
         :class:`Trajectory` (1, E') over the front end's real epochs.
     """
@@ -1167,13 +1233,22 @@ def densify(keyframe_epoch: torch.Tensor, states: torch.Tensor, frontend: EskfRe
     lo, hi = where[seg], where[seg + 1]
     weight = ((t - t[lo]) / (t[hi] - t[lo]).clamp_min(1e-12)).clamp(0.0, 1.0)
 
-    def carried(k: torch.Tensor, epoch: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        turn = rotation[k] @ r_fe[epoch].mT
-        moved = position[k] + (turn @ (p_fe - p_fe[epoch])[..., None]).squeeze(-1)
+    def carried(
+        k: torch.Tensor, epoch: torch.Tensor, p_0: torch.Tensor, r_0: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        turn = rotation[k] @ r_0.mT
+        moved = position[k] + (turn @ (p_fe - p_0)[..., None]).squeeze(-1)
         return moved, turn @ r_fe
 
-    p_a, r_a = carried(seg, lo)
-    p_b, r_b = carried(seg + 1, hi)
+    p_a, r_a = carried(seg, lo, p_fe[lo], r_fe[lo])
+    if anchor is None:
+        p_b, r_b = carried(seg + 1, hi, p_fe[hi], r_fe[hi])
+    else:
+        p_b, r_b = carried(seg + 1, hi, anchor[0][seg + 1], anchor[1][seg + 1])
+        # at keyframe j itself (the last epoch) the output is the smoothed pose
+        at_j = (torch.arange(real.numel(), device=hi.device) == hi)[:, None]
+        p_b = torch.where(at_j, position[seg + 1], p_b)
+        r_b = torch.where(at_j[..., None], rotation[seg + 1], r_b)
     blend = r_a @ so3.exp(weight[:, None] * so3.log(r_a.mT @ r_b))
     blended = (1.0 - weight[:, None]) * p_a + weight[:, None] * p_b
     return Trajectory(
@@ -1229,7 +1304,8 @@ def smooth(
         solved = None if calibration is None else calibration[:, None]
         costs = whole.cost(graph.values(graph.initial)), whole.cost(graph.values(states, solved))
     if smoother.output == "frontend":
-        output = densify(graph.epoch, states, frontend)
+        anchor = update_free_poses(seq, frontend, cfg, graph.epoch)
+        output = densify(graph.epoch, states, frontend, anchor)
     else:
         position, _, rotation, _, _ = unpack_nav_state(states)
         output = Trajectory(

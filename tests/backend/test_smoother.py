@@ -22,12 +22,14 @@ from msf_torch.backend.variables import pack_nav_state, pack_pose
 from msf_torch.cli import main
 from msf_torch.eval.metrics import ate
 from msf_torch.frontend.config import config_for_sequence, load_config
-from msf_torch.frontend.eskf import run_eskf
+from msf_torch.frontend.eskf import EskfResult, run_eskf
 from msf_torch.frontend.keyframes import KeyframeConfig, select_keyframes
 from msf_torch.geometry import so3
+from msf_torch.geometry.quaternion import quat_to_matrix
 from msf_torch.io.native import write_native
 from msf_torch.io.tum import read_tum
 from msf_torch.sim import SimConfig, simulate_run
+from msf_torch.types import ImuSamples, Sequence
 
 DTYPE = torch.float64
 
@@ -279,6 +281,91 @@ def test_sliding_window_ends_close_to_the_full_batch(sim_run, full_solution):
         frontend.trajectory().select(0).compact(), seq.ground_truth, align="none", max_dt=0.02
     )
     assert ate(output, seq.ground_truth, align="none", max_dt=0.02)["rmse"] < front["rmse"]
+
+
+# --- output at the front-end epochs ------------------------------------------------------
+
+
+def _circle(t, rate=0.5, speed=2.0):
+    """Closed-form turn at constant yaw rate and forward speed: p (T, 3), v, R (T, 3, 3)."""
+    yaw = rate * t
+    zero = torch.zeros_like(t)
+    position = torch.stack((speed / rate * yaw.sin(), speed / rate * (1 - yaw.cos()), zero), -1)
+    velocity = torch.stack((speed * yaw.cos(), speed * yaw.sin(), zero), -1)
+    rotation = so3.exp(torch.stack((zero, zero, yaw), -1))
+    return position, velocity, rotation
+
+
+def test_output_between_keyframes_ignores_the_front_ends_update_jump():
+    """A front end on an exact turn whose update at keyframe 1 (t = 0.6 s, a fix after an
+    outage) moves it by 0.7 m and 0.05 rad; the smoothed keyframes are the truth. Between
+    keyframes the output must be the truth (closed form): keyframe 1's correction is taken
+    against the front end's pose before that update (``update_free_poses``, the previous
+    epoch carried through the IMU), not against the jumped posterior."""
+    rate, speed, g = 0.5, 2.0, 9.80665
+    imu_t = torch.arange(0, 201, dtype=DTYPE) / 200.0
+    gyro = torch.tensor([0.0, 0.0, rate], dtype=DTYPE).expand(201, 3)
+    accel = torch.tensor([0.0, rate * speed, g], dtype=DTYPE).expand(201, 3)  # R^T (a - g)
+    imu = ImuSamples(imu_t[None], gyro[None], accel[None], torch.ones(1, 201, dtype=torch.bool))
+    seq = Sequence(names=["turn"], imu=imu)
+    cfg = load_config().replace(gravity_mps2=g)
+    t = torch.arange(0, 26, dtype=DTYPE) / 25.0
+    position, velocity, rotation = _circle(t, rate, speed)
+    jump = so3.exp(torch.tensor([0.0, 0.0, 0.05], dtype=DTYPE))
+    shift = torch.tensor([0.7, -0.3, 0.2], dtype=DTYPE)
+    after = t >= 0.6 - 1e-9  # the posterior from keyframe 1 on: the jump applied on the left
+    fe_position = torch.where(
+        after[:, None], shift + (jump @ position[..., None])[..., 0], position
+    )
+    fe_velocity = torch.where(after[:, None], (jump @ velocity[..., None])[..., 0], velocity)
+    fe_rotation = torch.where(after[:, None, None], jump @ rotation, rotation)
+    zeros = torch.zeros(1, 26, 3, dtype=DTYPE)
+    frontend = EskfResult(
+        names=["turn"],
+        t=t[None],
+        mask=torch.ones(1, 26, dtype=torch.bool),
+        position=fe_position[None],
+        velocity=fe_velocity[None],
+        rotation=fe_rotation[None],
+        gyro_bias=zeros,
+        accel_bias=zeros,
+        covariance=torch.zeros(1, 26, 15, 15, dtype=DTYPE),
+        slip_factor=torch.ones(1, 26, dtype=DTYPE),
+    )
+    epoch = torch.tensor([0, 15, 25])
+    states = pack_nav_state(
+        position[epoch], velocity[epoch], rotation[epoch], zeros[0, :3], zeros[0, :3]
+    )
+    anchor = W.update_free_poses(seq, frontend, cfg, epoch)
+    # before the update at epoch 15 the front end was on the truth; epoch 25 has no jump
+    expected = torch.where(t[epoch][:, None] < 0.9, position[epoch], fe_position[epoch])
+    torch.testing.assert_close(anchor[0], expected, rtol=0, atol=1e-9)
+    expected = torch.where(t[epoch][:, None, None] < 0.9, rotation[epoch], fe_rotation[epoch])
+    torch.testing.assert_close(anchor[1], expected, rtol=0, atol=1e-9)
+    output = W.densify(epoch, states[None], frontend, anchor)
+    torch.testing.assert_close(output.position[0], position, rtol=0, atol=1e-9)
+    torch.testing.assert_close(
+        so3.log(quat_to_matrix(output.quaternion[0]).mT @ rotation),
+        torch.zeros(26, 3, dtype=DTYPE),
+        rtol=0,
+        atol=1e-9,
+    )
+    # against the posterior (the old anchor) the jump ramps in: 0.7 m at the epoch before
+    ramp = W.densify(epoch, states[None], frontend).position[0, 14] - position[14]
+    assert float(ramp.norm()) > 0.5
+
+
+def test_smoothed_output_moves_like_the_truth_into_jumped_keyframes(sim_run):
+    """End to end: the front end jumps 1.2 m at its first fix (its initial covariance is
+    wide); epoch to epoch the smoothed output steps as the simulator's truth does."""
+    run, seq, cfg, frontend, _ = sim_run
+    output = W.smooth(seq, frontend, cfg, W.SmootherConfig(covariance=False)).output
+    at = torch.searchsorted(run.truth.t[0], output.t[0] - 1e-9)
+    truth = run.truth.position[0, at].diff(dim=0)
+    jumps = frontend.position[0, frontend.mask[0]].diff(dim=0) - truth
+    assert float(jumps.norm(dim=-1).max()) > 1.0
+    step = output.position[0].diff(dim=0) - truth
+    assert float(step.norm(dim=-1).max()) < 0.02
 
 
 # --- config and command line -------------------------------------------------------------
