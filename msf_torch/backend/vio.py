@@ -335,8 +335,18 @@ def gravity_aligned_rotation(specific_force: torch.Tensor) -> torch.Tensor:
     ``specific_force`` (..., 3) m/s^2 is level (``conventions``: at rest
     ``f = R^T [0, 0, g]``): the smallest rotation taking the measured up direction onto world
     ``+z``, so no turn about the vertical is added (a half turn about body x when the
-    measured up is exactly ``-z``)."""
-    up = specific_force / specific_force.norm(dim=-1, keepdim=True)
+    measured up is exactly ``-z``).
+
+    Raises:
+        ValueError: a specific force is not finite or is zero (no up direction).
+    """
+    norm = specific_force.norm(dim=-1, keepdim=True)
+    if not bool((torch.isfinite(specific_force).all(-1) & (norm[..., 0] > 0)).all()):
+        raise ValueError(
+            "gravity_aligned_rotation: every specific force must be finite and non-zero "
+            "(an average over no IMU samples, or a NaN sample, has no up direction)"
+        )
+    up = specific_force / norm
     z = torch.zeros_like(up)
     z[..., 2] = 1.0
     axis = torch.linalg.cross(up, z)

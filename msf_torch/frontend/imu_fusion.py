@@ -117,10 +117,14 @@ def information_fusion(
 
     Args:
         quats: (..., N, 4); rates: (..., N, 3); covariances: (..., N, 6, 6).
-        passes: re-linearisations at the fused attitude.
+        passes: re-linearisations at the fused attitude (>= 1).
     Returns:
         :class:`FusedAttitude` with ``P = (sum P_i^-1)^-1``.
+    Raises:
+        ValueError: ``passes < 1``, or shapes disagree.
     """
+    if passes < 1:
+        raise ValueError(f"information_fusion: passes must be >= 1, got {passes}")
     _check(quats, rates)
     information = torch.linalg.inv(covariances)
     fused_cov = torch.linalg.inv(information.sum(-3))
@@ -146,10 +150,12 @@ def disagreement_moments(
         quats: (B, N, T, 4); rates: (B, N, T, 3) posteriors over time.
         forgetting: b in (0, 1) per sample.
     Returns:
-        (B, N, N, T, 6), symmetric in (i, j); zeros on i == j.
+        (B, N, N, T, 6), symmetric in (i, j); zeros on i == j; T = 0 gives T = 0.
     """
     _check(quats.movedim(2, 1), rates.movedim(2, 1))
     batch, n_imu, n_samples = quats.shape[:3]
+    if n_samples == 0:
+        return quats.new_zeros(batch, n_imu, n_imu, 0, 6)
     theta = _qlog(_qmul(quats[:, None, :], _qconj(quats)[:, :, None]))  # (B, N, N, T, 3)
     squared = torch.cat((theta, rates[:, None, :] - rates[:, :, None]), -1) ** 2
     moment = torch.zeros(batch, n_imu, n_imu, 6, dtype=quats.dtype, device=quats.device)

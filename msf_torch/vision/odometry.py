@@ -11,7 +11,8 @@ Per frame (left image; the right one only at keyframes):
    inliers, the essential matrix between the previous and the current frame
    (:func:`~msf_torch.vision.geometry.relative_pose_essential`) gives the rotation and the
    direction of travel, the length of the step being the previous one's (status
-   ``"essential"``, translation covariance ``(essential_step_sigma * step)^2`` per axis).
+   ``"essential"``, translation covariance ``(essential_step_sigma * step + 0.01 m)^2`` per
+   axis: the floor keeps a near-zero step from claiming a near-zero sigma).
    When both fail the pose is the constant-velocity prediction and the frame is ``"lost"``
    (no pose measurement); the map is rebuilt at the next keyframe, counted as a reset when
    no map point is left;
@@ -104,7 +105,8 @@ class VoConfig:
         pnp_iterations: PnP RANSAC iterations.
         min_pnp_inliers: fewer inliers fall back to the essential matrix.
         essential_threshold_px: essential-matrix RANSAC threshold, px.
-        essential_step_sigma: relative sigma of the step length in the fallback.
+        essential_step_sigma: relative sigma of the step length in the fallback (plus
+            0.01 m).
         essential_rotation_sigma_rad: rotation sigma per axis in the fallback, rad.
         sigma_floor_px: least reprojection sigma in the PnP covariance, px.
         covariance_scale: variance multiplier on the position block of the PnP covariance

@@ -227,3 +227,18 @@ def test_pipeline_recovers_trajectory(simulated):
     assert float(position_error.max()) < 0.03
     gyro_bias_error = (result.states[:, 15:18] - truth_states[:, 15:18]).norm(dim=-1)
     assert float(gyro_bias_error.max()) < 2e-3
+
+
+def test_gravity_alignment_levels_the_measured_up_and_refuses_no_up() -> None:
+    # against scipy: the rotation takes the measured up onto +z with no turn about it
+    from scipy.spatial.transform import Rotation
+
+    force = torch.tensor([[0.3, -0.2, 9.7], [0.0, 0.0, -9.8], [4.0, 3.0, 0.0]], dtype=DTYPE)
+    rotation = gravity_aligned_rotation(force)
+    up = (rotation @ (force / force.norm(dim=-1, keepdim=True))[..., None])[..., 0]
+    torch.testing.assert_close(up, torch.tensor([[0.0, 0.0, 1.0]] * 3, dtype=DTYPE))
+    expected, _ = Rotation.align_vectors([[0.0, 0.0, 1.0]], force[2:].numpy())
+    torch.testing.assert_close(rotation[2], torch.from_numpy(expected.as_matrix()))
+    for bad in ([float("nan"), 0.0, 9.8], [0.0, 0.0, 0.0]):
+        with pytest.raises(ValueError, match="finite and non-zero"):
+            gravity_aligned_rotation(torch.tensor(bad, dtype=DTYPE))

@@ -173,3 +173,16 @@ def test_fusion_input_checks():
         information_fusion(torch.ones(1, 4), torch.ones(1, 3), torch.eye(6)[None])
     with pytest.raises(ValueError, match="expected"):
         weighted_fusion(torch.ones(2, 3), torch.ones(2, 3), torch.ones(2, 3))
+
+
+def test_edge_cases_of_fusion_and_moments() -> None:
+    quats = _z_rotations(torch.tensor([[0.1, 0.3]], dtype=DTYPE))
+    rates = torch.zeros(1, 2, 3, dtype=DTYPE)
+    cov = _block_cov(torch.tensor([[1.0, 1.0]], dtype=DTYPE), torch.ones(1, 2, dtype=DTYPE))
+    with pytest.raises(ValueError, match="passes must be >= 1, got 0"):
+        information_fusion(quats, rates, cov, passes=0)
+    # no samples yet: no moments, of the right shape
+    empty = disagreement_moments(
+        torch.zeros(2, 3, 0, 4, dtype=DTYPE), torch.zeros(2, 3, 0, 3, dtype=DTYPE), 0.9
+    )
+    assert empty.shape == (2, 3, 3, 0, 6)
