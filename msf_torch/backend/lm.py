@@ -370,8 +370,9 @@ def solve(problem: Problem, config: LMConfig | None = None) -> LMResult:
     initial_cost = lin.cost.detach().clone()
     damping = torch.full((batch,), config.initial_damping, dtype=dtype, device=device)
     growth = torch.full((batch,), 2.0, dtype=dtype, device=device)
-    active = torch.ones(batch, dtype=torch.bool, device=device)
-    converged = torch.zeros(batch, dtype=torch.bool, device=device)
+    # nothing free (e.g. a pose graph of its one fixed vertex): converged as it stands
+    converged = torch.full((batch,), problem.dim == 0, dtype=torch.bool, device=device)
+    active = ~converged
     stalled = torch.zeros(batch, dtype=torch.bool, device=device)
     iterations = torch.zeros(batch, dtype=torch.long, device=device)
     log: list[dict[str, torch.Tensor]] = []

@@ -522,7 +522,9 @@ class Problem:
 
     def sparse_pattern(self) -> tuple[torch.Tensor, torch.Tensor]:
         """Rows and columns (nnz,) of the block-diagonal stack of the B Hessians (each
-        entry once, both triangles), in the order of :attr:`Linearization.sparse_values`."""
+        entry once, both triangles), in the order of :attr:`Linearization.sparse_values`.
+        The whole diagonal is in the pattern, also where no factor touches a variable (its
+        entries are 0, so the damping keeps the system definite there)."""
         if self._sparse_pattern is None:
             n = self.dim
             flats, pieces = [], []
@@ -532,8 +534,11 @@ class Problem:
                         rows, cols, keep = self._block_entries(fi, a, b)
                         flats.append((rows * n + cols).reshape(-1))
                         pieces.append((fi, a, b, keep))
+            touched = sum(f.numel() for f in flats)
+            flats.append(torch.arange(n, device=self.device) * (n + 1))
             flat = torch.cat(flats)
             unique, inverse = torch.unique(flat, return_inverse=True)
+            inverse = inverse[:touched]
             shift = torch.arange(self.batch_size, device=self.device)[:, None] * n
             rows = (unique // n)[None] + shift
             cols = (unique % n)[None] + shift
@@ -552,7 +557,8 @@ class Problem:
             jacs = lin[fi][1]
             blocks.append((jacs[a][:, keep].mT @ jacs[b][:, keep]).reshape(self.batch_size, -1))
         values = torch.zeros(self.batch_size, nnz, dtype=self.dtype, device=self.device)
-        values = values.index_add(1, inverse, torch.cat(blocks, 1))
+        if blocks:
+            values = values.index_add(1, inverse, torch.cat(blocks, 1))
         return values.reshape(-1)
 
     def sparse_diagonal_positions(self) -> torch.Tensor:

@@ -610,7 +610,7 @@ def write_g2o(path: str | os.PathLike[str], graph: PoseGraph) -> Path:
     ):
         finite = np.ones(arrays[0].shape[0], dtype=bool)
         for a in arrays:
-            finite &= np.isfinite(a.reshape(a.shape[0], -1)).all(axis=1)
+            finite &= np.isfinite(a.reshape(a.shape[0], math.prod(a.shape[1:]))).all(axis=1)
         if not finite.all():
             raise ValueError(f"{what} {labels[int(np.flatnonzero(~finite)[0])]}: not finite")
     _check_rotations(rot, "vertex", ids)

@@ -172,3 +172,45 @@ def test_outlier_edge_is_downweighted(gtsam, kernel, limit_m):
     assert result.final_cost == pytest.approx(factors.error(solved), rel=1e-6)
     _, positions = _poses(solved, spoiled.vertex_ids.tolist())
     np.testing.assert_allclose(result.graph.positions.numpy(), positions, atol=1e-4)
+
+
+@pytest.mark.parametrize("solver", ["sparse", "dense"])
+def test_vertex_without_edges_stays_and_the_rest_solves_as_gtsam(gtsam, tmp_path, solver):
+    """A vertex no edge names (e.g. one tied to the graph only by skipped landmark edges)
+    has no entry in the Hessian; GTSAM's LM leaves it where it is and solves the rest."""
+    pose = "0 0 0 1"
+    info = " ".join(["1 0 0 0 0 0", "1 0 0 0 0", "1 0 0 0", "1 0 0", "1 0", "1"])
+    path = tmp_path / "island.g2o"
+    path.write_text(
+        f"VERTEX_SE3:QUAT 0 0 0 0 {pose}\nVERTEX_SE3:QUAT 1 1.3 0.2 0 {pose}\n"
+        f"VERTEX_SE3:QUAT 2 2.1 -0.4 0.1 {pose}\nVERTEX_SE3:QUAT 7 5 5 5 {pose}\n"
+        f"EDGE_SE3:QUAT 0 1 1 0 0 0 0 0.1 0.995 {info}\n"
+        f"EDGE_SE3:QUAT 1 2 1 0 0 0 0 -0.1 0.995 {info}\n"
+        f"EDGE_SE3:QUAT 0 2 2.2 0 0 0 0 0 1 {info}\n"
+    )
+    graph = read_pose_graph(path)
+    config = dataclasses.replace(TIGHT, linear_solver=solver)
+    result = optimize_pose_graph(graph, config=config)
+    factors, initial = gtsam.readG2o(str(path), True)
+    solved = _gtsam_lm(gtsam, factors, initial, 0)
+    assert result.status == "converged" and result.initial_cost > 0.1
+    assert result.final_cost == pytest.approx(factors.error(solved), rel=1e-6)
+    _, positions = _poses(solved, [0, 1, 2, 7])
+    np.testing.assert_allclose(result.graph.positions.numpy(), positions, atol=1e-6)
+    assert result.graph.positions[3].tolist() == [5.0, 5.0, 5.0]
+
+
+def test_graph_of_one_vertex(gtsam, tmp_path):
+    """Nothing to solve (its one vertex is the gauge): converged as it stands, and the g2o
+    written back reads in GTSAM as one pose and no factors."""
+    from msf_torch.cli import main
+
+    path = tmp_path / "one.g2o"
+    path.write_text("VERTEX_SE3:QUAT 4 1 2 3 0 0 0 1\n")
+    out = tmp_path / "out.g2o"
+    assert main(["posegraph", str(path), "--out", str(out)]) == 0
+    result = optimize_pose_graph(read_pose_graph(path))
+    assert (result.status, result.final_cost, result.iterations) == ("converged", 0.0, 0)
+    factors, values = gtsam.readG2o(str(out), True)
+    assert (factors.size(), values.size()) == (0, 1)
+    assert values.atPose3(4).translation().tolist() == [1.0, 2.0, 3.0]
