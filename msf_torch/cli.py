@@ -11,6 +11,7 @@ __all__ = ["main", "build_parser"]
 
 import argparse
 import json
+import math
 import sys
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -199,10 +200,10 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="PNG",
         help="write a figure: top and side views before and after, cost per iteration",
     )
-    pg.add_argument("--max-iterations", type=int, default=100, help="most linear solves")
+    pg.add_argument("--max-iterations", type=_positive_int, default=100, help="most linear solves")
     pg.add_argument(
         "--tolerance",
-        type=float,
+        type=_tolerance,
         default=1e-5,
         help="stop when a step lowers the cost by at most this fraction (GTSAM's relativeErrorTol)",
     )
@@ -261,6 +262,28 @@ def _robust(text: str) -> RobustKernel:
         return RobustKernel(name, float(scale) if scale else ROBUST_SCALES[name])
     except ValueError as err:
         raise argparse.ArgumentTypeError(f"bad kernel scale in {text!r}: {err}") from err
+
+
+def _positive_int(text: str) -> int:
+    """An integer >= 1 (``--max-iterations``)."""
+    try:
+        value = int(text)
+    except ValueError:
+        value = 0
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"expected an integer >= 1, got {text!r}")
+    return value
+
+
+def _tolerance(text: str) -> float:
+    """A finite number >= 0 (``--tolerance``)."""
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not (math.isfinite(value) and value >= 0.0):
+        raise argparse.ArgumentTypeError(f"expected a finite number >= 0, got {text!r}")
+    return value
 
 
 def _load(args, source: str | None) -> tuple[Any, Any, str]:

@@ -71,3 +71,22 @@ def test_posegraph_bad_input(tmp_path, capsys):
     bad.write_text("EDGE_SE3:QUAT 0 1 0 0 0 0 0 0 1\n")
     assert main(["posegraph", str(bad)]) == 2
     assert "bad.g2o" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(
+    ("option", "value", "message"),
+    [
+        ("--max-iterations", "0", "expected an integer >= 1, got '0'"),
+        ("--max-iterations", "-3", "expected an integer >= 1, got '-3'"),
+        ("--tolerance", "-1", "expected a finite number >= 0, got '-1'"),
+        ("--tolerance", "nan", "expected a finite number >= 0, got 'nan'"),
+    ],
+)
+def test_posegraph_bad_solver_options_are_errors(capsys, option, value, message):
+    """Were accepted: 0 or -3 iterations reported 'max_iterations' with the input unsolved,
+    a negative or NaN tolerance ran to the iteration limit."""
+    with pytest.raises(SystemExit) as exit_info:
+        main(["posegraph", "pose3example.txt", option, value])
+    assert exit_info.value.code == 2
+    err = capsys.readouterr().err
+    assert f"argument {option}: {message}" in err
