@@ -91,6 +91,7 @@ import contextlib
 import copy
 import dataclasses
 import math
+import warnings
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
@@ -798,6 +799,32 @@ def _ordinary_tensors(value: object) -> object:
     return value
 
 
+_SOURCE_LISTS = (
+    "adaptive_noise_sensors",
+    "strong_tracking_sensors",
+    "calibrate_time_offsets",
+    "calibrate_pose_extrinsics",
+)
+"""Config lists whose ``"pose:<name>"`` entries name pose sources of the data."""
+
+
+def _warn_unknown_sources(cfg: EskfConfig, source_col: dict[str, int]) -> None:
+    """Warn (once per message) about ``"pose:<name>"`` entries of :data:`_SOURCE_LISTS`
+    that name no pose source of the batch: they do nothing (a misspelt name, or data
+    without that source)."""
+    for key in _SOURCE_LISTS:
+        unknown = [
+            n for n in getattr(cfg, key) if n.startswith(_SOURCE_PREFIX) and n not in source_col
+        ]
+        if unknown:
+            have = ", ".join(source_col) or "none"
+            warnings.warn(
+                f"{key} names {', '.join(unknown)}, which no sequence of the batch has "
+                f"(its pose sources: {have}): those entries do nothing",
+                stacklevel=3,
+            )
+
+
 def run_eskf(
     seq: Sequence,
     cfg: EskfConfig | None = None,
@@ -875,6 +902,7 @@ def run_eskf(
         "pose": sched.pose_mask,
     }
     source_col = {_SOURCE_PREFIX + n: s for s, n in enumerate(sched.source_names)}
+    _warn_unknown_sources(cfg, source_col)
     present.update({k: sched.source_mask[..., s] for k, s in source_col.items()})
     if frames is not None:  # a sample that (re-)initialises its offset is not fused
         present.update({k: present[k] & ~frames.reset[..., s] for k, s in source_col.items()})

@@ -320,15 +320,16 @@ def short_run():
 def test_off_switches_bit_identical_and_held_states_match_plain_filter(short_run):
     run, cfg = short_run
     plain = run_eskf(run.sequence, cfg)
-    off = run_eskf(
-        run.sequence,
-        cfg.replace(
-            calibration_lever_arm_sigma_m=0.9,
-            calibration_rotation_sigma_rad=0.2,
-            calibration_observable_ratio=0.5,
-            calibrate_pose_extrinsics=["pose:absent"],
-        ),
-    )
+    with pytest.warns(UserWarning, match="calibrate_pose_extrinsics names pose:absent"):
+        off = run_eskf(
+            run.sequence,
+            cfg.replace(
+                calibration_lever_arm_sigma_m=0.9,
+                calibration_rotation_sigma_rad=0.2,
+                calibration_observable_ratio=0.5,
+                calibrate_pose_extrinsics=["pose:absent"],
+            ),
+        )
     assert off.calibration is None and off.calibration_observable == {}
     for name in ("position", "velocity", "rotation", "gyro_bias", "accel_bias", "covariance"):
         assert torch.equal(getattr(plain, name), getattr(off, name)), name

@@ -143,14 +143,32 @@ def test_off_or_absent_blocks_change_nothing():
     cfg = config_for_sequence(load_config(), run.sequence.meta, set())
     with torch.no_grad():
         off = run_eskf(run.sequence, cfg)
-        absent = run_eskf(
-            run.sequence,
-            cfg.replace(adaptive_noise_sensors=["pose:vo"], strong_tracking_sensors=["pose"]),
-        )
+        with pytest.warns(UserWarning, match=r"adaptive_noise_sensors names pose:vo, which no"):
+            absent = run_eskf(
+                run.sequence,
+                cfg.replace(adaptive_noise_sensors=["pose:vo"], strong_tracking_sensors=["pose"]),
+            )
     assert off.noise_estimate == {}
     assert bool((off.fading_factor == 1.0).all())
     assert torch.equal(off.position, absent.position)
     assert torch.equal(off.covariance, absent.covariance)
+
+
+def test_a_misspelt_pose_source_is_warned_about(recwarn):
+    from msf_torch.learning.data import simulate_labelled_run
+
+    run = simulate_labelled_run(3, 4.0)  # pose sources vo and lidar
+    cfg = config_for_sequence(load_config(), run.meta, set())
+    with torch.no_grad():
+        run_eskf(run, cfg.replace(strong_tracking_sensors=["pose:lidar", "gnss"]))
+        assert not [w for w in recwarn if "names" in str(w.message)]
+        with pytest.warns(UserWarning) as caught:
+            run_eskf(run, cfg.replace(strong_tracking_sensors=["pose:lidr"]))
+    (message,) = [str(w.message) for w in caught if "names" in str(w.message)]
+    assert message == (
+        "strong_tracking_sensors names pose:lidr, which no sequence of the batch has "
+        "(its pose sources: pose:lidar, pose:vo): those entries do nothing"
+    )
 
 
 def test_gradient_through_the_adaptive_filter_matches_finite_differences():
