@@ -430,7 +430,8 @@ def solve(problem: Problem, config: LMConfig | None = None) -> LMResult:
         x_norm = torch.cat(
             [v.detach().reshape(active.shape[0], -1) for v in values.values()], -1
         ).norm(dim=-1)
-        tiny_step = step_norm <= config.step_tolerance * (x_norm + config.step_tolerance)
+        # a failed solve gives a zero step: that is no convergence (more damping, retry)
+        tiny_step = ok & (step_norm <= config.step_tolerance * (x_norm + config.step_tolerance))
         # the Gauss-Newton model itself promises no relative decrease worth taking
         flat_model = predicted.detach() <= config.relative_tolerance * lin.cost.detach().abs()
         done = active & (

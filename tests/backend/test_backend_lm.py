@@ -9,7 +9,7 @@ import torch
 
 from msf_torch.backend import factors as F
 from msf_torch.backend.lm import LMConfig, solve
-from msf_torch.backend.problem import Problem
+from msf_torch.backend.problem import Factor, Problem
 from msf_torch.backend.robust import KERNELS, RobustKernel
 from msf_torch.backend.variables import POINT, pack_pose, unpack_pose
 from msf_torch.geometry import so3
@@ -288,3 +288,47 @@ def test_block_tridiagonal_solve_equals_dense_cholesky():
         ],
     )
     assert loop.block_tridiagonal_size() is None
+
+
+class _StiffPairFactor(Factor):
+    """``r = W (x - c)`` on one point, ``W = [[s, s, 0], [1, -1, 0], [0, 0, 1]]``: the sum
+    of the first two coordinates is known to 1/s, their difference to 1. With s = 1e10
+    the Gauss-Newton matrix ``W^T W`` rounds to a singular one in float64, so Cholesky
+    fails at a small damping."""
+
+    def __init__(self, target: torch.Tensor, stiffness: float) -> None:
+        self.slots = (("x", torch.zeros(1, dtype=torch.long)),)
+        self.sqrt_information = torch.eye(3, dtype=DTYPE)
+        self.kernel = None
+        self.target = target
+        self.weight = torch.tensor(
+            [[stiffness, stiffness, 0.0], [1.0, -1.0, 0.0], [0.0, 0.0, 1.0]], dtype=DTYPE
+        )
+
+    def residual(self, values: list[torch.Tensor]) -> torch.Tensor:
+        """(B, 1, 3)."""
+        return (values[0] - self.target) @ self.weight.mT
+
+    def residual_and_jacobians(
+        self, values: list[torch.Tensor], kinds: list
+    ) -> tuple[torch.Tensor, list[torch.Tensor]]:
+        """Residual (B, 1, 3) and the constant Jacobian ``W`` (B, 1, 3, 3)."""
+        return self.residual(values), [self.weight.expand(values[0].shape[0], 1, 3, 3)]
+
+
+def test_failed_linear_solve_is_not_convergence():
+    """The minimum is ``x = c`` at cost 0 (closed form). A failed Cholesky yields no step;
+    the solver used to take that zero step for convergence and return the start as
+    'converged'. It must raise the damping and go on: either reach the minimum or say
+    that it did not."""
+    target = torch.tensor([[[0.3, -0.2, 0.5]]], dtype=DTYPE)
+    start = torch.tensor([[[1.0, 2.0, -1.0]]], dtype=DTYPE)
+    problem = Problem({"x": ("point", start)}, [_StiffPairFactor(target, 1e10)])
+    config = LMConfig(damping="identity", initial_damping=1e-9, max_iterations=30)
+    result = solve(problem, config)
+    assert float(result.initial_cost[0]) > 1e19
+    assert not bool(result.log[0]["accepted"][0])  # the first solve fails
+    if result.status[0] == "converged":
+        assert float(result.cost[0]) < 1e-12
+    else:
+        assert float(result.cost[0]) < 1e-6 * float(result.initial_cost[0])
