@@ -90,6 +90,7 @@ from __future__ import annotations
 
 __all__ = [
     "NOISE_KEYS",
+    "SHORT_INTERVAL_PERIODS",
     "SmootherConfig",
     "load_smoother_config",
     "KeyframeGraph",
@@ -159,6 +160,9 @@ NOISE_KEYS = (
 )
 """EskfConfig keys that ``SmootherConfig.noise`` may replace for the back end."""
 _YAW_OFF_VARIANCE = 1e4  # rad^2: the wheel yaw row carries no information
+SHORT_INTERVAL_PERIODS = 1.5
+"""Keyframe intervals shorter than this many IMU periods (about one sample) get a 1e-2
+relative diagonal floor on their preintegration covariance instead of 1e-6."""
 
 
 @dataclass
@@ -654,8 +658,14 @@ def build_graph(
     imu_cov = imu_covariance(pre, noise.imu)
     # a piece's accelerometer noise drives dp and dv along one direction: an interval of one
     # or two pieces has a (nearly) singular covariance; a 1e-6 relative diagonal floor keeps
-    # it definite without changing longer intervals' information measurably
-    imu_cov = imu_cov + torch.diag_embed(1e-6 * torch.diagonal(imu_cov, dim1=-2, dim2=-1))
+    # it definite without changing longer intervals' information measurably. An interval
+    # shorter than SHORT_INTERVAL_PERIODS IMU periods (a fix just after the first sample or
+    # just after a keyframe) gets 1e-2: with 1e-6 its information leaves the Gauss-Newton
+    # matrix singular in float64, and LM cannot take a step
+    period = spacing[:-1].median() if imu_t.numel() > 1 else imu_t.new_ones(())
+    short = pre.delta_t[0] < SHORT_INTERVAL_PERIODS * period
+    floor = torch.where(short, 1e-2, 1e-6).to(dtype)[None, :, None]
+    imu_cov = imu_cov + torch.diag_embed(floor * torch.diagonal(imu_cov, dim1=-2, dim2=-1))
 
     # GNSS: fixes at keyframe times (every fix epoch is a keyframe)
     tol = 2.0 * cfg.time_tolerance_s
