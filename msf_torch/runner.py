@@ -11,10 +11,11 @@ Used by ``msf run``. Outputs in ``out_dir`` (each written atomically: temp file 
 - ``diagnostics.csv``: per epoch: time, error-state covariance diagonal (15 variances in
   the order of ``geometry.conventions``), slip factor, IMU-gap flag, ``divergence`` (0, or
   the ``frontend.guard`` code of a divergence reset: 1 non-finite, 2 not positive definite,
-  4 NIS blow-up, added), and per sensor whether a measurement was present, whether it was
-  accepted, and its NIS; with ``source_fault_detection``, per pose source
-  ``pose:<name>_fault`` (1 = excluded as faulty, ``frontend.gating``) and
-  ``pose:<name>_fault_z`` (the detector's deciding Z at the source's pairs); with online
+  4 NIS blow-up, added), and per sensor (each pose source as ``pose:<name>``) whether a
+  measurement was present, whether it was accepted, and its NIS; with
+  ``source_fault_detection``, per pose source ``pose:<name>_fault`` (1 = excluded as
+  faulty, ``frontend.gating``) and ``pose:<name>_fault_z`` (the detector's deciding Z at
+  the source's pairs); with online
   calibration (``frontend.calibration``), per state its estimate ``<state>`` and 1-sigma
   ``<state>_sigma``.
 - ``summary.json``: the run summary (also printed as the last line by the CLI). With
@@ -141,7 +142,8 @@ def write_diagnostics(result: EskfResult, path: Path, index: int = 0) -> None:
     """Write the per-epoch diagnostics table of sequence ``index`` as CSV.
 
     Columns: ``t``; the 15 error-state variances; ``slip_factor``, ``imu_gap``,
-    ``divergence``; per sensor present / accepted / NIS; ``fading_factor`` (strong
+    ``divergence``; per sensor present / accepted / NIS (``wheel`` ... ``pose``, then each
+    pose source ``pose:<name>`` with a pair in this sequence); ``fading_factor`` (strong
     tracking, 1 where nothing was adapted); per Sage-Husa block ``<block>_noise_sigma<i>``,
     the square roots of the estimated R's diagonal (units of the block's rows, 0 before its
     first measurement); per pose source the fault flag and Z; the online-calibration states
@@ -159,7 +161,10 @@ def write_diagnostics(result: EskfResult, path: Path, index: int = 0) -> None:
     header = ["t"] + [f"var_{n}" for n in _STATE_NAMES] + ["slip_factor", "imu_gap"]
     cols.append(_divergence(result)[index, keep].numpy()[:, None].astype(float))
     header.append("divergence")
-    for name in SENSORS:
+    sources = [
+        n for n in result.present if n not in SENSORS and bool(result.present[n][index].any())
+    ]
+    for name in [*SENSORS, *sources]:  # pose sources: those with a pair in this sequence
         cols.append(result.present[name][index, keep].numpy()[:, None].astype(float))
         cols.append(result.accepted[name][index, keep].numpy()[:, None].astype(float))
         cols.append(result.nis[name][index, keep].numpy()[:, None])

@@ -146,3 +146,27 @@ def test_simulate_too_short_for_its_slip_episodes_says_what_to_change(tmp_path, 
     assert "use fewer GNSS outages or a longer duration_s" in capsys.readouterr().err
     args = ["simulate", "--duration", "5", "--slip-episodes", "0", "--gnss-outages", "0"]
     assert main([*args, "--out", out]) == 0
+
+
+def test_diagnostics_has_each_pose_source_per_epoch(tmp_path, capsys):
+    # a VO + LiDAR weather run: present / accepted / NIS per pose source, per epoch, add
+    # up to the summary's counts (there were no pose:<name> columns, only the summary's)
+    path, out = tmp_path / "w.npz", tmp_path / "out"
+    args = ["simulate", "--duration", "10", "--seed", "2", "--weather", "--gnss-outages", "0"]
+    assert main([*args, "--slip-episodes", "0", "--out", str(path)]) == 0
+    assert main(["run", str(path), "--out", str(out), "--no-plot", "--no-learned"]) == 0
+    counts = _last_json(capsys)["measurements"]
+    table = np.genfromtxt(out / "diagnostics.csv", delimiter=",", names=True, deletechars="")
+    for name in ("pose:vo", "pose:lidar"):
+        assert counts[name]["present"] > 50
+        assert table[f"{name}_present"].sum() == counts[name]["present"]
+        assert table[f"{name}_accepted"].sum() == counts[name]["accepted"]
+        nis = table[f"{name}_nis"][table[f"{name}_accepted"] == 1]
+        assert np.isfinite(nis).all() and 0.0 < np.median(nis) < 20.0
+
+
+def test_diagnostics_of_a_run_without_pose_sources_has_no_source_columns(short_run, tmp_path):
+    _, path = short_run
+    assert main(["run", str(path), "--out", str(tmp_path), "--no-plot", "--no-learned"]) == 0
+    header = (tmp_path / "diagnostics.csv").read_text().splitlines()[0].split(",")
+    assert not [column for column in header if column.startswith("pose:")]
