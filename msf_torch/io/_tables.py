@@ -509,7 +509,8 @@ def clean_stream(
                 path,
                 f"{here}time goes backwards: {float(t[i])!r} s comes after "
                 f"{float(t[i - 1])!r} s on "
-                f"{before} (load with sort=True to sort the streams by time)",
+                f"{before} (to sort the streams by time instead: sort=True when loading, --sort "
+                f"for msf run)",
                 **_where(lines, i, field_prefix, time_name),
             )
         order = np.argsort(t, kind="stable")

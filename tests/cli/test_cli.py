@@ -118,7 +118,8 @@ def test_backwards_time_needs_sort(tmp_path, capsys):
         "t,gyro_x,gyro_y,gyro_z,accel_x,accel_y,accel_z\n" + "\n".join(rows) + "\n"
     )
     assert main(["run", str(folder), "--out", str(tmp_path / "o"), "--no-plot"]) == 2
-    assert "imu.csv:" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert "imu.csv:" in err and "--sort for msf run" in err  # names the option it has
     assert main(["run", str(folder), "--out", str(tmp_path / "o"), "--no-plot", "--sort"]) == 0
 
 
