@@ -38,7 +38,7 @@ What it measures
 
 How to run
     .venv/bin/python benchmarks/kitti_smoother_cv.py           # full grids (~12 min, 1 thread)
-    .venv/bin/python benchmarks/kitti_smoother_cv.py --quick   # 16 front ends, 4 smoothers
+    .venv/bin/python benchmarks/kitti_smoother_cv.py --quick   # 16 front ends, 8 smoothers
 
     Per-candidate lines go to stderr; the last line on stdout is one JSON object.
 
@@ -157,7 +157,11 @@ def scored_row(
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--quick", action="store_true", help="4 smoother candidates only")
+    parser.add_argument(
+        "--quick",
+        action="store_true",
+        help="8 smoother candidates only (4 accelerometer bias walks x 2 gyro noises)",
+    )
     args = parser.parse_args(argv)
     machine = machine_info()
     torch.set_num_threads(1)
