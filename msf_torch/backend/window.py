@@ -12,7 +12,10 @@ factor builder (:meth:`KeyframeGraph.factors`). One ``nav_state`` variable per k
   to be a keyframe**, so a fix constrains the state at its own time exactly, with no
   propagation or interpolation error (the front end already cuts its epochs at fix times);
 * a prior on the first keyframe: the front end's state there and its covariance (the
-  initial state and covariance, before any measurement, so nothing is counted twice);
+  initial state and covariance, before any update of the filter). When the initialisation
+  took position and heading from the first GNSS fixes (``frontend.init``), those fixes
+  also enter as factors, so they count twice: once through the prior, with the prior's
+  (larger) initial sigmas, and once as fixes;
 * wheel odometry between keyframes when the sequence has wheels: each reading holds its
   rim speeds over the interval before its stamp (encoders report the mean over it); its
   rim-speed sigma is ``sqrt(2) * wheel_speed_sigma_mps`` (so the forward speed has the
