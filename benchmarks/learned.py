@@ -66,9 +66,9 @@ from msf_torch.learning.covnet import LOG_SCALE_SENSORS, scaled_noise
 from msf_torch.learning.data import SPLIT_SEED_STRIDE, simulate_labelled_run
 from msf_torch.learning.features import run_features
 from msf_torch.learning.inference import (
+    learned_scales,
     load_learned,
     run_piecewise,
-    window_scales,
 )
 from msf_torch.learning.module import truth_at
 from msf_torch.types import Sequence, batch_sequences
@@ -240,8 +240,8 @@ def main() -> None:
     with torch.no_grad():
         for n, seq in enumerate(test):
             cfg_run = config_for_sequence(load_config(None), seq.meta, set())
-            scales = window_scales(seq, learned.model, cfg_run)
-            blind = window_scales(seq, learned.model, cfg_run, use_labels=False)
+            scales = learned_scales(seq, learned, cfg_run)
+            blind = learned_scales(seq, learned, cfg_run, use_labels=False)
             labels = run_features(seq, WINDOW, ("gnss",), classes).weather
             choice = [best_per[k] if k < n_classes else best for k in labels.tolist()]
             per_segment = torch.stack([points[c] for c in choice])

@@ -49,7 +49,7 @@ from msf_torch.frontend.config import EskfConfig, config_for_sequence, load_conf
 from msf_torch.frontend.eskf import EskfNoise, EskfResult, run_eskf
 from msf_torch.learning.covnet import LOG_SCALE_SENSORS, scaled_noise
 from msf_torch.learning.data import SPLIT_SEED_STRIDE, simulate_labelled_weather_run
-from msf_torch.learning.inference import load_learned, run_piecewise, window_scales
+from msf_torch.learning.inference import learned_scales, load_learned, run_piecewise
 from msf_torch.sim.weather import CameraModel, LidarModel
 from msf_torch.types import Sequence
 
@@ -198,7 +198,7 @@ def main() -> None:
             best = min(grid, key=grid.__getitem__)
             scores["oracle_best_constant"] = grid[best]
             best_levels.append(list(best))
-            scales = window_scales(run, learned.model, cfg).log_scales
+            scales = learned_scales(run, learned, cfg).log_scales
             only_sources = torch.zeros_like(scales)
             for name in SOURCES:
                 column = LOG_SCALE_SENSORS.index(name)
