@@ -32,9 +32,11 @@ Used by ``msf run``. Outputs in ``out_dir`` (each written atomically: temp file 
   frame other than the IMU's, the IMU's frame with the IMU's orientation: the estimate is
   the body axes at the IMU's origin, i.e. exactly the IMU frame's pose, and tf relates
   that to the body frame; stamped with the bag's time origin when the sequence came from
-  a bag; when the trajectory is the front end's, the pose covariance and the twist in the
-  child frame's axes with its covariance: velocity ``R^T v`` and the bias-corrected gyro
-  rate interpolated at the epoch, see ``_body_twist``).
+  a bag; the pose covariance and the twist in the child frame's axes with its covariance:
+  velocity ``R^T v`` and the bias-corrected gyro rate interpolated at the epoch, see
+  ``_body_twist``; for a smoothed trajectory from the smoother's marginal covariances,
+  velocities and gyro biases, :func:`msf_torch.backend.window.densify_motion`; all zeros
+  when the smoother's ``covariance`` is off).
 
 Ctrl-C (SIGINT) during the front end or the smoother writes ``trajectory.tum`` (the epochs
 completed), ``diagnostics.csv`` and ``summary.json`` (with an ``interrupted`` entry saying
@@ -73,7 +75,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import torch
 
-from msf_torch.backend.window import SmootherConfig, smooth
+from msf_torch.backend.window import OutputMotion, SmootherConfig, smooth
 from msf_torch.eval.metrics import ate
 from msf_torch.eval.outage import outage_metrics, split_gnss_outage
 from msf_torch.eval.slip import slip_scores
@@ -455,7 +457,14 @@ def _score_and_write(
             }
     summary["slip_detection_enabled"] = bool(cfg.slip_detection)
     write_tum(estimate, out_dir / "trajectory.tum")
-    _export(options.exports, out_dir, seq, estimate, None if smoothed is not None else result, cfg)
+    if smoothed is not None:
+        motion = smoothed.output_motion
+    else:
+        keep = result.mask[0]
+        motion = OutputMotion(
+            result.velocity[:1, keep], result.gyro_bias[:1, keep], result.covariance[:1, keep]
+        )
+    _export(options.exports, out_dir, seq, estimate, motion, cfg)
     write_diagnostics(result, out_dir / "diagnostics.csv")
     if options.plot:
         _plot(out_dir / "overview.png", seq, estimate, result, withheld, options, summary)
@@ -470,10 +479,11 @@ def _export(
     out_dir: Path,
     seq: Sequence,
     estimate: Trajectory,
-    result: EskfResult | None,
+    motion: OutputMotion,
     cfg: EskfConfig,
 ) -> None:
-    """Write ``estimate`` in the extra formats (see the module docstring)."""
+    """Write ``estimate`` in the extra formats (see the module docstring); ``motion`` at
+    its epochs gives the rosbag2 twist and covariances."""
     if "kitti" in formats:
         from msf_torch.io.kitti_poses import write_kitti_poses
 
@@ -481,14 +491,12 @@ def _export(
     if "rosbag2" in formats:
         from msf_torch.io.rosbag import write_odometry_rosbag2
 
-        covariance = velocity = angular = twist_covariance = None
-        if result is not None:
-            keep = result.mask[0]
+        covariance = None
+        if motion.covariance is not None:
             rows = torch.tensor([0, 1, 2, 6, 7, 8])
-            covariance = result.covariance[:1, keep][..., rows[:, None], rows]
-            velocity = result.velocity[:1, keep]
-            twist, twist_covariance = _body_twist(seq, result, cfg.gyro_noise_density)
-            angular = twist[..., 3:]
+            covariance = motion.covariance[..., rows[:, None], rows]
+        twist, twist_covariance = _body_twist(seq, estimate, motion, cfg.gyro_noise_density)
+        velocity, angular = motion.velocity, twist[..., 3:]
         child = str(seq.meta.get("body_frame") or "base_link")
         imu_frame = seq.meta.get("imu_frame")
         if imu_frame and imu_frame != child:
@@ -496,9 +504,9 @@ def _export(
             # own pose (R_world_imu = R_world_body R_body_imu), which tf relates to the body
             body_imu = seq.meta["body_imu_rotation"]
             estimate, covariance = _as_imu_frame(estimate, covariance, body_imu)
-            if angular is not None:
-                to_imu = torch.as_tensor(body_imu, dtype=angular.dtype).mT
-                angular = angular @ to_imu.mT
+            to_imu = torch.as_tensor(body_imu, dtype=angular.dtype).mT
+            angular = angular @ to_imu.mT
+            if twist_covariance is not None:
                 both = torch.block_diag(to_imu, to_imu)
                 twist_covariance = both @ twist_covariance @ both.mT
             child = str(imu_frame)
@@ -515,9 +523,9 @@ def _export(
 
 
 def _body_twist(
-    seq: Sequence, result: EskfResult, gyro_noise_density: float
-) -> tuple[torch.Tensor, torch.Tensor]:
-    """Body-axes twist at the real epochs of a B = 1 front-end result, and its covariance.
+    seq: Sequence, estimate: Trajectory, motion: OutputMotion, gyro_noise_density: float
+) -> tuple[torch.Tensor, torch.Tensor | None]:
+    """Body-axes twist at the epochs of a B = 1 estimate, and its covariance.
 
     ``v_b = R^T v`` (m/s); ``w_b = w(t) - b_g`` (rad/s), ``w(t)`` the gyro interpolated
     linearly between the IMU samples around the epoch time (the nearest end sample outside
@@ -527,31 +535,35 @@ def _body_twist(
     ``gyro_noise_density^2 x IMU rate`` on the rate block.
 
     Args:
-        seq: the sequence the result was run on (B = 1).
-        result: its front-end result.
+        seq: the sequence the estimate was made from (B = 1).
+        estimate: (1, N) poses (every epoch real).
+        motion: velocity, gyro bias and covariance at those epochs.
         gyro_noise_density: rad/s/sqrt(Hz).
 
     Returns:
-        twist (1, N, 6) ``[v_b, w_b]`` and covariance (1, N, 6, 6), N real epochs.
+        twist (1, N, 6) ``[v_b, w_b]`` and covariance (1, N, 6, 6), or None when
+        ``motion`` has no covariance.
     """
+    from msf_torch.geometry.quaternion import quat_to_matrix
     from msf_torch.geometry.so3 import hat
 
-    keep = result.mask[0]
-    rotation = result.rotation[:1, keep]
-    linear = (rotation.mT @ result.velocity[:1, keep, :, None])[..., 0]
+    rotation = quat_to_matrix(estimate.quaternion[:1])
+    linear = (rotation.mT @ motion.velocity[..., None])[..., 0]
     imu = seq.imu.compact()
-    times = result.t[0, keep].cpu().numpy()
+    times = estimate.t[0].cpu().numpy()
     stamps = imu.t[0].cpu().numpy()
     gyro = imu.gyro[0].cpu().numpy()
     sampled = np.stack([np.interp(times, stamps, gyro[:, axis]) for axis in range(3)], -1)
     rate = torch.as_tensor(sampled, dtype=linear.dtype, device=linear.device)[None]
-    angular = rate - result.gyro_bias[:1, keep]
+    angular = rate - motion.gyro_bias
+    if motion.covariance is None:
+        return torch.cat([linear, angular], -1), None
     epochs = linear.shape[1]
     jacobian = torch.zeros(1, epochs, 6, 15, dtype=linear.dtype, device=linear.device)
     jacobian[..., :3, 3:6] = rotation.mT
     jacobian[..., :3, 6:9] = hat(linear)
     jacobian[..., 3:, 9:12] = -torch.eye(3, dtype=linear.dtype, device=linear.device)
-    covariance = jacobian @ result.covariance[:1, keep] @ jacobian.mT
+    covariance = jacobian @ motion.covariance @ jacobian.mT
     sample_variance = gyro_noise_density**2 * float(imu.median_rate_hz()[0])
     covariance[..., 3:, 3:] += sample_variance * torch.eye(3, dtype=linear.dtype)
     return torch.cat([linear, angular], -1), covariance

@@ -82,7 +82,7 @@ the front end's pose carried by the correction of keyframe ``i`` and by that of 
 (``T_s T_fe^-1 T_fe(t)``), blended by time (linear in position, geodesic in rotation), so
 the front end's local motion fills in between smoothed keyframes. Keyframe ``j``'s
 correction is taken against the front end's pose there *before* its measurement update
-(:func:`update_free_poses`: the previous epoch carried through the IMU), since the
+(:func:`update_free_states`: the previous epoch carried through the IMU), since the
 posterior also holds the update's jump (metres at the first fix after an outage), which
 would otherwise ramp into every epoch since keyframe ``i``.
 
@@ -105,8 +105,11 @@ __all__ = [
     "chain_covariance",
     "bordered_chain_covariance",
     "smooth_full_calibrated",
-    "update_free_poses",
+    "UpdateFreeStates",
+    "update_free_states",
     "densify",
+    "OutputMotion",
+    "densify_motion",
 ]
 
 import dataclasses
@@ -115,7 +118,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import torch
 import yaml
@@ -898,13 +901,16 @@ class SmootherResult:
         t: (1, K) keyframe times, s.
         states: (1, K, 21) smoothed nav states
             (:func:`~msf_torch.backend.variables.pack_nav_state`).
-        variance: (1, K, 15) marginal variances of the error state (full batch: smoothed;
-            window: conditioned on the window a keyframe left from), or None.
+        covariance: (1, K, 15, 15) marginal covariances of the error state
+            ``[dp, dv, dtheta (body), db_g, db_a]`` (full batch: smoothed; window:
+            conditioned on the window a keyframe left from), or None (``covariance`` off).
         lm: the LM results (one for the full batch, one per window).
         initial_cost, cost: the full problem's cost at the front end's keyframe states and
             at the smoothed states (the same yardstick for both modes).
         wall_s: seconds for graph building and solving.
         output: the smoothed trajectory (keyframes or front-end epochs, per ``output``).
+        output_motion: velocity, gyro bias and covariance at ``output``'s epochs
+            (:func:`densify_motion`).
         calibration_names: the calibration variable's entries (``calibrate_wheels``:
             ``frontend.calibration.WHEEL_STATES``), or ().
         calibration: (1, 3) its estimate ``[k_l, k_r, D]``, or None.
@@ -915,12 +921,13 @@ class SmootherResult:
     mode: str
     t: torch.Tensor
     states: torch.Tensor
-    variance: torch.Tensor | None
+    covariance: torch.Tensor | None
     lm: list[LMResult]
     initial_cost: float
     cost: float
     wall_s: float
     output: Trajectory
+    output_motion: OutputMotion
     calibration_names: tuple[str, ...] = ()
     calibration: torch.Tensor | None = None
     calibration_sigma: torch.Tensor | None = None
@@ -985,11 +992,11 @@ def smooth_full(
     calibration estimate comes from :func:`smooth_full_calibrated`).
 
     Returns:
-        states (1, K, 21), variances (1, K, 15) or None, ``[LMResult]``.
+        states (1, K, 21), marginal covariances (1, K, 15, 15) or None, ``[LMResult]``.
     """
     smoother = smoother or SmootherConfig()
-    states, variance, results, _, _ = smooth_full_calibrated(graph, smoother)
-    return states, variance, results
+    states, covariance, results, _, _ = smooth_full_calibrated(graph, smoother)
+    return states, covariance, results
 
 
 def smooth_full_calibrated(
@@ -1004,23 +1011,21 @@ def smooth_full_calibrated(
     """:func:`smooth_full` that also returns the calibration variable (calibrated graphs).
 
     Returns:
-        states (1, K, 21), variances (1, K, 15) or None, ``[LMResult]``, calibration
-        (1, 3) ``[k_l, k_r, D]`` or None, its covariance (1, 3, 3) or None.
+        states (1, K, 21), marginal covariances (1, K, 15, 15) or None, ``[LMResult]``,
+        calibration (1, 3) ``[k_l, k_r, D]`` or None, its covariance (1, 3, 3) or None.
     """
     smoother = smoother or SmootherConfig()
     problem = graph.problem(graph.initial)
     result = solve(problem, _lm_config(smoother, smoother.linear_solver))
     states = result.values[_GROUP]
-    variance, calibration, calibration_cov = None, None, None
+    covariance, calibration, calibration_cov = None, None, None
     if graph.calibrated:
         calibration = result.values[_CALIB][:, 0]
     if smoother.covariance and graph.calibrated:
         covariance, calibration_cov = bordered_chain_covariance(problem, result.values, _CALIB)
-        variance = torch.diagonal(covariance, dim1=-2, dim2=-1)
     elif smoother.covariance:
         covariance = chain_covariance(problem, result.values)
-        variance = torch.diagonal(covariance, dim1=-2, dim2=-1)
-    return states, variance, [result], calibration, calibration_cov
+    return states, covariance, [result], calibration, calibration_cov
 
 
 def _marginalize(
@@ -1106,7 +1111,8 @@ def smooth_window(
         smoother: settings; default :class:`SmootherConfig()`.
         progress: optional callback ``(keyframes_emitted, K)``.
     Returns:
-        states (1, K, 21), variances (1, K, 15) or None, one ``LMResult`` per window.
+        states (1, K, 21), marginal covariances (1, K, 15, 15) or None, one ``LMResult``
+        per window.
     """
     smoother = smoother or SmootherConfig()
     if graph.calibrated:
@@ -1115,7 +1121,8 @@ def smooth_window(
     size, step = smoother.window_size, smoother.window_step
     values = graph.initial.clone()
     output = graph.initial.clone()
-    variance = torch.zeros(1, count, NAV_STATE.tangent_dim, dtype=values.dtype)
+    dim = NAV_STATE.tangent_dim
+    covariance = torch.zeros(1, count, dim, dim, dtype=values.dtype)
     results: list[LMResult] = []
     marginal: F.MarginalPriorFactor | None = None
     start, filled = 0, 1  # keyframes before `filled` hold a window estimate
@@ -1136,10 +1143,10 @@ def smooth_window(
         output[:, start : start + leaving] = values[:, start : start + leaving]
         if smoother.covariance:
             lin = problem.linearize(result.values)
-            dim = NAV_STATE.tangent_dim
-            blocks = torch.linalg.inv(lin.hessian)[:, : leaving * dim, : leaving * dim]
-            diag = torch.diagonal(blocks, dim1=-2, dim2=-1)
-            variance[:, start : start + leaving] = diag.reshape(1, leaving, dim)
+            inverse = torch.linalg.inv(lin.hessian)[:, : leaving * dim, : leaving * dim]
+            grid = inverse.reshape(1, leaving, dim, leaving, dim)
+            blocks = torch.diagonal(grid, dim1=1, dim2=3).permute(0, 3, 1, 2)
+            covariance[:, start : start + leaving] = blocks
         if progress is not None:
             progress(start + leaving, count)
         if end == count:
@@ -1148,13 +1155,28 @@ def smooth_window(
             graph, values, start, start + step, marginal, smoother.marginal_floor
         )
         start += step
-    return output, (variance if smoother.covariance else None), results
+    return output, (covariance if smoother.covariance else None), results
 
 
-def update_free_poses(
+class UpdateFreeStates(NamedTuple):
+    """The front end's states at K keyframe epochs before their measurement updates.
+
+    Attributes:
+        position: (K, 3) m world.
+        rotation: (K, 3, 3) body -> world.
+        velocity: (K, 3) m/s world.
+    """
+
+    position: torch.Tensor
+    rotation: torch.Tensor
+    velocity: torch.Tensor
+
+
+def update_free_states(
     seq: Sequence, frontend: EskfResult, cfg: EskfConfig, keyframe_epoch: torch.Tensor
-) -> tuple[torch.Tensor, torch.Tensor]:
-    """The front end's pose at each keyframe epoch before that epoch's measurement update.
+) -> UpdateFreeStates:
+    """The front end's pose and velocity at each keyframe epoch before that epoch's
+    measurement update.
 
     The front end's state at an epoch is the posterior: it already holds the jump of the
     update applied there (at the first fix after a GNSS outage, metres). This is the
@@ -1169,14 +1191,15 @@ def update_free_poses(
         cfg: the front end's settings (gravity).
         keyframe_epoch: (K,) keyframe indices into the front end's epochs.
     Returns:
-        positions (K, 3) m world and rotations (K, 3, 3) body -> world.
+        :class:`UpdateFreeStates` (K keyframes).
     """
     real = torch.nonzero(frontend.mask[0]).squeeze(-1)
     after = keyframe_epoch[1:]
     before = real[torch.searchsorted(real, after) - 1]
     position, rotation = frontend.position[0, keyframe_epoch], frontend.rotation[0, keyframe_epoch]
+    velocity = frontend.velocity[0, keyframe_epoch]
     if after.numel() == 0:
-        return position, rotation
+        return UpdateFreeStates(position, rotation, velocity)
     keep = seq.imu.mask[0]
     # cut at [t_before_1, t_1, t_before_2, t_2, ...]: the even intervals are the steps
     times = torch.stack((frontend.t[0, before], frontend.t[0, after]), -1).reshape(-1)
@@ -1188,7 +1211,7 @@ def update_free_poses(
         frontend.accel_bias[:, before],
         covariance="closed_form",
     )
-    moved, _, turned = propagate_nominal(
+    moved, sped, turned = propagate_nominal(
         frontend.position[:, before],
         frontend.velocity[:, before],
         frontend.rotation[:, before],
@@ -1198,14 +1221,39 @@ def update_free_poses(
         pre.delta_position,
         gravity_world(cfg.gravity_mps2, position.dtype).to(position.device),
     )
-    return torch.cat((position[:1], moved[0])), torch.cat((rotation[:1], turned[0]))
+    return UpdateFreeStates(
+        torch.cat((position[:1], moved[0])),
+        torch.cat((rotation[:1], turned[0])),
+        torch.cat((velocity[:1], sped[0])),
+    )
+
+
+def _keyframe_segments(
+    keyframe_epoch: torch.Tensor, frontend: EskfResult
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Where the front end's real epochs fall between keyframes (K >= 2).
+
+    Returns:
+        real (E',) indices of the real epochs; seg (E',) the keyframe i starting each
+        epoch's segment [i, i + 1]; lo, hi (E',) keyframes i and i + 1 as positions among
+        the real epochs; weight (E',) the time fraction of the segment, in [0, 1].
+    """
+    real = torch.nonzero(frontend.mask[0]).squeeze(-1)
+    t = frontend.t[0, real]
+    where = torch.searchsorted(real, keyframe_epoch)
+    seg = (torch.searchsorted(where, torch.arange(real.numel()), right=True) - 1).clamp(
+        0, where.numel() - 2
+    )
+    lo, hi = where[seg], where[seg + 1]
+    weight = ((t - t[lo]) / (t[hi] - t[lo]).clamp_min(1e-12)).clamp(0.0, 1.0)
+    return real, seg, lo, hi, weight
 
 
 def densify(
     keyframe_epoch: torch.Tensor,
     states: torch.Tensor,
     frontend: EskfResult,
-    anchor: tuple[torch.Tensor, torch.Tensor] | None = None,
+    anchor: UpdateFreeStates | None = None,
 ) -> Trajectory:
     """The smoothed trajectory at every front-end epoch (B = 1).
 
@@ -1213,7 +1261,7 @@ def densify(
     i's correction ``T_s,i T_fe,i^-1`` and by keyframe j's ``T_s,j A_j^-1``, blended by
     time: position linearly, rotation along the geodesic. At keyframes it is the smoothed
     pose. ``A_j`` is the front end's pose at keyframe j before its measurement update
-    (``anchor``, :func:`update_free_poses`): the front end's posterior there also holds
+    (``anchor``, :func:`update_free_states`): the front end's posterior there also holds
     the update's jump, which keyframe j's correction would otherwise carry back to every
     epoch since keyframe i, as a ramp growing towards j.
 
@@ -1221,43 +1269,35 @@ def densify(
         keyframe_epoch: (K,) keyframe indices into the front end's epochs.
         states: (1, K, 21) smoothed nav states.
         frontend: the front end's result.
-        anchor: the front end's update-free poses at the keyframes, positions (K, 3) m and
-            rotations (K, 3, 3); default its posteriors ``T_fe`` (no update at keyframes).
+        anchor: the front end's update-free states at the keyframes; default its
+            posteriors ``T_fe`` (no update at keyframes).
     Returns:
         :class:`Trajectory` (1, E') over the front end's real epochs.
     """
-    real = torch.nonzero(frontend.mask[0]).squeeze(-1)
-    t = frontend.t[0, real]
-    p_fe, r_fe = frontend.position[0, real], frontend.rotation[0, real]
     position, _, rotation, _, _ = unpack_nav_state(states[0])
-    # keyframe epochs as positions among the real epochs
-    where = torch.searchsorted(real, keyframe_epoch)
-    count = where.numel()
-    if count == 1:
+    if keyframe_epoch.numel() == 1:
         return Trajectory(
-            t=t[where][None],
+            t=frontend.t[0, keyframe_epoch][None],
             position=position[None],
             quaternion=matrix_to_quat(rotation)[None],
             mask=torch.ones(1, 1, dtype=torch.bool),
         )
-    seg = (torch.searchsorted(where, torch.arange(real.numel()), right=True) - 1).clamp(
-        0, count - 2
-    )
-    lo, hi = where[seg], where[seg + 1]
-    weight = ((t - t[lo]) / (t[hi] - t[lo]).clamp_min(1e-12)).clamp(0.0, 1.0)
+    real, seg, lo, hi, weight = _keyframe_segments(keyframe_epoch, frontend)
+    t = frontend.t[0, real]
+    p_fe, r_fe = frontend.position[0, real], frontend.rotation[0, real]
 
     def carried(
-        k: torch.Tensor, epoch: torch.Tensor, p_0: torch.Tensor, r_0: torch.Tensor
+        k: torch.Tensor, p_0: torch.Tensor, r_0: torch.Tensor
     ) -> tuple[torch.Tensor, torch.Tensor]:
         turn = rotation[k] @ r_0.mT
         moved = position[k] + (turn @ (p_fe - p_0)[..., None]).squeeze(-1)
         return moved, turn @ r_fe
 
-    p_a, r_a = carried(seg, lo, p_fe[lo], r_fe[lo])
+    p_a, r_a = carried(seg, p_fe[lo], r_fe[lo])
     if anchor is None:
-        p_b, r_b = carried(seg + 1, hi, p_fe[hi], r_fe[hi])
+        p_b, r_b = carried(seg + 1, p_fe[hi], r_fe[hi])
     else:
-        p_b, r_b = carried(seg + 1, hi, anchor[0][seg + 1], anchor[1][seg + 1])
+        p_b, r_b = carried(seg + 1, anchor.position[seg + 1], anchor.rotation[seg + 1])
         # at keyframe j itself (the last epoch) the output is the smoothed pose
         at_j = (torch.arange(real.numel(), device=hi.device) == hi)[:, None]
         p_b = torch.where(at_j, position[seg + 1], p_b)
@@ -1270,6 +1310,77 @@ def densify(
         quaternion=matrix_to_quat(blend)[None],
         mask=torch.ones(1, t.numel(), dtype=torch.bool),
     )
+
+
+@dataclass
+class OutputMotion:
+    """Velocity, gyro bias and error-state covariance at the epochs of an output
+    trajectory (B = 1, N epochs), for exports that carry a twist and covariances.
+
+    Attributes:
+        velocity: (1, N, 3) world, m/s.
+        gyro_bias: (1, N, 3) rad/s.
+        covariance: (1, N, 15, 15) over ``[dp, dv, dtheta (body), db_g, db_a]``, or None.
+    """
+
+    velocity: torch.Tensor
+    gyro_bias: torch.Tensor
+    covariance: torch.Tensor | None
+
+
+def densify_motion(
+    keyframe_epoch: torch.Tensor,
+    states: torch.Tensor,
+    covariance: torch.Tensor | None,
+    frontend: EskfResult,
+    anchor: UpdateFreeStates | None = None,
+) -> OutputMotion:
+    """Velocity, gyro bias and covariance at the epochs :func:`densify` gives poses for.
+
+    Between keyframes i and j (time fraction ``w``): the velocity is the front end's
+    carried by each keyframe's correction as the positions are,
+    ``v_s,k + R_s,k R_0^T (v_fe(t) - v_0)`` with ``(R_0, v_0)`` the front end's state at
+    keyframe i, or its update-free state at j (``anchor``), blended ``(1 - w, w)``; it
+    equals the smoothed velocity at the keyframes. The gyro bias is the smoothed biases'
+    linear interpolation. The covariance is ``(1 - w) Sigma_i + w Sigma_j`` of the
+    keyframes' marginals, an approximation (positive definite, exact at the keyframes)
+    that ignores the front end's own uncertainty over the sub-keyframe motion.
+
+    Args:
+        keyframe_epoch: (K,) keyframe indices into the front end's epochs.
+        states: (1, K, 21) smoothed nav states.
+        covariance: (1, K, 15, 15) their marginal covariances, or None.
+        frontend: the front end's result.
+        anchor: as in :func:`densify`.
+    Returns:
+        :class:`OutputMotion` over the front end's real epochs.
+    """
+    _, velocity, rotation, gyro_bias, _ = unpack_nav_state(states[0])
+    if keyframe_epoch.numel() == 1:
+        return OutputMotion(velocity[None], gyro_bias[None], covariance)
+    real, seg, lo, hi, weight = _keyframe_segments(keyframe_epoch, frontend)
+    v_fe, r_fe = frontend.velocity[0, real], frontend.rotation[0, real]
+
+    def carried(k: torch.Tensor, v_0: torch.Tensor, r_0: torch.Tensor) -> torch.Tensor:
+        turn = rotation[k] @ r_0.mT
+        return velocity[k] + (turn @ (v_fe - v_0)[..., None]).squeeze(-1)
+
+    v_a = carried(seg, v_fe[lo], r_fe[lo])
+    if anchor is None:
+        v_b = carried(seg + 1, v_fe[hi], r_fe[hi])
+    else:
+        v_b = carried(seg + 1, anchor.velocity[seg + 1], anchor.rotation[seg + 1])
+        at_j = (torch.arange(real.numel(), device=hi.device) == hi)[:, None]
+        v_b = torch.where(at_j, velocity[seg + 1], v_b)
+    w = weight[:, None]
+    blended_bias = (1.0 - w) * gyro_bias[seg] + w * gyro_bias[seg + 1]
+    blended_cov = None
+    if covariance is not None:
+        blended_cov = (1.0 - w[..., None]) * covariance[0, seg] + w[..., None] * covariance[
+            0, seg + 1
+        ]
+        blended_cov = blended_cov[None]
+    return OutputMotion(((1.0 - w) * v_a + w * v_b)[None], blended_bias[None], blended_cov)
 
 
 def smooth(
@@ -1305,21 +1416,26 @@ def smooth(
     with _intra_op_threads(1):  # small matrices: thread hand-offs cost more than they save
         graph = build_graph(seq, frontend, cfg, smoother)
         if mode == "full":
-            states, variance, results, calibration, calibration_cov = smooth_full_calibrated(
+            states, covariance, results, calibration, calibration_cov = smooth_full_calibrated(
                 graph, smoother
             )
             if progress is not None:
                 progress(1, 1)
         else:
-            states, variance, results = smooth_window(graph, smoother, progress)
+            states, covariance, results = smooth_window(graph, smoother, progress)
         wall = time.perf_counter() - start
+        if covariance is not None:  # the inverses leave ~1e-12 asymmetry, which exports carry
+            covariance = 0.5 * (covariance + covariance.mT)
         whole = graph.problem(graph.initial)
         solved = None if calibration is None else calibration[:, None]
         costs = whole.cost(graph.values(graph.initial)), whole.cost(graph.values(states, solved))
     if smoother.output == "frontend":
-        anchor = update_free_poses(seq, frontend, cfg, graph.epoch)
+        anchor = update_free_states(seq, frontend, cfg, graph.epoch)
         output = densify(graph.epoch, states, frontend, anchor)
+        motion = densify_motion(graph.epoch, states, covariance, frontend, anchor)
     else:
+        _, velocity, _, gyro_bias, _ = unpack_nav_state(states)
+        motion = OutputMotion(velocity, gyro_bias, covariance)
         position, _, rotation, _, _ = unpack_nav_state(states)
         output = Trajectory(
             t=graph.t[None],
@@ -1331,12 +1447,13 @@ def smooth(
         mode=mode,
         t=graph.t[None],
         states=states,
-        variance=variance,
+        covariance=covariance,
         lm=results,
         initial_cost=float(costs[0]),
         cost=float(costs[1]),
         wall_s=wall,
         output=output,
+        output_motion=motion,
         calibration_names=WHEEL_STATES if calibration is not None else (),
         calibration=calibration,
         calibration_sigma=None

@@ -193,7 +193,7 @@ def test_analytic_jacobians_match_autodiff(kind):
 
 def test_full_smoother_beats_front_end_and_is_near_truth(sim_run, full_solution):
     run, seq, _, frontend, graph = sim_run
-    states, variance, results = full_solution
+    states, covariance, results = full_solution
     assert results[0].converged.all()
     truth = seq.ground_truth
     front = ate(frontend.trajectory().select(0).compact(), truth, align="none", max_dt=0.02)
@@ -204,13 +204,13 @@ def test_full_smoother_beats_front_end_and_is_near_truth(sim_run, full_solution)
     # 3-sigma consistency of the keyframe positions against the truth
     at = torch.searchsorted(run.truth.t[0], graph.t - 1e-9)
     error = states[0, :, 0:3] - run.truth.position[0, at]
-    normalized = error / variance[0, :, 0:3].sqrt()
+    normalized = error / torch.diagonal(covariance[0, :, 0:3, 0:3], dim1=-2, dim2=-1).sqrt()
     assert float((normalized.abs() < 3.0).double().mean()) > 0.9
 
 
 def test_chain_covariance_matches_dense_inverse(sim_run, full_solution):
     *_, graph = sim_run
-    states, variance, _ = full_solution
+    states, covariance, _ = full_solution
     count = 25
     problem = graph.problem(states[:, :count], 0, count)
     values = {"state": states[:, :count]}
@@ -222,7 +222,7 @@ def test_chain_covariance_matches_dense_inverse(sim_run, full_solution):
     scale = torch.diagonal(blocks, dim1=-2, dim2=-1).sqrt()
     outer = scale[..., :, None] * scale[..., None, :]
     torch.testing.assert_close(chain / outer, blocks / outer, rtol=0, atol=1e-7)
-    assert variance.shape == (1, graph.size, 15)
+    assert covariance.shape == (1, graph.size, 15, 15)
 
 
 # --- sliding window ----------------------------------------------------------------------
@@ -257,12 +257,14 @@ def test_marginalisation_is_exact_to_first_order(sim_run, full_solution):
 
 def test_window_covering_the_run_is_the_full_batch(sim_run, full_solution):
     *_, graph = sim_run
-    states, variance, _ = full_solution
+    states, covariance, _ = full_solution
     config = W.SmootherConfig(window_size=graph.size + 5)
-    window_states, window_variance, results = W.smooth_window(graph, config)
+    window_states, window_covariance, results = W.smooth_window(graph, config)
     assert len(results) == 1
     torch.testing.assert_close(window_states[..., 0:6], states[..., 0:6], atol=1e-6, rtol=0)
-    torch.testing.assert_close(window_variance, variance, rtol=1e-6, atol=0)
+    scale = torch.diagonal(covariance, dim1=-2, dim2=-1).sqrt()
+    outer = scale[..., :, None] * scale[..., None, :]
+    torch.testing.assert_close(window_covariance / outer, covariance / outer, rtol=0, atol=1e-6)
 
 
 def test_sliding_window_ends_close_to_the_full_batch(sim_run, full_solution):
@@ -300,7 +302,7 @@ def test_output_between_keyframes_ignores_the_front_ends_update_jump():
     """A front end on an exact turn whose update at keyframe 1 (t = 0.6 s, a fix after an
     outage) moves it by 0.7 m and 0.05 rad; the smoothed keyframes are the truth. Between
     keyframes the output must be the truth (closed form): keyframe 1's correction is taken
-    against the front end's pose before that update (``update_free_poses``, the previous
+    against the front end's pose before that update (``update_free_states``, the previous
     epoch carried through the IMU), not against the jumped posterior."""
     rate, speed, g = 0.5, 2.0, 9.80665
     imu_t = torch.arange(0, 201, dtype=DTYPE) / 200.0
@@ -336,12 +338,12 @@ def test_output_between_keyframes_ignores_the_front_ends_update_jump():
     states = pack_nav_state(
         position[epoch], velocity[epoch], rotation[epoch], zeros[0, :3], zeros[0, :3]
     )
-    anchor = W.update_free_poses(seq, frontend, cfg, epoch)
+    anchor = W.update_free_states(seq, frontend, cfg, epoch)
     # before the update at epoch 15 the front end was on the truth; epoch 25 has no jump
     expected = torch.where(t[epoch][:, None] < 0.9, position[epoch], fe_position[epoch])
-    torch.testing.assert_close(anchor[0], expected, rtol=0, atol=1e-9)
+    torch.testing.assert_close(anchor.position, expected, rtol=0, atol=1e-9)
     expected = torch.where(t[epoch][:, None, None] < 0.9, rotation[epoch], fe_rotation[epoch])
-    torch.testing.assert_close(anchor[1], expected, rtol=0, atol=1e-9)
+    torch.testing.assert_close(anchor.rotation, expected, rtol=0, atol=1e-9)
     output = W.densify(epoch, states[None], frontend, anchor)
     torch.testing.assert_close(output.position[0], position, rtol=0, atol=1e-9)
     torch.testing.assert_close(
@@ -353,6 +355,27 @@ def test_output_between_keyframes_ignores_the_front_ends_update_jump():
     # against the posterior (the old anchor) the jump ramps in: 0.7 m at the epoch before
     ramp = W.densify(epoch, states[None], frontend).position[0, 14] - position[14]
     assert float(ramp.norm()) > 0.5
+
+    # velocities: carried by the same corrections, the closed-form truth at every epoch
+    expected = torch.where(t[epoch][:, None] < 0.9, velocity[epoch], fe_velocity[epoch])
+    torch.testing.assert_close(anchor.velocity, expected, rtol=0, atol=1e-9)
+    gen = torch.Generator().manual_seed(3)
+    gyro_bias = 1e-3 * torch.randn(3, 3, generator=gen, dtype=DTYPE)
+    factor = torch.randn(3, 15, 15, generator=gen, dtype=DTYPE)
+    keyframe_cov = factor @ factor.mT + 0.1 * torch.eye(15, dtype=DTYPE)
+    biased = pack_nav_state(
+        position[epoch], velocity[epoch], rotation[epoch], gyro_bias, zeros[0, :3]
+    )
+    motion = W.densify_motion(epoch, biased[None], keyframe_cov[None], frontend, anchor)
+    torch.testing.assert_close(motion.velocity[0], velocity, rtol=0, atol=1e-9)
+    # epoch 5 lies a third of the way from keyframe 0 to 1, epoch 20 half-way from 1 to 2
+    torch.testing.assert_close(
+        motion.gyro_bias[0, 5], gyro_bias[0] * 2 / 3 + gyro_bias[1] / 3, rtol=0, atol=1e-15
+    )
+    torch.testing.assert_close(
+        motion.covariance[0, 20], 0.5 * (keyframe_cov[1] + keyframe_cov[2]), rtol=1e-12, atol=0
+    )
+    torch.testing.assert_close(motion.covariance[0, epoch], keyframe_cov, rtol=0, atol=0)
 
 
 def test_smoothed_output_moves_like_the_truth_into_jumped_keyframes(sim_run):

@@ -147,7 +147,7 @@ def test_smoother_recovers_calibration_and_lowers_ate(miscalibrated):
         # start from the wrong (believed) calibration, not the front end's estimate
         prior_mean = graph.calibration_prior[0]
         cold = dataclasses.replace(graph, calibration_initial=prior_mean.clone())
-        states, variance, results, estimate, covariance = W.smooth_full_calibrated(cold, on)
+        states, state_cov, results, estimate, covariance = W.smooth_full_calibrated(cold, on)
         result_on = W.smooth(seq, frontend, cfg, on, "full")
         result_off = W.smooth(seq, frontend, cfg, W.SmootherConfig(), "full")
     assert results[0].converged.all()
@@ -160,7 +160,7 @@ def test_smoother_recovers_calibration_and_lowers_ate(miscalibrated):
     # the default start (front end's estimate) reaches the same optimum
     torch.testing.assert_close(result_on.calibration, estimate, rtol=0, atol=5e-4 * sigma.max())
     torch.testing.assert_close(result_on.calibration_sigma[0], sigma, rtol=1e-4, atol=0)
-    assert variance.shape == (1, graph.size, 15)
+    assert state_cov.shape == (1, graph.size, 15, 15)
     ate_on = _position_rmse(run, result_on.output)
     ate_off = _position_rmse(run, result_off.output)
     assert ate_on < 0.5 * ate_off, (ate_on, ate_off)

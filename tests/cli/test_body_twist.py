@@ -9,6 +9,7 @@ import numpy as np
 import torch
 from scipy.spatial.transform import Rotation
 
+from msf_torch.backend.window import OutputMotion
 from msf_torch.frontend.config import EskfConfig
 from msf_torch.frontend.eskf import run_eskf
 from msf_torch.runner import _body_twist
@@ -22,8 +23,11 @@ def test_twist_and_its_covariance_follow_the_error_state() -> None:
     seq = simulate_run(SimConfig(duration_s=6.0, slip_episodes=0), seed=2).sequence
     with torch.no_grad():
         result = run_eskf(seq, EskfConfig())
-    twist, covariance = _body_twist(seq, result, DENSITY)
     keep = result.mask[0]
+    motion = OutputMotion(
+        result.velocity[:1, keep], result.gyro_bias[:1, keep], result.covariance[:1, keep]
+    )
+    twist, covariance = _body_twist(seq, result.trajectory().select(0).compact(), motion, DENSITY)
     epochs = int(keep.sum())
     assert twist.shape == (1, epochs, 6) and covariance.shape == (1, epochs, 6, 6)
 

@@ -280,3 +280,64 @@ def test_rosbag2_export_is_the_imu_frame_when_the_body_frame_is_another(tmp_path
     assert np.all(np.linalg.eigvalsh(twist_cov) > 0)
     one_sample = EskfConfig().gyro_noise_density ** 2 * 100.0
     assert np.diagonal(twist_cov[:, 3:, 3:], axis1=1, axis2=2).min() >= one_sample
+
+
+def _odometry(folder: Path) -> dict[str, np.ndarray]:
+    """Pose, covariances and twist of every message of an exported odometry bag."""
+    from rosbags.rosbag2 import Reader
+    from rosbags.typesys import Stores, get_typestore
+
+    store = get_typestore(Stores.ROS2_HUMBLE)
+    with Reader(folder) as reader:
+        messages = [store.deserialize_cdr(raw, conn.msgtype) for conn, _, raw in reader.messages()]
+
+    def xyz(v) -> list[float]:
+        return [v.x, v.y, v.z]
+
+    return {
+        "position": np.array([xyz(m.pose.pose.position) for m in messages]),
+        "xyzw": np.array(
+            [[*xyz(m.pose.pose.orientation), m.pose.pose.orientation.w] for m in messages]
+        ),
+        "linear": np.array([xyz(m.twist.twist.linear) for m in messages]),
+        "angular": np.array([xyz(m.twist.twist.angular) for m in messages]),
+        "pose_cov": np.array([np.array(m.pose.covariance).reshape(6, 6) for m in messages]),
+        "twist_cov": np.array([np.array(m.twist.covariance).reshape(6, 6) for m in messages]),
+    }
+
+
+def test_smoothed_rosbag2_export_carries_covariance_and_twist(robot_run, tmp_path, capsys):
+    # --smooth full: the bag holds the smoothed poses with the smoother's marginal
+    # covariances (tighter than the filter's) and a twist that matches the poses' motion
+    from scipy.spatial.transform import Rotation
+
+    args = ["run", str(robot_run["native"]), "--config", str(robot_run["native_cfg"])]
+    common = ["--no-plot", "--no-learned", "--progress", "off", "--export", "rosbag2"]
+    runs = {}
+    for name, extra in (("filter", []), ("smoothed", ["--smooth", "full"])):
+        assert main([*args, "--out", str(tmp_path / name), *common, *extra]) == 0
+        capsys.readouterr()
+        runs[name] = _odometry(tmp_path / name / "trajectory_rosbag2")
+    smoothed, filtered = runs["smoothed"], runs["filter"]
+    estimate = read_tum(tmp_path / "smoothed" / "trajectory.tum")
+    np.testing.assert_allclose(smoothed["position"], estimate.position[0].numpy(), atol=1e-12)
+    for key in ("pose_cov", "twist_cov"):
+        cov = smoothed[key]
+        np.testing.assert_allclose(cov, cov.transpose(0, 2, 1), atol=1e-15)
+        assert np.linalg.eigvalsh(cov).min() > 0
+    # same epochs (the smoother's output is at the front end's epochs)
+    assert smoothed["pose_cov"].shape == filtered["pose_cov"].shape
+    trace = np.trace(smoothed["pose_cov"][:, :3, :3], axis1=1, axis2=2)
+    filter_trace = np.trace(filtered["pose_cov"][:, :3, :3], axis1=1, axis2=2)
+    assert np.median(trace / filter_trace) < 0.8
+    # twist against the exported poses' finite differences (mid-interval)
+    t = estimate.t[0].numpy()
+    rotation = Rotation.from_quat(smoothed["xyzw"])
+    dt = np.diff(t)[:, None]
+    rate_fd = (rotation[:-1].inv() * rotation[1:]).as_rotvec() / dt
+    velocity_fd = rotation[:-1].apply(np.diff(smoothed["position"], axis=0) / dt, inverse=True)
+    mid_rate = 0.5 * (smoothed["angular"][:-1] + smoothed["angular"][1:])
+    mid_velocity = 0.5 * (smoothed["linear"][:-1] + smoothed["linear"][1:])
+    assert np.abs(smoothed["angular"][:, 2]).max() > 0.2  # the run turns
+    assert np.median(np.abs(mid_rate - rate_fd)) < 0.003
+    assert np.median(np.abs(mid_velocity - velocity_fd)) < 0.03
