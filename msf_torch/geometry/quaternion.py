@@ -71,7 +71,8 @@ def matrix_to_quat(rot: torch.Tensor) -> torch.Tensor:
         )
         / (2.0 * q_abs.clamp_min(0.1))[..., None]
     )
-    best = torch.nn.functional.one_hot(q_abs.argmax(-1), 4).to(rot.dtype)
+    # one-hot of the largest |q_i| by scatter (one_hot reads its input's range: no vmap)
+    best = torch.zeros_like(q_abs).scatter(-1, q_abs.argmax(-1, keepdim=True), 1.0)
     quat = (candidates * best[..., None]).sum(-2)
     quat = quat / quat.norm(dim=-1, keepdim=True)
     return torch.where(quat[..., :1] < 0, -quat, quat)
