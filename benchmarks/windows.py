@@ -1,4 +1,5 @@
-"""256 KITTI windows: our batched LM (one call, B = 256) vs GTSAM's LM (one window at a time).
+"""256 KITTI windows: our batched LM (one call, B = 256) vs GTSAM's LM (one window at a time)
+and Theseus's batched LM.
 
 What it measures
     The KITTI IMU + GPS drive that the ``gtsam`` wheel ships (GPS fixes at 1 Hz, 100 IMU
@@ -31,14 +32,34 @@ What it measures
       assembly with every window carried to the end, for comparison);
     * peer: ``gtsam.LevenbergMarquardtOptimizer`` on each window's graph in turn (Pose3,
       velocity and bias keys), timed over the 256 ``optimize`` calls (optimizer
-      construction included).
+      construction included);
+    * second peer, Theseus (when ``import theseus`` works; ``--no-theseus`` skips it): the
+      same Problem as one ``th.Objective`` with batch 256
+      (``benchmarks/peers/theseus_windows.py``: per keyframe a ``th.SE3`` pose and a
+      ``th.Vector(9)`` ``[v, b_g, b_a]``; one ``th.AutoDiffCostFunction`` per factor whose
+      error is our factor's whitened residual, so the cost is identical), solved by
+      ``th.LevenbergMarquardt`` (``CholeskyDenseSolver``, adaptive ``lambda I`` damping
+      from our initial damping, cost functions vectorised) through ``th.TheseusLayer``
+      under ``torch.no_grad``, timed like ours. Its final cost is our ``Problem.cost`` at
+      its final values (``theseus.final_cost_rel_diff`` vs GTSAM's). Theseus stops a
+      window at a relative cost change below ``--rtol``, and a rejected step (cost
+      unchanged) counts as such a change. It is not in the ``[peers]`` extra (its declared
+      dependency scikit-sparse has no wheel and needs SuiteSparse headers; the dense
+      solver does not use it); install it with::
 
-    Both stop at a relative cost decrease below ``--rtol`` (default 1e-12) or after 100
+          .venv/bin/pip install --no-build-isolation --no-deps theseus-ai==0.2.3 \\
+              torchlie==0.1.0 torchkin==0.1.1 urdf_parser_py==0.0.4 semantic-version==2.10.0
+
+      Without it a note goes to stderr and the JSON's ``theseus`` block is
+      ``{"skipped": "theseus-ai not installed: <that command>"}``.
+
+    All stop at a relative cost decrease below ``--rtol`` (default 1e-12) or after 100
     iterations; ours damps with ``lambda I`` like GTSAM's default (``--damping``). Only the
-    solves are timed (medians over ``--repeats``, ours and GTSAM alternating); problem
-    construction (preintegration, factors, graphs) is reported apart. Throughput is
-    windows per second; target: ours >= 20x GTSAM's. For information the same windows are
-    also solved with our default IMU factor (exact zero-order hold, Forster residual):
+    solves are timed (medians over ``--repeats``, ours, GTSAM and Theseus alternating);
+    problem construction (preintegration, factors, graphs, objective) is reported apart.
+    Throughput is windows per second; target: ours >= 20x GTSAM's (``ratio_vs_theseus``:
+    ours over Theseus's, no target). For information the same windows are also solved with
+    our default IMU factor (exact zero-order hold, Forster residual):
     ``zoh_final_cost_rel_diff`` shows how far that (different) discretisation moves the
     optimum.
 
@@ -51,14 +72,15 @@ How to run
 Options
     --windows N        number of windows (default 256)
     --size K           keyframes per window (default 10)
-    --repeats N        timed repeats of both solves (median; default 5)
+    --repeats N        timed repeats of the solves (median; default 5)
     --rtol X           relative cost-decrease tolerance of both (default 1e-12)
     --linear-solver S  ours: "dense" (default) or "sparse"
     --damping D        ours: "identity" (default, GTSAM's lambda I) or "marquardt"
     --path P           ours: "chain" (default, see above) or "general" (dense assembly,
                        no dropping of converged windows)
     --threads N        torch intra-op threads (default: torch's choice)
-    --device D         ours on this device (default cpu)
+    --device D         ours (and Theseus) on this device (default cpu)
+    --no-theseus       skip the Theseus peer
 """
 
 from __future__ import annotations
@@ -83,6 +105,12 @@ from benchmarks._common import (  # noqa: E402
     log,
     machine_info,
     time_repeats,
+)
+from benchmarks.peers.theseus_windows import (  # noqa: E402
+    INSTALL,
+    build_theseus,
+    import_theseus,
+    solve_theseus,
 )
 from msf_torch.backend.factors import (  # noqa: E402
     GnssFactor,
@@ -342,6 +370,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--path", default="chain", choices=("chain", "general"))
     parser.add_argument("--threads", type=int, default=None)
     parser.add_argument("--device", default="cpu")
+    parser.add_argument("--no-theseus", action="store_true", help="skip the Theseus peer")
     args = parser.parse_args(argv)
     if args.threads is not None:
         torch.set_num_threads(args.threads)
@@ -392,6 +421,22 @@ def main(argv: list[str] | None = None) -> int:
     t2 = time.perf_counter()
     peer_build = {"preintegration_all_intervals_s": t1 - t0, "graphs_s": t2 - t1}
 
+    # --- Theseus: objective construction (second peer) ---------------------------------
+    theseus = None
+    theseus_block: dict[str, Any] = {"skipped": "--no-theseus"}
+    if not args.no_theseus:
+        try:
+            th_version = import_theseus().__version__
+        except ImportError:
+            theseus_block = {"skipped": f"theseus-ai not installed: {INSTALL}"}
+            log(f"Theseus peer skipped: theseus-ai not installed ({INSTALL})")
+        else:
+            t0 = time.perf_counter()
+            theseus = build_theseus(problem, args.rtol, MAX_ITERATIONS, LMConfig.initial_damping)
+            theseus_build_s = time.perf_counter() - t0
+            with torch.no_grad():  # Theseus's own cost at the initial values: same problem?
+                th_initial = theseus.layer.objective.error_metric(theseus.initial).cpu().numpy()
+
     # --- identical problems: costs at the initial values ----------------------------------
     with torch.no_grad():
         ours_initial = problem.cost(problem.values).cpu().numpy()
@@ -405,8 +450,18 @@ def main(argv: list[str] | None = None) -> int:
             torch.cuda.synchronize()
         return result
 
+    def theseus_solve() -> tuple[torch.Tensor, Any]:
+        out = solve_theseus(theseus)
+        if device.type == "cuda":
+            torch.cuda.synchronize()
+        return out
+
     ours()  # warm-up (lazy library loading)
+    if theseus is not None:
+        theseus_solve()
     ours_walls, peer_walls, ours_cpus, peer_cpus = [], [], [], []
+    th_walls: list[float] = []
+    th_cpus: list[float] = []
     for r in range(args.repeats):
         wall, ours_t, result = time_repeats(ours, 1)
         ours_walls.append(wall)
@@ -414,7 +469,13 @@ def main(argv: list[str] | None = None) -> int:
         wall, peer_t, peer = time_repeats(lambda: solve_gtsam(graphs, args.rtol), 1)
         peer_walls.append(wall)
         peer_cpus.append(peer_t["cpu_median_s"])
-        log(f"repeat {r + 1}/{args.repeats}: ours {ours_walls[-1]:.3f} s, gtsam {wall:.3f} s")
+        line = f"repeat {r + 1}/{args.repeats}: ours {ours_walls[-1]:.3f} s, gtsam {wall:.3f} s"
+        if theseus is not None:
+            wall, th_t, (th_values, th_info) = time_repeats(theseus_solve, 1)
+            th_walls.append(wall)
+            th_cpus.append(th_t["cpu_median_s"])
+            line += f", theseus {wall:.3f} s"
+        log(line)
     ours_s, peer_s = statistics.median(ours_walls), statistics.median(peer_walls)
 
     # --- accuracy ------------------------------------------------------------------------
@@ -445,6 +506,33 @@ def main(argv: list[str] | None = None) -> int:
     throughput_ours = args.windows / ours_s
     throughput_peer = args.windows / peer_s
     ratio = throughput_ours / throughput_peer
+    ratio_theseus = None
+    if theseus is not None:
+        th_s = statistics.median(th_walls)
+        with torch.no_grad():
+            th_cost = problem.cost({"state": th_values}).cpu().numpy()
+        th_iters = th_info.converged_iter.cpu().numpy()
+        th_status = [s.name for s in th_info.status]
+        ratio_theseus = throughput_ours * th_s / args.windows
+        theseus_block = {
+            "what": (
+                f"theseus {th_version} LevenbergMarquardt (CholeskyDenseSolver, adaptive "
+                "damping, vectorised AutoDiffCostFunctions) via TheseusLayer, one call with "
+                "B = windows"
+            ),
+            "cost_functions": theseus.cost_functions,
+            "solve_s": th_s,
+            "solve_repeats_s": th_walls,
+            "solve_cpu_repeats_s": th_cpus,
+            "windows_per_s": args.windows / th_s,
+            "iterations": _stats(th_iters[th_iters >= 0]) if (th_iters >= 0).any() else None,
+            "status": {s: th_status.count(s) for s in sorted(set(th_status))},
+            "build_s": {"objective_s": theseus_build_s},
+            "initial_cost_rel_diff_vs_ours": _stats(_rel(th_initial, ours_initial)),
+            "final_cost_rel_diff": _stats(_rel(th_cost, peer_cost)),
+            "final_cost_rel_diff_vs_ours": _stats(_rel(th_cost, ours_cost)),
+            "final_cost": _stats(th_cost),
+        }
     cost_ok = bool(final_rel.max() <= 1e-6)
     speed_ok = bool(ratio >= 20.0)
     log(
@@ -452,6 +540,12 @@ def main(argv: list[str] | None = None) -> int:
         f"iterations) | gtsam {peer_s * 1e3:.1f} ms ({throughput_peer:.0f} windows/s) | "
         f"ratio {ratio:.2f} | final cost rel diff max {final_rel.max():.2e}"
     )
+    if theseus is not None:
+        log(
+            f"theseus {th_s * 1e3:.1f} ms ({args.windows / th_s:.0f} windows/s, "
+            f"{int(th_iters.max())} iterations) | ours / theseus {ratio_theseus:.2f} | final "
+            f"cost rel diff vs gtsam max {theseus_block['final_cost_rel_diff']['max']:.2e}"
+        )
     record = {
         "benchmark": "windows",
         "inputs": {
@@ -518,6 +612,8 @@ def main(argv: list[str] | None = None) -> int:
         },
         "target": {"final_cost_rel_diff_max": 1e-6, "throughput_ratio_min": 20.0},
         "target_met": {"final_cost": cost_ok, "throughput": speed_ok},
+        "theseus": theseus_block,
+        "ratio_vs_theseus": ratio_theseus,
         "machine": machine,
     }
     emit_json(record)
