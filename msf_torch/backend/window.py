@@ -77,14 +77,12 @@ end only when it gets there, so there its error is a filter's, not a smoother's 
 sample, 30-s outage: ATE 0.33 m with 40 keyframes, 0.80 m with 20; the front end 0.50 m).
 
 Output: the smoothed keyframe states, and (``output="frontend"``, the default) the
-trajectory at every front-end epoch: between keyframes ``i`` and ``j`` each epoch's pose is
-the front end's pose carried by the correction of keyframe ``i`` and by that of ``j``
-(``T_s T_fe^-1 T_fe(t)``), blended by time (linear in position, geodesic in rotation), so
-the front end's local motion fills in between smoothed keyframes. Keyframe ``j``'s
-correction is taken against the front end's pose there *before* its measurement update
-(:func:`update_free_states`: the previous epoch carried through the IMU), since the
-posterior also holds the update's jump (metres at the first fix after an outage), which
-would otherwise ramp into every epoch since keyframe ``i``.
+trajectory at every front-end epoch (:func:`interpolate_imu`): between keyframes ``i`` and
+``j`` each epoch's state is keyframe ``i``'s smoothed state carried through the IMU with its
+smoothed biases (the smoother's own motion model), plus the time fraction of the mismatch
+left at keyframe ``j``. The front end's posterior is not used between keyframes: it holds
+the jumps of its measurement updates (metres at the first fix after an outage, a few
+centimetres at each wheel update when slip ends), which would show as ramps and kinks.
 
 These smoothers take one sequence (B = 1): keyframe counts differ between sequences.
 """
@@ -105,11 +103,8 @@ __all__ = [
     "chain_covariance",
     "bordered_chain_covariance",
     "smooth_full_calibrated",
-    "UpdateFreeStates",
-    "update_free_states",
-    "densify",
     "OutputMotion",
-    "densify_motion",
+    "interpolate_imu",
 ]
 
 import dataclasses
@@ -118,7 +113,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, NamedTuple
+from typing import Any
 
 import torch
 import yaml
@@ -910,7 +905,7 @@ class SmootherResult:
         wall_s: seconds for graph building and solving.
         output: the smoothed trajectory (keyframes or front-end epochs, per ``output``).
         output_motion: velocity, gyro bias and covariance at ``output``'s epochs
-            (:func:`densify_motion`).
+            (:func:`interpolate_imu`).
         calibration_names: the calibration variable's entries (``calibrate_wheels``:
             ``frontend.calibration.WHEEL_STATES``), or ().
         calibration: (1, 3) its estimate ``[k_l, k_r, D]``, or None.
@@ -1158,160 +1153,6 @@ def smooth_window(
     return output, (covariance if smoother.covariance else None), results
 
 
-class UpdateFreeStates(NamedTuple):
-    """The front end's states at K keyframe epochs before their measurement updates.
-
-    Attributes:
-        position: (K, 3) m world.
-        rotation: (K, 3, 3) body -> world.
-        velocity: (K, 3) m/s world.
-    """
-
-    position: torch.Tensor
-    rotation: torch.Tensor
-    velocity: torch.Tensor
-
-
-def update_free_states(
-    seq: Sequence, frontend: EskfResult, cfg: EskfConfig, keyframe_epoch: torch.Tensor
-) -> UpdateFreeStates:
-    """The front end's pose and velocity at each keyframe epoch before that epoch's
-    measurement update.
-
-    The front end's state at an epoch is the posterior: it already holds the jump of the
-    update applied there (at the first fix after a GNSS outage, metres). This is the
-    posterior at the previous real epoch carried to the keyframe's time through the IMU
-    samples between them (zero-order hold, the front end's biases at the previous epoch,
-    :func:`~msf_torch.sensors.imu.propagate_nominal`): the front end's own motion over
-    that step, without the update. The first keyframe keeps its posterior.
-
-    Args:
-        seq: the sequence the front end ran on (B = 1).
-        frontend: its result.
-        cfg: the front end's settings (gravity).
-        keyframe_epoch: (K,) keyframe indices into the front end's epochs.
-    Returns:
-        :class:`UpdateFreeStates` (K keyframes).
-    """
-    real = torch.nonzero(frontend.mask[0]).squeeze(-1)
-    after = keyframe_epoch[1:]
-    before = real[torch.searchsorted(real, after) - 1]
-    position, rotation = frontend.position[0, keyframe_epoch], frontend.rotation[0, keyframe_epoch]
-    velocity = frontend.velocity[0, keyframe_epoch]
-    if after.numel() == 0:
-        return UpdateFreeStates(position, rotation, velocity)
-    keep = seq.imu.mask[0]
-    # cut at [t_before_1, t_1, t_before_2, t_2, ...]: the even intervals are the steps
-    times = torch.stack((frontend.t[0, before], frontend.t[0, after]), -1).reshape(-1)
-    cut = cut_imu(seq.imu.t[0, keep], seq.imu.gyro[0, keep], seq.imu.accel[0, keep], times)
-    steps = ImuIntervals(cut.gyro[None, 0::2], cut.accel[None, 0::2], cut.dt[None, 0::2])
-    pre = preintegrate_imu(
-        steps,
-        frontend.gyro_bias[:, before],
-        frontend.accel_bias[:, before],
-        covariance="closed_form",
-    )
-    moved, sped, turned = propagate_nominal(
-        frontend.position[:, before],
-        frontend.velocity[:, before],
-        frontend.rotation[:, before],
-        pre.delta_t,
-        pre.delta_rotation,
-        pre.delta_velocity,
-        pre.delta_position,
-        gravity_world(cfg.gravity_mps2, position.dtype).to(position.device),
-    )
-    return UpdateFreeStates(
-        torch.cat((position[:1], moved[0])),
-        torch.cat((rotation[:1], turned[0])),
-        torch.cat((velocity[:1], sped[0])),
-    )
-
-
-def _keyframe_segments(
-    keyframe_epoch: torch.Tensor, frontend: EskfResult
-) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Where the front end's real epochs fall between keyframes (K >= 2).
-
-    Returns:
-        real (E',) indices of the real epochs; seg (E',) the keyframe i starting each
-        epoch's segment [i, i + 1]; lo, hi (E',) keyframes i and i + 1 as positions among
-        the real epochs; weight (E',) the time fraction of the segment, in [0, 1].
-    """
-    real = torch.nonzero(frontend.mask[0]).squeeze(-1)
-    t = frontend.t[0, real]
-    where = torch.searchsorted(real, keyframe_epoch)
-    seg = (torch.searchsorted(where, torch.arange(real.numel()), right=True) - 1).clamp(
-        0, where.numel() - 2
-    )
-    lo, hi = where[seg], where[seg + 1]
-    weight = ((t - t[lo]) / (t[hi] - t[lo]).clamp_min(1e-12)).clamp(0.0, 1.0)
-    return real, seg, lo, hi, weight
-
-
-def densify(
-    keyframe_epoch: torch.Tensor,
-    states: torch.Tensor,
-    frontend: EskfResult,
-    anchor: UpdateFreeStates | None = None,
-) -> Trajectory:
-    """The smoothed trajectory at every front-end epoch (B = 1).
-
-    Between keyframes i and j an epoch's pose is the front end's pose moved by keyframe
-    i's correction ``T_s,i T_fe,i^-1`` and by keyframe j's ``T_s,j A_j^-1``, blended by
-    time: position linearly, rotation along the geodesic. At keyframes it is the smoothed
-    pose. ``A_j`` is the front end's pose at keyframe j before its measurement update
-    (``anchor``, :func:`update_free_states`): the front end's posterior there also holds
-    the update's jump, which keyframe j's correction would otherwise carry back to every
-    epoch since keyframe i, as a ramp growing towards j.
-
-    Args:
-        keyframe_epoch: (K,) keyframe indices into the front end's epochs.
-        states: (1, K, 21) smoothed nav states.
-        frontend: the front end's result.
-        anchor: the front end's update-free states at the keyframes; default its
-            posteriors ``T_fe`` (no update at keyframes).
-    Returns:
-        :class:`Trajectory` (1, E') over the front end's real epochs.
-    """
-    position, _, rotation, _, _ = unpack_nav_state(states[0])
-    if keyframe_epoch.numel() == 1:
-        return Trajectory(
-            t=frontend.t[0, keyframe_epoch][None],
-            position=position[None],
-            quaternion=matrix_to_quat(rotation)[None],
-            mask=torch.ones(1, 1, dtype=torch.bool),
-        )
-    real, seg, lo, hi, weight = _keyframe_segments(keyframe_epoch, frontend)
-    t = frontend.t[0, real]
-    p_fe, r_fe = frontend.position[0, real], frontend.rotation[0, real]
-
-    def carried(
-        k: torch.Tensor, p_0: torch.Tensor, r_0: torch.Tensor
-    ) -> tuple[torch.Tensor, torch.Tensor]:
-        turn = rotation[k] @ r_0.mT
-        moved = position[k] + (turn @ (p_fe - p_0)[..., None]).squeeze(-1)
-        return moved, turn @ r_fe
-
-    p_a, r_a = carried(seg, p_fe[lo], r_fe[lo])
-    if anchor is None:
-        p_b, r_b = carried(seg + 1, p_fe[hi], r_fe[hi])
-    else:
-        p_b, r_b = carried(seg + 1, anchor.position[seg + 1], anchor.rotation[seg + 1])
-        # at keyframe j itself (the last epoch) the output is the smoothed pose
-        at_j = (torch.arange(real.numel(), device=hi.device) == hi)[:, None]
-        p_b = torch.where(at_j, position[seg + 1], p_b)
-        r_b = torch.where(at_j[..., None], rotation[seg + 1], r_b)
-    blend = r_a @ so3.exp(weight[:, None] * so3.log(r_a.mT @ r_b))
-    blended = (1.0 - weight[:, None]) * p_a + weight[:, None] * p_b
-    return Trajectory(
-        t=t[None],
-        position=blended[None],
-        quaternion=matrix_to_quat(blend)[None],
-        mask=torch.ones(1, t.numel(), dtype=torch.bool),
-    )
-
-
 @dataclass
 class OutputMotion:
     """Velocity, gyro bias and error-state covariance at the epochs of an output
@@ -1328,59 +1169,109 @@ class OutputMotion:
     covariance: torch.Tensor | None
 
 
-def densify_motion(
-    keyframe_epoch: torch.Tensor,
+def interpolate_imu(
+    seq: Sequence,
+    t: torch.Tensor,
+    keyframe_index: torch.Tensor,
     states: torch.Tensor,
     covariance: torch.Tensor | None,
-    frontend: EskfResult,
-    anchor: UpdateFreeStates | None = None,
-) -> OutputMotion:
-    """Velocity, gyro bias and covariance at the epochs :func:`densify` gives poses for.
+    gravity: torch.Tensor,
+) -> tuple[Trajectory, OutputMotion]:
+    """The smoothed trajectory at times ``t`` between the keyframes, by the IMU (B = 1).
 
-    Between keyframes i and j (time fraction ``w``): the velocity is the front end's
-    carried by each keyframe's correction as the positions are,
-    ``v_s,k + R_s,k R_0^T (v_fe(t) - v_0)`` with ``(R_0, v_0)`` the front end's state at
-    keyframe i, or its update-free state at j (``anchor``), blended ``(1 - w, w)``; it
-    equals the smoothed velocity at the keyframes. The gyro bias is the smoothed biases'
-    linear interpolation. The covariance is ``(1 - w) Sigma_i + w Sigma_j`` of the
-    keyframes' marginals, an approximation (positive definite, exact at the keyframes)
-    that ignores the front end's own uncertainty over the sub-keyframe motion.
+    Between keyframes i and j each epoch's state is keyframe i's smoothed state carried
+    forward through the IMU samples (zero-order hold, keyframe i's smoothed biases: the
+    smoother's own motion model), plus the fraction ``w`` (time) of the mismatch left at
+    keyframe j (position and velocity linearly, rotation along the geodesic), so the output
+    is the smoothed state at every keyframe and follows the IMU's motion in between; the
+    front end's measurement updates inside the interval do not enter. The gyro bias is
+    interpolated linearly; the covariance is ``(1 - w) Sigma_i + w Sigma_j`` of the
+    keyframes' marginals, an approximation (positive definite, exact at the keyframes) that
+    leaves out the IMU's own uncertainty over the sub-keyframe motion.
 
     Args:
-        keyframe_epoch: (K,) keyframe indices into the front end's epochs.
+        seq: the sequence (its IMU; B = 1).
+        t: (E,) output times, s, increasing, from the first keyframe to the last.
+        keyframe_index: (K,) the keyframes' positions in ``t`` (K >= 1).
         states: (1, K, 21) smoothed nav states.
         covariance: (1, K, 15, 15) their marginal covariances, or None.
-        frontend: the front end's result.
-        anchor: as in :func:`densify`.
+        gravity: (3,) m/s^2 world.
     Returns:
-        :class:`OutputMotion` over the front end's real epochs.
+        :class:`Trajectory` (1, E) and :class:`OutputMotion` at ``t``.
     """
-    _, velocity, rotation, gyro_bias, _ = unpack_nav_state(states[0])
-    if keyframe_epoch.numel() == 1:
-        return OutputMotion(velocity[None], gyro_bias[None], covariance)
-    real, seg, lo, hi, weight = _keyframe_segments(keyframe_epoch, frontend)
-    v_fe, r_fe = frontend.velocity[0, real], frontend.rotation[0, real]
-
-    def carried(k: torch.Tensor, v_0: torch.Tensor, r_0: torch.Tensor) -> torch.Tensor:
-        turn = rotation[k] @ r_0.mT
-        return velocity[k] + (turn @ (v_fe - v_0)[..., None]).squeeze(-1)
-
-    v_a = carried(seg, v_fe[lo], r_fe[lo])
-    if anchor is None:
-        v_b = carried(seg + 1, v_fe[hi], r_fe[hi])
-    else:
-        v_b = carried(seg + 1, anchor.velocity[seg + 1], anchor.rotation[seg + 1])
-        at_j = (torch.arange(real.numel(), device=hi.device) == hi)[:, None]
-        v_b = torch.where(at_j, velocity[seg + 1], v_b)
-    w = weight[:, None]
-    blended_bias = (1.0 - w) * gyro_bias[seg] + w * gyro_bias[seg + 1]
-    blended_cov = None
+    position, velocity, rotation, gyro_bias, accel_bias = unpack_nav_state(states[0])
+    count = t.numel()
+    if keyframe_index.numel() == 1:
+        trajectory = Trajectory(
+            t=t[None],
+            position=position[None],
+            quaternion=matrix_to_quat(rotation)[None],
+            mask=torch.ones(1, 1, dtype=torch.bool, device=t.device),
+        )
+        return trajectory, OutputMotion(velocity[None], gyro_bias[None], covariance)
+    keep = seq.imu.mask[0]
+    cut = cut_imu(seq.imu.t[0, keep], seq.imu.gyro[0, keep], seq.imu.accel[0, keep], t)
+    # the keyframe interval of every epoch-to-epoch step and of every epoch
+    last = keyframe_index.numel() - 2
+    step_seg = torch.searchsorted(keyframe_index, torch.arange(count - 1), right=True) - 1
+    seg = (torch.searchsorted(keyframe_index, torch.arange(count), right=True) - 1).clamp(0, last)
+    pre = preintegrate_imu(
+        ImuIntervals(cut.gyro[None], cut.accel[None], cut.dt[None]),
+        gyro_bias[step_seg][None],
+        accel_bias[step_seg][None],
+        covariance="closed_form",
+    )
+    out_p, out_v, out_r = position[seg].clone(), velocity[seg].clone(), rotation[seg].clone()
+    # carry every keyframe forward at once, one epoch per pass
+    p, v, r = position[:-1], velocity[:-1], rotation[:-1]
+    length = keyframe_index[1:] - keyframe_index[:-1]
+    for m in range(int(length.max())):
+        moving = m < length
+        step = torch.where(moving, keyframe_index[:-1] + m, 0)
+        p_new, v_new, r_new = propagate_nominal(
+            p,
+            v,
+            r,
+            pre.delta_t[0, step],
+            pre.delta_rotation[0, step],
+            pre.delta_velocity[0, step],
+            pre.delta_position[0, step],
+            gravity,
+        )
+        p = torch.where(moving[:, None], p_new, p)
+        v = torch.where(moving[:, None], v_new, v)
+        r = torch.where(moving[:, None, None], r_new, r)
+        inside = moving & (m + 1 < length)
+        target = (keyframe_index[:-1] + m + 1)[inside]
+        out_p[target], out_v[target], out_r[target] = p[inside], v[inside], r[inside]
+    # p, v, r now hold each keyframe carried to the next one: spread the mismatch
+    lo, hi = keyframe_index[seg], keyframe_index[seg + 1]
+    weight = ((t - t[lo]) / (t[hi] - t[lo]).clamp_min(1e-12)).clamp(0.0, 1.0)[:, None]
+    turn = so3.log(r.mT @ rotation[1:])[seg]
+    out_p = out_p + weight * (position[1:] - p)[seg]
+    out_v = out_v + weight * (velocity[1:] - v)[seg]
+    out_r = out_r @ so3.exp(weight * turn)
+    bias = (1.0 - weight) * gyro_bias[seg] + weight * gyro_bias[seg + 1]
+    # the keyframes themselves: their smoothed states
+    out_p[keyframe_index], out_v[keyframe_index], out_r[keyframe_index] = (
+        position,
+        velocity,
+        rotation,
+    )
+    bias[keyframe_index] = gyro_bias
+    blended = None
     if covariance is not None:
-        blended_cov = (1.0 - w[..., None]) * covariance[0, seg] + w[..., None] * covariance[
-            0, seg + 1
-        ]
-        blended_cov = blended_cov[None]
-    return OutputMotion(((1.0 - w) * v_a + w * v_b)[None], blended_bias[None], blended_cov)
+        w = weight[..., None]
+        blended = (1.0 - w) * covariance[0, seg] + w * covariance[0, seg + 1]
+        blended[keyframe_index] = covariance[0]
+        blended = blended[None]
+    trajectory = Trajectory(
+        t=t[None],
+        position=out_p[None],
+        quaternion=matrix_to_quat(out_r)[None],
+        mask=torch.ones(1, count, dtype=torch.bool, device=t.device),
+    )
+    return trajectory, OutputMotion(out_v[None], bias[None], blended)
 
 
 def smooth(
@@ -1430,9 +1321,15 @@ def smooth(
         solved = None if calibration is None else calibration[:, None]
         costs = whole.cost(graph.values(graph.initial)), whole.cost(graph.values(states, solved))
     if smoother.output == "frontend":
-        anchor = update_free_states(seq, frontend, cfg, graph.epoch)
-        output = densify(graph.epoch, states, frontend, anchor)
-        motion = densify_motion(graph.epoch, states, covariance, frontend, anchor)
+        real = torch.nonzero(frontend.mask[0]).squeeze(-1)
+        output, motion = interpolate_imu(
+            seq,
+            frontend.t[0, real],
+            torch.searchsorted(real, graph.epoch),
+            states,
+            covariance,
+            graph.gravity,
+        )
     else:
         _, velocity, _, gyro_bias, _ = unpack_nav_state(states)
         motion = OutputMotion(velocity, gyro_bias, covariance)
