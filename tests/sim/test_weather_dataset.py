@@ -62,12 +62,20 @@ def test_sample_covers_every_condition_with_sources_and_truth():
     assert provenance["plan"]["conditions"] == list(CONDITIONS)
 
 
-def test_sample_regenerates_bit_for_bit(tmp_path, recipe):
+def test_sample_regenerates_to_rounding(tmp_path, recipe):
+    """The recipe rebuilds the committed sample: every array equal, floats to a few units
+    in the last place: on the 2026-11-28 development machine (torch 2.13, numpy 2.4.6) some
+    quaternions come out 1 ulp from the committed file's, as torch's vectorised norms
+    round differently across CPUs and versions."""
     path = recipe.make_sample(tmp_path / "again.npz")
     with np.load(SAMPLE) as old, np.load(path) as new:
         assert sorted(old.files) == sorted(new.files)
         for key in old.files:
-            assert np.array_equal(old[key], new[key]), key
+            assert old[key].dtype == new[key].dtype and old[key].shape == new[key].shape, key
+            if np.issubdtype(old[key].dtype, np.floating):
+                np.testing.assert_allclose(new[key], old[key], rtol=1e-13, atol=1e-15, err_msg=key)
+            else:
+                assert np.array_equal(old[key], new[key]), key
     assert path.stat().st_size < 2_000_000
 
 
