@@ -57,7 +57,7 @@ def test_bundle_adjustment_levels_the_odometry(rendered, odometry):
     truth = torch.as_tensor(run.path.evaluate(ba.keyframe_times.numpy()).position)
     before = aligned_errors(unpack_nav_state(ba.initial_states)[0], truth)
     after = aligned_errors(unpack_nav_state(ba.states)[0], truth)
-    # gravity from the IMU flattens the odometry's vertical drift (seeds 1-6: 4-20x lower);
+    # gravity from the IMU flattens the odometry's vertical drift (seeds 1-7: 4-20x lower);
     # horizontally the keyframes-only BA stays at the frame-to-frame odometry's level
     # (seeds 1-7: 3-9 mm RMS against 4-10 mm; better in 2 of 7), not below it
     vertical = [float(e[:, 2].pow(2).mean().sqrt()) for e in (before, after)]
