@@ -94,3 +94,19 @@ def test_imu_starting_after_the_first_frame_still_levels_the_world(rendered, odo
     up_true = truth[:, 2, :].to(up.dtype)
     angle = torch.rad2deg(torch.arccos((up * up_true).sum(-1).clamp(-1.0, 1.0)))
     assert float(angle.max()) < 2.0, angle
+
+
+def test_bundle_adjustment_over_every_frame_beats_the_odometry(rendered, odometry):
+    # every valid frame a state: all PnP inlier observations enter, and the BA lands below
+    # the frame-to-frame odometry (this run: 2.7 mm against 7.1 mm aligned RMS)
+    run, _, _ = rendered
+    ba = bundle_adjust(odometry, run.sequence.imu, imu_noise(run), frames="all")
+    assert ba.lm.status[0] == "converged"
+    assert np.array_equal(ba.keyframe_frames, np.nonzero(odometry.valid)[0])
+    truth = torch.as_tensor(run.path.evaluate(ba.keyframe_times.numpy()).position)
+    before = aligned_errors(unpack_nav_state(ba.initial_states)[0], truth)
+    after = aligned_errors(unpack_nav_state(ba.states)[0], truth)
+    rms = [float(e.norm(dim=-1).pow(2).mean().sqrt()) for e in (before, after)]
+    assert rms[1] < 0.8 * rms[0], rms
+    keyframes_only = bundle_adjust(odometry, run.sequence.imu, imu_noise(run))
+    assert ba.observations > 3 * keyframes_only.observations
