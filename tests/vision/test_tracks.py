@@ -4,6 +4,7 @@ visual-inertial bundle adjustment (reprojection factors, landmarks eliminated)."
 from __future__ import annotations
 
 import numpy as np
+import pytest
 import torch
 
 from msf_torch.backend.lm import LMConfig
@@ -110,3 +111,5 @@ def test_bundle_adjustment_over_every_frame_beats_the_odometry(rendered, odometr
     assert rms[1] < 0.8 * rms[0], rms
     keyframes_only = bundle_adjust(odometry, run.sequence.imu, imu_noise(run))
     assert ba.observations > 3 * keyframes_only.observations
+    with pytest.raises(ValueError, match="frames must be 'keyframes' or 'all'"):
+        bundle_adjust(odometry, run.sequence.imu, imu_noise(run), frames="every")
