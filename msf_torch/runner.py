@@ -35,8 +35,9 @@ Used by ``msf run``. Outputs in ``out_dir`` (each written atomically: temp file 
   a bag; the pose covariance and the twist in the child frame's axes with its covariance:
   velocity ``R^T v`` and the bias-corrected gyro rate interpolated at the epoch, see
   ``_body_twist``; for a smoothed trajectory from the smoother's marginal covariances,
-  velocities and gyro biases, :func:`msf_torch.backend.window.interpolate_imu`; all zeros
-  when the smoother's ``covariance`` is off).
+  velocities and gyro biases, :func:`msf_torch.backend.window.interpolate_imu`; both
+  covariances all zeros, the twist still written, when the smoother's ``covariance`` is
+  off).
 
 Ctrl-C (SIGINT) during the front end or the smoother writes ``trajectory.tum`` (the epochs
 completed), ``diagnostics.csv`` and ``summary.json`` (with an ``interrupted`` entry saying

@@ -190,7 +190,7 @@ class SmootherConfig:
         max_iterations: LM iterations per solve.
         relative_tolerance: LM's relative cost-decrease tolerance.
         linear_solver: ``auto``, ``dense`` or ``sparse`` (full batch; windows are dense).
-        covariance: compute the per-keyframe marginal covariance diagonal.
+        covariance: compute the per-keyframe marginal covariance blocks (15 x 15).
         output: ``frontend`` (smoothed trajectory at every front-end epoch) or
             ``keyframes`` (keyframe states only).
         noise: front-end noise settings the back end replaces, ``{EskfConfig key: value}``
@@ -1198,9 +1198,25 @@ def interpolate_imu(
         gravity: (3,) m/s^2 world.
     Returns:
         :class:`Trajectory` (1, E) and :class:`OutputMotion` at ``t``.
+    Raises:
+        ValueError: ``states`` and ``keyframe_index`` disagree on K, or the first and last
+            keyframes are not the first and last output times (epochs outside the
+            keyframes would get the wrong interval's state).
     """
     position, velocity, rotation, gyro_bias, accel_bias = unpack_nav_state(states[0])
     count = t.numel()
+    if states.shape[1] != keyframe_index.numel():
+        raise ValueError(
+            f"interpolate_imu: {states.shape[1]} keyframe states for "
+            f"{keyframe_index.numel()} keyframe positions"
+        )
+    ends = (int(keyframe_index[0]), int(keyframe_index[-1]))
+    if ends != (0, count - 1):
+        raise ValueError(
+            f"interpolate_imu: the output times must run from the first keyframe to the "
+            f"last, i.e. keyframe positions 0 and {count - 1} of {count}; got {ends[0]} and "
+            f"{ends[1]}"
+        )
     if keyframe_index.numel() == 1:
         trajectory = Trajectory(
             t=t[None],

@@ -371,6 +371,36 @@ def test_output_between_keyframes_follows_the_imu():
     torch.testing.assert_close(motion.covariance[0, index], keyframe_cov, rtol=0, atol=0)
 
 
+@pytest.mark.parametrize(
+    ("times", "index"),
+    [
+        ([0.0, 0.2, 0.5, 1.0], [0, 3]),  # two keyframes only; the last at the IMU's last sample
+        ([0.0, 0.005, 0.01, 0.5, 0.5025, 1.0], [0, 1, 2, 3, 4, 5]),  # 1 and 1/2 IMU periods apart
+    ],
+)
+def test_output_at_the_edges_is_exact_and_bad_keyframe_positions_raise(times, index):
+    """The closed-form turn at unusual epochs is the truth to rounding; keyframes that are not
+    the first and last output times (epochs outside them would take another interval's
+    state) or a state count that is not K raise ``ValueError``."""
+    g = 9.80665
+    seq = _turn_sequence(g=g)
+    gravity = torch.tensor([0.0, 0.0, -g], dtype=DTYPE)
+    t = torch.tensor(times, dtype=DTYPE)
+    position, velocity, rotation = _circle(t)
+    index = torch.tensor(index)
+    zeros = torch.zeros(index.numel(), 3, dtype=DTYPE)
+    states = pack_nav_state(position[index], velocity[index], rotation[index], zeros, zeros)
+    output, motion = W.interpolate_imu(seq, t, index, states[None], None, gravity)
+    torch.testing.assert_close(output.position[0], position, rtol=0, atol=1e-12)
+    torch.testing.assert_close(motion.velocity[0], velocity, rtol=0, atol=1e-12)
+    with pytest.raises(ValueError, match="first keyframe to the last"):
+        W.interpolate_imu(seq, t, index[:1], states[None, :1], None, gravity)
+    with pytest.raises(ValueError, match="first keyframe to the last"):
+        W.interpolate_imu(seq, t, index[:-1], states[None, :-1], None, gravity)
+    with pytest.raises(ValueError, match="keyframe states for"):
+        W.interpolate_imu(seq, t, index, states[None, :-1], None, gravity)
+
+
 def test_smoothed_output_moves_like_the_truth_into_jumped_keyframes(sim_run):
     """End to end: the front end jumps 1.2 m at its first fix (its initial covariance is
     wide); epoch to epoch the smoothed output steps as the simulator's truth does."""
