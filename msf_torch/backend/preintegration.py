@@ -77,9 +77,13 @@ def cut_imu(
     if keyframe_times[0] < times[0] or keyframe_times[-1] > times[-1]:
         raise ValueError("keyframe times must lie inside the IMU time span")
     knots, order = torch.sort(torch.cat((times, keyframe_times)), stable=True)
-    source = torch.cat((torch.arange(times.numel()), torch.full((keyframe_times.numel(),), -1)))[
-        order
-    ]
+    device = times.device
+    source = torch.cat(
+        (
+            torch.arange(times.numel(), device=device),
+            torch.full((keyframe_times.numel(),), -1, device=device),
+        )
+    )[order]
     # sample index held on each piece [knots[m], knots[m+1]): the last real sample at or before
     sample = torch.cummax(torch.where(source >= 0, source, torch.full_like(source, -1)), 0).values
     piece_dt = knots[1:] - knots[:-1]
@@ -92,10 +96,10 @@ def cut_imu(
     lengths = torch.bincount(interval, minlength=count)
     width = int(lengths.max()) if lengths.numel() else 0
     first = torch.cumsum(lengths, 0) - lengths
-    slot = torch.arange(interval.numel()) - first[interval]
-    out_dt = torch.zeros(count, width, dtype=times.dtype)
-    out_gyro = torch.zeros(count, width, 3, dtype=gyro.dtype)
-    out_accel = torch.zeros(count, width, 3, dtype=accel.dtype)
+    slot = torch.arange(interval.numel(), device=device) - first[interval]
+    out_dt = torch.zeros(count, width, dtype=times.dtype, device=device)
+    out_gyro = torch.zeros(count, width, 3, dtype=gyro.dtype, device=device)
+    out_accel = torch.zeros(count, width, 3, dtype=accel.dtype, device=device)
     out_dt[interval, slot] = piece_dt
     out_gyro[interval, slot] = gyro[piece_sample]
     out_accel[interval, slot] = accel[piece_sample]

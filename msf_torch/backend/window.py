@@ -1229,8 +1229,9 @@ def interpolate_imu(
     cut = cut_imu(seq.imu.t[0, keep], seq.imu.gyro[0, keep], seq.imu.accel[0, keep], t)
     # the keyframe interval of every epoch-to-epoch step and of every epoch
     last = keyframe_index.numel() - 2
-    step_seg = torch.searchsorted(keyframe_index, torch.arange(count - 1), right=True) - 1
-    seg = (torch.searchsorted(keyframe_index, torch.arange(count), right=True) - 1).clamp(0, last)
+    epochs = torch.arange(count, device=t.device)
+    step_seg = torch.searchsorted(keyframe_index, epochs[:-1], right=True) - 1
+    seg = (torch.searchsorted(keyframe_index, epochs, right=True) - 1).clamp(0, last)
     pre = preintegrate_imu(
         ImuIntervals(cut.gyro[None], cut.accel[None], cut.dt[None]),
         gyro_bias[step_seg][None],
