@@ -27,11 +27,15 @@ Outliers cannot blow up the activations: the normalised signals are clipped to
 ``+-CovNetConfig.input_clip`` and the residual features pass through ``asinh`` (the identity
 near 0, logarithmic beyond), so the outputs stay finite and bounded for any finite input.
 
-Architecture (29,389 parameters with the default config): a 1-D convolution encoder over
+Architecture (32,493 parameters with the default config): a 1-D convolution encoder over
 the 9 signal channels (IMU, wheel, wheel presence; a patch convolution with kernel = stride
 = ``patch``, then two stride-2 convolutions) with mean and max pooling over time -> signal
 embedding (E); a per-source MLP on the residual features plus a learned source embedding,
-mean-pooled over S -> residual embedding (E); a weather head on both embeddings -> weather
+the S results concatenated and projected -> residual embedding (E), so the trunk knows
+which source's residuals are large (``residual_pooling="per_source"``; checkpoints written
+before 2026-11-28 mean-pool over S instead, ``"mean"``: the shared MLP runs before the
+source embedding is added, so that mean cannot tell a bad VO from a bad LiDAR); a weather
+head on both embeddings -> weather
 logits (W); a weather embedding, the label's when known and the softmax of the weather
 logits mixed over the class embeddings when unknown; a trunk MLP on the three embeddings ->
 the log-scale head and, with each source's embedding, the fusion-weight head.
@@ -124,6 +128,9 @@ class CovNetConfig:
             m/s.
         input_clip: the normalised signals are clipped to +-input_clip (8 rad/s, 78 m/s^2
             and 40 m/s with the default scales).
+        residual_pooling: ``"per_source"`` (the S source embeddings concatenated and
+            projected to E) or ``"mean"`` (mean over S; a checkpoint whose config lacks
+            the key was written with it).
     """
 
     window_length: int = 100
@@ -139,6 +146,7 @@ class CovNetConfig:
     accel_scale_mps2: float = 9.80665
     wheel_scale_mps: float = 5.0
     input_clip: float = 8.0
+    residual_pooling: str = "per_source"
 
     @property
     def unknown_weather(self) -> int:
@@ -162,6 +170,11 @@ class CovNetConfig:
             raise ValueError(f"CovNetConfig.pose_sources has duplicates: {self.pose_sources!r}")
         if len(self.weather_classes) < 2:
             raise ValueError("CovNetConfig.weather_classes needs at least 2 classes")
+        if self.residual_pooling not in ("per_source", "mean"):
+            raise ValueError(
+                "CovNetConfig.residual_pooling must be 'per_source' or 'mean', "
+                f"got {self.residual_pooling!r}"
+            )
         if len(self.log_scale_bounds) != len(LOG_SCALE_SENSORS):
             raise ValueError(
                 f"CovNetConfig.log_scale_bounds needs {len(LOG_SCALE_SENSORS)} entries "
@@ -181,8 +194,10 @@ class CovNetConfig:
 
     @classmethod
     def from_dict(cls, values: dict[str, Any]) -> CovNetConfig:
-        """Inverse of :meth:`to_dict`; unknown keys raise ``ValueError``."""
+        """Inverse of :meth:`to_dict`; unknown keys raise ``ValueError``; a dict without
+        ``residual_pooling`` (written before the key existed) means ``"mean"``."""
         _require_known_keys(cls, values)
+        values = {"residual_pooling": "mean", **values}
         config = cls(**{k: tuple(v) if isinstance(v, list) else v for k, v in values.items()})
         config.validate()
         return config
@@ -239,6 +254,8 @@ class CovNet(nn.Module):
             nn.Linear(len(RESIDUAL_FEATURES), e), nn.GELU(), nn.Linear(e, e)
         )
         self.source_embedding = nn.Parameter(0.1 * torch.randn(n_sources, e))
+        if config.residual_pooling == "per_source":
+            self.residual_proj = nn.Linear(n_sources * e, e)
         self.weather_head = nn.Sequential(nn.Linear(2 * e, h), nn.GELU(), nn.Linear(h, n_weather))
         self.weather_embedding = nn.Parameter(0.1 * torch.randn(n_weather, e))
         self.trunk = nn.Sequential(nn.Linear(3 * e, h), nn.GELU(), nn.Linear(h, h), nn.GELU())
@@ -303,7 +320,10 @@ class CovNet(nn.Module):
         signal = self.signal_proj(torch.cat([features.mean(-1), features.amax(-1)], -1))
         per_source = self.source_mlp(torch.asinh(residual_stats.to(dtype)))
         per_source = per_source + self.source_embedding  # (B, S, E)
-        residual = per_source.mean(1)
+        if cfg.residual_pooling == "per_source":
+            residual = self.residual_proj(per_source.flatten(1))
+        else:
+            residual = per_source.mean(1)
 
         weather_logits = self.weather_head(torch.cat([signal, residual], -1))
         mix = torch.softmax(weather_logits, -1)

@@ -167,6 +167,37 @@ def test_checkpoint_round_trip_with_weights_only(tmp_path):
         load_checkpoint(tmp_path / "other.pt")
 
 
+def test_residual_embedding_knows_which_source_is_bad():
+    """Swap the VO and LiDAR residual statistics of a window (VO bad and LiDAR good, or
+    the reverse: night against fog). With ``per_source`` pooling the log scales and the
+    weather logits change; with the old ``mean`` pooling (the shared MLP runs before the
+    source embedding is added) they cannot: the mean is the same for both orders."""
+    imu, wheel, present, stats, _ = _inputs(8, seed=3)
+    stats[:, 1] = torch.tensor([9.0, 30.0, 0.4, 0.2])  # vo: large NIS, many rejections
+    stats[:, 2] = torch.tensor([1.0, 3.0, 0.0, 0.0])  # lidar: nominal
+    swapped = stats[:, [0, 2, 1]]
+    for pooling, differs in (("per_source", True), ("mean", False)):
+        torch.manual_seed(0)
+        model = CovNet(CovNetConfig(residual_pooling=pooling)).eval()
+        with torch.no_grad():
+            a = model(imu, wheel, present, stats)
+            b = model(imu, wheel, present, swapped)
+        gap = max(
+            float((a.log_scales - b.log_scales).abs().max()),
+            float((a.weather_logits - b.weather_logits).abs().max()),
+        )
+        assert (gap > 1e-4) == differs, (pooling, gap)
+
+
+def test_checkpoints_without_the_pooling_key_load_as_mean_pooling():
+    config = CovNetConfig(residual_pooling="mean").to_dict()
+    del config["residual_pooling"]
+    assert CovNetConfig.from_dict(config).residual_pooling == "mean"
+    assert CovNetConfig().residual_pooling == "per_source"
+    with pytest.raises(ValueError, match="residual_pooling"):
+        CovNetConfig(residual_pooling="max").validate()
+
+
 def test_checkpoint_keeps_how_training_applied_the_scales(tmp_path):
     torch.manual_seed(0)
     model = CovNet(CovNetConfig()).eval()
