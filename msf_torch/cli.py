@@ -370,23 +370,29 @@ def _progress_factory(mode: str):
     return factory
 
 
+def _smoother_config(args, source: str | None) -> Any:
+    """The ``smoother:`` settings for ``--smooth`` (None without it): from ``--config``, else
+    a named dataset's packaged config, else the ``--topics`` robot YAML, else defaults."""
+    if args.smooth is None:
+        return None
+    from msf_torch.backend.window import load_smoother_config
+    from msf_torch.frontend.config import packaged_config
+
+    path = args.config
+    if path is None and source in NAMED_DATASETS:
+        path = packaged_config(source)
+    if path is None and args.topics is not None:
+        path = args.topics
+    return load_smoother_config(path)
+
+
 def _cmd_run(args) -> dict[str, Any]:
     from msf_torch.runner import RunOptions, run_sequence
 
     if len(args.sequence) > 1:
         return _cmd_run_batch(args)
     seq, cfg, source = _load(args, args.sequence[0] if args.sequence else None)
-    smoother = None
-    if args.smooth is not None:
-        from msf_torch.backend.window import load_smoother_config
-        from msf_torch.frontend.config import packaged_config
-
-        path = args.config
-        if path is None and source in NAMED_DATASETS:
-            path = packaged_config(source)
-        if path is None and args.topics is not None:
-            path = args.topics
-        smoother = load_smoother_config(path)
+    smoother = _smoother_config(args, source)
     options = RunOptions(
         out_dir=args.out,
         gnss_outage_s=args.gnss_outage,
@@ -416,8 +422,6 @@ def _cmd_run_batch(args) -> dict[str, Any]:
 
     if args.topics is not None:
         raise ValueError("--topics reads one bag at a time (give one SEQUENCE)")
-    if args.smooth is not None:
-        raise ValueError("--smooth runs one sequence at a time (give one SEQUENCE)")
     loaded = [_load(args, source) for source in args.sequence]
     _, cfg, first = loaded[0]
     for _, other, source in loaded[1:]:
@@ -433,6 +437,8 @@ def _cmd_run_batch(args) -> dict[str, Any]:
         gnss_outage_s=args.gnss_outage,
         plot=not args.no_plot,
         progress=_progress_factory(args.progress),
+        smooth=args.smooth,
+        smoother=_smoother_config(args, first),
         learned=_learned(args),
         exports=args.export,
     )

@@ -283,6 +283,7 @@ BATCH_TABLE_COLUMNS = (
     "epochs",
     "ate_rmse_m",
     "ate_max_m",
+    "frontend_ate_rmse_m",
     "outage_rmse_m",
     "outage_distance_m",
     "outage_drift_pct",
@@ -290,7 +291,9 @@ BATCH_TABLE_COLUMNS = (
     "slip_flagged_epochs",
     "slip_f1",
 )
-"""Columns of ``runs.csv`` written by :func:`run_batch` (empty where a run lacks one)."""
+"""Columns of ``runs.csv`` written by :func:`run_batch` (empty where a run lacks one; with
+``--smooth`` the ATE and outage columns score the smoothed trajectory and
+``frontend_ate_rmse_m`` the front end's)."""
 
 
 def run_batch(seqs: list[Sequence], cfg: EskfConfig, options: RunOptions) -> dict[str, Any]:
@@ -298,26 +301,26 @@ def run_batch(seqs: list[Sequence], cfg: EskfConfig, options: RunOptions) -> dic
     sequence's outputs (as :func:`run_sequence`) to ``options.out_dir / <name>``.
 
     All sequences share ``cfg``; ``options.gnss_outage_s`` applies to each (seconds from its
-    own first sample). Smoothing and learned noise run one sequence at a time
-    (:func:`run_sequence`) and are refused here. ``out_dir`` also receives ``runs.csv``
-    (one row per sequence, :data:`BATCH_TABLE_COLUMNS`) and ``summary.json`` (the batch's
-    summary). Ctrl-C stops the batch without partial outputs.
+    own first sample). With ``options.smooth`` each sequence is smoothed on its own after the
+    batched front end (keyframe counts differ between sequences), as :func:`run_sequence`
+    does; learned noise runs one sequence at a time (:func:`run_sequence`) and is refused
+    here. ``out_dir`` also receives ``runs.csv`` (one row per sequence,
+    :data:`BATCH_TABLE_COLUMNS`) and ``summary.json`` (the batch's summary). Ctrl-C stops the
+    batch without partial outputs (nothing is written before every sequence is done).
 
     Args:
         seqs: B >= 1 loaded sequences (B = 1 each); folder names are their names, made
             unique with ``-2``, ``-3``, ... where two agree.
         cfg: front-end settings for all of them.
-        options: outputs (``smooth`` and ``learned`` must be unset).
+        options: outputs (``learned`` must be unset).
     Returns:
         The batch summary: ``sequences``, ``names``, ``out``, total ``duration_s`` and
-        ``imu_samples``, ``wall_s`` (the one batched run), ``realtime_factor`` (total
-        duration / wall), ``imu_samples_per_s`` and ``runs`` (per sequence, the
-        ``runs.csv`` row).
+        ``imu_samples``, ``wall_s`` (the one batched front-end run), ``realtime_factor``
+        (total duration / wall), ``imu_samples_per_s``, with smoothing ``smoother_wall_s``
+        (all sequences' smoothers), and ``runs`` (per sequence, the ``runs.csv`` row).
     """
     if not seqs:
         raise ValueError("run_batch: no sequences")
-    if options.smooth is not None:
-        raise ValueError("--smooth runs one sequence at a time (give one SEQUENCE)")
     if options.learned is not None:
         raise ValueError(
             "learned noise runs one sequence at a time (give one SEQUENCE, or --no-learned)"
@@ -343,15 +346,43 @@ def run_batch(seqs: list[Sequence], cfg: EskfConfig, options: RunOptions) -> dic
         if close is not None:
             close()
     wall = time.perf_counter() - start
+    own = [result.select(index) for index in range(len(seqs))]
+    smoothed: list[Any] = [None] * len(seqs)
+    smoother_start = time.perf_counter()
+    if options.smooth is not None:
+        for index, seq in enumerate(seqs):
+            callback, close = options.progress() if options.progress is not None else (None, None)
+            try:
+                with torch.no_grad():
+                    smoothed[index] = smooth(
+                        seq, own[index], cfg, options.smoother, options.smooth, callback
+                    )
+            finally:
+                if close is not None:
+                    close()
+    smoother_wall = time.perf_counter() - smoother_start
     rows = []
     for index, (seq, name) in enumerate(zip(seqs, names, strict=True)):
-        own = result.select(index)
         (out_dir / name).mkdir(parents=True, exist_ok=True)
-        summary = _header(seq, own, wall)
+        summary = _header(seq, own[index], wall)
         summary["noise"] = "config"
         summary["batch"] = {"size": len(seqs), "index": index}
+        if smoothed[index] is not None:
+            summary["frontend_wall_s"] = round(wall, 4)
+            summary["smoother"] = {
+                k: round(v, 4) if isinstance(v, float) else v
+                for k, v in smoothed[index].summary().items()
+            }
         summary = _score_and_write(
-            seq, own, own.trajectory(), None, cfg, options, out_dir / name, summary, withheld[index]
+            seq,
+            own[index],
+            own[index].trajectory(),
+            smoothed[index],
+            cfg,
+            options,
+            out_dir / name,
+            summary,
+            withheld[index],
         )
         row = {key: summary.get(key) for key in BATCH_TABLE_COLUMNS}
         row["slip_f1"] = summary.get("slip_detection", {}).get("f1")
@@ -367,8 +398,10 @@ def run_batch(seqs: list[Sequence], cfg: EskfConfig, options: RunOptions) -> dic
         "wall_s": round(wall, 4),
         "realtime_factor": round(duration / wall, 1) if wall > 0 else math.inf,
         "imu_samples_per_s": round(samples / wall) if wall > 0 else math.inf,
-        "runs": rows,
     }
+    if options.smooth is not None:
+        out["smoother_wall_s"] = round(smoother_wall, 4)
+    out["runs"] = rows
     with atomic_write(out_dir / "runs.csv", newline="") as handle:
         table = csv.DictWriter(handle, BATCH_TABLE_COLUMNS)
         table.writeheader()
