@@ -27,15 +27,12 @@ Outliers cannot blow up the activations: the normalised signals are clipped to
 ``+-CovNetConfig.input_clip`` and the residual features pass through ``asinh`` (the identity
 near 0, logarithmic beyond), so the outputs stay finite and bounded for any finite input.
 
-Architecture (32,493 parameters with the default config): a 1-D convolution encoder over
-the 9 signal channels (IMU, wheel, wheel presence; a patch convolution with kernel = stride
-= ``patch``, then two stride-2 convolutions) with mean and max pooling over time -> signal
-embedding (E); a per-source MLP on the residual features plus a learned source embedding,
-the S results concatenated and projected -> residual embedding (E), so the trunk knows
-which source's residuals are large (``residual_pooling="per_source"``; checkpoints written
-before 2026-11-28 mean-pool over S instead, ``"mean"``: the shared MLP runs before the
-source embedding is added, so that mean cannot tell a bad VO from a bad LiDAR); a weather
-head on both embeddings -> weather
+Architecture (29,389 parameters with the default config; 32,493 with
+``residual_pooling="per_source"``): a 1-D convolution encoder over the 9 signal channels
+(IMU, wheel, wheel presence; a patch convolution with kernel = stride = ``patch``, then two
+stride-2 convolutions) with mean and max pooling over time -> signal embedding (E); a
+per-source MLP on the residual features plus a learned source embedding, pooled over the S
+sources -> residual embedding (E); a weather head on both embeddings -> weather
 logits (W); a weather embedding, the label's when known and the softmax of the weather
 logits mixed over the class embeddings when unknown; a trunk MLP on the three embeddings ->
 the log-scale head and, with each source's embedding, the fusion-weight head.
@@ -128,9 +125,15 @@ class CovNetConfig:
             m/s.
         input_clip: the normalised signals are clipped to +-input_clip (8 rad/s, 78 m/s^2
             and 40 m/s with the default scales).
-        residual_pooling: ``"per_source"`` (the S source embeddings concatenated and
-            projected to E) or ``"mean"`` (mean over S; a checkpoint whose config lacks
-            the key was written with it).
+        residual_pooling: ``"mean"`` (default; the shipped checkpoints' and a config
+            without the key) averages the S source embeddings; the MLP is shared and the
+            source embedding is added after it, so the average is the same whichever
+            source's residuals are large: the trunk and the weather head cannot tell a bad
+            VO (night) from a bad LiDAR (fog). ``"per_source"`` concatenates them and
+            projects to E. On the weather recipe (2026-11-28, 10 held-out runs) per-source
+            pooling infers the weather in 75.5 % of windows (mean pooling 43.5 %), ATE
+            0.563 m against 0.559 m, but position NEES inside the 95 % bounds in 87.1 % of
+            epochs (mean pooling 94.5 %).
     """
 
     window_length: int = 100
@@ -146,7 +149,7 @@ class CovNetConfig:
     accel_scale_mps2: float = 9.80665
     wheel_scale_mps: float = 5.0
     input_clip: float = 8.0
-    residual_pooling: str = "per_source"
+    residual_pooling: str = "mean"
 
     @property
     def unknown_weather(self) -> int:
@@ -195,9 +198,8 @@ class CovNetConfig:
     @classmethod
     def from_dict(cls, values: dict[str, Any]) -> CovNetConfig:
         """Inverse of :meth:`to_dict`; unknown keys raise ``ValueError``; a dict without
-        ``residual_pooling`` (written before the key existed) means ``"mean"``."""
+        ``residual_pooling`` (written before the key existed) means the default ``"mean"``."""
         _require_known_keys(cls, values)
-        values = {"residual_pooling": "mean", **values}
         config = cls(**{k: tuple(v) if isinstance(v, list) else v for k, v in values.items()})
         config.validate()
         return config

@@ -193,7 +193,7 @@ def test_checkpoints_without_the_pooling_key_load_as_mean_pooling():
     config = CovNetConfig(residual_pooling="mean").to_dict()
     del config["residual_pooling"]
     assert CovNetConfig.from_dict(config).residual_pooling == "mean"
-    assert CovNetConfig().residual_pooling == "per_source"
+    assert CovNetConfig().residual_pooling == "mean"
     with pytest.raises(ValueError, match="residual_pooling"):
         CovNetConfig(residual_pooling="max").validate()
 
