@@ -230,7 +230,8 @@ class VoResult:
         obs_frame, obs_landmark: (M,) int64 frame and landmark index of each PnP inlier.
         obs_pixel: (M, 2) px.
         stereo_frame, stereo_landmark: (S,) int64 frame and landmark index of each
-            right-image observation (the stereo match that created the landmark).
+            right-image observation: the stereo match that created the landmark, and
+            with ``refine_map_points`` each later keyframe's match that agrees with it.
         stereo_pixel: (S, 2) px in the right image.
         resets: times the map had to be rebuilt from nothing.
         rig: the camera rig.
@@ -446,6 +447,10 @@ class StereoVisualOdometry:
             total = old_weight + new_weight
             fused = (old * old_weight[:, None] + new * new_weight[:, None]) / total[:, None]
             fused_ids, fused_rows = old_ids[agree], old_rows[agree]
+            if agree.any():
+                self._stereo.append(
+                    (len(self.frames), fused_ids.copy(), matched[again][agree].copy())
+                )
             self._map_xyz[fused_ids] = fused[agree]
             self._map_weight[fused_ids] = total[agree]
             self._xyz[fused_rows] = fused[agree]

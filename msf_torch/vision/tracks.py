@@ -22,10 +22,11 @@ complement). Two ways in:
 
 Which frames become states (``frames``): the odometry's keyframes (default: cheapest), or
 every valid frame (``"all"``: every PnP inlier observation enters). On 4-s rendered runs
-(10 Hz stereo, seeds 1-7, 2026-11-28) the aligned position RMS was, keyframes only
-2.9-8.7 mm (median 6.0; the frame-to-frame odometry 3.7-10.0, median 4.6), every frame
-2.4-8.2 mm (median 3.4; below the odometry in 4 runs, within 0.2 mm in 2, above in 1) at
-about 5x the time (1.5 s against 0.3 s for 41 frames).
+(10 Hz stereo, seeds 1-7, 2026-11-28, with the odometry's right-image re-matches at
+keyframes) the aligned position RMS was, keyframes only 1.8-6.9 mm (median 4.9; below the
+frame-to-frame odometry's 3.7-10.0 mm in 5 of 7 runs), every frame 1.4-4.9 mm (median 3.6;
+below the odometry in all 7) at about 6x the time (1.6 s against 0.26 s for 41 frames).
+What limits it: the left-camera tracks drift (KLT frame to frame), see docs/visual.md.
 """
 
 from __future__ import annotations

@@ -59,8 +59,8 @@ def test_bundle_adjustment_levels_the_odometry(rendered, odometry):
     before = aligned_errors(unpack_nav_state(ba.initial_states)[0], truth)
     after = aligned_errors(unpack_nav_state(ba.states)[0], truth)
     # gravity from the IMU flattens the odometry's vertical drift (seeds 1-7: 4-20x lower);
-    # horizontally the keyframes-only BA stays at the frame-to-frame odometry's level
-    # (seeds 1-7: 3-9 mm RMS against 4-10 mm; better in 2 of 7), not below it
+    # horizontally the keyframes-only BA is near the frame-to-frame odometry's level
+    # (seeds 1-7: 1.8-6.9 mm RMS against 3.7-10.0 mm; better in 5 of 7), not always below
     vertical = [float(e[:, 2].pow(2).mean().sqrt()) for e in (before, after)]
     assert vertical[1] < 0.5 * vertical[0], vertical
     rms = [float(e.norm(dim=-1).pow(2).mean().sqrt()) for e in (before, after)]
@@ -99,7 +99,7 @@ def test_imu_starting_after_the_first_frame_still_levels_the_world(rendered, odo
 
 def test_bundle_adjustment_over_every_frame_beats_the_odometry(rendered, odometry):
     # every valid frame a state: all PnP inlier observations enter, and the BA lands below
-    # the frame-to-frame odometry (this run: 2.7 mm against 7.1 mm aligned RMS)
+    # the frame-to-frame odometry (this run: 4.9 mm against 7.1 mm aligned RMS)
     run, _, _ = rendered
     ba = bundle_adjust(odometry, run.sequence.imu, imu_noise(run), frames="all")
     assert ba.lm.status[0] == "converged"
@@ -108,8 +108,19 @@ def test_bundle_adjustment_over_every_frame_beats_the_odometry(rendered, odometr
     before = aligned_errors(unpack_nav_state(ba.initial_states)[0], truth)
     after = aligned_errors(unpack_nav_state(ba.states)[0], truth)
     rms = [float(e.norm(dim=-1).pow(2).mean().sqrt()) for e in (before, after)]
-    assert rms[1] < 0.8 * rms[0], rms
+    assert rms[1] < 0.85 * rms[0], rms
     keyframes_only = bundle_adjust(odometry, run.sequence.imu, imu_noise(run))
     assert ba.observations > 3 * keyframes_only.observations
     with pytest.raises(ValueError, match="frames must be 'keyframes' or 'all'"):
         bundle_adjust(odometry, run.sequence.imu, imu_noise(run), frames="every")
+
+
+def test_stereo_rematches_at_keyframes_are_recorded(odometry):
+    """A map point's right-image match is recorded where it was created and again at each
+    later keyframe whose stereo match agrees with it (``refine_map_points``): the BA gets
+    the stereo scale at every keyframe, not once per landmark (before: once)."""
+    counts = np.bincount(odometry.stereo_landmark, minlength=len(odometry.landmarks))
+    assert counts.max() > 1 and (counts > 1).sum() > 0.2 * (counts > 0).sum()
+    assert bool(odometry.keyframe[odometry.stereo_frame].all())
+    pairs = np.stack((odometry.stereo_frame, odometry.stereo_landmark), -1)
+    assert len(np.unique(pairs, axis=0)) == len(pairs)  # one right match per frame and point
