@@ -267,12 +267,16 @@ def run_sequence(seq: Sequence, cfg: EskfConfig, options: RunOptions) -> dict[st
         summary["learned"] = learned
     if smoothed is not None:
         summary["frontend_wall_s"] = round(frontend_wall, 4)
-        summary["smoother"] = {
-            k: round(v, 4) if isinstance(v, float) else v for k, v in smoothed.summary().items()
-        }
+        summary["smoother"] = _smoother_summary(smoothed)
     return _score_and_write(
         seq, result, trajectory, smoothed, cfg, options, out_dir, summary, withheld
     )
+
+
+def _smoother_summary(smoothed: Any) -> dict[str, Any]:
+    """A :class:`~msf_torch.backend.window.SmootherResult`'s figures for ``summary.json``
+    (floats to 4 decimals)."""
+    return {k: round(v, 4) if isinstance(v, float) else v for k, v in smoothed.summary().items()}
 
 
 BATCH_TABLE_COLUMNS = (
@@ -369,10 +373,7 @@ def run_batch(seqs: list[Sequence], cfg: EskfConfig, options: RunOptions) -> dic
         summary["batch"] = {"size": len(seqs), "index": index}
         if smoothed[index] is not None:
             summary["frontend_wall_s"] = round(wall, 4)
-            summary["smoother"] = {
-                k: round(v, 4) if isinstance(v, float) else v
-                for k, v in smoothed[index].summary().items()
-            }
+            summary["smoother"] = _smoother_summary(smoothed[index])
         summary = _score_and_write(
             seq,
             own[index],
