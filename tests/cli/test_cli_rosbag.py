@@ -199,13 +199,52 @@ URDF_IMU = f"""<robot name="rover">
 """
 
 
+def _odometry(folder: Path) -> dict[str, np.ndarray]:
+    """Pose, covariances and twist of every message of an exported odometry bag."""
+    from rosbags.rosbag2 import Reader
+    from rosbags.typesys import Stores, get_typestore
+
+    store = get_typestore(Stores.ROS2_HUMBLE)
+    with Reader(folder) as reader:
+        messages = [store.deserialize_cdr(raw, conn.msgtype) for conn, _, raw in reader.messages()]
+
+    def xyz(v) -> list[float]:
+        return [v.x, v.y, v.z]
+
+    return {
+        "child_frame_id": np.array([m.child_frame_id for m in messages]),
+        "position": np.array([xyz(m.pose.pose.position) for m in messages]),
+        "xyzw": np.array(
+            [[*xyz(m.pose.pose.orientation), m.pose.pose.orientation.w] for m in messages]
+        ),
+        "linear": np.array([xyz(m.twist.twist.linear) for m in messages]),
+        "angular": np.array([xyz(m.twist.twist.angular) for m in messages]),
+        "pose_cov": np.array([np.array(m.pose.covariance).reshape(6, 6) for m in messages]),
+        "twist_cov": np.array([np.array(m.twist.covariance).reshape(6, 6) for m in messages]),
+    }
+
+
+def _twist_against_poses(odom: dict[str, np.ndarray], t: np.ndarray) -> tuple[float, float]:
+    """Median |twist - finite difference of the exported poses| (mid-interval, the mean of
+    the two ends against ``Log(R_k^T R_k+1) / dt`` and ``R_k^T dp / dt``): rad/s, m/s."""
+    from scipy.spatial.transform import Rotation
+
+    rotation = Rotation.from_quat(odom["xyzw"])
+    dt = np.diff(t)[:, None]
+    rate_fd = (rotation[:-1].inv() * rotation[1:]).as_rotvec() / dt
+    velocity_fd = rotation[:-1].apply(np.diff(odom["position"], axis=0) / dt, inverse=True)
+    mid_rate = 0.5 * (odom["angular"][:-1] + odom["angular"][1:])
+    mid_velocity = 0.5 * (odom["linear"][:-1] + odom["linear"][1:])
+    return (
+        float(np.median(np.abs(mid_rate - rate_fd))),
+        float(np.median(np.abs(mid_velocity - velocity_fd))),
+    )
+
+
 def test_rosbag2_export_is_the_imu_frame_when_the_body_frame_is_another(tmp_path, capsys):
     # the IMU turned 90 deg in yaw on base_link: the estimate is base_link's axes at the
     # IMU's origin, so the export is the IMU frame's pose (R_world_imu = R R_body_imu),
     # labelled imu_link, and tf relates it to base_link
-    from rosbags.rosbag2 import Reader
-    from rosbags.typesys import Stores, get_typestore
-
     (tmp_path / "rover.urdf").write_text(URDF_IMU)
     robot_yaml = tmp_path / "robot.yaml"
     text = ROBOT.replace("urdf: rover.urdf", "urdf: rover.urdf\n  body: base_link")
@@ -224,93 +263,36 @@ def test_rosbag2_export_is_the_imu_frame_when_the_body_frame_is_another(tmp_path
     assert main([*args, "--export", "rosbag2", "--no-learned", "--progress", "off"]) == 0
     capsys.readouterr()
     estimate = read_tum(out / "trajectory.tum")
-    store = get_typestore(Stores.ROS2_HUMBLE)
-    with Reader(out / "trajectory_rosbag2") as reader:
-        messages = [store.deserialize_cdr(raw, conn.msgtype) for conn, _, raw in reader.messages()]
-    assert len(messages) == estimate.length
-    assert {m.child_frame_id for m in messages} == {"imu_link"}
-    position = np.array(
-        [[m.pose.pose.position.x, m.pose.pose.position.y, m.pose.pose.position.z] for m in messages]
-    )
-    np.testing.assert_allclose(position, estimate.position[0].numpy(), atol=1e-12)
-    xyzw = np.array(
-        [
-            [
-                m.pose.pose.orientation.x,
-                m.pose.pose.orientation.y,
-                m.pose.pose.orientation.z,
-                m.pose.pose.orientation.w,
-            ]
-            for m in messages
-        ]
-    )
+    odom = _odometry(out / "trajectory_rosbag2")
+    assert len(odom["position"]) == estimate.length
+    assert set(odom["child_frame_id"]) == {"imu_link"}
+    np.testing.assert_allclose(odom["position"], estimate.position[0].numpy(), atol=1e-12)
     from scipy.spatial.transform import Rotation
 
     body = Rotation.from_quat(estimate.quaternion[0].numpy()[:, [1, 2, 3, 0]])
     expected = (body * Rotation.from_euler("z", 90, degrees=True)).as_matrix()
-    np.testing.assert_allclose(Rotation.from_quat(xyzw).as_matrix(), expected, atol=1e-9)
+    np.testing.assert_allclose(Rotation.from_quat(odom["xyzw"]).as_matrix(), expected, atol=1e-9)
     # the rotation covariance (about the world axes in ROS) does not depend on the label
-    cov = np.array([np.array(m.pose.covariance).reshape(6, 6) for m in messages])
+    cov = odom["pose_cov"]
     assert np.all(np.linalg.eigvalsh(cov) > -1e-12) and cov[:, 5, 5].min() > 0
 
-    # the twist, in imu_link's axes, against the exported poses' own finite differences:
-    # R^T dp / dt and Log(R_k^T R_k+1) / dt (mid-interval, against the mean of the ends)
-    t = estimate.t[0].numpy()
-    rotation = Rotation.from_quat(xyzw)
-    linear = np.array(
-        [[m.twist.twist.linear.x, m.twist.twist.linear.y, m.twist.twist.linear.z] for m in messages]
-    )
-    angular = np.array(
-        [
-            [m.twist.twist.angular.x, m.twist.twist.angular.y, m.twist.twist.angular.z]
-            for m in messages
-        ]
-    )
-    dt = np.diff(t)[:, None]
-    rate_fd = (rotation[:-1].inv() * rotation[1:]).as_rotvec() / dt
-    velocity_fd = rotation[:-1].apply(np.diff(position, axis=0) / dt, inverse=True)
-    mid_rate = 0.5 * (angular[:-1] + angular[1:])
-    mid_velocity = 0.5 * (linear[:-1] + linear[1:])
+    # the twist, in imu_link's axes, against the exported poses' own finite differences
+    rate_gap, velocity_gap = _twist_against_poses(odom, estimate.t[0].numpy())
+    linear, angular = odom["linear"], odom["angular"]
     assert np.abs(angular[:, 2]).max() > 0.2  # the run turns (imu z = base_link z)
-    assert np.median(np.abs(mid_rate - rate_fd)) < 0.003
-    assert np.median(np.abs(mid_velocity - velocity_fd)) < 0.03
+    assert rate_gap < 0.003
+    assert velocity_gap < 0.03
     assert np.abs(linear[:, 0]).max() < 0.2 < np.abs(linear[:, 1]).max()  # forward = imu -y
-    twist_cov = np.array([np.array(m.twist.covariance).reshape(6, 6) for m in messages])
+    twist_cov = odom["twist_cov"]
     np.testing.assert_allclose(twist_cov, twist_cov.transpose(0, 2, 1), atol=1e-15)
     assert np.all(np.linalg.eigvalsh(twist_cov) > 0)
     one_sample = EskfConfig().gyro_noise_density ** 2 * 100.0
     assert np.diagonal(twist_cov[:, 3:, 3:], axis1=1, axis2=2).min() >= one_sample
 
 
-def _odometry(folder: Path) -> dict[str, np.ndarray]:
-    """Pose, covariances and twist of every message of an exported odometry bag."""
-    from rosbags.rosbag2 import Reader
-    from rosbags.typesys import Stores, get_typestore
-
-    store = get_typestore(Stores.ROS2_HUMBLE)
-    with Reader(folder) as reader:
-        messages = [store.deserialize_cdr(raw, conn.msgtype) for conn, _, raw in reader.messages()]
-
-    def xyz(v) -> list[float]:
-        return [v.x, v.y, v.z]
-
-    return {
-        "position": np.array([xyz(m.pose.pose.position) for m in messages]),
-        "xyzw": np.array(
-            [[*xyz(m.pose.pose.orientation), m.pose.pose.orientation.w] for m in messages]
-        ),
-        "linear": np.array([xyz(m.twist.twist.linear) for m in messages]),
-        "angular": np.array([xyz(m.twist.twist.angular) for m in messages]),
-        "pose_cov": np.array([np.array(m.pose.covariance).reshape(6, 6) for m in messages]),
-        "twist_cov": np.array([np.array(m.twist.covariance).reshape(6, 6) for m in messages]),
-    }
-
-
 def test_smoothed_rosbag2_export_carries_covariance_and_twist(robot_run, tmp_path, capsys):
     # --smooth full: the bag holds the smoothed poses with the smoother's marginal
     # covariances (tighter than the filter's) and a twist that matches the poses' motion
-    from scipy.spatial.transform import Rotation
-
     args = ["run", str(robot_run["native"]), "--config", str(robot_run["native_cfg"])]
     common = ["--no-plot", "--no-learned", "--progress", "off", "--export", "rosbag2"]
     runs = {}
@@ -331,13 +313,7 @@ def test_smoothed_rosbag2_export_carries_covariance_and_twist(robot_run, tmp_pat
     filter_trace = np.trace(filtered["pose_cov"][:, :3, :3], axis1=1, axis2=2)
     assert np.median(trace / filter_trace) < 0.8
     # twist against the exported poses' finite differences (mid-interval)
-    t = estimate.t[0].numpy()
-    rotation = Rotation.from_quat(smoothed["xyzw"])
-    dt = np.diff(t)[:, None]
-    rate_fd = (rotation[:-1].inv() * rotation[1:]).as_rotvec() / dt
-    velocity_fd = rotation[:-1].apply(np.diff(smoothed["position"], axis=0) / dt, inverse=True)
-    mid_rate = 0.5 * (smoothed["angular"][:-1] + smoothed["angular"][1:])
-    mid_velocity = 0.5 * (smoothed["linear"][:-1] + smoothed["linear"][1:])
+    rate_gap, velocity_gap = _twist_against_poses(smoothed, estimate.t[0].numpy())
     assert np.abs(smoothed["angular"][:, 2]).max() > 0.2  # the run turns
-    assert np.median(np.abs(mid_rate - rate_fd)) < 0.003
-    assert np.median(np.abs(mid_velocity - velocity_fd)) < 0.03
+    assert rate_gap < 0.003
+    assert velocity_gap < 0.03
