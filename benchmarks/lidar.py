@@ -30,7 +30,8 @@ What it measures
     percentile, max), and "wrong" pairs (translation error > ``--wrong-m`` or rotation
     error > ``--wrong-deg``). Ours also: share flagged degenerate, and the NEES
     ``e^T C^-1 e`` of the odometry-guess estimates on pairs not flagged degenerate (3 DoF:
-    mean 3, 95 % below 7.81 when the covariance is right). Chained scan odometry
+    mean 3, 95 % below 7.81 when the covariance is right), and per axis the mean of
+    ``e_k^2 / C_kk`` (1 each when right). Chained scan odometry
     (``msf_torch.lidar.odometry.scan_odometry``) over the first run of each map: final and
     rms position error against the truth, next to the wheel odometry's.
 
@@ -41,8 +42,10 @@ What it measures
 How to run
     .venv/bin/python benchmarks/lidar.py              # 300 pairs per map, 2 seeds (~3 min)
     .venv/bin/python benchmarks/lidar.py --quick      # 60 pairs per map, 1 seed
+    .venv/bin/python benchmarks/lidar.py --no-peer    # ours only (no Open3D needed)
 
-    Needs Open3D (``pip install open3d-cpu``; on Debian it also needs ``libusb-1.0-0``).
+    Needs Open3D (``pip install open3d-cpu``; on Debian it also needs ``libusb-1.0-0``)
+    unless ``--no-peer``.
     Progress goes to stderr; the last line on stdout is one JSON object.
 
 Options
@@ -52,6 +55,7 @@ Options
     --wrong-m X      translation error that counts as wrong, m (default 0.05)
     --wrong-deg X    rotation error that counts as wrong, deg (default 1.0)
     --no-chain       skip the chained scan-odometry figures
+    --no-peer        skip Open3D (the peer columns, the wall-time ratio)
 """
 
 from __future__ import annotations
@@ -264,11 +268,15 @@ def nees(result: dict[str, Any], truth: torch.Tensor) -> dict[str, Any]:
     value = value[:, 0, 0]
     if value.numel() == 0:
         return {"pairs": 0}
+    per_axis = (error**2 / torch.diagonal(result["covariance"][keep], dim1=-2, dim2=-1)).mean(0)
     return {
         "pairs": int(value.numel()),
         "mean": float(value.mean()),
         "median": float(value.median()),
         "share_below_chi2_95": float((value < CHI2_3_95).double().mean()),
+        "per_axis_mean_e2_over_variance": dict(
+            zip(("x", "y", "theta"), per_axis.tolist(), strict=True)
+        ),
     }
 
 
@@ -298,15 +306,17 @@ def main() -> int:
     parser.add_argument("--wrong-m", type=float, default=0.05)
     parser.add_argument("--wrong-deg", type=float, default=1.0)
     parser.add_argument("--no-chain", action="store_true")
+    parser.add_argument("--no-peer", action="store_true")
     parser.add_argument("--quick", action="store_true")
     args = parser.parse_args()
     if args.quick:
         args.pairs, args.seeds, args.repeats = 60, 1, 1
     torch.set_num_threads(1)
-    import open3d as o3d
-
     machine = machine_info()
-    machine["open3d"] = o3d.__version__
+    if not args.no_peer:
+        import open3d as o3d
+
+        machine["open3d"] = o3d.__version__
     config = PlicpConfig(max_correspondence_m=MAX_CORRESPONDENCE_M, max_iterations=MAX_ITERATIONS)
     per_map: dict[str, Any] = {}
     all_iters = {"identity": [], "odometry": []}
@@ -336,6 +346,12 @@ def main() -> int:
             )
             row["ours"][guess_name]["failed"] = int(result["failed"].sum())
             row["ours"][guess_name]["wall_s"] = wall
+            log(
+                f"  {guess_name}: ours it {row['ours'][guess_name]['iterations_mean']:.2f} "
+                f"wrong {row['ours'][guess_name]['wrong']}"
+            )
+            if args.no_peer:
+                continue
             peer_wall, _, peer_pose = time_repeats(
                 lambda guess=guess, data=data: run_peer_full(data, guess.numpy()),
                 args.repeats,
@@ -350,17 +366,15 @@ def main() -> int:
                 np.abs(stepped_pose - peer_pose).max()
             )
             log(
-                f"  {guess_name}: ours it {row['ours'][guess_name]['iterations_mean']:.2f} "
-                f"wrong {row['ours'][guess_name]['wrong']} | peer it "
-                f"{row['peer'][guess_name]['iterations_mean']:.2f} wrong "
-                f"{row['peer'][guess_name]['wrong']}"
+                f"  {guess_name}: peer it {row['peer'][guess_name]['iterations_mean']:.2f} "
+                f"wrong {row['peer'][guess_name]['wrong']}"
             )
         # identity-wrong pairs and whether the odometry guess fixes them
         fixes: dict[str, Any] = {}
-        for method, poses in (
-            ("ours", {g: ours_by_guess[g]["pose"].numpy() for g in guesses}),
-            ("peer", peer_by_guess),
-        ):
+        methods = [("ours", {g: ours_by_guess[g]["pose"].numpy() for g in guesses})]
+        if not args.no_peer:
+            methods.append(("peer", peer_by_guess))
+        for method, poses in methods:
             t_id, r_id = errors(poses["identity"], truth.numpy())
             t_od, r_od = errors(poses["odometry"], truth.numpy())
             wrong_id = (t_id > args.wrong_m) | (r_id > args.wrong_deg)
@@ -374,6 +388,14 @@ def main() -> int:
             row["ours"]["odometry"]["iterations_mean"] / row["ours"]["identity"]["iterations_mean"]
         )
         row["ours"]["nees_odometry_guess"] = nees(ours_by_guess["odometry"], truth)
+        consistency = row["ours"]["nees_odometry_guess"]
+        if consistency["pairs"]:
+            axes = consistency["per_axis_mean_e2_over_variance"]
+            log(
+                f"  NEES (odometry guess, {consistency['pairs']} pairs not degenerate): mean "
+                f"{consistency['mean']:.2f} (3 expected), per axis x {axes['x']:.2f} y "
+                f"{axes['y']:.2f} theta {axes['theta']:.2f} (1 expected)"
+            )
         if not args.no_chain:
             log(f"  {map_name}: chained scan odometry over seed 0")
             start = time.perf_counter()
@@ -389,7 +411,7 @@ def main() -> int:
         and corridor_fix["fixed_by_odometry"] == corridor_fix["identity_wrong"]
     )
     ours_wall = sum(timing["ours"])
-    peer_wall = sum(timing["peer"])
+    peer_wall = sum(timing["peer"]) if not args.no_peer else None
     record = {
         "benchmark": "lidar_plicp",
         "inputs": {
@@ -418,8 +440,9 @@ def main() -> int:
         "peer": {
             "method": "Open3D registration_icp point-to-plane on 2D points lifted to 3D",
             "wall_s_all_pairs_both_guesses": peer_wall,
+            "skipped": bool(args.no_peer),
         },
-        "ratio": {"wall_ours_over_peer": ours_wall / peer_wall},
+        "ratio": {"wall_ours_over_peer": ours_wall / peer_wall if peer_wall else None},
         "accuracy": per_map,
         "targets": {
             "iteration_reduction": {
