@@ -665,9 +665,8 @@ def plicp(
     )
     gradient = vectors.mT @ (gradient * scale[:, :, None] * scale[:, None, :]) @ vectors
     inverse = torch.where(good, 1.0 / torch.where(good, values, 1.0), 0.0)
-    eigen = inverse[:, :, None] * gradient * inverse[:, None, :] + torch.diag_embed(
-        torch.where(good, 0.0, config.unobserved_sigma_m**2)
-    )
+    unobserved = (~good).to(values.dtype) * config.unobserved_sigma_m**2
+    eigen = inverse[:, :, None] * gradient * inverse[:, None, :] + torch.diag_embed(unobserved)
     covariance = (vectors @ eigen @ vectors.mT) * (scale[:, :, None] * scale[:, None, :])
     return PlicpResult(
         pose=pose,
