@@ -57,11 +57,23 @@ What it measures
     iterations; ours damps with ``lambda I`` like GTSAM's default (``--damping``). Only the
     solves are timed (medians over ``--repeats``, ours, GTSAM and Theseus alternating);
     problem construction (preintegration, factors, graphs, objective) is reported apart.
-    Throughput is windows per second; target: ours >= 20x GTSAM's (``ratio_vs_theseus``:
-    ours over Theseus's, no target). For information the same windows are also solved with
-    our default IMU factor (exact zero-order hold, Forster residual):
-    ``zoh_final_cost_rel_diff`` shows how far that (different) discretisation moves the
-    optimum.
+    * third peer, PyPose (when ``import pypose`` works; ``--pypose-windows 0`` skips it):
+      ``pypose.optim.LM`` on one window at a time (``benchmarks/peers/pypose_windows.py``:
+      an ``nn.Module`` of a ``pp.SE3`` pose parameter and a (K, 9) ``[v, b_g, b_a]``
+      parameter whose forward returns our factors' whitened residuals, so the cost is
+      identical; dense autodiff Jacobian, its Cholesky solver and default damping), the same
+      stopping rule as GTSAM's. PyPose has no batch-of-problems LM, and at about 5 s per
+      window (60-odd LM steps of ~85 ms) all 256 would take over 20 minutes, so it solves
+      ``--pypose-windows`` of them (default 8, evenly spaced over the 256), once (no
+      repeats), after the timed solves; its throughput is those windows over their summed
+      wall time (module and optimizer construction included, as for GTSAM), its final
+      costs are compared with GTSAM's and ours on the same windows.
+
+    Throughput is windows per second; target: ours >= 20x GTSAM's (``ratio_vs_theseus``,
+    ``ratio_vs_pypose``: ours over Theseus's and PyPose's, no target). For information the
+    same windows are also solved with our default IMU factor (exact zero-order hold, Forster
+    residual): ``zoh_final_cost_rel_diff`` shows how far that (different) discretisation
+    moves the optimum.
 
 How to run
     .venv/bin/python benchmarks/windows.py                 # 256 windows, 5 repeats
@@ -81,6 +93,8 @@ Options
     --threads N        torch intra-op threads (default: torch's choice)
     --device D         ours (and Theseus) on this device (default cpu)
     --no-theseus       skip the Theseus peer
+    --pypose-windows N PyPose peer on N of the windows, evenly spaced (default 8; 0 skips;
+                       needs ``pip install pypose``, in the ``[peers]`` extra)
 """
 
 from __future__ import annotations
@@ -106,6 +120,7 @@ from benchmarks._common import (  # noqa: E402
     machine_info,
     time_repeats,
 )
+from benchmarks.peers.pypose_windows import solve_pypose_window  # noqa: E402
 from benchmarks.peers.theseus_windows import (  # noqa: E402
     INSTALL,
     build_theseus,
@@ -359,6 +374,68 @@ def _stats(x: np.ndarray) -> dict[str, float]:
     return {"max": float(np.max(x)), "median": float(np.median(x))}
 
 
+def _pypose(
+    problem: Problem,
+    args: argparse.Namespace,
+    ours_cost: np.ndarray,
+    peer_cost: np.ndarray,
+    throughput_ours: float,
+) -> tuple[dict[str, Any], float | None]:
+    """The PyPose peer on ``args.pypose_windows`` evenly spaced windows, one at a time.
+
+    Returns:
+        the record's ``pypose`` block and ours' throughput over PyPose's (None if skipped).
+    """
+    if args.pypose_windows <= 0:
+        return {"skipped": "--pypose-windows 0"}, None
+    try:
+        import pypose
+    except ImportError:
+        log("PyPose peer skipped: pypose not installed (pip install pypose)")
+        return {"skipped": "pypose not installed: pip install pypose"}, None
+    count = min(args.pypose_windows, args.windows)
+    chosen = np.unique(np.linspace(0, args.windows - 1, count).round().astype(int))
+    runs = []
+    for n, w in enumerate(chosen.tolist()):
+        single = problem.select(torch.tensor([w], device=problem.device))
+        with torch.no_grad():
+            initial = float(single.cost(single.values))
+        run = solve_pypose_window(single, args.rtol, MAX_ITERATIONS)
+        run["initial_cost_ours"] = initial
+        runs.append(run)
+        log(
+            f"pypose window {n + 1}/{chosen.size} (#{w}): {run['wall_s']:.2f} s, "
+            f"{run['iterations']} steps, cost {run['final_cost']:.6g}"
+        )
+    wall = sum(run["wall_s"] for run in runs)
+    final = np.array([run["final_cost"] for run in runs])
+    iterations = np.array([run["iterations"] for run in runs])
+    initial_pp = np.array([run["initial_cost"] for run in runs])
+    initial_ours = np.array([run["initial_cost_ours"] for run in runs])
+    per_s = chosen.size / wall
+    block = {
+        "what": (
+            f"pypose {pypose.__version__} optim.LM (solver.Cholesky, default damping "
+            "strategy, dense autodiff Jacobian), one window at a time, once"
+        ),
+        "windows": chosen.tolist(),
+        "solve_s": wall,
+        "windows_per_s": per_s,
+        "iterations": _stats(iterations),
+        "hit_max_iterations": int((iterations >= MAX_ITERATIONS).sum()),
+        "initial_cost_rel_diff_vs_ours": _stats(_rel(initial_pp, initial_ours)),
+        "final_cost_rel_diff": _stats(_rel(final, peer_cost[chosen])),
+        "final_cost_rel_diff_vs_ours": _stats(_rel(final, ours_cost[chosen])),
+        "final_cost": _stats(final),
+    }
+    log(
+        f"pypose {wall:.1f} s for {chosen.size} windows ({per_s:.2f} windows/s) | ours / "
+        f"pypose {throughput_ours / per_s:.0f} | final cost rel diff vs gtsam max "
+        f"{block['final_cost_rel_diff']['max']:.2e}"
+    )
+    return block, throughput_ours / per_s
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--windows", type=int, default=256)
@@ -371,6 +448,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--threads", type=int, default=None)
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--no-theseus", action="store_true", help="skip the Theseus peer")
+    parser.add_argument(
+        "--pypose-windows", type=int, default=8, help="PyPose peer on this many windows (0: skip)"
+    )
     args = parser.parse_args(argv)
     if args.threads is not None:
         torch.set_num_threads(args.threads)
@@ -506,6 +586,9 @@ def main(argv: list[str] | None = None) -> int:
     throughput_ours = args.windows / ours_s
     throughput_peer = args.windows / peer_s
     ratio = throughput_ours / throughput_peer
+
+    # --- PyPose (third peer): a few windows one at a time, once -----------------------------
+    pypose_block, ratio_pypose = _pypose(problem, args, ours_cost, peer_cost, throughput_ours)
     ratio_theseus = None
     if theseus is not None:
         th_s = statistics.median(th_walls)
@@ -614,6 +697,8 @@ def main(argv: list[str] | None = None) -> int:
         "target_met": {"final_cost": cost_ok, "throughput": speed_ok},
         "theseus": theseus_block,
         "ratio_vs_theseus": ratio_theseus,
+        "pypose": pypose_block,
+        "ratio_vs_pypose": ratio_pypose,
         "machine": machine,
     }
     emit_json(record)

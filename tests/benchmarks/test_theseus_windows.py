@@ -18,7 +18,18 @@ pytest.importorskip("gtsam")
 from benchmarks import windows  # noqa: E402
 from benchmarks.peers.theseus_windows import INSTALL  # noqa: E402
 
-ARGS = ["--windows", "4", "--size", "5", "--repeats", "1", "--threads", "1"]
+ARGS = [
+    "--windows",
+    "4",
+    "--size",
+    "5",
+    "--repeats",
+    "1",
+    "--threads",
+    "1",
+    "--pypose-windows",
+    "0",
+]
 
 
 def _record(capsys: pytest.CaptureFixture[str], argv: list[str]) -> dict[str, Any]:
