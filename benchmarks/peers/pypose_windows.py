@@ -24,7 +24,7 @@ rule, as :mod:`benchmarks.peers.pypose_posegraph`), or after ``max_iterations`` 
 
 from __future__ import annotations
 
-__all__ = ["solve_pypose_window"]
+__all__ = ["window_module", "solve_pypose_window"]
 
 import time
 from typing import Any
@@ -33,19 +33,15 @@ import torch
 
 from msf_torch.backend.problem import Problem
 from msf_torch.backend.variables import pack_nav_state, unpack_nav_state
-from msf_torch.geometry.quaternion import matrix_to_quat, quat_to_matrix
+from msf_torch.geometry.quaternion import matrix_to_quat
 
 
-def solve_pypose_window(
-    problem: Problem, relative_tolerance: float, max_iterations: int
-) -> dict[str, Any]:
-    """Solve one window (a Problem with B = 1 and one free ``nav_state`` group) by PyPose's LM.
-
-    Returns:
-        ``values`` (1, K, 21) nav states in our layout, ``initial_cost`` and ``final_cost``
-        (GTSAM convention, 0.5 sum of whitened squares), ``iterations`` (optimizer steps)
-        and ``wall_s`` (module and optimizer construction plus the steps).
-    """
+def window_module(problem: Problem) -> Any:
+    """The window as a PyPose user writes it: an ``nn.Module`` whose ``forward()`` returns
+    the whitened residuals (R,) of every factor of ``problem`` (B = 1, one free ``nav_state``
+    group), with parameters ``pose`` (a ``pp.Parameter`` of K ``pp.SE3``) and ``rest``
+    (K, 9) ``[v, b_g, b_a]`` at the problem's values; ``states()`` gives them as (1, K, 21)
+    nav states."""
     import pypose as pp
     from torch import nn
 
@@ -54,7 +50,6 @@ def solve_pypose_window(
     ((group, values),) = problem.values.items()
     if problem.kinds[group].name != "nav_state":
         raise ValueError(f"the PyPose peer maps nav_state variables, not {group!r}")
-    start = time.perf_counter()
     position, velocity, rotation, gyro_bias, accel_bias = unpack_nav_state(values[0])
     quaternion = matrix_to_quat(rotation)  # [w, x, y, z]
 
@@ -69,18 +64,40 @@ def solve_pypose_window(
 
         def states(self) -> torch.Tensor:
             """(1, K, 21) nav states from the parameters."""
-            pose = self.pose.tensor()
-            matrix = quat_to_matrix(torch.cat((pose[:, 6:7], pose[:, 3:6]), -1))
+            # through PyPose's group action, whose Jacobians are on the Lie algebra it
+            # retracts with (reading the storage would give Jacobians by the quaternion's
+            # components, which its update does not follow): origin and axes of each pose
+            count = self.pose.shape[0]
+            unit = torch.eye(3, dtype=self.rest.dtype, device=self.rest.device)
+            points = torch.cat((torch.zeros_like(unit[:1]), unit))[None].expand(count, 4, 3)
+            moved = self.pose[:, None].Act(points)  # (K, 4, 3)
+            translation = moved[:, 0]
+            rotation = (moved[:, 1:] - translation[:, None]).mT
             rest = self.rest
-            return pack_nav_state(pose[:, :3], rest[:, 0:3], matrix, rest[:, 3:6], rest[:, 6:9])[
-                None
-            ]
+            states = pack_nav_state(translation, rest[:, 0:3], rotation, rest[:, 3:6], rest[:, 6:9])
+            return states[None]
 
         def forward(self, _: Any = None) -> torch.Tensor:
             parts = problem.whitened({group: self.states()}, jacobians=False)
             return torch.cat([white.reshape(-1) for white, _, _ in parts])
 
-    module = Window()
+    return Window()
+
+
+def solve_pypose_window(
+    problem: Problem, relative_tolerance: float, max_iterations: int
+) -> dict[str, Any]:
+    """Solve one window (a Problem with B = 1 and one free ``nav_state`` group) by PyPose's LM.
+
+    Returns:
+        ``values`` (1, K, 21) nav states in our layout, ``initial_cost`` and ``final_cost``
+        (GTSAM convention, 0.5 sum of whitened squares), ``iterations`` (optimizer steps)
+        and ``wall_s`` (module and optimizer construction plus the steps).
+    """
+    import pypose as pp
+
+    start = time.perf_counter()
+    module = window_module(problem)
     optimizer = pp.optim.LM(module, solver=pp.optim.solver.Cholesky())
     with torch.no_grad():
         initial = 0.5 * float(module().square().sum())
