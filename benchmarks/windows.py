@@ -418,7 +418,8 @@ def _pypose(
             f"pypose {pypose.__version__} optim.LM (solver.Cholesky, default damping "
             "strategy, dense autodiff Jacobian), one window at a time, once (no repeats)"
         ),
-        "windows": chosen.tolist(),
+        "windows": int(chosen.size),
+        "window_indices": chosen.tolist() if chosen.size < args.windows else "all",
         "solve_s": wall,
         "windows_per_s": per_s,
         "iterations": _stats(iterations),
