@@ -11,9 +11,18 @@ world -> camera transform ``x_c = Exp(rvec) X + tvec``.
   cheirality check of ``cv2.recoverPose``: relative rotation and translation direction;
 * :func:`triangulate_stereo` -- rectified stereo: depth ``z = fx b / d`` from the disparity
   ``d``;
-* :func:`body_pose_covariance` -- maps a covariance of ``(rvec, tvec)`` to the body pose's
-  ``[dp (world), dtheta (body)]`` (the layout of
-  :class:`~msf_torch.types.PoseMeasurements`) by a central-difference Jacobian.
+* the odometry's increment covariance (:class:`~msf_torch.vision.StereoVisualOdometry`):
+  :func:`stereo_point_covariance` (a stereo point's covariance from its pixel and disparity
+  noise), :func:`uncertain_point_pnp` (the PnP pose covariance and the pose's sensitivity to
+  each map point when the points are uncertain too), :func:`residual_change` (the change of
+  the reprojection residuals between frames, from which the tracking noise is estimated) and
+  :func:`camera_twist_to_body` (camera-centred twist covariance to the body pose's
+  ``[dp (world), dtheta (body)]``, the layout of :class:`~msf_torch.types.PoseMeasurements`).
+
+Twists ``[dt, dtheta]`` (6,) perturb a camera pose by a rigid motion of the world about a
+point ``o``: ``c <- c + dt + dtheta x (c - o)``, ``R_wc <- Exp(dtheta) R_wc``; the covariances
+of the increment model are over twists about the current camera centre (``o = c``, so
+``dt`` is the centre's own displacement).
 """
 
 from __future__ import annotations
@@ -26,8 +35,12 @@ __all__ = [
     "relative_pose_essential",
     "triangulate_stereo",
     "body_pose",
-    "body_pose_covariance",
     "rotation_log",
+    "skew",
+    "stereo_point_covariance",
+    "uncertain_point_pnp",
+    "residual_change",
+    "camera_twist_to_body",
 ]
 
 import math
@@ -237,30 +250,137 @@ def rotation_log(rotation: np.ndarray) -> np.ndarray:
     return axis if sin < 1e-12 else axis * (angle / sin)
 
 
-def body_pose_covariance(
-    rvec: np.ndarray,
-    tvec: np.ndarray,
-    covariance: np.ndarray,
-    body_rotation_cam: np.ndarray,
-    body_translation_cam: np.ndarray,
-    step: float = 1e-6,
+def skew(vectors: np.ndarray) -> np.ndarray:
+    """Cross-product matrices ``[v]x`` (..., 3, 3) of vectors (..., 3): ``[v]x w = v x w``."""
+    v = np.asarray(vectors, np.float64)
+    out = np.zeros((*v.shape[:-1], 3, 3))
+    out[..., 0, 1], out[..., 0, 2] = -v[..., 2], v[..., 1]
+    out[..., 1, 0], out[..., 1, 2] = v[..., 2], -v[..., 0]
+    out[..., 2, 0], out[..., 2, 1] = -v[..., 1], v[..., 0]
+    return out
+
+
+def stereo_point_covariance(
+    left: np.ndarray,
+    disparity: np.ndarray,
+    camera_matrix: np.ndarray,
+    baseline_m: float,
+    pixel_sigma_px: float,
+    disparity_sigma_px: float,
 ) -> np.ndarray:
-    """Covariance (6, 6) over the body pose's ``[dp (world), dtheta (body)]`` of a
-    covariance (6, 6) over ``(rvec, tvec)``, through the central-difference Jacobian of
-    ``(rvec, tvec) -> (p_wb, Log(R_wb0^T R_wb))``."""
-    position0, rotation0 = body_pose(rvec, tvec, body_rotation_cam, body_translation_cam)
-    jacobian = np.zeros((6, 6))
-    params = np.concatenate((rvec, tvec)).astype(np.float64)
-    for i in range(6):
-        outputs = []
-        for sign in (1.0, -1.0):
-            moved = params.copy()
-            moved[i] += sign * step
-            position, rotation = body_pose(
-                moved[:3], moved[3:], body_rotation_cam, body_translation_cam
-            )
-            outputs.append(
-                np.concatenate((position - position0, rotation_log(rotation0.T @ rotation)))
-            )
-        jacobian[:, i] = (outputs[0] - outputs[1]) / (2.0 * step)
-    return jacobian @ covariance @ jacobian.T
+    """Camera-frame covariance (N, 3, 3), m^2, of rectified stereo points
+    (:func:`triangulate_stereo`) from independent noise on the left pixel ``(u, v)`` and on
+    the disparity ``d``: ``J diag(s_p^2, s_p^2, s_d^2) J^T`` with ``J = d(x, y, z)/d(u, v, d)``,
+    ``z = fx b / d``, ``x = (u - cx) z / fx``, ``y = (v - cy) z / fy``.
+
+    Args:
+        left: (N, 2) left pixels, px. disparity: (N,) ``u_l - u_r`` > 0, px.
+        camera_matrix: (3, 3). baseline_m: b, m.
+        pixel_sigma_px: sigma of u and of v, px. disparity_sigma_px: sigma of d, px.
+    """
+    fx, fy = camera_matrix[0, 0], camera_matrix[1, 1]
+    cx, cy = camera_matrix[0, 2], camera_matrix[1, 2]
+    u, v = left[:, 0].astype(np.float64), left[:, 1].astype(np.float64)
+    d = np.asarray(disparity, np.float64)
+    z = fx * baseline_m / d
+    jac = np.zeros((len(d), 3, 3))
+    jac[:, 0, 0] = z / fx
+    jac[:, 0, 2] = -(u - cx) * z / (fx * d)
+    jac[:, 1, 1] = z / fy
+    jac[:, 1, 2] = -(v - cy) * z / (fy * d)
+    jac[:, 2, 2] = -z / d
+    noise = np.array([pixel_sigma_px**2, pixel_sigma_px**2, disparity_sigma_px**2])
+    return (jac * noise[None, None, :]) @ jac.transpose(0, 2, 1)
+
+
+def uncertain_point_pnp(
+    points_world: np.ndarray,
+    point_covariance: np.ndarray,
+    rotation_wc: np.ndarray,
+    centre: np.ndarray,
+    camera_matrix: np.ndarray,
+    pixel_covariance: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Covariance of a least-squares PnP camera pose whose map points are uncertain too, and
+    the pose's sensitivity to each point (first order, at the solution).
+
+    Pixel ``i`` is ``u_i = pi(R_wc^T (X_i - c)) + n_i`` with ``n_i ~ N(0, N_i)`` and the
+    point ``X_i`` off by ``dX_i ~ N(0, S_i)``, independent. With ``P_i = du_i/dX_i`` (2, 3),
+    ``L_i = [I, -[X_i - c]x]`` (the point's motion under a twist ``xi`` about ``c``) and
+    ``J_i = du_i/dxi = -P_i L_i``, the pose that minimises the plain sum of squared
+    reprojection errors (as ``cv2.solvePnPRefineLM`` does: every pixel weighs alike, however
+    uncertain its point) moves by ``A sum_i J_i^T (n_i - P_i dX_i)``, ``A = (sum_i J_i^T
+    J_i)^-1``, so (the sandwich form)
+
+        C = A (sum_i J_i^T (N_i + P_i S_i P_i^T) J_i) A,    G_i = A L_i^T P_i^T P_i
+
+    (the pose's twist moves by ``G_i dX_i``; ``sum_i G_i L_i = I``: moving every point by the
+    same rigid motion moves the pose by it). A far point's depth error, small in its own
+    pixel, still counts fully in the estimate; the maximum-likelihood covariance
+    ``(sum_i J_i^T (N_i + P_i S_i P_i^T)^-1 J_i)^-1`` would understate it.
+
+    Args:
+        points_world: (M, 3) m. point_covariance: (M, 3, 3) m^2, world frame.
+        rotation_wc: (3, 3) camera -> world. centre: (3,) camera centre, m.
+        camera_matrix: (3, 3).
+        pixel_covariance: (M, 2, 2) or (2, 2) pixel noise ``N_i``, px^2.
+    Returns:
+        ``C`` (6, 6) over the twist ``[dt (m), dtheta (rad)]`` about ``centre`` (world axes),
+        and ``G`` (M, 6, 3).
+    """
+    rel = np.asarray(points_world, np.float64) - centre
+    cam = rel @ rotation_wc
+    x, y, z = cam[:, 0], cam[:, 1], cam[:, 2]
+    fx, fy = camera_matrix[0, 0], camera_matrix[1, 1]
+    proj = np.zeros((len(z), 2, 3))
+    proj[:, 0, 0], proj[:, 0, 2] = fx / z, -fx * x / z**2
+    proj[:, 1, 1], proj[:, 1, 2] = fy / z, -fy * y / z**2
+    p = proj @ rotation_wc.T  # (M, 2, 3) du/dX
+    motion = np.concatenate((np.broadcast_to(np.eye(3), (len(z), 3, 3)), -skew(rel)), -1)
+    jac = -p @ motion  # (M, 2, 6)
+    inverse = np.linalg.inv(np.einsum("mai,maj->ij", jac, jac))
+    noise = pixel_covariance + p @ point_covariance @ p.transpose(0, 2, 1)
+    covariance = inverse @ np.einsum("mai,mab,mbj->ij", jac, noise, jac) @ inverse
+    gain = inverse @ motion.transpose(0, 2, 1) @ p.transpose(0, 2, 1) @ p
+    return covariance, gain
+
+
+def residual_change(
+    points_world: np.ndarray,
+    pixels: np.ndarray,
+    previous_pixels: np.ndarray,
+    pose: tuple[np.ndarray, np.ndarray],
+    previous_pose: tuple[np.ndarray, np.ndarray],
+    camera_matrix: np.ndarray,
+) -> np.ndarray:
+    """Change (M, 2), px, of the reprojection residuals of the same map points between two
+    frames: ``dr_i = (pi_k(X_i) - u_i,k) - (pi_k-1(X_i) - u_i,k-1)``.
+
+    A map point's own error (and a track's accumulated drift) sits in both residuals and
+    mostly cancels; what is left is the tracking error between the two frames, less the part
+    the pose absorbs (6 of the ``2 M`` coordinates: ``E sum_i dr_i dr_i^T`` is
+    ``(2 M - 6) / (2 M)`` of the tracking error's for noise alike on every track).
+
+    Args:
+        points_world: (M, 3) m. pixels, previous_pixels: (M, 2) px in frames k and k - 1.
+        pose, previous_pose: ``(rvec, tvec)`` (3,) each of frames k and k - 1.
+        camera_matrix: (3, 3).
+    """
+    obj = np.ascontiguousarray(points_world, np.float64).reshape(-1, 1, 3)
+    now, _ = cv2.projectPoints(obj, pose[0], pose[1], camera_matrix, None)
+    before, _ = cv2.projectPoints(obj, previous_pose[0], previous_pose[1], camera_matrix, None)
+    return (now.reshape(-1, 2) - pixels) - (before.reshape(-1, 2) - previous_pixels)
+
+
+def camera_twist_to_body(
+    covariance: np.ndarray, rotation_wb: np.ndarray, body_translation_cam: np.ndarray
+) -> np.ndarray:
+    """Covariance (6, 6) over the body pose's ``[dp (world), dtheta (body)]`` of a covariance
+    (6, 6) over the camera's twist ``[dt, dtheta]`` about its centre (world axes), for a
+    camera at ``t_bc`` in the body: ``p_b = c - R_wb t_bc`` gives
+    ``dp = dt + [R_wb t_bc]x dtheta``, and ``dtheta_body = R_wb^T dtheta``."""
+    jac = np.zeros((6, 6))
+    jac[:3, :3] = np.eye(3)
+    jac[:3, 3:] = skew(rotation_wb @ body_translation_cam)
+    jac[3:, 3:] = rotation_wb.T
+    return jac @ covariance @ jac.T

@@ -34,12 +34,41 @@ Per frame (left image; the right one only at keyframes):
    descriptors of the keyframe's features are kept (for place recognition).
 
 The odometry frame is the body frame at the first frame. Each frame's body pose comes with a
-covariance over ``[dp (world), dtheta (body)]``: the PnP Gauss-Newton covariance mapped to the
-body (:func:`~msf_torch.vision.geometry.body_pose_covariance`), its position block times
-``covariance_scale`` and its rotation block times ``rotation_covariance_scale``.
-The ESKF fuses the poses as odometry increments (a named pose source,
-:meth:`VoResult.pose_source`); the feature tracks (every PnP inlier, every frame, normalized
-coordinates) feed the back end's reprojection factors (:mod:`msf_torch.vision.tracks`).
+covariance over ``[dp (world), dtheta (body)]``, made for the ESKF, which fuses the poses as
+odometry increments (a named pose source, :meth:`VoResult.pose_source`) with the pair
+covariance ``C_k + C_k-1``: ``C_k`` is half the covariance ``Sigma_k`` of frame k's pose
+relative to frame k - 1's (the increment), so the pair gets about ``Sigma_k``. First order,
+over twists (``vision.geometry``):
+
+* each frame's pose error is its own error plus the errors its map points inherited from
+  the frames they were triangulated at (their *anchors*):
+  ``e_k = d_k + sum_a W_a e_a``, ``W_a = sum_{i from a} w_i,a G_i L_i`` (``G_i`` the pose's
+  sensitivity to point ``i``, ``L_i`` the point's motion under a twist, ``w_i,a`` anchor
+  ``a``'s share in the point after the inverse-variance fusion of ``refine_map_points``;
+  ``sum_a W_a = I``). The joint covariance of the frames that points still carry is kept
+  (a window, twists about the origin), and ``Sigma_k = P_k,k + P_k-1,k-1 - P_k,k-1 -
+  P_k-1,k`` (anchors are forgotten below ``anchor_weight_min`` of a point);
+* ``d_k``: the least-squares PnP pose's covariance with uncertain points
+  (:func:`~msf_torch.vision.geometry.uncertain_point_pnp`, the sandwich form: the refinement
+  weighs every pixel alike). Pixel noise: each inlier's own tracking error, estimated from
+  the change of its reprojection residual since the previous frame
+  (:func:`~msf_torch.vision.geometry.residual_change`; a map point's own error cancels
+  there) as ``dr_i dr_i^T 2 M / (2 M - 6)`` (heteroscedasticity-consistent, White 1980;
+  ``2 M / (2 M - 6)`` for the coordinates the pose absorbs) plus ``sigma_floor_px^2 I``.
+  Point noise: the stereo depth error of the keyframe's disparity sigma (the RMS gap between
+  the re-matched map points' disparities and their predictions, less the points' own share,
+  not below ``stereo_disparity_sigma_px``) along the triangulating camera's ray
+  (:func:`~msf_torch.vision.geometry.stereo_point_covariance`; the left pixel defines the
+  point, its later error is the tracking noise), carried through the fusion as
+  ``S = a^2 S_old + (1 - a)^2 S_new``.
+
+The pose estimates do not depend on it. Left out: a systematic error (the odometry's scale
+and turn rate are off by a few tenths of a percent on the rendered runs), the least-squares
+pose's second-order bias from the points' depth errors, a track error common to all tracks
+(the pose absorbs it, so the residuals cannot show it), and the correlation of consecutive
+increments, which the ESKF treats as independent.
+The feature tracks (every PnP inlier, every frame, normalized coordinates) feed the back
+end's reprojection factors (:mod:`msf_torch.vision.tracks`).
 """
 
 from __future__ import annotations
@@ -68,12 +97,16 @@ from msf_torch.vision.features import (
 )
 from msf_torch.vision.geometry import (
     body_pose,
-    body_pose_covariance,
     camera_to_opencv,
+    camera_twist_to_body,
     opencv_to_camera,
     relative_pose_essential,
+    residual_change,
+    skew,
     solve_pnp,
+    stereo_point_covariance,
     triangulate_stereo,
+    uncertain_point_pnp,
 )
 from msf_torch.vision.quality import QUALITY_NAMES, image_quality
 
@@ -96,7 +129,8 @@ class VoConfig:
             (:func:`~msf_torch.vision.features.stereo_search`), px.
         stereo_max_row_px: rectified rows must agree within this, px.
         stereo_disparity_sigma_px: disparity sigma, px, for the depth sigma
-            ``z^2 sigma_d / (fx b)`` that weighs stereo depths.
+            ``z^2 sigma_d / (fx b)`` that weighs stereo depths, and the least one for the map
+            points' covariance (a keyframe's re-matches can show a larger one).
         refine_map_points: at keyframes, stereo-match the features that have map points too
             and fuse each new point with the old one (inverse-variance weights of the depth
             sigmas; a new point more than 3 combined sigmas away is ignored).
@@ -108,12 +142,10 @@ class VoConfig:
         essential_step_sigma: relative sigma of the step length in the fallback (plus
             0.01 m).
         essential_rotation_sigma_rad: rotation sigma per axis in the fallback, rad.
-        sigma_floor_px: least reprojection sigma in the PnP covariance, px.
-        covariance_scale: variance multiplier on the position block of the PnP covariance
-            (map-point error; cross terms by the geometric mean of the two scales).
-        rotation_covariance_scale: variance multiplier on its rotation block. The two
-            defaults put the ESKF's NIS of the source near its 6 degrees of freedom on
-            rendered weather runs (seeds 12 and 13, 90 s).
+        sigma_floor_px: pixel sigma added to each track's frame-to-frame noise estimate in
+            the covariance, px (module docstring).
+        anchor_weight_min: a fused map point forgets anchors whose share falls below this
+            (the rest are renormalised).
         keyframe_interval_s, keyframe_translation_m, keyframe_rotation_deg,
         keyframe_min_tracked, keyframe_track_ratio: keyframe rules (module docstring).
         descriptors: compute ORB descriptors at keyframes.
@@ -137,9 +169,8 @@ class VoConfig:
     essential_threshold_px: float = 1.0
     essential_step_sigma: float = 0.5
     essential_rotation_sigma_rad: float = 0.01
-    sigma_floor_px: float = 0.3
-    covariance_scale: float = 2.0
-    rotation_covariance_scale: float = 0.5
+    sigma_floor_px: float = 0.05
+    anchor_weight_min: float = 0.01
     keyframe_interval_s: float = 1.0
     keyframe_translation_m: float = 1.0
     keyframe_rotation_deg: float = 15.0
@@ -158,7 +189,11 @@ class VoFrame:
         status: one of :data:`STATUSES`.
         position: (3,) body position in the odometry frame, m.
         rotation: (3, 3) body -> odometry frame.
-        covariance: (6, 6) over ``[dp (odometry frame), dtheta (body)]``, m^2 and rad^2.
+        covariance: (6, 6) over ``[dp (odometry frame), dtheta (body)]``, m^2 and rad^2:
+            half the covariance of the pose relative to the previous frame's (module
+            docstring); NaN on the first frame and on lost frames.
+        pixel_sigma: RMS per coordinate of the tracks' frame-to-frame pixel noise used in
+            the covariance, px (NaN without PnP).
         tracked: features tracked into this frame.
         map_tracked: of those, with map points.
         inliers: PnP (or essential-matrix) inliers.
@@ -176,6 +211,7 @@ class VoFrame:
     position: np.ndarray
     rotation: np.ndarray
     covariance: np.ndarray
+    pixel_sigma: float
     tracked: int
     map_tracked: int
     inliers: int
@@ -218,7 +254,11 @@ class VoResult:
     Attributes:
         t: (F,) s.
         status: (F,) int index into :data:`STATUSES`.
-        position: (F, 3) m. rotation: (F, 3, 3). covariance: (F, 6, 6).
+        position: (F, 3) m. rotation: (F, 3, 3).
+        covariance: (F, 6, 6), half the increment covariance (:class:`VoFrame`; first and
+            lost frames take the first measured one).
+        pixel_sigma: (F,) the tracks' frame-to-frame pixel noise, RMS per coordinate, px
+            (NaN without PnP).
         tracked, map_tracked, inliers, new_points: (F,) int counts.
         keyframe: (F,) bool. threshold: (F,) FAST threshold, DN.
         quality: (F, 4) image-quality statistics.
@@ -242,6 +282,7 @@ class VoResult:
     position: np.ndarray
     rotation: np.ndarray
     covariance: np.ndarray
+    pixel_sigma: np.ndarray
     tracked: np.ndarray
     map_tracked: np.ndarray
     inliers: np.ndarray
@@ -313,6 +354,26 @@ def _stack_observations(
     return frame, landmark, pixel
 
 
+def _twist_to_origin(centre: np.ndarray) -> np.ndarray:
+    """(6, 6) map of a twist about ``centre`` to the same rigid motion as a twist about the
+    origin: ``dt_o = dt_c + [c]x dtheta``."""
+    out = np.eye(6)
+    out[:3, 3:] = skew(centre)
+    return out
+
+
+def _body_to_twist(
+    covariance: np.ndarray, rotation_wb: np.ndarray, body_translation_cam: np.ndarray
+) -> np.ndarray:
+    """The inverse map of :func:`~msf_torch.vision.geometry.camera_twist_to_body`: body
+    ``[dp (world), dtheta (body)]`` covariance (6, 6) to the camera's twist about its centre."""
+    jac = np.zeros((6, 6))
+    jac[:3, :3] = np.eye(3)
+    jac[:3, 3:] = -skew(rotation_wb @ body_translation_cam) @ rotation_wb
+    jac[3:, 3:] = rotation_wb
+    return jac @ covariance @ jac.T
+
+
 class StereoVisualOdometry:
     """Stereo visual odometry (see the module docstring). Feed frames in time order with
     :meth:`process`, or a whole sequence with :meth:`run`.
@@ -342,6 +403,13 @@ class StereoVisualOdometry:
         self._next_id = 0
         self._map_xyz = np.full((0, 3), np.nan)  # by feature id; NaN: no map point
         self._map_weight = np.zeros(0)
+        self._map_cov = np.zeros((0, 3, 3))  # by feature id: stereo error, world, m^2
+        # by feature id: (anchor frames, shares) of the fused point
+        self._anchors: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+        # frames whose pose errors points still carry (the last frame always), and the joint
+        # covariance (W, W, 6, 6) of their pose errors as twists about the origin
+        self._window = np.zeros(0, np.int64)
+        self._joint = np.zeros((0, 0, 6, 6))
         self._obs: list[tuple[int, np.ndarray, np.ndarray]] = []
         self._stereo: list[tuple[int, np.ndarray, np.ndarray]] = []
         self._poses: list[tuple[np.ndarray, np.ndarray]] = []  # (rvec, tvec) per frame
@@ -423,9 +491,15 @@ class StereoVisualOdometry:
         )
         rotation_wc, centre = opencv_to_camera(rvec, tvec)
         world = cam @ rotation_wc.T + centre
+        sigma_d = self._disparity_sigma(rows, good & mapped, disp, rotation_wc, centre)
+        cov_cam = stereo_point_covariance(
+            points, disp, self.camera_matrix, self.rig.baseline_m, 0.0, sigma_d
+        )
+        cov_world = rotation_wc @ cov_cam @ rotation_wc.T
         # depth sigma of a disparity sigma: z^2 sigma_d / (fx b)
         depth_sigma = cam[:, 2] ** 2 * cfg.stereo_disparity_sigma_px / fb
         weight = 1.0 / np.maximum(depth_sigma, 1e-9) ** 2
+        frame_index = len(self.frames)
         fresh = good & ~mapped
         new_rows = rows[fresh]
         self._xyz[new_rows] = world[fresh]
@@ -433,6 +507,9 @@ class StereoVisualOdometry:
         ids = self._ids[new_rows]
         self._map_xyz[ids] = world[fresh]
         self._map_weight[ids] = weight[fresh]
+        self._map_cov[ids] = cov_world[fresh]
+        for i in ids.tolist():
+            self._anchors[i] = (np.array([frame_index]), np.ones(1))
         if len(new_rows):
             self._stereo.append((len(self.frames), ids.copy(), matched[fresh].copy()))
         again = good & mapped
@@ -447,6 +524,17 @@ class StereoVisualOdometry:
             total = old_weight + new_weight
             fused = (old * old_weight[:, None] + new * new_weight[:, None]) / total[:, None]
             fused_ids, fused_rows = old_ids[agree], old_rows[agree]
+            share = (old_weight / total)[agree]  # the old point's share a in the fused one
+            self._map_cov[fused_ids] = (
+                share[:, None, None] ** 2 * self._map_cov[fused_ids]
+                + (1.0 - share[:, None, None]) ** 2 * cov_world[again][agree]
+            )
+            for i, a in zip(fused_ids.tolist(), share.tolist(), strict=True):
+                frames, shares = self._anchors[i]
+                frames = np.append(frames, frame_index)
+                shares = np.append(a * shares, 1.0 - a)
+                kept = shares >= cfg.anchor_weight_min
+                self._anchors[i] = (frames[kept], shares[kept] / shares[kept].sum())
             if agree.any():
                 self._stereo.append(
                     (len(self.frames), fused_ids.copy(), matched[again][agree].copy())
@@ -459,6 +547,33 @@ class StereoVisualOdometry:
         drop[rows[~good & ~mapped]] = True
         self._keep(~drop)
         return int(fresh.sum())
+
+    def _disparity_sigma(
+        self,
+        rows: np.ndarray,
+        again: np.ndarray,
+        disparity: np.ndarray,
+        rotation_wc: np.ndarray,
+        centre: np.ndarray,
+    ) -> float:
+        """Disparity sigma, px, for this keyframe's stereo points' covariance: the larger of
+        ``stereo_disparity_sigma_px`` and the RMS gap between the disparities of the
+        re-matched map points (``again``, (R,) over ``rows``) and those their map points
+        predict, less the map points' own share (their depth variance along the optical
+        axis, ``(fx b / z^2)^2 a^T S a``), when at least ``min_pnp_inliers`` points were
+        re-matched. Bad weather and low texture widen the gaps."""
+        cfg = self.config
+        sigma = cfg.stereo_disparity_sigma_px
+        if int(again.sum()) < cfg.min_pnp_inliers:
+            return sigma
+        ids = self._ids[rows[again]]
+        axis = rotation_wc[:, 2]
+        depth = (self._xyz[rows[again]] - centre) @ axis
+        fb = self.rig.fx * self.rig.baseline_m
+        gap = disparity[again] - fb / depth
+        old_var = (fb / depth**2) ** 2 * np.einsum("i,nij,j->n", axis, self._map_cov[ids], axis)
+        excess = float(np.mean(gap**2 - old_var))
+        return max(sigma, math.sqrt(max(excess, 0.0)))
 
     def _is_keyframe(self, t: float, rvec: np.ndarray, tvec: np.ndarray, map_count: int) -> bool:
         cfg = self.config
@@ -503,10 +618,12 @@ class StereoVisualOdometry:
         quality = image_quality(left)
         tracked_count = 0
         inliers = 0
+        pixel_sigma = math.nan
         if self._previous is None:
             status = "init"
             rvec, tvec = camera_to_opencv(self.body_rotation_cam, self.body_translation_cam)
-            covariance_cam = None
+            self._window = np.array([index])
+            self._joint = np.zeros((1, 1, 6, 6))
         else:
             rvec_pred, tvec_pred = self._predict()
             guess = self._points.copy()
@@ -528,21 +645,19 @@ class StereoVisualOdometry:
                 cfg.pnp_reprojection_px,
                 cfg.pnp_iterations,
                 cfg.min_pnp_inliers,
-                cfg.sigma_floor_px,
             )
             if pnp.ok:
                 status = "pnp"
                 rvec, tvec = pnp.rvec, pnp.tvec
-                covariance_cam = pnp.covariance
                 keep = np.ones(len(self._points), bool)
                 keep[np.nonzero(has_map)[0][~pnp.inliers]] = False
                 self._keep(keep)
                 previous_points = previous_points[keep]
                 inliers = int(pnp.inliers.sum())
+                # before the keyframe's stereo update changes the map
+                increment, pixel_sigma = self._pnp_increment(index, rvec, tvec, previous_points)
             else:
-                status, rvec, tvec, covariance_cam, inliers = self._fallback(
-                    previous_points, rvec_pred, tvec_pred
-                )
+                status, rvec, tvec, inliers = self._fallback(previous_points, rvec_pred, tvec_pred)
         map_count = int(self._has_map.sum())
         new_points = 0
         keyframe = self._is_keyframe(t, rvec, tvec, map_count)
@@ -558,6 +673,9 @@ class StereoVisualOdometry:
                     )
                     self._map_weight = np.concatenate(
                         (self._map_weight, np.zeros(grow - len(self._map_weight)))
+                    )
+                    self._map_cov = np.concatenate(
+                        (self._map_cov, np.zeros((grow - len(self._map_cov), 3, 3))), 0
                     )
                 self._points = np.concatenate((self._points, new), 0)
                 self._ids = np.concatenate((self._ids, ids))
@@ -577,16 +695,17 @@ class StereoVisualOdometry:
         position, rotation = body_pose(
             rvec, tvec, self.body_rotation_cam, self.body_translation_cam
         )
-        if covariance_cam is None:
-            covariance = np.full((6, 6), np.nan)
-        else:
-            covariance = body_pose_covariance(
-                rvec, tvec, covariance_cam, self.body_rotation_cam, self.body_translation_cam
-            )
-            scale = np.sqrt(np.repeat([cfg.covariance_scale, cfg.rotation_covariance_scale], 3))
-            covariance = scale[:, None] * covariance * scale[None, :]
-        if status == "essential":
-            covariance = self._essential_covariance(position)
+        covariance = np.full((6, 6), np.nan)
+        if status == "pnp":
+            covariance = 0.5 * camera_twist_to_body(increment, rotation, self.body_translation_cam)
+        elif status in ("essential", "lost"):
+            # the fallback's step covariance stands for the increment (the anchors' history)
+            step_covariance = self._essential_covariance(position)
+            increment = _body_to_twist(step_covariance, rotation, self.body_translation_cam)
+            self._step_increment(index, opencv_to_camera(rvec, tvec)[1], increment)
+            if status == "essential":
+                covariance = step_covariance
+        self._prune_window(index)
         if keyframe:
             self._store_keyframe(index, t, left, position, rotation)
         self._poses.append((rvec.copy(), tvec.copy()))
@@ -597,6 +716,7 @@ class StereoVisualOdometry:
             position=position,
             rotation=rotation,
             covariance=covariance,
+            pixel_sigma=pixel_sigma,
             tracked=tracked_count,
             map_tracked=map_count,
             inliers=inliers,
@@ -612,7 +732,7 @@ class StereoVisualOdometry:
 
     def _fallback(
         self, previous_points: np.ndarray, rvec_pred: np.ndarray, tvec_pred: np.ndarray
-    ) -> tuple[str, np.ndarray, np.ndarray, np.ndarray | None, int]:
+    ) -> tuple[str, np.ndarray, np.ndarray, int]:
         """Essential-matrix pose when PnP fails (step length from the previous step), else
         the prediction (lost)."""
         cfg = self.config
@@ -624,7 +744,7 @@ class StereoVisualOdometry:
             cfg.min_pnp_inliers,
         )
         if not ok:
-            return "lost", rvec_pred, tvec_pred, None, 0
+            return "lost", rvec_pred, tvec_pred, 0
         rvec_prev, tvec_prev = self._poses[-1]
         rot_prev, _ = cv2.Rodrigues(rvec_prev.reshape(3, 1))
         if len(self._poses) >= 2:
@@ -637,7 +757,84 @@ class StereoVisualOdometry:
         rot = rot_ab @ rot_prev
         tvec = rot_ab @ tvec_prev + step * t_ab
         rvec, _ = cv2.Rodrigues(rot)
-        return "essential", rvec.reshape(3), tvec, np.zeros((6, 6)), int(inlier.sum())
+        return "essential", rvec.reshape(3), tvec, int(inlier.sum())
+
+    def _pnp_increment(
+        self, index: int, rvec: np.ndarray, tvec: np.ndarray, previous_points: np.ndarray
+    ) -> tuple[np.ndarray, float]:
+        """Covariance (6, 6) of frame ``index``'s PnP pose relative to the previous frame's,
+        over the camera's twist about its centre, and the pixel sigma used (module
+        docstring); appends the frame to the window of anchor frames. The features with map
+        points are the PnP inliers; ``previous_points`` (rows aligned with the features) are
+        their pixels in the previous frame."""
+        cfg = self.config
+        rows = self._has_map
+        xyz, ids = self._xyz[rows], self._ids[rows]
+        change = residual_change(
+            xyz,
+            self._points[rows].astype(np.float64),
+            previous_points[rows].astype(np.float64),
+            (rvec, tvec),
+            self._poses[-1],
+            self.camera_matrix,
+        )
+        # tracking noise: each track's own residual change (heteroscedasticity-consistent),
+        # scaled up for the 6 coordinates the pose absorbs, plus the floor
+        count = len(ids)
+        outer = change[:, :, None] * change[:, None, :] * (2 * count / (2 * count - 6))
+        pixel_cov = outer + cfg.sigma_floor_px**2 * np.eye(2)
+        sigma = math.sqrt(0.5 * float(np.trace(pixel_cov.mean(0))))
+        rotation_wc, centre = opencv_to_camera(rvec, tvec)
+        own, gain = uncertain_point_pnp(
+            xyz, self._map_cov[ids], rotation_wc, centre, self.camera_matrix, pixel_cov
+        )
+        # e_k = (own error) + sum_a W_a e_a over the anchors a, twists about the origin
+        anchor_lists = [self._anchors[i] for i in ids.tolist()]
+        point = np.repeat(np.arange(len(ids)), [len(f) for f, _ in anchor_lists])
+        frames = np.concatenate([f for f, _ in anchor_lists])
+        shares = np.concatenate([w for _, w in anchor_lists])
+        anchors, which = np.unique(frames, return_inverse=True)
+        eye = np.broadcast_to(np.eye(3), (len(ids), 3, 3))
+        motion = np.concatenate((eye, -skew(xyz)), -1)  # a point's motion under a twist
+        per_anchor = np.zeros((len(anchors), 6, 6))
+        np.add.at(per_anchor, which, shares[:, None, None] * (gain @ motion)[point])
+        to_origin = _twist_to_origin(centre)
+        loading = to_origin @ per_anchor
+        slot = np.searchsorted(self._window, anchors)
+        cross = np.einsum("aij,awjk->wik", loading, self._joint[slot])  # Cov(e_k, e_w)
+        total = to_origin @ own @ to_origin.T + np.einsum("bij,bkj->ik", cross[slot], loading)
+        self._append_window(index, cross, total)
+        last = len(self._window) - 2  # the previous frame
+        increment = total + self._joint[last, last] - cross[last] - cross[last].T
+        back = np.linalg.inv(to_origin)
+        return back @ increment @ back.T, sigma
+
+    def _step_increment(self, index: int, centre: np.ndarray, increment: np.ndarray) -> None:
+        """Append a frame whose pose is the previous one's plus a step of covariance
+        ``increment`` (6, 6, twist about the camera ``centre``) to the window."""
+        to_origin = _twist_to_origin(centre)
+        cross = self._joint[-1].copy()
+        total = self._joint[-1, -1] + to_origin @ increment @ to_origin.T
+        self._append_window(index, cross, total)
+
+    def _append_window(self, index: int, cross: np.ndarray, total: np.ndarray) -> None:
+        count = len(self._window)
+        joint = np.zeros((count + 1, count + 1, 6, 6))
+        joint[:count, :count] = self._joint
+        joint[count, :count] = cross
+        joint[:count, count] = cross.transpose(0, 2, 1)
+        joint[count, count] = total
+        self._window = np.append(self._window, index)
+        self._joint = joint
+
+    def _prune_window(self, index: int) -> None:
+        """Keep the frames that some map point still carries, and frame ``index``."""
+        ids = self._ids[self._has_map].tolist()
+        referenced = np.unique(np.concatenate([[index]] + [self._anchors[i][0] for i in ids]))
+        keep = np.isin(self._window, referenced)
+        if not keep.all():
+            self._window = self._window[keep]
+            self._joint = self._joint[keep][:, keep]
 
     def _essential_covariance(self, position: np.ndarray) -> np.ndarray:
         cfg = self.config
@@ -691,6 +888,7 @@ class StereoVisualOdometry:
             position=np.stack([f.position for f in frames]) if frames else np.zeros((0, 3)),
             rotation=np.stack([f.rotation for f in frames]) if frames else np.zeros((0, 3, 3)),
             covariance=covariance,
+            pixel_sigma=np.array([f.pixel_sigma for f in frames]),
             tracked=np.array([f.tracked for f in frames], np.int64),
             map_tracked=np.array([f.map_tracked for f in frames], np.int64),
             inliers=np.array([f.inliers for f in frames], np.int64),
