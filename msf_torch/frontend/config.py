@@ -38,7 +38,11 @@ class EskfConfig:
     init_velocity_sigma_mps: float = 0.5
     init_roll_pitch_sigma_rad: float = 0.03  # tilt from a moving accelerometer (motion part)
     init_yaw_sigma_unknown_rad: float = 3.141592653589793  # no heading source at all
-    init_yaw_sigma_rad: float = 0.05  # 20 m GNSS-track alignment: 0.034 rad rms (sim seeds 200-219)
+    # heading sigma when the first pose measurement gives the heading (and the attitude scale
+    # of a reset's sigma cap); a GNSS-track heading gets the sigma of the estimate made
+    # instead (frontend.init.alignment_yaw_variance), with no floor: over sim seeds
+    # 100-899 that model alone gives yaw error / sigma of std 0.97, a constant 0.05 gave 0.68
+    init_yaw_sigma_rad: float = 0.05
     init_gyro_bias_sigma_radps: float = 3.5e-3
     init_accel_bias_sigma_mps2: float = 0.05
     init_gyro_bias_radps: list[float] = field(default_factory=lambda: [0.0, 0.0, 0.0])

@@ -1,24 +1,31 @@
 """Initial state of the front end from the first seconds of each sequence.
 
 Roll and pitch come from the mean accelerometer reading over ``init_window_s`` (gravity
-direction). Yaw, in order of preference: the first pose measurement (a heading source);
-with GNSS and wheels, the 2-D rotation that best aligns the wheel/gyro dead-reckoned path
-with the GNSS track up to ``init_min_gnss_distance_m`` from the first fix (2-D Kabsch on
-the centred tracks; the aligned dead-reckoning origin is the initial position); with GNSS
-only, the course of the first GNSS displacement of that length; else 0 with a heading sigma
-of ``init_yaw_sigma_unknown_rad`` (pi; the world frame then starts aligned with the body).
-A track that never gets that far but reaches a quarter of it is used up to its farthest
-fix, the heading sigma scaled by the shortfall. Biases and the other uncertainties come
-from the config; the initial covariance carries the correlations the initialisation
-creates: roll and pitch with the accelerometer bias (the tilt is read from the biased accelerometer;
-``init_roll_pitch_sigma_rad`` is the part from motion during the window), and a velocity
-built from a body-frame wheel speed with the attitude (``dv = -R [v_b]x dtheta``; the
-velocity sigma is then body-frame).
+direction). Yaw, in order of preference: the first pose measurement (a heading source,
+sigma ``init_yaw_sigma_rad``); with GNSS and wheels, the 2-D rotation that best aligns the
+wheel/gyro dead-reckoned path with the GNSS track up to ``init_min_gnss_distance_m`` from
+the first fix (2-D Kabsch on the centred tracks; the aligned dead-reckoning origin is the
+initial position); with GNSS only, the course of the first GNSS displacement of that
+length; else 0 with a heading sigma of ``init_yaw_sigma_unknown_rad`` (pi; the world frame
+then starts aligned with the body). A track that never gets that far but reaches a quarter
+of it is used up to its farthest fix. A GNSS heading's sigma is that of the estimate made
+(:func:`alignment_yaw_variance`: the fixes' noise over the track's spread, and the gyro
+bias and white noise bending the dead-reckoned track; for a course, the two fixes' noise
+across the baseline and the gyro's heading swing over it; plus the prior of an
+IMU-to-vehicle rotation being calibrated, the track running along the vehicle's axis).
+Biases and the other uncertainties come from the config; the initial covariance carries the
+correlations the initialisation creates: roll and pitch with the accelerometer bias (the
+tilt is read from the biased accelerometer; ``init_roll_pitch_sigma_rad`` is the part from
+motion during the window), and a velocity built from a body-frame wheel speed with the
+attitude (``dv = -R [v_b]x dtheta``; the velocity sigma is then body-frame). The Kabsch
+yaw's error also shares the gyro bias error that bent the track (the gain of
+:func:`alignment_yaw_variance`); that correlation is not put into the covariance (see
+docs/frontend.md: it helps the NEES but keeps a stuck-gyro fault from being reset).
 """
 
 from __future__ import annotations
 
-__all__ = ["initial_state"]
+__all__ = ["alignment_yaw_variance", "initial_state"]
 
 import math
 from collections.abc import Callable
@@ -63,6 +70,73 @@ def _imu_reader(
         return getattr(seq.imu, name)[b].detach().cpu().numpy()[index[selection]]
 
     return seq.imu.t[b].detach().cpu().numpy()[index], read
+
+
+def alignment_yaw_variance(
+    track: np.ndarray,
+    fix_sigma: np.ndarray,
+    fix_t: np.ndarray,
+    step_t: np.ndarray,
+    step: np.ndarray,
+    gyro_bias_sigma: float,
+    gyro_noise_density: float,
+) -> tuple[float, float]:
+    """Variance of the 2-D Kabsch yaw that aligns a dead-reckoned track with GNSS fixes.
+
+    The initialiser rotates the centred dead-reckoned (DR) points ``d_i`` onto the centred
+    fixes ``g_i``: ``yaw = atan2(sum d_i x g_i, sum d_i . g_i)``. With ``g_i = R(yaw) d0_i +
+    n_i`` (fix noise) and ``d_i = d0_i + e_i`` (DR error), to first order
+
+        yaw_hat - yaw = (sum_i r_i x n_i - sum_i r_i x e_i) / S,   S = sum_i |r_i|^2,
+
+    ``r_i`` the centred track (world frame; the centring drops out since ``sum r_i = 0``).
+    Fix noise independent per axis: ``var = sum_i (r_iy^2 sx_i^2 + r_ix^2 sy_i^2) / S^2``
+    (``sigma^2 / S`` when isotropic). The DR track is integrated from the gyro yaw rate, whose
+    heading error ``psi(s) = db s + w(s)`` (turn-on bias error ``db``, sigma
+    ``gyro_bias_sigma``; angle random walk ``w``, density ``gyro_noise_density``) bends it:
+    ``e_i = sum_{t_k < t_i} psi_k J step_k`` (``J`` the 90-degree turn) and ``r x (J a) =
+    r . a``, so ``sum_i r_i x e_i = sum_k psi_k H_k`` with ``H_k = (sum_{i: t_i > t_k} r_i) .
+    step_k``. Hence ``var += (gyro_bias_sigma^2 (sum_k t_k H_k)^2 + q^2 sum_j dt_j
+    (sum_{k > j} H_k)^2) / S^2``; the yaw error (truth minus estimate) moves with the bias
+    error (truth minus estimate) by the gain ``sum_k t_k H_k / S`` per rad/s. A common
+    wheel scale error scales the DR track and leaves the rotation unchanged; wheel speed
+    noise (mm over a 20 m track) and the bias random walk over the fitting seconds are
+    neglected.
+
+    Args:
+        track: (M, 2) centred aligned track at the fixes, world frame, m.
+        fix_sigma: (M, 2) 1-sigma noise of each fix east and north, m.
+        fix_t: (M,) fix times since the first IMU sample, s.
+        step_t: (N,) IMU sample times since the first IMU sample up to the last fix, s.
+        step: (N, 2) DR displacement over each IMU interval, world frame, m.
+        gyro_bias_sigma: 1-sigma yaw gyro bias error, rad/s.
+        gyro_noise_density: gyro white noise, rad/s/sqrt(Hz).
+
+    Returns:
+        The yaw variance, rad^2, and ``d(yaw error) / d(gyro bias z error)``, s.
+
+    Example:
+        >>> track = np.stack((np.linspace(-10, 10, 11), np.zeros(11)), 1)
+        >>> var, gain = alignment_yaw_variance(
+        ...     track, np.full((11, 2), 0.5), np.arange(11.0), np.zeros(1), np.zeros((1, 2)),
+        ...     0.0, 0.0)
+        >>> round(var**0.5, 4)  # 0.5 m / sqrt(sum of squared offsets, 440 m^2)
+        0.0238
+    """
+    spread = float((track**2).sum())
+    fixes = (
+        track[:, 1] ** 2 * fix_sigma[:, 0] ** 2 + track[:, 0] ** 2 * fix_sigma[:, 1] ** 2
+    ).sum()
+    # sum of the centred fixes after each IMU sample: later[k] = sum_{i: t_i > t_k} r_i
+    after = np.concatenate((np.cumsum(track[::-1], 0)[::-1], np.zeros((1, 2))))
+    later = after[np.searchsorted(fix_t, step_t, side="right")]
+    weight = (later * step).sum(1)  # H_k, m^2
+    gain = float((step_t * weight).sum()) / spread
+    dt = np.diff(step_t, append=step_t[-1])
+    tail = np.cumsum(weight[::-1])[::-1] - weight  # sum_{k > j} H_k
+    walk = gyro_noise_density**2 * float((dt * tail**2).sum())
+    variance = (fixes + walk) / spread**2 + (gyro_bias_sigma * gain) ** 2
+    return float(variance), gain
 
 
 def _one(
@@ -111,25 +185,19 @@ def _one(
         usable = far.size or reach >= 0.25 * cfg.init_min_gnss_distance_m
         if usable:
             k = far[0] if far.size else int(np.argmax(dist))
-            yaw_sigma = cfg.init_yaw_sigma_rad * max(
-                1.0, cfg.init_min_gnss_distance_m / max(float(dist[k]), 1e-9)
-            )
+            sig = gnss["sigma"][: k + 1, :2]
+            fallback = np.asarray(cfg.gnss_sigma_m[:2], dtype=np.float64)
+            fix_sigma = np.where(np.isfinite(sig) & (sig > 0), sig, fallback)
             if wheel is not None:
                 # dead-reckon with wheel speed and gyro yaw rate in the initial heading frame
                 speed = np.interp(
                     imu_t, wheel["t"], 0.5 * (wheel["left_speed"] + wheel["right_speed"])
                 )
                 dt = np.diff(imu_t, append=imu_t[-1])
-                yaw_rate = read_imu("gyro", slice(None))[:, 2]
+                yaw_rate = read_imu("gyro", slice(None))[:, 2] - cfg.init_gyro_bias_radps[2]
                 heading = np.cumsum(yaw_rate * dt) - yaw_rate * dt
-                path = np.stack(
-                    (
-                        np.cumsum(speed * np.cos(heading) * dt),
-                        np.cumsum(speed * np.sin(heading) * dt),
-                    ),
-                    1,
-                )
-                path = np.vstack((np.zeros(2), path[:-1]))
+                step = np.stack((speed * np.cos(heading), speed * np.sin(heading)), 1) * dt[:, None]
+                path = np.vstack((np.zeros(2), np.cumsum(step, 0)[:-1]))
                 dr = np.stack(
                     [np.interp(gnss["t"][: k + 1], imu_t, path[:, i]) for i in range(2)], 1
                 )
@@ -143,11 +211,40 @@ def _one(
                 c, s_ = math.cos(yaw), math.sin(yaw)
                 origin = gg.mean(0) - np.array([[c, -s_], [s_, c]]) @ dr.mean(0)
                 anchored = np.array([origin[0], origin[1], g0[2]])
+                inside = imu_t <= gnss["t"][k]
+                to_world = np.array([[c, s_], [-s_, c]])  # row vectors: r @ R(yaw)^T
+                model_var, _ = alignment_yaw_variance(
+                    dr_c @ to_world,
+                    fix_sigma,
+                    gnss["t"][: k + 1] - t0,
+                    imu_t[inside] - t0,
+                    step[inside] @ to_world,
+                    cfg.init_gyro_bias_sigma_radps,
+                    cfg.gyro_noise_density,
+                )
             else:
                 delta = gnss["position"][k] - g0
                 yaw = math.atan2(delta[1], delta[0])
                 elapsed = max(gnss["t"][k] - gnss["t"][0], 1e-3)
                 velocity = np.array([delta[0], delta[1], 0.0]) / elapsed
+                # the course of the baseline moves with the two fixes' noise across it, and
+                # differs from the initial heading by at most the gyro's heading swing over
+                # the baseline's seconds (a course is a mean of the headings travelled)
+                across = np.array([-math.sin(yaw), math.cos(yaw)])
+                inside = imu_t <= gnss["t"][k]
+                dt = np.diff(imu_t[inside], append=imu_t[inside][-1])
+                yaw_rate = read_imu("gyro", inside)[:, 2] - cfg.init_gyro_bias_radps[2]
+                swing = float(np.abs(np.cumsum(yaw_rate * dt)).max())
+                model_var = (
+                    float(((fix_sigma[[0, k]] * across) ** 2).sum())
+                    / max(float(dist[k]), 1e-9) ** 2
+                    + swing**2
+                )
+            if cfg.calibrate_imu_body_rotation:
+                # the track runs along the vehicle's x axis, the heading wanted is the IMU's:
+                # an IMU-to-vehicle yaw still to be calibrated adds its prior uncertainty
+                model_var += cfg.calibration_rotation_sigma_rad**2
+            yaw_sigma = math.sqrt(model_var)
     rot = _rpy_matrix(roll, pitch, yaw)
     body_velocity = np.zeros(3)
     if wheel is not None:
