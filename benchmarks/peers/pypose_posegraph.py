@@ -21,7 +21,7 @@ the cost, GTSAM's rule, or after ``max_iterations`` steps.
 
 from __future__ import annotations
 
-__all__ = ["run_pypose_lm", "dense_sizes"]
+__all__ = ["run_pypose_lm", "dense_sizes", "step_lm"]
 
 import time
 from typing import Any
@@ -51,6 +51,24 @@ def _lie(rotation: torch.Tensor, translation: torch.Tensor) -> Any:
 
     q = matrix_to_quat(rotation)  # [w, x, y, z]
     return pp.SE3(torch.cat((translation, q[..., 1:], q[..., :1]), -1))
+
+
+def step_lm(
+    optimizer: Any, inputs: Any, initial: float, relative_tolerance: float, max_iterations: int
+) -> list[float]:
+    """Costs (GTSAM's convention, half PyPose's loss) after each ``optimizer.step(inputs)``
+    of a PyPose LM, from ``initial``, until a step lowers the cost by at most
+    ``relative_tolerance`` times the cost (GTSAM's rule) or ``max_iterations`` steps."""
+    costs: list[float] = []
+    last = initial
+    for _ in range(max_iterations):
+        cost = 0.5 * float(optimizer.step(input=inputs))
+        costs.append(cost)
+        done = last - cost <= relative_tolerance * last
+        last = cost
+        if done:
+            break
+    return costs
 
 
 def run_pypose_lm(
@@ -94,15 +112,8 @@ def run_pypose_lm(
     )
     with torch.no_grad():
         initial = 0.5 * float(module(edges, measured).square().sum())
-    costs: list[float] = []
-    last = initial
-    for _ in range(max_iterations):
-        cost = 0.5 * float(optimizer.step(input=(edges, measured)))
-        costs.append(cost)
-        done = last - cost <= relative_tolerance * last
-        last = cost
-        if done:
-            break
+    costs = step_lm(optimizer, (edges, measured), initial, relative_tolerance, max_iterations)
+    last = costs[-1] if costs else initial
     wall = time.perf_counter() - start
     with torch.no_grad():
         poses = torch.cat((module.root, module.nodes), 0).tensor()

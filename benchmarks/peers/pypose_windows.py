@@ -31,6 +31,7 @@ from typing import Any
 
 import torch
 
+from benchmarks.peers.pypose_posegraph import step_lm
 from msf_torch.backend.problem import Problem
 from msf_torch.backend.variables import pack_nav_state, unpack_nav_state
 from msf_torch.geometry.quaternion import matrix_to_quat
@@ -101,21 +102,14 @@ def solve_pypose_window(
     optimizer = pp.optim.LM(module, solver=pp.optim.solver.Cholesky())
     with torch.no_grad():
         initial = 0.5 * float(module().square().sum())
-    last, steps = initial, 0
-    for _ in range(max_iterations):
-        cost = 0.5 * float(optimizer.step(input=None))
-        steps += 1
-        done = last - cost <= relative_tolerance * last
-        last = cost
-        if done:
-            break
+    costs = step_lm(optimizer, None, initial, relative_tolerance, max_iterations)
     wall = time.perf_counter() - start
     with torch.no_grad():
         solved = module.states().detach()
     return {
         "values": solved,
         "initial_cost": initial,
-        "final_cost": last,
-        "iterations": steps,
+        "final_cost": costs[-1] if costs else initial,
+        "iterations": len(costs),
         "wall_s": wall,
     }
