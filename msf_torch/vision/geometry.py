@@ -48,6 +48,9 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
+import torch
+
+from msf_torch.sensors.camera import reprojection_residual
 
 
 def camera_to_opencv(rotation_wc: np.ndarray, centre: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -328,15 +331,28 @@ def uncertain_point_pnp(
         ``C`` (6, 6) over the twist ``[dt (m), dtheta (rad)]`` about ``centre`` (world axes),
         and ``G`` (M, 6, 3).
     """
-    rel = np.asarray(points_world, np.float64) - centre
-    cam = rel @ rotation_wc
-    x, y, z = cam[:, 0], cam[:, 1], cam[:, 2]
-    fx, fy = camera_matrix[0, 0], camera_matrix[1, 1]
-    proj = np.zeros((len(z), 2, 3))
-    proj[:, 0, 0], proj[:, 0, 2] = fx / z, -fx * x / z**2
-    proj[:, 1, 1], proj[:, 1, 2] = fy / z, -fy * y / z**2
-    p = proj @ rotation_wc.T  # (M, 2, 3) du/dX
-    motion = np.concatenate((np.broadcast_to(np.eye(3), (len(z), 3, 3)), -skew(rel)), -1)
+    points = np.asarray(points_world, np.float64)
+    rel = points - centre
+    count = len(points)
+    # du/dX (M, 2, 3): the landmark Jacobian of the reprojection residual (sensors.camera),
+    # the camera itself as the "body" (no mount offset)
+    intrinsics = (
+        float(camera_matrix[0, 0]),
+        float(camera_matrix[1, 1]),
+        float(camera_matrix[0, 2]),
+        float(camera_matrix[1, 2]),
+    )
+    _, _, d_landmark = reprojection_residual(
+        torch.as_tensor(np.asarray(centre, np.float64)).expand(count, 3),
+        torch.as_tensor(np.asarray(rotation_wc, np.float64)).expand(count, 3, 3),
+        torch.as_tensor(points),
+        torch.eye(3, dtype=torch.float64),
+        torch.zeros(3, dtype=torch.float64),
+        torch.zeros(count, 2, dtype=torch.float64),
+        intrinsics,
+    )
+    p = d_landmark.numpy()
+    motion = np.concatenate((np.broadcast_to(np.eye(3), (count, 3, 3)), -skew(rel)), -1)
     jac = -p @ motion  # (M, 2, 6)
     inverse = np.linalg.inv(np.einsum("mai,maj->ij", jac, jac))
     noise = pixel_covariance + p @ point_covariance @ p.transpose(0, 2, 1)
