@@ -389,14 +389,20 @@ def residual_change(
 
 
 def camera_twist_to_body(
-    covariance: np.ndarray, rotation_wb: np.ndarray, body_translation_cam: np.ndarray
+    covariance: np.ndarray,
+    rotation_wb: np.ndarray,
+    body_translation_cam: np.ndarray,
+    inverse: bool = False,
 ) -> np.ndarray:
     """Covariance (6, 6) over the body pose's ``[dp (world), dtheta (body)]`` of a covariance
     (6, 6) over the camera's twist ``[dt, dtheta]`` about its centre (world axes), for a
     camera at ``t_bc`` in the body: ``p_b = c - R_wb t_bc`` gives
-    ``dp = dt + [R_wb t_bc]x dtheta``, and ``dtheta_body = R_wb^T dtheta``."""
+    ``dp = dt + [R_wb t_bc]x dtheta``, and ``dtheta_body = R_wb^T dtheta``. With
+    ``inverse`` the opposite map (body covariance to the camera's twist)."""
     jac = np.zeros((6, 6))
     jac[:3, :3] = np.eye(3)
     jac[:3, 3:] = skew(rotation_wb @ body_translation_cam)
     jac[3:, 3:] = rotation_wb.T
+    if inverse:
+        jac = np.linalg.inv(jac)
     return jac @ covariance @ jac.T

@@ -365,18 +365,6 @@ def _twist_to_origin(centre: np.ndarray) -> np.ndarray:
     return out
 
 
-def _body_to_twist(
-    covariance: np.ndarray, rotation_wb: np.ndarray, body_translation_cam: np.ndarray
-) -> np.ndarray:
-    """The inverse map of :func:`~msf_torch.vision.geometry.camera_twist_to_body`: body
-    ``[dp (world), dtheta (body)]`` covariance (6, 6) to the camera's twist about its centre."""
-    jac = np.zeros((6, 6))
-    jac[:3, :3] = np.eye(3)
-    jac[:3, 3:] = -skew(rotation_wb @ body_translation_cam) @ rotation_wb
-    jac[3:, 3:] = rotation_wb
-    return jac @ covariance @ jac.T
-
-
 class StereoVisualOdometry:
     """Stereo visual odometry (see the module docstring). Feed frames in time order with
     :meth:`process`, or a whole sequence with :meth:`run`.
@@ -704,7 +692,9 @@ class StereoVisualOdometry:
         elif status in ("essential", "lost"):
             # the fallback's step covariance stands for the increment (the anchors' history)
             step_covariance = self._essential_covariance(position)
-            increment = _body_to_twist(step_covariance, rotation, self.body_translation_cam)
+            increment = camera_twist_to_body(
+                step_covariance, rotation, self.body_translation_cam, inverse=True
+            )
             self._step_increment(index, opencv_to_camera(rvec, tvec)[1], increment)
             if status == "essential":
                 covariance = step_covariance

@@ -183,3 +183,5 @@ def test_camera_twist_to_body_matches_finite_differences():
     mapped = camera_twist_to_body(covariance, rotation0, translation_bc)
     assert np.allclose(mapped, expected, rtol=1e-6, atol=1e-12)
     assert np.allclose(position0, centre - rotation0 @ translation_bc)
+    back = camera_twist_to_body(mapped, rotation0, translation_bc, inverse=True)
+    assert np.allclose(back, covariance, rtol=1e-9, atol=1e-15)  # the odometry's inverse map
