@@ -43,13 +43,13 @@ __all__ = [
     "camera_twist_to_body",
 ]
 
-import math
 from dataclasses import dataclass
 
 import cv2
 import numpy as np
 import torch
 
+from msf_torch.geometry import so3
 from msf_torch.sensors.camera import reprojection_residual
 
 
@@ -243,24 +243,16 @@ def body_pose(
 
 
 def rotation_log(rotation: np.ndarray) -> np.ndarray:
-    """Rotation vector (3,) rad of a rotation matrix (3, 3), accurate near the identity
-    (``cv2.Rodrigues`` returns 0 below 1e-5 rad); angles up to just below pi."""
-    skew = 0.5 * (rotation - rotation.T)
-    axis = np.array([skew[2, 1], skew[0, 2], skew[1, 0]])
-    sin = float(np.linalg.norm(axis))
-    cos = 0.5 * (float(np.trace(rotation)) - 1.0)
-    angle = math.atan2(sin, cos)
-    return axis if sin < 1e-12 else axis * (angle / sin)
+    """Rotation vector (..., 3) rad of rotation matrices (..., 3, 3): numpy face of
+    :func:`msf_torch.geometry.so3.log` (accurate at the identity and up to a half turn;
+    ``cv2.Rodrigues`` returns 0 below 1e-5 rad)."""
+    return so3.log(torch.as_tensor(np.asarray(rotation, np.float64))).numpy()
 
 
 def skew(vectors: np.ndarray) -> np.ndarray:
-    """Cross-product matrices ``[v]x`` (..., 3, 3) of vectors (..., 3): ``[v]x w = v x w``."""
-    v = np.asarray(vectors, np.float64)
-    out = np.zeros((*v.shape[:-1], 3, 3))
-    out[..., 0, 1], out[..., 0, 2] = -v[..., 2], v[..., 1]
-    out[..., 1, 0], out[..., 1, 2] = v[..., 2], -v[..., 0]
-    out[..., 2, 0], out[..., 2, 1] = -v[..., 1], v[..., 0]
-    return out
+    """Cross-product matrices ``[v]x`` (..., 3, 3) of vectors (..., 3): ``[v]x w = v x w``;
+    numpy face of :func:`msf_torch.geometry.so3.hat`."""
+    return so3.hat(torch.as_tensor(np.asarray(vectors, np.float64))).numpy()
 
 
 def stereo_point_covariance(
