@@ -11,8 +11,9 @@ error ``Log_SE3(Z_ij^-1 T_i^-1 T_j)`` in [rho, phi] order with covariance
 
 i.e. exactly GTSAM's ``NonlinearFactorGraph.error`` of ``BetweenFactor<Pose3>`` factors with
 ``noiseModel::Gaussian.Information(M)`` (robust: ``noiseModel::Robust`` around it). The
-gauge is fixed by holding chosen vertices constant (the first one by default), where GTSAM
-would add a prior.
+gauge is fixed by holding chosen vertices constant, where GTSAM would add a prior: by default
+those the file's ``FIX`` records name (``PoseGraph.fixed_ids``, as g2o does), else the first
+vertex.
 
 ``dof=4`` solves the same cost over x, y, z and yaw only, holding every vertex's roll and
 pitch (visual-inertial runs, where gravity makes them observable):
@@ -125,7 +126,7 @@ def pose_graph_config(
 def pose_graph_problem(
     graph: PoseGraph,
     robust: RobustKernel | None = None,
-    fixed: Sequence[int] | torch.Tensor = (0,),
+    fixed: Sequence[int] | torch.Tensor | None = None,
     dof: int = 6,
 ) -> Problem:
     """The B = 1 least-squares problem of a pose graph.
@@ -133,7 +134,8 @@ def pose_graph_problem(
     Args:
         graph: N vertices, E edges (any device; float64 recommended).
         robust: kernel applied to every edge, or None.
-        fixed: row indices (not file ids) of the vertices held constant.
+        fixed: row indices (not file ids) of the vertices held constant; None holds the
+            rows of ``graph.fixed_ids`` (the file's ``FIX`` records), else the first vertex.
         dof: 6 (full poses) or 4 (x, y, z, yaw; roll and pitch held).
 
     Returns:
@@ -149,6 +151,8 @@ def pose_graph_problem(
     graph.check()
     n = graph.num_vertices
     device, dtype = graph.positions.device, graph.positions.dtype
+    if fixed is None:
+        fixed = graph.fixed_rows() if graph.fixed_ids else (0,)
     index = torch.as_tensor(fixed, dtype=torch.int64, device=device).reshape(-1)
     if index.numel() and (int(index.min()) < 0 or int(index.max()) >= n):
         raise ValueError(f"fixed vertex indices must lie in [0, {n}), got {index.tolist()}")
@@ -173,7 +177,7 @@ def optimize_pose_graph(
     graph: PoseGraph,
     robust: RobustKernel | None = None,
     config: LMConfig | None = None,
-    fixed: Sequence[int] | torch.Tensor = (0,),
+    fixed: Sequence[int] | torch.Tensor | None = None,
     dof: int = 6,
 ) -> PoseGraphResult:
     """Optimise the vertex poses of a pose graph by Levenberg-Marquardt (GTSAM's cost).
@@ -183,7 +187,8 @@ def optimize_pose_graph(
             sparse solver).
         robust: kernel on every edge (e.g. ``RobustKernel("cauchy", 1.0)``), or None.
         config: LM settings; default :func:`pose_graph_config` ``()``.
-        fixed: row indices of the vertices held constant (gauge); default the first.
+        fixed: row indices of the vertices held constant (gauge); default (None) the
+            vertices the file's ``FIX`` records name (``graph.fixed_ids``), else the first.
         dof: 6 (full poses) or 4 (x, y, z and yaw move; every vertex keeps its roll and
             pitch: visual-inertial graphs).
 

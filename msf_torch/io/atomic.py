@@ -33,13 +33,14 @@ def _default_mode_bits(target: Path) -> int:
 def atomic_write(path: str | os.PathLike[str], mode: str = "w", **kw: Any) -> Iterator[IO[Any]]:
     """Open a temporary file next to ``path``; on success move it onto ``path``.
 
-    The temporary file lives in the same folder (so ``os.replace`` is an atomic rename on
+    Missing parent folders of ``path`` are created first. The temporary file lives in the
+    same folder (so ``os.replace`` is an atomic rename on
     POSIX and Windows). If the ``with`` body raises, the temporary file is removed and the
     target is untouched. The new file gets the old file's permission bits, or the usual
     ``0o666 & ~umask`` for a new file.
 
     Args:
-        path: target file; its folder must exist.
+        path: target file; its parent folders are created when missing.
         mode: ``"w"``/``"wt"`` (text, the default) or ``"wb"`` (binary); ``"x"`` and ``"a"``
             are not supported.
         **kw: passed to ``open`` (e.g. ``newline=""``); text mode defaults to
@@ -47,6 +48,10 @@ def atomic_write(path: str | os.PathLike[str], mode: str = "w", **kw: Any) -> It
 
     Yields:
         the open file object.
+
+    Raises:
+        OSError: the folder cannot be created or written (the message names ``path``, not
+            the temporary file).
 
     Example:
         >>> with atomic_write(tmp / "out.txt") as f:  # doctest: +SKIP
@@ -57,7 +62,15 @@ def atomic_write(path: str | os.PathLike[str], mode: str = "w", **kw: Any) -> It
     target = Path(path)
     if "b" not in mode:
         kw.setdefault("encoding", "utf-8")
-    fd, tmp_name = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent)
+    try:
+        target.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        problem = f"cannot create the folder {target.parent} of {target}: {err.strerror}"
+        raise OSError(err.errno, problem) from err
+    try:
+        fd, tmp_name = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent)
+    except OSError as err:
+        raise OSError(err.errno, f"cannot write {target}: {err.strerror}") from err
     try:
         with os.fdopen(fd, mode, **kw) as handle:
             yield handle

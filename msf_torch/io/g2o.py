@@ -15,8 +15,11 @@ Formats
       Rx(roll)`` (GTSAM's ``Rot3.Ypr(yaw, pitch, roll)``).
     * ``EDGE3 i j x y z roll pitch yaw`` + 21 numbers -- TORO 3-D edge, same rotation rule,
       upper triangle of the information matrix (order: see below).
+    * ``FIX id [id ...]`` -- g2o's gauge record: these vertices are held fixed by the
+      optimiser (``PoseGraph.fixed_ids``; :func:`~msf_torch.backend.posegraph.optimize_pose_graph`
+      holds them instead of the first vertex).
 
-    A file may mix the four tags. A file with edges and no vertices (``sphere2500.txt``) is
+    A file may mix these tags. A file with edges and no vertices (``sphere2500.txt``) is
     read with ``has_vertices=False``: the initial poses are chained from the lowest id
     (identity) along the odometry edges ``k -> k+1`` (the first such edge in the file; the
     ids must be consecutive), ``T_{k+1} = T_k T_{k,k+1}``.
@@ -57,11 +60,13 @@ Rules
     quaternion, a duplicate vertex id, an edge from a vertex to itself, an information
     matrix that is not positive definite, an edge naming a vertex the file does not define
     (when it defines any), a broken odometry chain (edge-only files), and any 2-D tag
-    (``VERTEX_SE2``, ``EDGE2``, ...: this reader is for 3-D graphs). Other tags (``FIX``,
-    ``VERTEX_TRACKXYZ``, ``EDGE_SE3_TRACKXYZ``, ``PARAMS_SE3OFFSET``, ...) are skipped, as
-    GTSAM's pose-graph loader skips them, and counted per tag in ``PoseGraph.skipped``; pass
-    ``unknown_tags="error"`` to raise instead. ``FIX`` is skipped because the gauge is the
-    estimator's business.
+    (``VERTEX_SE2``, ``EDGE2``, ...: this reader is for 3-D graphs), and a ``FIX`` naming a
+    vertex the graph does not have. Other tags (``VERTEX_TRACKXYZ``,
+    ``EDGE_SE3_TRACKXYZ``, ``PARAMS_SE3OFFSET``, ``EDGE_SE3_PRIOR``, ...) are skipped, as
+    GTSAM's pose-graph loader skips them, counted per tag in ``PoseGraph.skipped`` and
+    reported by one ``UserWarning`` (each tag's count and first line); pass
+    ``unknown_tags="error"`` to raise instead. A file whose only edges carry skipped tags (no
+    pose edge at all) is a DataError naming those tags: there is no pose graph to solve.
 """
 
 from __future__ import annotations
@@ -81,6 +86,7 @@ __all__ = [
 import math
 import os
 import re
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
@@ -126,7 +132,8 @@ _TAGS_2D = frozenset(
     {"VERTEX", "VERTEX2", "EDGE", "EDGE2", "ODOMETRY", "LANDMARK", "LANDMARK2", "BR", "EQUIV"}
 )
 _ID = re.compile(r"[0-9]+")
-_TAGS = f"{G2O_VERTEX_TAG}, {G2O_EDGE_TAG}, {TORO_VERTEX_TAG}, {TORO_EDGE_TAG}"
+_FIX_TAG = "FIX"
+_TAGS = f"{G2O_VERTEX_TAG}, {G2O_EDGE_TAG}, {TORO_VERTEX_TAG}, {TORO_EDGE_TAG}, {_FIX_TAG}"
 
 
 @dataclass(frozen=True)
@@ -176,6 +183,8 @@ class PoseGraph:
             graph built in memory).
         skipped: tag -> number of lines skipped (tags this reader does not use).
         source: the file read, or None.
+        fixed_ids: file ids of the vertices the file holds fixed (``FIX`` records), sorted;
+            empty when it names none (the optimiser then holds the first vertex).
     """
 
     vertex_ids: torch.Tensor
@@ -189,6 +198,7 @@ class PoseGraph:
     edge_lines: torch.Tensor | None = None
     skipped: dict[str, int] = field(default_factory=dict)
     source: str | None = None
+    fixed_ids: tuple[int, ...] = ()
 
     @property
     def num_vertices(self) -> int:
@@ -203,6 +213,22 @@ class PoseGraph:
     def edge_ids(self) -> torch.Tensor:
         """(E, 2) int64 file ids ``[id_i, id_j]`` of every edge."""
         return self.vertex_ids[self.edge_index]
+
+    def fixed_rows(self) -> torch.Tensor:
+        """(F,) int64 row indices (into the vertex arrays) of :attr:`fixed_ids`.
+
+        Raises:
+            ValueError: a fixed id that is not a vertex id.
+        """
+        fixed = torch.as_tensor(self.fixed_ids, dtype=torch.int64, device=self.vertex_ids.device)
+        n = self.num_vertices
+        rows = torch.searchsorted(self.vertex_ids, fixed)
+        known = rows < n
+        if n:
+            known &= self.vertex_ids[rows.clamp(max=n - 1)] == fixed
+        if not bool(known.all()):
+            raise ValueError(f"PoseGraph.fixed_ids: {fixed[~known].tolist()} are not vertex ids")
+        return rows
 
     def to(
         self, device: torch.device | str | None = None, dtype: torch.dtype | None = None
@@ -226,6 +252,7 @@ class PoseGraph:
             edge_lines=None if self.edge_lines is None else move(self.edge_lines),
             skipped=dict(self.skipped),
             source=self.source,
+            fixed_ids=self.fixed_ids,
         )
 
     def check(self) -> None:
@@ -259,6 +286,7 @@ class PoseGraph:
             raise ValueError("PoseGraph.vertex_ids: not strictly increasing")
         if e and (int(self.edge_index.min()) < 0 or int(self.edge_index.max()) >= n):
             raise ValueError(f"PoseGraph.edge_index: row indices outside [0, {n})")
+        self.fixed_rows()
 
 
 # ----------------------------------------------------------------------------- reading
@@ -404,25 +432,32 @@ def read_pose_graph(
     Args:
         path: the file.
         unknown_tags: ``"skip"`` (default) skips and counts lines whose tag is not a 3-D pose
-            tag (``FIX``, landmark records, ...); ``"error"`` raises DataError on them. 2-D
-            pose-graph tags always raise.
+            tag or ``FIX`` (landmark records, priors, ...) and warns once about them;
+            ``"error"`` raises DataError on them. 2-D pose-graph tags always raise.
 
     Returns:
         a :class:`PoseGraph` in float64 on the CPU: vertices sorted by id, edges in file
         order, information matrices in ``[dp, dtheta]`` order such that the whitened cost
         equals GTSAM's (module docstring); ``has_vertices=False`` and chained poses for a
-        file with edges only.
+        file with edges only; ``fixed_ids`` from the ``FIX`` records.
 
     Raises:
         DataError: naming file, line and field of the first bad record (module docstring
-            lists the rules); also a missing file or one without vertices and edges.
+            lists the rules); also a missing file, one without vertices and edges, and one
+            with skipped tags but no pose edge (the message names the skipped tags).
         ValueError: an unknown ``unknown_tags``.
+
+    Warns:
+        UserWarning: once per file when lines were skipped, with each skipped tag's count
+            and first line.
     """
     if unknown_tags not in ("skip", "error"):
         raise ValueError(f"unknown_tags must be 'skip' or 'error', got {unknown_tags!r}")
     path_str = os.fspath(path)
     records = {tag: _Records() for tag in _SPECS}
     skipped: dict[str, int] = {}
+    skipped_first: dict[str, int] = {}
+    fixes: dict[int, int] = {}  # FIX'd id -> line of its first FIX record
     vertex_line: dict[int, int] = {}
     for line_no, raw in enumerate(_tables.split_lines(_tables.read_text(path_str)), start=1):
         tokens = raw.split("#", 1)[0].split()
@@ -430,6 +465,12 @@ def read_pose_graph(
             continue
         tag = tokens[0]
         spec = _SPECS.get(tag)
+        if tag == _FIX_TAG:
+            if len(tokens) < 2:
+                raise DataError(path_str, "FIX names no vertex id", line=line_no, field="id")
+            for token in tokens[1:]:
+                fixes.setdefault(_parse_id(path_str, token, line_no, "id"), line_no)
+            continue
         if spec is None:
             if _is_2d_tag(tag):
                 raise DataError(
@@ -447,6 +488,7 @@ def read_pose_graph(
                     field="tag",
                 )
             skipped[tag] = skipped.get(tag, 0) + 1
+            skipped_first.setdefault(tag, line_no)
             continue
         _parse_line(path_str, spec, tokens, line_no, records[tag])
         if not spec.edge:
@@ -504,6 +546,16 @@ def read_pose_graph(
         v_rot.append(_rotations(vals, _SPECS[t].quat))
         v_pos.append(vals[:, :3])
     has_vertices = v_ids.size > 0
+    tally = ", ".join(
+        f"{_tables.shown(tag)} x{count} (first on line {skipped_first[tag]})"
+        for tag, count in skipped.items()
+    )
+    if skipped and not e_lines.size:
+        raise DataError(
+            path_str,
+            f"no pose edges ({G2O_EDGE_TAG} or {TORO_EDGE_TAG}), only tags this reader does "
+            f"not read: {tally} (tags read: {_TAGS})",
+        )
     if not has_vertices and not e_lines.size:
         raise DataError(path_str, f"no vertices or edges (tags read: {_TAGS})")
 
@@ -528,6 +580,19 @@ def read_pose_graph(
         rotations, positions = _chain(
             path_str, vertex_ids, e_pairs, edge_rotations, edge_translations, e_lines
         )
+    unknown_fix = sorted(set(fixes) - set(vertex_ids.tolist()), key=fixes.__getitem__)
+    if unknown_fix:
+        vid = unknown_fix[0]
+        defined = "vertex line defines" if has_vertices else "edge names"
+        raise DataError(
+            path_str, f"FIX names vertex {vid}, which no {defined}", line=fixes[vid], field="id"
+        )
+    if skipped:
+        warnings.warn(
+            f"{path_str}: skipped {sum(skipped.values())} lines with tags this reader does not "
+            f"read: {tally} (tags read: {_TAGS})",
+            stacklevel=2,
+        )
 
     def f64(x: np.ndarray) -> torch.Tensor:
         return torch.as_tensor(np.ascontiguousarray(x), dtype=torch.float64)
@@ -547,6 +612,7 @@ def read_pose_graph(
         edge_lines=i64(e_lines),
         skipped=skipped,
         source=path_str,
+        fixed_ids=tuple(sorted(fixes)),
     )
     graph.check()
     return graph
@@ -570,9 +636,11 @@ def _check_rotations(rot: np.ndarray, what: str, labels: np.ndarray) -> None:
 
 
 def write_g2o(path: str | os.PathLike[str], graph: PoseGraph) -> Path:
-    """Write a pose graph as a g2o file (``VERTEX_SE3:QUAT`` and ``EDGE_SE3:QUAT``), atomically.
+    """Write a pose graph as a g2o file (``VERTEX_SE3:QUAT``, ``FIX``, ``EDGE_SE3:QUAT``),
+    atomically.
 
-    Vertices are written by id, then edges in order, each number as Python's shortest
+    Vertices are written by id, then one ``FIX id`` line per fixed vertex, then edges in
+    order, each number as Python's shortest
     round-trip decimal (``repr``), so ``read_pose_graph(write_g2o(p, g))`` gives back ``g``
     to about 1e-15 (rotations pass through a unit quaternion ``[x, y, z, w]``, ``w >= 0``).
     The information matrix is written as its upper triangle in ``[dp, dtheta]`` order,
@@ -580,7 +648,7 @@ def write_g2o(path: str | os.PathLike[str], graph: PoseGraph) -> Path:
     edge-only graph is written with its chained poses as vertices.
 
     Args:
-        path: the output file (its folder must exist).
+        path: the output file; missing parent folders are created.
         graph: the graph; any device and floating dtype (written as float64).
 
     Returns:
@@ -637,6 +705,8 @@ def write_g2o(path: str | os.PathLike[str], graph: PoseGraph) -> Path:
     with atomic_write(target, newline="") as handle:
         for vid, p, qv in zip(ids.tolist(), pos.tolist(), q.tolist(), strict=True):
             handle.write(f"{G2O_VERTEX_TAG} {vid} " + " ".join(map(repr, p + qv)) + "\n")
+        for vid in graph.fixed_ids:
+            handle.write(f"{_FIX_TAG} {vid}\n")
         for (i, j), t, qv, u in zip(
             pairs.tolist(), e_trans.tolist(), e_q.tolist(), upper.tolist(), strict=True
         ):

@@ -136,6 +136,25 @@ def test_other_fixed_vertex_and_bad_index(gtsam):
         optimize_pose_graph(graph, fixed=[graph.num_vertices])
 
 
+def test_fix_record_holds_its_vertex_instead_of_the_first(gtsam, tmp_path):
+    """g2o's ``FIX id``: that vertex is the gauge (unchanged by the solve), the others move,
+    and the result is the one of ``fixed=[its row]``."""
+    source = gtsam_pose_graph_path("pose3example.txt")
+    plain = read_pose_graph(source)
+    last = plain.num_vertices - 1
+    path = tmp_path / "fixed.g2o"
+    path.write_text(source.read_text().rstrip() + f"\nFIX {int(plain.vertex_ids[last])}\n")
+    graph = read_pose_graph(path)
+    assert graph.fixed_ids == (int(plain.vertex_ids[last]),)
+    result = optimize_pose_graph(graph, config=TIGHT)
+    assert torch.equal(result.graph.positions[last], graph.positions[last])
+    assert torch.equal(result.graph.rotations[last], graph.rotations[last])
+    moved = (result.graph.positions - graph.positions).norm(dim=1)
+    assert bool((moved[:last] > 1e-4).all())  # the first vertex is not held any more
+    explicit = optimize_pose_graph(plain, config=TIGHT, fixed=[last])
+    torch.testing.assert_close(result.graph.positions, explicit.graph.positions, rtol=0, atol=0)
+
+
 def _with_outlier(graph: PoseGraph) -> PoseGraph:
     """The graph plus one wrong loop closure first -> last vertex (0.7 m, 0.3 rad off)."""
     i, j = 0, graph.num_vertices - 1

@@ -85,3 +85,21 @@ def test_atomic_save_npz(tmp_path):
     atomic_save_npz(tmp_path / "x.npz", **{"a/b": np.arange(3.0)})
     with np.load(tmp_path / "x.npz") as z:
         assert z["a/b"].tolist() == [0.0, 1.0, 2.0]
+
+
+def test_atomic_write_creates_missing_folders(tmp_path):
+    target = tmp_path / "a" / "b" / "out.txt"
+    with atomic_write(target) as handle:
+        handle.write("new")
+    assert target.read_text() == "new"
+    assert os.listdir(target.parent) == ["out.txt"]
+
+
+def test_atomic_write_error_names_the_target_not_the_temporary_file(tmp_path):
+    (tmp_path / "file").write_text("not a folder")
+    target = tmp_path / "file" / "out.g2o"
+    with pytest.raises(OSError) as info:
+        with atomic_write(target):
+            pass
+    assert str(target) in str(info.value) and ".tmp" not in str(info.value)
+    assert os.listdir(tmp_path) == ["file"]

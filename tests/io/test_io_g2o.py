@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import importlib.util
+import re
 from pathlib import Path
 
 import numpy as np
@@ -25,14 +26,15 @@ SWAP = [3, 4, 5, 0, 1, 2]
 
 POSE_TAGS = ("VERTEX_SE3:QUAT", "EDGE_SE3:QUAT", "VERTEX3", "EDGE3")
 VERTICES_ONLY = ("example_with_vertices.g2o", "edge_se3_trackxyz_example.g2o")
-"""gtsam Data files with 3-D vertices but no pose edges (landmark records are skipped)."""
+"""gtsam Data files with 3-D vertices and landmark records but no pose edges: GTSAM reads
+their poses; we refuse them (no pose graph to solve), naming the landmark tags."""
 GTSAM_REJECTS = (
     "edge_se3_trackxyz_missing_vertex.g2o",
     "edge_se3_trackxyz_nonidentity_offset.g2o",
     "edge_se3_trackxyz_zero_range.g2o",
 )
 """One-vertex files whose landmark edge GTSAM rejects (they test its landmark parser); we
-skip the landmark records, so they read as a single vertex."""
+refuse them too: their one edge is a landmark record, so there is no pose edge."""
 
 
 @pytest.fixture(scope="module")
@@ -106,16 +108,39 @@ def test_listed_files_are_all_3d_pose_graphs_in_the_wheel(gtsam):
 
 
 @pytest.mark.parametrize("name", GTSAM_REJECTS)
-def test_landmark_records_are_skipped_and_counted(gtsam, name):
+def test_files_of_landmark_edges_only_are_refused(gtsam, name):
     path = gtsam_pose_graph_path(name)
-    graph = read_pose_graph(path)
-    assert graph.num_vertices == 1 and graph.num_edges == 0
-    assert graph.skipped.get("EDGE_SE3_TRACKXYZ") == 1
+    with pytest.raises(DataError) as info:
+        read_pose_graph(path)
+    assert info.value.path == str(path) and "no pose edges" in info.value.problem
+    assert re.search(r"'EDGE_SE3_TRACKXYZ' x1 \(first on line \d\)", info.value.problem)
+    assert "'PARAMS_SE3OFFSET' x1" in info.value.problem
     with pytest.raises(ValueError, match="EDGE_SE3_TRACKXYZ"):
         gtsam.readG2o(str(path), True)
 
 
-@pytest.mark.parametrize("name", GTSAM_POSE3_FILES + VERTICES_ONLY)
+@pytest.mark.parametrize("name", VERTICES_ONLY)
+def test_vertices_and_landmarks_without_pose_edges_are_refused(gtsam, name):
+    """The audit's case: edge_se3_trackxyz_example.g2o used to read as 0 edges, "converged"."""
+    path = gtsam_pose_graph_path(name)
+    with pytest.raises(DataError, match=r"no pose edges .*'VERTEX_TRACKXYZ' x\d+"):
+        read_pose_graph(path)
+    _, values = gtsam.readG2o(str(path), True)
+    assert values.size() > 0  # GTSAM returns the poses alone
+
+
+def test_pose_files_with_landmark_records_warn_once(gtsam):
+    path = gtsam_pose_graph_path("known_landmark_localization_3.g2o")
+    with pytest.warns(UserWarning) as caught:
+        graph = read_pose_graph(path)
+    assert len(caught) == 1
+    message = str(caught[0].message)
+    assert message.startswith(f"{path}: skipped 17 lines")
+    assert "'EDGE_SE3_TRACKXYZ' x12" in message and "'VERTEX_TRACKXYZ' x4" in message
+    assert graph.num_edges == 2 and graph.skipped["EDGE_SE3_TRACKXYZ"] == 12
+
+
+@pytest.mark.parametrize("name", GTSAM_POSE3_FILES)
 def test_matches_gtsam_parse(gtsam, name):
     path = gtsam_pose_graph_path(name)
     ours = read_pose_graph(path)
@@ -256,17 +281,18 @@ MIXED = """\
 
 VERTEX_SE3:QUAT 10 1.5 -2 0.25 0 0 0.6 0.8   # trailing comment
 VERTEX3 3 0.1 0.2 0.3 0.4 -0.5 0.6
-FIX 3
+FOO_BAR 3
 EDGE3 3 10 1 2 3 0.1 0.2 0.3 1 0 0 0 0 0 2 0 0 0 0 3 0 0 0 4 0 0 5 0 6
 EDGE_SE3:QUAT 10 3 -1 0 0 0 0 0 2 11 0.1 0 0 0 0 12 0 0 0 0 13 0 0 0 14 0 0 15 0 16
 """
 
 
 def test_mixed_formats_comments_and_skipped_tags(tmp_path):
-    graph = read_pose_graph(_write(tmp_path, MIXED))
+    with pytest.warns(UserWarning, match=r"skipped 1 lines .*'FOO_BAR' x1 \(first on line 5\)"):
+        graph = read_pose_graph(_write(tmp_path, MIXED))
     assert graph.has_vertices
     assert graph.vertex_ids.tolist() == [3, 10]
-    assert graph.skipped == {"FIX": 1}
+    assert graph.skipped == {"FOO_BAR": 1} and graph.fixed_ids == ()
     assert graph.edge_lines.tolist() == [6, 7]
     assert graph.edge_ids().tolist() == [[3, 10], [10, 3]]
     assert graph.edge_index.tolist() == [[0, 1], [1, 0]]
@@ -290,12 +316,79 @@ def test_unknown_tags_can_be_errors(tmp_path):
     with pytest.raises(DataError) as info:
         read_pose_graph(path, unknown_tags="error")
     assert (info.value.line, info.value.field) == (5, "tag")
-    assert "unknown tag 'FIX'" in str(info.value)
+    assert "unknown tag 'FOO_BAR'" in str(info.value)
     with pytest.raises(ValueError, match="unknown_tags"):
         read_pose_graph(path, unknown_tags="warn")  # type: ignore[arg-type]
 
 
 EDGE_INFO = " 1 0 0 0 0 0 1 0 0 0 0 1 0 0 0 1 0 0 1 0 1"
+
+
+def test_unknown_tags_are_counted_in_one_warning(tmp_path):
+    text = (
+        "VERTEX_SE3:QUAT 0 0 0 0 0 0 0 1\nVERTEX_SE3:QUAT 1 1 0 0 0 0 0 1\n"
+        "EDGE_SE3_PRIOR 0 0 0 0 0 0 0 1\nFOO_BAR 1 2 3\n"
+        f"EDGE_SE3:QUAT 0 1 1 0 0 0 0 0 1{EDGE_INFO}\nFOO_BAR 4\nEDGE_SE3_PRIOR 1\nFOO_BAR\n"
+    )
+    path = _write(tmp_path, text)
+    with pytest.warns(UserWarning) as caught:
+        graph = read_pose_graph(path)
+    assert len(caught) == 1
+    assert str(caught[0].message) == (
+        f"{path}: skipped 5 lines with tags this reader does not read: "
+        "'EDGE_SE3_PRIOR' x2 (first on line 3), 'FOO_BAR' x3 (first on line 4) "
+        "(tags read: VERTEX_SE3:QUAT, EDGE_SE3:QUAT, VERTEX3, EDGE3, FIX)"
+    )
+    assert graph.skipped == {"EDGE_SE3_PRIOR": 2, "FOO_BAR": 3} and graph.num_edges == 1
+
+
+def test_edges_free_file_with_unknown_tags_is_a_data_error(tmp_path):
+    text = "VERTEX_SE3:QUAT 0 0 0 0 0 0 0 1\nVERTEX_SE3:QUAT 1 1 0 0 0 0 0 1\n"
+    text += "EDGE_SE3_PRIOR 0 0 0 0 0 0 0 1\nFIX 0\nEDGE_SE3_PRIOR 1 0 0 0 0 0 0 1\n"
+    path = _write(tmp_path, text)
+    with pytest.raises(DataError) as info:
+        read_pose_graph(path)
+    assert info.value.path == str(path) and info.value.line is None
+    assert "no pose edges (EDGE_SE3:QUAT or EDGE3)" in info.value.problem
+    assert "'EDGE_SE3_PRIOR' x2 (first on line 3)" in info.value.problem
+
+
+def test_fix_records_name_the_held_vertices(tmp_path):
+    text = "".join(f"VERTEX_SE3:QUAT {k} {k} 0 0 0 0 0 1\n" for k in (2, 5, 9))
+    text += "FIX 9 # comment\nFIX 5 9\n"
+    text += (
+        f"EDGE_SE3:QUAT 2 5 1 0 0 0 0 0 1{EDGE_INFO}\nEDGE_SE3:QUAT 5 9 1 0 0 0 0 0 1{EDGE_INFO}\n"
+    )
+    graph = read_pose_graph(_write(tmp_path, text))
+    assert graph.fixed_ids == (5, 9) and graph.fixed_rows().tolist() == [1, 2]
+    assert graph.skipped == {}
+    back = read_pose_graph(write_g2o(tmp_path / "back.g2o", graph))
+    assert back.fixed_ids == (5, 9)
+    with pytest.raises(ValueError, match=r"fixed_ids: \[4\] are not vertex ids"):
+        PoseGraph(**{**graph.__dict__, "fixed_ids": (4, 5)}).check()
+
+
+@pytest.mark.parametrize(
+    ("fix", "line", "problem"),
+    [
+        ("FIX 7", 3, "FIX names vertex 7, which no vertex line defines"),
+        ("FIX", 3, "FIX names no vertex id"),
+        ("FIX 0 x", 3, "not a non-negative integer id: 'x'"),
+    ],
+)
+def test_bad_fix_records(tmp_path, fix, line, problem):
+    text = "VERTEX_SE3:QUAT 0 0 0 0 0 0 0 1\nVERTEX_SE3:QUAT 1 1 0 0 0 0 0 1\n"
+    text += f"{fix}\nEDGE_SE3:QUAT 0 1 1 0 0 0 0 0 1{EDGE_INFO}\n"
+    with pytest.raises(DataError) as info:
+        read_pose_graph(_write(tmp_path, text))
+    assert (info.value.line, info.value.field) == (line, "id")
+    assert problem in info.value.problem
+
+
+def test_writer_creates_missing_folders(tmp_path):
+    graph = _random_graph(4)
+    out = write_g2o(tmp_path / "new" / "deeper" / "g.g2o", graph)
+    assert out.is_file() and read_pose_graph(out).num_edges == graph.num_edges
 
 
 def test_edge_only_file_chains_the_odometry(tmp_path):
