@@ -3,8 +3,10 @@
 Keys (float64):
 
 * ``t`` (N,): scan times, s, strictly increasing;
-* ``angles`` (K,): beam angles in the sensor frame, rad, evenly spaced and increasing
-  (0 = sensor x axis, counter-clockwise);
+* ``angles`` (K,): beam angles in the sensor frame, rad, finite, evenly spaced and
+  increasing (0 = sensor x axis, counter-clockwise), spanning at most one turn
+  (``angles[-1] - angles[0] <= 2 pi`` + :data:`ANGLE_SPAN_TOLERANCE`; a wider span is
+  taken for degrees and refused);
 * ``ranges`` (N, K): ranges, m; NaN (or inf) where a beam returned nothing (the scan
   matcher and the grid also read 0 as no return);
 * ``odometry`` (N, 3), optional: wheel-odometry pose ``[x, y, yaw]`` at each scan (m, rad),
@@ -23,7 +25,7 @@ Example:
 
 from __future__ import annotations
 
-__all__ = ["read_scans", "write_scans"]
+__all__ = ["ANGLE_SPAN_TOLERANCE", "read_scans", "write_scans"]
 
 import os
 from pathlib import Path
@@ -34,6 +36,12 @@ import torch
 from msf_torch.io import _tables
 from msf_torch.io.atomic import atomic_save_npz
 from msf_torch.io.errors import DataError
+
+ANGLE_SPAN_TOLERANCE = 1e-3
+"""rad: how far past one full turn (2 pi) the beam angles of a scan file may span."""
+
+_REQUIRED = ("t", "angles", "ranges")
+_SHOWN_KEYS = 8
 
 
 def write_scans(
@@ -65,17 +73,31 @@ def read_scans(path: str | os.PathLike[str]) -> dict[str, torch.Tensor]:
     there is no return).
 
     Raises:
-        DataError: naming the file and key when a key is missing or a shape or value is bad.
+        DataError: naming the file and key when a key is missing (the message lists the
+            file's keys, e.g. for a sensor ``.npz`` given by mistake), a value is not
+            numeric, or a shape or value is bad; beam angles that span more than one turn
+            are refused as degrees.
     """
     source = Path(path)
     try:
         with np.load(source) as data:
-            arrays = {key: np.asarray(data[key], dtype=np.float64) for key in data.files}
+            raw = {key: np.asarray(data[key]) for key in data.files}
     except _tables.NPZ_ERRORS as err:
         raise DataError(source, f"cannot read as .npz: {err}") from err
-    for key in ("t", "angles", "ranges"):
-        if key not in arrays:
-            raise DataError(source, "missing key", field=key)
+    for key in _REQUIRED:
+        if key not in raw:
+            names = ", ".join(
+                k if len(k) <= 30 else k[:27] + "..." for k in list(raw)[:_SHOWN_KEYS]
+            )
+            more = f", ... ({len(raw)} keys)" if len(raw) > _SHOWN_KEYS else ""
+            raise DataError(
+                source, f"missing key '{key}' (has: {names or 'no keys'}{more})", field=key
+            )
+    arrays = {}
+    for key, value in raw.items():
+        if value.dtype.kind not in "biuf":
+            raise DataError(source, f"not numeric (dtype {value.dtype})", field=key)
+        arrays[key] = value.astype(np.float64)
     t, angles, ranges = arrays["t"], arrays["angles"], arrays["ranges"]
     if t.ndim != 1 or angles.ndim != 1 or ranges.shape != (t.shape[0], angles.shape[0]):
         raise DataError(
@@ -89,6 +111,9 @@ def read_scans(path: str | os.PathLike[str]) -> dict[str, torch.Tensor]:
             wrong = ~np.isfinite(t) | np.concatenate(([False], np.diff(t) <= 0))
         bad = int(np.argmax(wrong))
         raise DataError(source, f"times must be finite and increasing (scan {bad})", field="t")
+    if not np.all(np.isfinite(angles)):
+        beam = int(np.argmax(~np.isfinite(angles)))
+        raise DataError(source, f"beam angle {beam} is not finite", field="angles")
     step = np.diff(angles)
     if (
         len(angles) < 2
@@ -97,6 +122,14 @@ def read_scans(path: str | os.PathLike[str]) -> dict[str, torch.Tensor]:
         or np.ptp(step) > 1e-6 * abs(step.mean())
     ):
         raise DataError(source, "beam angles must be evenly spaced and increasing", field="angles")
+    span = float(angles[-1] - angles[0])
+    if span > 2 * np.pi + ANGLE_SPAN_TOLERANCE:
+        raise DataError(
+            source,
+            f"angles look like degrees (span {span:.6g}), expected radians (a span of at most "
+            "2 pi)",
+            field="angles",
+        )
     with np.errstate(invalid="ignore"):
         negative = np.isfinite(ranges) & (ranges < 0)
     if negative.any():

@@ -44,6 +44,49 @@ def test_bad_files_name_the_key(tmp_path, change, field):
         read_scans(path)
 
 
+def _save(path, **arrays) -> None:
+    base = {"t": np.array([0.0, 0.1, 0.2]), "ranges": np.ones((3, 4))}
+    np.savez(path, **{**base, **arrays})
+
+
+def test_angles_in_degrees_are_refused(tmp_path):
+    path = tmp_path / "deg.npz"
+    _save(path, angles=np.linspace(-135.0, 135.0, 4))
+    with pytest.raises(DataError) as info:
+        read_scans(path)
+    assert info.value.field == "angles"
+    assert info.value.problem.startswith("angles look like degrees (span 270), expected radians")
+    # one full turn (inclusive ends) is still radians
+    _save(path, angles=np.linspace(0.0, 2 * np.pi, 4))
+    assert read_scans(path)["angles"][-1] == pytest.approx(2 * np.pi)
+
+
+def test_non_finite_angle_is_named(tmp_path):
+    path = tmp_path / "inf.npz"
+    _save(path, angles=np.array([0.0, 0.1, np.inf, 0.3]))
+    with pytest.raises(DataError, match="beam angle 2 is not finite"):
+        read_scans(path)
+
+
+def test_wrong_npz_lists_its_keys_not_its_values(tmp_path):
+    """A sensor sequence .npz given as a scan file: the key names, not the meta JSON."""
+    path = tmp_path / "sensor.npz"
+    meta = '{"imu_noise": {"gyro_noise_density": 1e-4}, "wheel_track_m": 0.5}'
+    keys = [f"imu/{k}" for k in "abcdefghij"]
+    np.savez(path, **{k: np.zeros(2) for k in keys}, meta_json=np.array(meta))
+    with pytest.raises(DataError) as info:
+        read_scans(path)
+    shown = ", ".join(keys[:8])
+    assert info.value.problem == f"missing key 't' (has: {shown}, ... (11 keys))"
+    np.savez(path, t=np.array([0.0, 0.1]), angles=np.array([0.0, 0.1]), meta_json=np.array(meta))
+    with pytest.raises(DataError, match="missing key 'ranges' \\(has: t, angles, meta_json\\)"):
+        read_scans(path)
+    _save(path, angles=np.array([0.0, 0.1, 0.2, 0.3]), meta_json=np.array(meta))
+    with pytest.raises(DataError) as info:
+        read_scans(path)
+    assert info.value.field == "meta_json" and "wheel_track_m" not in str(info.value)
+
+
 def test_cli_lidar_map(tmp_path, capsys):
     out = tmp_path / "map"
     status = main(["lidar-map", "--simulate", "corridor", "--duration", "2", "--out", str(out)])
