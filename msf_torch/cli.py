@@ -289,9 +289,8 @@ def _tolerance(text: str) -> float:
 def _load(args, source: str | None) -> tuple[Any, Any, str]:
     """Sequence, config and a label of the input ``source`` (None: the sample) for
     ``msf run``."""
-    import yaml
-
-    from msf_torch.frontend.config import config_for_sequence, load_config, packaged_config
+    from msf_torch.backend.window import load_smoother_config
+    from msf_torch.frontend.config import load_sequence_config, packaged_config
     from msf_torch.io import load_sequence
     from msf_torch.runner import DEFAULT_SAMPLE
 
@@ -311,12 +310,9 @@ def _load(args, source: str | None) -> tuple[Any, Any, str]:
     overrides = {}
     if args.no_slip_detection:
         overrides["slip_detection"] = False
-    cfg = load_config(config_path, **overrides)
-    explicit = set(overrides)
+    cfg = load_sequence_config(seq.meta, config_path, **overrides)
     if config_path is not None:
-        with open(config_path, encoding="utf-8") as handle:
-            explicit |= set(yaml.safe_load(handle) or {})
-    cfg = config_for_sequence(cfg, seq.meta, explicit)
+        load_smoother_config(config_path)  # a bad smoother: section fails with or without --smooth
     return seq, cfg, source
 
 
@@ -341,13 +337,10 @@ def _config_overrides(path: Path | None) -> dict[str, Any]:
     """Front-end keys of a ``--config`` YAML (validated), used over a robot config's."""
     if path is None:
         return {}
-    import yaml
-
-    from msf_torch.frontend.config import load_config
+    from msf_torch.frontend.config import load_config, read_config_keys
 
     load_config(path)
-    with open(path, encoding="utf-8") as handle:
-        values = dict(yaml.safe_load(handle) or {})
+    values = read_config_keys(path)
     values.pop("smoother", None)
     return values
 
@@ -532,8 +525,6 @@ def _cmd_config(args) -> dict[str, Any]:
     from msf_torch.frontend.config import EskfConfig, load_config
     from msf_torch.robot.config import is_robot_config, load_robot_config
 
-    if not args.file.is_file():
-        raise FileNotFoundError(f"{args.file}: no such file")
     if is_robot_config(args.file):
         robot = load_robot_config(args.file)
         load_smoother_config(args.file)

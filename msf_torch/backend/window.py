@@ -116,7 +116,6 @@ from pathlib import Path
 from typing import Any
 
 import torch
-import yaml
 
 from msf_torch.backend import factors as F
 from msf_torch.backend.lm import LMConfig, LMResult, solve
@@ -142,6 +141,7 @@ from msf_torch.frontend.keyframes import KeyframeConfig, select_keyframes
 from msf_torch.geometry import so3
 from msf_torch.geometry.conventions import gravity_world
 from msf_torch.geometry.quaternion import matrix_to_quat
+from msf_torch.io.yaml_files import did_you_mean, read_yaml
 from msf_torch.sensors.imu import Preintegrated, propagate_nominal
 from msf_torch.sensors.imu_gaps import interpolated_imu_samples
 from msf_torch.types import Sequence, Trajectory
@@ -292,28 +292,41 @@ class SmootherConfig:
 
 def load_smoother_config(path: str | Path | None = None, **overrides: Any) -> SmootherConfig:
     """Read the ``smoother:`` mapping of a YAML run config (absent: defaults), then apply
-    ``overrides``. Unknown keys raise ``ValueError`` naming the key and the file."""
+    ``overrides``.
+
+    Raises:
+        DataError: (a ``ValueError``) naming the file, line and key: an unknown key (with the
+            closest known ones), a bad value, a YAML problem (:func:`read_yaml`).
+        ValueError: a bad key or value in ``overrides``.
+    """
     values: dict[str, Any] = {}
-    where = f"{path}: " if path is not None else ""
+    document = None
     if path is not None:
-        with open(path, encoding="utf-8") as handle:
-            loaded = yaml.safe_load(handle) or {}
+        document = read_yaml(path, "config")
+        loaded = document.data
         section = loaded.get("smoother", {}) if isinstance(loaded, dict) else {}
         if section is None:
             section = {}
         if not isinstance(section, dict):
-            raise ValueError(f"{where}config key 'smoother' must be a mapping of keys to values")
+            raise document.error("must be a mapping of keys to values", "smoother")
         values.update(section)
     values.update(overrides)
     known = {f.name for f in dataclasses.fields(SmootherConfig)}
     for key in values:
         if key not in known:
-            raise ValueError(f"{where}unknown config key 'smoother.{key}'")
-    config = SmootherConfig(**values)
+            problem = f"unknown config key 'smoother.{key}'{did_you_mean(key, known)}"
+            if document is None or key in overrides:
+                raise ValueError(problem)
+            raise document.error(problem, "smoother", key)
     try:
+        config = SmootherConfig(**values)
         config.validate()
-    except ValueError as err:
-        raise ValueError(f"{where}{err}") from None
+    except (TypeError, ValueError) as err:
+        if document is None:
+            raise
+        bad = next((k for k in values if f"'smoother.{k}'" in str(err)), None)
+        keys = ("smoother",) if bad is None else ("smoother", bad)
+        raise document.error(str(err), *keys) from None
     return config
 
 

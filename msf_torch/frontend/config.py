@@ -8,7 +8,14 @@ sets the value explicitly.
 
 from __future__ import annotations
 
-__all__ = ["EskfConfig", "load_config", "config_for_sequence", "packaged_config"]
+__all__ = [
+    "EskfConfig",
+    "load_config",
+    "read_config_keys",
+    "config_for_sequence",
+    "load_sequence_config",
+    "packaged_config",
+]
 
 import dataclasses
 import math
@@ -17,7 +24,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import yaml
+from msf_torch.io.errors import DataError
+from msf_torch.io.yaml_files import YamlDocument, did_you_mean, read_yaml
 
 
 @dataclass
@@ -524,32 +532,73 @@ _ZERO_SIGMA_ALLOWED = frozenset({"pose_source_accel_sigma_mps2"})
 """Sigma keys that may be 0 (the other ``*sigma*`` keys must be above 0)."""
 
 
-def load_config(path: str | Path | None = None, **overrides: Any) -> EskfConfig:
-    """Read an :class:`EskfConfig` from YAML (safe loader), then apply ``overrides``.
+def _config_error(document: YamlDocument | None, err: Exception, keys: Iterable[str]) -> ValueError:
+    """A validation error located at the line of the first key it names (when read from a
+    file), else the error with the file prefixed."""
+    if document is None:
+        return ValueError(str(err))
+    bad = next((k for k in keys if f"'{k}'" in str(err)), None)
+    if bad is None:
+        return DataError(document.path, str(err))
+    return document.error(str(err), bad)
 
-    Unknown keys raise ``ValueError`` naming the key and the file. A ``smoother:`` mapping
-    belongs to the back end (``msf_torch.backend.window.load_smoother_config``) and is
-    skipped here.
+
+def read_config_keys(path: str | Path) -> dict[str, Any]:
+    """The top-level mapping of a front-end YAML config as written (the ``smoother:``
+    section included), read with :func:`msf_torch.io.yaml_files.read_yaml`.
+
+    Use its keys as ``explicit`` in :func:`config_for_sequence`, so a dataset's metadata
+    does not replace what the file sets::
+
+        cfg = config_for_sequence(load_config(path), seq.meta, set(read_config_keys(path)))
+
+    Raises:
+        DataError: the file is unreadable, not YAML, has a key twice, or is not a mapping.
+    """
+    return dict(_read_mapping(path).data)
+
+
+def _read_mapping(path: str | Path) -> YamlDocument:
+    """The YAML document of a config file whose top level is a mapping (empty: ``{}``)."""
+    document = read_yaml(path, "front-end config")
+    if document.data is None:
+        document.data = {}
+    if not isinstance(document.data, dict):
+        raise DataError(document.path, "the config must be a mapping of keys to values")
+    return document
+
+
+def load_config(path: str | Path | None = None, **overrides: Any) -> EskfConfig:
+    """Read an :class:`EskfConfig` from YAML (:func:`msf_torch.io.yaml_files.read_yaml`:
+    YAML 1.2 numbers and booleans), then apply ``overrides``.
+
+    A ``smoother:`` mapping belongs to the back end
+    (``msf_torch.backend.window.load_smoother_config``) and is skipped here.
+
+    Raises:
+        DataError: (a ``ValueError``) naming the file, line and key: an unknown key (with
+            the closest known ones), a bad value, a YAML syntax error, a key given twice.
+        ValueError: a bad key or value in ``overrides``.
     """
     values: dict[str, Any] = {}
+    document = None
     if path is not None:
-        with open(path, encoding="utf-8") as handle:
-            loaded = yaml.safe_load(handle) or {}
-        if not isinstance(loaded, dict):
-            raise ValueError(f"{path}: the config must be a mapping of keys to values")
-        values.update(loaded)
+        document = _read_mapping(path)
+        values.update(document.data)
     values.update(overrides)
     values.pop("smoother", None)
-    where = f"{path}: " if path is not None else ""
     known = {f.name for f in dataclasses.fields(EskfConfig)}
     for key in values:
         if key not in known:
-            raise ValueError(f"{where}unknown config key '{key}'")
-    config = EskfConfig(**values)
+            problem = f"unknown config key '{key}'{did_you_mean(key, known)}"
+            if document is None or key in overrides:
+                raise ValueError(problem)
+            raise document.error(problem, key)
     try:
+        config = EskfConfig(**values)
         config.validate()
-    except ValueError as err:
-        raise ValueError(f"{where}{err}") from None
+    except (TypeError, ValueError) as err:
+        raise _config_error(document, err, values) from None
     return config
 
 
@@ -566,7 +615,8 @@ def config_for_sequence(config: EskfConfig, meta: dict[str, Any], explicit: set[
 
     ``meta`` is ``Sequence.meta`` (B = 1); values come from ``meta["imu_noise"]`` (dataset
     files such as KITTI's metadata) and ``meta["sensor"]`` (native ``meta.json`` / the
-    simulator). Keys in ``explicit`` (set by the user's YAML or CLI) are left alone.
+    simulator). Keys in ``explicit`` (set by the user's YAML or CLI; a YAML's are
+    ``set(read_config_keys(path))``) are left alone.
     """
     changes: dict[str, Any] = {}
     imu_noise = meta.get("imu_noise") or meta.get("sensor", {}).get("imu_noise") or {}
@@ -590,6 +640,23 @@ def config_for_sequence(config: EskfConfig, meta: dict[str, Any], explicit: set[
             [float(s) for s in sigma] if isinstance(sigma, list) else [float(sigma)] * 3
         )
     return config.replace(**changes) if changes else config
+
+
+def load_sequence_config(
+    meta: dict[str, Any], path: str | Path | None = None, **overrides: Any
+) -> EskfConfig:
+    """The front-end config for a sequence: :func:`load_config` of ``path`` (None:
+    defaults) with ``overrides``, then :func:`config_for_sequence` filling what neither
+    the file nor ``overrides`` sets from the sequence's metadata (``Sequence.meta``, e.g.
+    the IMU noise of a dataset) -- what ``msf run --config`` does.
+
+    Example:
+        >>> cfg = load_sequence_config(seq.meta, "my_robot.yaml")  # doctest: +SKIP
+    """
+    explicit = set(overrides)
+    if path is not None:
+        explicit |= set(read_config_keys(path))
+    return config_for_sequence(load_config(path, **overrides), meta, explicit)
 
 
 def packaged_config(name: str) -> Path | None:

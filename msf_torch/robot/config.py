@@ -84,6 +84,7 @@ from msf_torch.io.rosbag import (
     BagLayout,
     SensorTopic,
 )
+from msf_torch.io.yaml_files import ConfigLoader, read_yaml
 from msf_torch.robot.frames import FrameTree, StaticTransform
 
 ROBOT_KEYS = ("robot", "frames", "time", "sensors", "estimator", "smoother")
@@ -115,34 +116,6 @@ _PER_KIND = {
     "laser_scan": (),
 }
 _DERIVED = ("gnss_lever_arm_m", "wheel_lever_arm_m", "wheel_track_m")
-
-
-def _line_map(text: str) -> tuple[dict[tuple, int], list[tuple[tuple, int, int]]]:
-    """Key path -> 1-based line of every key and list item in a YAML document, and the
-    keys given twice in one mapping as (key path, line, line of the first)."""
-    lines: dict[tuple, int] = {}
-    repeated: list[tuple[tuple, int, int]] = []
-    try:
-        root = yaml.compose(text, Loader=yaml.SafeLoader)
-    except yaml.YAMLError:
-        return lines, repeated
-
-    def walk(node, path: tuple) -> None:
-        if isinstance(node, yaml.MappingNode):
-            for key, value in node.value:
-                child = (*path, str(key.value))
-                if child in lines:
-                    repeated.append((child, key.start_mark.line + 1, lines[child]))
-                lines[child] = key.start_mark.line + 1
-                walk(value, child)
-        elif isinstance(node, yaml.SequenceNode):
-            for i, item in enumerate(node.value):
-                lines[(*path, i)] = item.start_mark.line + 1
-                walk(item, (*path, i))
-
-    if root is not None:
-        walk(root, ())
-    return lines, repeated
 
 
 class _Checker:
@@ -446,8 +419,8 @@ def is_robot_config(path: str | os.PathLike[str]) -> bool:
     ``estimator``), so that a misspelt ``sensors`` is reported as such."""
     try:
         with open(path, encoding="utf-8") as handle:
-            loaded = yaml.safe_load(handle)
-    except (OSError, yaml.YAMLError):
+            loaded = yaml.load(handle, Loader=ConfigLoader)  # noqa: S506 (a safe loader)
+    except (OSError, UnicodeDecodeError, yaml.YAMLError):
         return False
     robot_only = ("sensors", "robot", "frames", "time", "estimator")
     return isinstance(loaded, dict) and any(key in loaded for key in robot_only)
@@ -461,24 +434,9 @@ def load_robot_config(path: str | os.PathLike[str]) -> RobotConfig:
             or unknown key, a wrong type, an unreadable URDF, an unknown frame, ...).
     """
     file = Path(path)
-    try:
-        text = file.read_text(encoding="utf-8")
-    except OSError as err:
-        raise DataError(file, f"cannot read the robot config ({err.strerror})") from None
-    try:
-        loaded = yaml.safe_load(text)
-    except yaml.YAMLError as err:
-        mark = getattr(err, "problem_mark", None)
-        raise DataError(
-            file,
-            f"not valid YAML ({getattr(err, 'problem', err)})",
-            line=None if mark is None else mark.line + 1,
-        ) from None
-    lines, repeated = _line_map(text)
-    check = _Checker(str(file), lines)
-    if repeated:
-        keys, _, first = repeated[0]
-        raise check.fail(keys, f"given twice (also on line {first}); YAML keeps only the last")
+    document = read_yaml(file, "robot config")
+    loaded = document.data
+    check = _Checker(str(file), document.lines)
     top = check.mapping(loaded, (), ROBOT_KEYS)
     if "sensors" not in top:
         raise check.fail(("sensors",), "missing: a robot config maps sensors to topics")

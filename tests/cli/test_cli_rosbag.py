@@ -147,25 +147,30 @@ def test_config_check(robot_run, tmp_path, capsys) -> None:
 
 def test_config_value_errors_name_file_and_key(robot_run, tmp_path, capsys) -> None:
     """A negative sigma or a value of the wrong type: exit status 2, one line naming the
-    file (and, in a robot YAML, the line) and the key."""
+    file, the line and the key."""
     frontend = tmp_path / "frontend.yaml"
     frontend.write_text("gate_probability: 0.99\ngnss_sigma_m: [0.5, -0.5, 1.0]\n")
     assert main(["config", "check", str(frontend)]) == 2
     err = capsys.readouterr().err.strip()
     assert err == (
-        f"msf config: error: {frontend}: config key 'gnss_sigma_m' is a standard deviation: "
+        f"msf config: error: {frontend}:2: field 'gnss_sigma_m': config key 'gnss_sigma_m' is a "
+        "standard deviation: "
         "it must be above 0, got [0.5, -0.5, 1.0]"
     )
     args = ["run", str(robot_run["native"]), "--out", str(tmp_path / "o"), "--no-plot"]
     frontend.write_text("zupt: 'yes'\n")
     assert main([*args, "--config", str(frontend)]) == 2
     assert (
-        f"{frontend}: config key 'zupt' must be true or false, got 'yes'" in capsys.readouterr().err
+        f"{frontend}:1: field 'zupt': config key 'zupt' must be true or false, got 'yes'"
+        in capsys.readouterr().err
     )
     smoother = tmp_path / "smoother.yaml"
     smoother.write_text("smoother:\n  window_size: 1\n")
     assert main(["config", "check", str(smoother)]) == 2
-    assert f"{smoother}: config key 'smoother.window_size'" in capsys.readouterr().err
+    assert (
+        f"{smoother}:2: field 'smoother.window_size': config key 'smoother.window_size'"
+        in capsys.readouterr().err
+    )
     robot = tmp_path / "robot.yaml"
     (tmp_path / "rover.urdf").write_text(URDF)
     robot.write_text(ROBOT + "estimator:\n  wheel_speed_sigma_mps: -0.05\n")
