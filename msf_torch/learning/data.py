@@ -51,10 +51,9 @@ from typing import Any
 import lightning as L
 import numpy as np
 import torch
-import yaml
 from torch.utils.data import DataLoader
 
-from msf_torch.frontend.config import config_for_sequence, load_config
+from msf_torch.frontend.config import config_for_sequence, load_config, read_config_keys
 from msf_torch.io import DataError, load_sequence
 from msf_torch.learning.covnet import IMU_RATE_TOLERANCE
 from msf_torch.learning.features import RunFeatures, pose_source_of, run_features
@@ -277,8 +276,7 @@ class RunDataModule(L.LightningDataModule):
         self.eskf_base = load_config(eskf_config)
         self.eskf_explicit: set[str] = set()
         if eskf_config is not None:
-            with open(eskf_config, encoding="utf-8") as handle:
-                self.eskf_explicit = set(yaml.safe_load(handle) or {})
+            self.eskf_explicit = set(read_config_keys(eskf_config))
         self.seed = seed
         self.batch_size = batch_size
         self.window_length = window_length

@@ -59,13 +59,11 @@ from pathlib import Path
 from typing import Any, Literal
 
 import torch
-import yaml
 from torch.utils.data import DataLoader
 
 from msf_torch.frontend.config import (
     EskfConfig,
-    config_for_sequence,
-    load_config,
+    load_sequence_config,
     packaged_config,
 )
 from msf_torch.frontend.eskf import EskfResult, run_eskf
@@ -93,9 +91,7 @@ def kitti_eskf_config(seq: Sequence, path: str | Path | None = None) -> EskfConf
     path = path if path is not None else packaged_config("kitti-gtsam")
     if path is None:
         raise FileNotFoundError("msf_torch/configs/kitti-gtsam.yaml is missing")
-    with open(path, encoding="utf-8") as handle:
-        explicit = set(yaml.safe_load(handle) or {})
-    return config_for_sequence(load_config(path), seq.meta, explicit)
+    return load_sequence_config(seq.meta, path)
 
 
 def _state_at(result: EskfResult, index: torch.Tensor | int) -> tuple[NavState, torch.Tensor]:

@@ -49,12 +49,16 @@ from typing import Any, Literal
 
 import lightning as L
 import torch
-import yaml
 from lightning.pytorch.loggers import TensorBoardLogger
 from matplotlib.figure import Figure
 from torch.nn import functional as F
 
-from msf_torch.frontend.config import EskfConfig, config_for_sequence, load_config
+from msf_torch.frontend.config import (
+    EskfConfig,
+    config_for_sequence,
+    load_config,
+    read_config_keys,
+)
 from msf_torch.frontend.eskf import EskfNoise, EskfResult, run_eskf
 from msf_torch.frontend.init import initial_state
 from msf_torch.geometry import so3
@@ -175,8 +179,7 @@ class CovNetModule(L.LightningModule):
         self.eskf_base = load_config(eskf_config)
         self.eskf_explicit: set[str] = set()
         if eskf_config is not None:
-            with open(eskf_config, encoding="utf-8") as handle:
-                self.eskf_explicit = set(yaml.safe_load(handle) or {})
+            self.eskf_explicit = set(read_config_keys(eskf_config))
         self.chunk_windows = chunk_windows
         self.noise_granularity = noise_granularity
         self.use_weather_labels = use_weather_labels
