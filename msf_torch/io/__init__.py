@@ -70,7 +70,7 @@ from msf_torch.io.g2o import (
 )
 from msf_torch.io.kitti_gtsam import KITTI_GTSAM_NAME, gtsam_data_path, load_kitti_gtsam
 from msf_torch.io.kitti_poses import read_kitti_poses, write_kitti_poses
-from msf_torch.io.native import read_native, write_native
+from msf_torch.io.native import _native_path_problem, read_native, write_native
 from msf_torch.io.rosbag import (
     BagLayout,
     SensorTopic,
@@ -109,7 +109,10 @@ def detect_format(source: str | os.PathLike[str]) -> str:
     ``.tum``/``.txt`` file (a trajectory).
 
     Raises:
-        DataError: the path does not exist or matches no format (the message lists them).
+        DataError: the path does not exist or matches no format (the message lists them);
+            a folder of native tables without ``imu.csv`` (``"imu.csv missing in FOLDER
+            (found: ...)"``) and a native table given instead of its folder (``"pass the
+            folder FOLDER, not one of its files"``) are named as such.
     """
     path = Path(source)
     if str(source) == KITTI_GTSAM_NAME and not path.exists():
@@ -125,6 +128,9 @@ def detect_format(source: str | os.PathLike[str]) -> str:
             return "euroc"
     if path.is_file() and path.suffix.lower() in _TRAJECTORY_SUFFIXES:
         return "tum"
+    near_native = _native_path_problem(path)
+    if near_native is not None:
+        raise near_native
     if is_rosbag(path) is not None:
         raise DataError(
             path,
@@ -169,5 +175,7 @@ def load_sequence(
     if fmt == "npz" and (path.is_dir() or path.suffix.lower() != ".npz"):
         raise DataError(path, "format 'npz' needs a file ending in .npz")
     if fmt == "csv" and path.exists() and not path.is_dir():
-        raise DataError(path, "format 'csv' needs a folder holding imu.csv")
+        raise _native_path_problem(path) or DataError(
+            path, "format 'csv' needs a folder holding imu.csv"
+        )
     return read_native(path, sort=sort)

@@ -97,6 +97,7 @@ import csv
 import json
 import os
 import re
+import warnings
 from pathlib import Path
 from typing import Any
 
@@ -162,6 +163,46 @@ def _base(stream: str) -> str:
 
 _LABELS_FILE = "labels.csv"
 _META_FILE = "meta.json"
+_KNOWN_NAMES = ", ".join(
+    [*TABLE_FILES.values(), "poses_<name>.csv", _LABELS_FILE, _META_FILE]
+)  # for messages
+
+
+def _is_native_file(name: str) -> bool:
+    """Whether ``name`` is a file name a native folder holds (tables, labels, meta)."""
+    known = (*TABLE_FILES.values(), _LABELS_FILE, _META_FILE)
+    return name in known or _SOURCE_FILE.fullmatch(name) is not None
+
+
+def _shown_files(names: list[str], limit: int = 8) -> str:
+    """``a.csv, b.csv, ...`` of at most ``limit`` names, with the total when cut."""
+    more = f", ... ({len(names)} files)" if len(names) > limit else ""
+    return ", ".join(names[:limit]) + more
+
+
+def _native_path_problem(path: str | os.PathLike[str]) -> DataError | None:
+    """The DataError for a path that is almost a native CSV sequence, else None.
+
+    Two mistakes are recognised: a folder that holds native tables but no ``imu.csv`` (the
+    one required table), and a native file (``imu.csv``, ``gnss.csv``, ...) given instead of
+    the folder that holds ``imu.csv``.
+
+    Args:
+        path: a file or folder.
+
+    Returns:
+        ``"imu.csv missing in FOLDER (found: ...)"`` or ``"pass the folder FOLDER, not one of
+        its files"`` as a DataError on ``path``, or None when neither applies.
+    """
+    p = Path(path)
+    if p.is_dir():
+        found = sorted(f.name for f in p.iterdir() if f.is_file() and _is_native_file(f.name))
+        if found and TABLE_FILES["imu"] not in found:
+            return DataError(p, f"imu.csv missing in {p} (found: {_shown_files(found)})")
+    elif p.is_file() and _is_native_file(p.name) and (p.parent / TABLE_FILES["imu"]).is_file():
+        return DataError(p, f"pass the folder {p.parent}, not one of its files")
+    return None
+
 
 _KINDS: dict[str, type] = {
     "imu": ImuSamples,
@@ -211,7 +252,9 @@ def read_native(path: str | os.PathLike[str], sort: bool = False) -> Sequence:
         return _read_npz(p, sort)
     if not p.exists():
         raise DataError(p, "no such file or folder")
-    raise DataError(p, "not a native sequence: expected a .npz file or a folder with imu.csv")
+    raise _native_path_problem(p) or DataError(
+        p, "not a native sequence: expected a .npz file or a folder with imu.csv"
+    )
 
 
 def _read_folder(folder: Path, sort: bool) -> Sequence:
@@ -221,9 +264,11 @@ def _read_folder(folder: Path, sort: bool) -> Sequence:
         file = folder / fname
         if not file.exists():
             if stream == "imu":
+                found = sorted(f.name for f in folder.iterdir() if f.is_file())
                 raise DataError(
                     folder,
-                    "not a native sequence folder: imu.csv is missing (the one required table)",
+                    f"imu.csv missing in {folder} (the one required table; found: "
+                    f"{_shown_files(found) or 'no files'})",
                 )
             continue
         table = _tables.read_table(file)
@@ -237,6 +282,15 @@ def _read_folder(folder: Path, sort: bool) -> Sequence:
         table = _tables.read_table(file)
         raw[stream] = _arrays_from_table("poses", table)
         where[stream] = (str(file), table.lines, "")
+    unknown = sorted(
+        f.name for f in folder.glob("*.csv") if f.is_file() and not _is_native_file(f.name)
+    )
+    if unknown:
+        warnings.warn(
+            f"{folder}: ignored CSV files with names a native folder does not use: "
+            f"{_shown_files(unknown)} (recognised: {_KNOWN_NAMES})",
+            stacklevel=3,
+        )
     labels = _read_labels_csv(folder / _LABELS_FILE)
     sensor = _read_meta_json(folder / _META_FILE)
     return _assemble(folder, "native-csv", raw, where, labels, sensor, sort)

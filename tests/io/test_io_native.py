@@ -201,8 +201,49 @@ def test_missing_and_unknown_columns(tmp_path):
 def test_missing_imu_table(tmp_path):
     folder = tmp_path / "noimu"
     _write(folder, "wheel.csv", "t,left_speed,right_speed\n0,1,1\n")
-    with pytest.raises(DataError, match="imu.csv is missing"):
+    _write(folder, "gnss.csv", "t,x,y,z\n0,1,2,3\n")
+    _write(folder, "notes.txt", "x")
+    with pytest.raises(DataError) as info:
         read_native(folder)
+    assert info.value.problem == (
+        f"imu.csv missing in {folder} (the one required table; found: gnss.csv, notes.txt, "
+        "wheel.csv)"
+    )
+    with pytest.raises(DataError) as info:
+        load_sequence(folder)  # detected: native tables, no imu.csv (not "unrecognised")
+    assert info.value.problem == f"imu.csv missing in {folder} (found: gnss.csv, wheel.csv)"
+
+
+@pytest.mark.parametrize("name", ["imu.csv", "gnss.csv", "meta.json", "poses_vo.csv"])
+def test_a_file_of_a_native_folder_asks_for_the_folder(tmp_path, name):
+    folder = tmp_path / "run"
+    _write(folder, "imu.csv", IMU_HEADER + _imu_rows([0.0, 0.01]))
+    file = _write(folder, name, "t,x,y,z\n") if name != "imu.csv" else folder / name
+    for read in (load_sequence, read_native):
+        with pytest.raises(DataError) as info:
+            read(file)
+        assert info.value.path == str(file)
+        assert info.value.problem == f"pass the folder {folder}, not one of its files"
+    with pytest.raises(DataError, match="pass the folder"):
+        load_sequence(file, fmt="csv")
+
+
+def test_unknown_csv_files_warn_once_and_are_ignored(tmp_path):
+    folder = tmp_path / "run"
+    _write(folder, "imu.csv", IMU_HEADER + _imu_rows([0.0, 0.01]))
+    _write(folder, "gps.csv", "t,x,y,z\n0,1,2,3\n")
+    _write(folder, "poses_a b.csv", "t\n")  # not a valid pose source name
+    _write(folder, "sim.json", "{}")  # not a CSV: no warning
+    with pytest.warns(UserWarning) as caught:
+        seq = read_native(folder)
+    assert len(caught) == 1
+    message = str(caught[0].message)
+    assert message.startswith(
+        f"{folder}: ignored CSV files with names a native folder does not use: gps.csv, "
+        "poses_a b.csv (recognised: imu.csv, wheel.csv, gnss.csv, poses.csv, ground_truth.csv, "
+        "poses_<name>.csv, labels.csv, meta.json)"
+    )
+    assert seq.gnss is None and seq.imu.length == 2
 
 
 def test_pose_uncertainty_forms_and_quaternion_normalisation(tmp_path):
