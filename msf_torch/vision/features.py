@@ -11,6 +11,8 @@ when it finds more than ``raise_above`` times what it wants, the threshold is mu
 once the texture comes back.
 
 :func:`track_klt` is pyramidal Lucas-Kanade, optionally checked forward-backward;
+:func:`stereo_window_gaps` re-matches stereo matches with small windows beside the feature
+and returns how far their disparities are from affine (a depth edge in the window);
 :func:`orb_descriptors` computes upright ORB descriptors (the camera of a ground robot does
 not roll) at given points, e.g. for a keyframe's bag of words.
 """
@@ -23,6 +25,7 @@ __all__ = [
     "KltConfig",
     "track_klt",
     "stereo_search",
+    "stereo_window_gaps",
     "orb_descriptors",
 ]
 
@@ -265,6 +268,67 @@ def stereo_search(
             disparity[i] = x - (low + best)
             good[i] = True
     return disparity, good
+
+
+def stereo_window_gaps(
+    left: np.ndarray,
+    right: np.ndarray,
+    points: np.ndarray,
+    matched: np.ndarray,
+    window_px: int = 7,
+    offset_px: float = 4.0,
+    iterations: int = 20,
+    epsilon: float = 0.03,
+) -> np.ndarray:
+    """Second differences of the disparity across each stereo match's window, px.
+
+    Each left point is re-matched in the right image (single-level Lucas-Kanade started at
+    ``matched`` shifted alike) with a ``window_px`` square centred on it and on the four
+    points ``offset_px`` to its left, right, above and below. Inside one surface the
+    disparity is affine in the pixel (a plane), so the second differences
+    ``d(x - o) + d(x + o) - 2 d(x)`` along the row and along the column are zero up to the
+    match noise; a depth edge within ``offset_px`` plus half a window of the feature makes
+    them as large as the disparity step. A sub-window whose match fails (no convergence,
+    or its row moves by more than 1 px) gives NaN for its direction.
+
+    Args:
+        left, right: (H, W) uint8 rectified images.
+        points: (N, 2) float32 px in the left image.
+        matched: (N, 2) float32 px, their matches in the right image.
+        window_px: side of the small windows, px.
+        offset_px: distance of the side windows from the point, px.
+        iterations, epsilon: Lucas-Kanade stopping rule (count, px).
+    Returns:
+        (N, 2) float64 px: the second differences along the row and along the column.
+    """
+    count = len(points)
+    if count == 0:
+        return np.zeros((0, 2))
+    shifts = np.array(
+        [[0.0, 0.0], [-offset_px, 0.0], [offset_px, 0.0], [0.0, -offset_px], [0.0, offset_px]],
+        np.float32,
+    )
+    start = (points[None].astype(np.float32) + shifts[:, None]).reshape(-1, 1, 2)
+    guess = (matched[None].astype(np.float32) + shifts[:, None]).reshape(-1, 1, 2)
+    criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, iterations, epsilon)
+    found, status, _ = cv2.calcOpticalFlowPyrLK(
+        left,
+        right,
+        start,
+        guess.copy(),
+        winSize=(window_px, window_px),
+        maxLevel=0,
+        criteria=criteria,
+        flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
+    )
+    start, found = start.reshape(5, count, 2), found.reshape(5, count, 2)
+    ok = (status.reshape(5, count) == 1) & (np.abs(found[..., 1] - start[..., 1]) <= 1.0)
+    disparity = np.where(ok, start[..., 0] - found[..., 0], np.nan).astype(np.float64)
+    centre = disparity[0]
+    return np.stack(
+        (disparity[1] + disparity[2] - 2 * centre, disparity[3] + disparity[4] - 2 * centre),
+        -1,
+    )
 
 
 _ORB: dict[int, cv2.ORB] = {}
