@@ -84,7 +84,13 @@ def build_parser() -> argparse.ArgumentParser:
         help="native | npz | csv | euroc | kitti-gtsam (default: detect)",
     )
     run.add_argument("--config", type=Path, default=None, help="YAML front-end config")
-    run.add_argument("--out", type=Path, default=Path("out"), help="output folder")
+    run.add_argument(
+        "--out",
+        type=Path,
+        default=Path("out"),
+        help="output folder (default: ./out; files of an earlier run there that this run "
+        "does not rewrite are named on stderr)",
+    )
     run.add_argument(
         "--gnss-outage",
         type=_outage,
@@ -292,6 +298,7 @@ def _load(args, source: str | None) -> tuple[Any, Any, str]:
     from msf_torch.backend.window import load_smoother_config
     from msf_torch.frontend.config import load_sequence_config, packaged_config
     from msf_torch.io import load_sequence
+    from msf_torch.io.units import check_units
     from msf_torch.runner import DEFAULT_SAMPLE
 
     if args.topics is not None:
@@ -304,6 +311,7 @@ def _load(args, source: str | None) -> tuple[Any, Any, str]:
             write_native(simulate_run(sample_slip_config(), seed=7).sequence, DEFAULT_SAMPLE)
         source = str(DEFAULT_SAMPLE)
     seq = load_sequence(source, fmt=args.fmt, sort=args.sort)
+    check_units(seq, source)
     config_path = args.config
     if config_path is None and source in NAMED_DATASETS:
         config_path = packaged_config(source)
@@ -319,6 +327,7 @@ def _load(args, source: str | None) -> tuple[Any, Any, str]:
 def _load_bag(args, source: str | None) -> tuple[Any, Any, str]:
     """Sequence and config for ``msf run BAG --topics ROBOT.yaml``."""
     from msf_torch.io.rosbag import read_rosbag
+    from msf_torch.io.units import check_units
     from msf_torch.robot.config import load_robot_config
 
     if source is None:
@@ -327,6 +336,7 @@ def _load_bag(args, source: str | None) -> tuple[Any, Any, str]:
         raise ValueError("--format does not apply to a ROS bag read with --topics")
     robot = load_robot_config(args.topics)
     seq = read_rosbag(source, robot.layout, sort=args.sort)
+    check_units(seq, source)
     overrides = _config_overrides(args.config)
     if args.no_slip_detection:
         overrides["slip_detection"] = False
@@ -397,15 +407,45 @@ def _cmd_run(args) -> dict[str, Any]:
         exports=args.export,
     )
     summary = run_sequence(seq, cfg, options)
+    _notes(summary, "")
+    print(f"msf run: outputs in {args.out}", file=sys.stderr)
+    return summary
+
+
+def _notes(summary: dict[str, Any], label: str) -> None:
+    """stderr lines on what a run's summary shows a user should know: filled-in IMU
+    stretches, divergence resets, no absolute aiding, stale files in the output folder."""
     filled = summary.get("imu_filled_stretches", {})
     if filled.get("count"):
         print(
-            f"msf run: {filled['count']} IMU stretch(es), {filled['seconds']:.1f} s in all, "
-            "were filled in by the recorder (samples on a straight line); bridged as IMU gaps "
-            "(imu_interpolated_min_samples, imu_gap_noise_scale)",
+            f"msf run: {label}{filled['count']} IMU stretch(es), {filled['seconds']:.1f} s in "
+            "all, were filled in by the recorder (samples on a straight line); bridged as IMU "
+            "gaps (imu_interpolated_min_samples, imu_gap_noise_scale)",
             file=sys.stderr,
         )
-    return summary
+    resets = summary.get("divergence_resets")
+    if resets:
+        first = ", ".join(f"{t:.3f}" for t in summary.get("divergence_first_t_s", []))
+        print(
+            f"msf run: warning: {label}the filter diverged and was reset {resets} time(s) "
+            f"(first at t = {first} s; causes {summary.get('divergence_causes')}): the "
+            "estimate is unreliable there; check the input's units and time stamps and the "
+            "noise config",
+            file=sys.stderr,
+        )
+    if not summary.get("absolute_aiding", True):
+        print(
+            f"msf run: note: {label}no GNSS or pose measurements were fused: dead reckoning, "
+            "the position drifts without bound",
+            file=sys.stderr,
+        )
+    stale = summary.get("stale_outputs")
+    if stale:
+        print(
+            f"msf run: note: {label}the output folder still holds files of an earlier run that "
+            f"this run did not write: {', '.join(stale)}",
+            file=sys.stderr,
+        )
 
 
 def _cmd_run_batch(args) -> dict[str, Any]:
@@ -435,7 +475,12 @@ def _cmd_run_batch(args) -> dict[str, Any]:
         learned=_learned(args),
         exports=args.export,
     )
-    return run_batch([seq for seq, _, _ in loaded], cfg, options)
+    summary = run_batch([seq for seq, _, _ in loaded], cfg, options)
+    for name in summary["names"]:
+        with open(Path(summary["out"]) / name / "summary.json", encoding="utf-8") as handle:
+            _notes(json.load(handle), f"{name}: ")
+    print(f"msf run: outputs in {args.out}", file=sys.stderr)
+    return summary
 
 
 def _learned(args) -> Any:

@@ -25,6 +25,12 @@ Used by ``msf run``. Outputs in ``out_dir`` (each written atomically: temp file 
   1-sigma per state), ``calibration_variance_ratio`` and ``calibration_observable``
   (``frontend.calibration.observability``).
 - ``overview.png``: trajectory against the reference, position error, slip factor.
+- in ``summary.json`` besides: ``absolute_aiding`` (whether any GNSS or pose measurement
+  was fused), ``labelled_gnss_outages`` (a real outage labelled in the data,
+  ``labels["gnss_outage"]``, scored like a withheld one but against the ground truth:
+  ``eval.outage.labelled_outage_metrics``; with ``smooth`` also ``frontend_`` figures) and
+  ``stale_outputs`` (files of the names above that an earlier run left in ``out_dir`` and
+  this one did not rewrite).
 - with ``exports`` (``msf run --export kitti,rosbag2``): ``trajectory.kitti`` and
   ``trajectory_times.txt`` (KITTI pose format, :mod:`msf_torch.io.kitti_poses`) and
   ``trajectory_rosbag2/`` (``nav_msgs/Odometry`` on ``/msf/odometry``, frame ``enu``,
@@ -78,7 +84,7 @@ import torch
 
 from msf_torch.backend.window import OutputMotion, SmootherConfig, smooth
 from msf_torch.eval.metrics import ate
-from msf_torch.eval.outage import outage_metrics, split_gnss_outage
+from msf_torch.eval.outage import labelled_outage_metrics, outage_metrics, split_gnss_outage
 from msf_torch.eval.slip import slip_scores
 from msf_torch.frontend.config import EskfConfig
 from msf_torch.frontend.eskf import SENSORS, EskfResult, run_eskf
@@ -193,6 +199,39 @@ def write_diagnostics(result: EskfResult, path: Path, index: int = 0) -> None:
         np.savetxt(handle, table, delimiter=",", fmt="%.10g")
 
 
+OUTPUT_NAMES = (
+    "trajectory.tum",
+    "trajectory.kitti",
+    "trajectory_times.txt",
+    "trajectory_rosbag2",
+    "diagnostics.csv",
+    "overview.png",
+    "summary.json",
+)
+"""The files and folders a run writes to its output folder (module docstring)."""
+
+
+def _output_folder(path: str | Path) -> Path:
+    """The output folder, created with its parents; a path that is a file is refused."""
+    out_dir = Path(path)
+    if out_dir.exists() and not out_dir.is_dir():
+        raise ValueError(f"output folder {out_dir} is an existing file; give a folder")
+    out_dir.mkdir(parents=True, exist_ok=True)
+    return out_dir
+
+
+def _written(options: RunOptions) -> set[str]:
+    """The names of :data:`OUTPUT_NAMES` a completed run with ``options`` writes."""
+    names = {"trajectory.tum", "diagnostics.csv", "summary.json"}
+    if options.plot:
+        names.add("overview.png")
+    if "kitti" in options.exports:
+        names |= {"trajectory.kitti", "trajectory_times.txt"}
+    if "rosbag2" in options.exports:
+        names.add("trajectory_rosbag2")
+    return names
+
+
 def _duration(seq: Sequence) -> float:
     t = seq.imu.t[0, seq.imu.mask[0]]
     return float(t[-1] - t[0])
@@ -208,8 +247,7 @@ def run_sequence(seq: Sequence, cfg: EskfConfig, options: RunOptions) -> dict[st
     Returns:
         The summary dict (also written to ``summary.json``).
     """
-    out_dir = Path(options.out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
+    out_dir = _output_folder(options.out_dir)
     withheld = None
     if options.gnss_outage_s is not None:
         seq, withheld = split_gnss_outage(seq, *options.gnss_outage_s)
@@ -329,7 +367,7 @@ def run_batch(seqs: list[Sequence], cfg: EskfConfig, options: RunOptions) -> dic
         raise ValueError(
             "learned noise runs one sequence at a time (give one SEQUENCE, or --no-learned)"
         )
-    out_dir = Path(options.out_dir)
+    out_dir = _output_folder(options.out_dir)
     names = _unique_names([seq.names[0] for seq in seqs])
     withheld: list[GnssFixes | None] = [None] * len(seqs)
     if options.gnss_outage_s is not None:
@@ -479,6 +517,11 @@ def _score_and_write(
                     for k, v in metrics.items()
                 }
             )
+    labelled = _labelled_outages(seq, scored)
+    if labelled:
+        summary["labelled_gnss_outages"] = labelled
+    aiding = [k for k in counts if k in ("gnss", "pose") or k.startswith("pose:")]
+    summary["absolute_aiding"] = any(counts[k]["present"][0] > 0 for k in aiding)
     if result.present["wheel"].any():
         wheel_epochs = result.present["wheel"][0] & result.mask[0]
         factor = result.slip_factor[0, wheel_epochs]
@@ -490,7 +533,9 @@ def _score_and_write(
             summary["slip_detection"] = {
                 k: round(v, 4) if isinstance(v, float) else v for k, v in scores.items()
             }
-    summary["slip_detection_enabled"] = bool(cfg.slip_detection)
+    summary["slip_detection_enabled"] = bool(cfg.slip_detection) and bool(
+        result.present["wheel"].any()
+    )
     write_tum(estimate, out_dir / "trajectory.tum")
     if smoothed is not None:
         motion = smoothed.output_motion
@@ -503,10 +548,46 @@ def _score_and_write(
     write_diagnostics(result, out_dir / "diagnostics.csv")
     if options.plot:
         _plot(out_dir / "overview.png", seq, estimate, result, withheld, options, summary)
+    stale = [n for n in OUTPUT_NAMES if n not in _written(options) and (out_dir / n).exists()]
+    if stale:
+        summary["stale_outputs"] = stale
     with atomic_write(out_dir / "summary.json") as handle:
         json.dump(summary, handle, indent=2)
         handle.write("\n")
     return summary
+
+
+def _labelled_outages(seq: Sequence, scored: list[tuple[str, Trajectory]]) -> list[dict]:
+    """Each labelled GNSS outage (``labels["gnss_outage"]``, B = 1) scored against the
+    ground truth: start / end in s from the first IMU sample, then per scored trajectory
+    its ``eval.outage.labelled_outage_metrics`` (keys prefixed as in ``scored``). Outages
+    with under 2 truth samples, or no ground truth, give nothing."""
+    intervals = seq.labels.get("gnss_outage")
+    truth = seq.ground_truth
+    if intervals is None or truth is None or not bool(truth.mask.any()):
+        return []
+    origin = float(seq.start_time[0])
+    out = []
+    for start, end in intervals[0].tolist():
+        if not (math.isfinite(start) and math.isfinite(end)):
+            continue
+        entry: dict[str, Any] = {
+            "start_s": round(start - origin, 3),
+            "end_s": round(end - origin, 3),
+        }
+        try:
+            for prefix, traj in scored:
+                metrics = labelled_outage_metrics(traj, truth, start, end)
+                entry.update(
+                    {
+                        f"{prefix}{k}": round(v, 4) if isinstance(v, float) else v
+                        for k, v in metrics.items()
+                    }
+                )
+        except ValueError:
+            continue
+        out.append(entry)
+    return out
 
 
 def _export(

@@ -2,12 +2,19 @@
 
 Drift is the largest horizontal-and-vertical position error against the withheld fixes
 divided by the distance travelled inside the window (sum of consecutive fix
-displacements), in percent.
+displacements), in percent. A real outage labelled in the data (``labels["gnss_outage"]``)
+has no fixes to withhold; :func:`labelled_outage_metrics` scores it the same way against the
+ground truth's positions inside it.
 """
 
 from __future__ import annotations
 
-__all__ = ["split_gnss_outage", "outage_metrics", "interpolate_positions"]
+__all__ = [
+    "split_gnss_outage",
+    "outage_metrics",
+    "labelled_outage_metrics",
+    "interpolate_positions",
+]
 
 import dataclasses
 
@@ -77,6 +84,41 @@ def outage_metrics(estimate: Trajectory, withheld: GnssFixes) -> dict[str, float
         raise ValueError("outage_metrics: no withheld GNSS fix to score the estimate against")
     t_ref = withheld.t[0, withheld.mask[0]]
     p_ref = withheld.position[0, withheld.mask[0]]
+    metrics = _position_errors(estimate, t_ref, p_ref)
+    metrics["outage_fixes"] = int(t_ref.numel())
+    return metrics
+
+
+def labelled_outage_metrics(
+    estimate: Trajectory, ground_truth: Trajectory, start_t: float, end_t: float
+) -> dict[str, float]:
+    """Score an estimate over a labelled GNSS outage ``[start_t, end_t]`` (s, the sequence's
+    clock) against the ground truth's positions inside it (B = 1), as
+    :func:`outage_metrics` does against withheld fixes (no alignment).
+
+    Returns:
+        ``outage_rmse_m``, ``outage_max_error_m``, ``outage_distance_m`` (along the truth),
+        ``outage_drift_pct``, ``outage_duration_s``, ``outage_truth_samples``.
+    Raises:
+        ValueError: fewer than 2 ground-truth samples inside the outage.
+    """
+    keep = ground_truth.mask[0] & (ground_truth.t[0] >= start_t) & (ground_truth.t[0] <= end_t)
+    if int(keep.sum()) < 2:
+        raise ValueError(
+            f"labelled_outage_metrics: {int(keep.sum())} ground-truth sample(s) inside the "
+            f"outage {start_t}:{end_t} s; need at least 2"
+        )
+    t_ref = ground_truth.t[0, keep]
+    metrics = _position_errors(estimate, t_ref, ground_truth.position[0, keep])
+    metrics["outage_truth_samples"] = int(t_ref.numel())
+    return metrics
+
+
+def _position_errors(
+    estimate: Trajectory, t_ref: torch.Tensor, p_ref: torch.Tensor
+) -> dict[str, float]:
+    """RMSE, max error, reference path length, drift % and duration of an estimate against
+    reference positions ``p_ref`` (N, 3) m at ``t_ref`` (N,) s."""
     err = (interpolate_positions(estimate, t_ref) - p_ref).norm(dim=-1)
     distance = (p_ref[1:] - p_ref[:-1]).norm(dim=-1).sum()
     return {
@@ -85,5 +127,4 @@ def outage_metrics(estimate: Trajectory, withheld: GnssFixes) -> dict[str, float
         "outage_distance_m": float(distance),
         "outage_drift_pct": float(100.0 * err.max() / distance.clamp_min(1e-9)),
         "outage_duration_s": float(t_ref[-1] - t_ref[0]),
-        "outage_fixes": int(t_ref.numel()),
     }
