@@ -78,6 +78,8 @@ __all__ = [
 
 import dataclasses
 import math
+import pickle
+import zipfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -528,9 +530,29 @@ def read_checkpoint(path: str | Path) -> tuple[CovNet, NoiseApplication]:
     with ``.to(device)``.
 
     Raises:
-        ValueError: the file is not a CovNet checkpoint (the message names it).
+        FileNotFoundError: no such file.
+        ValueError: the file is not a CovNet checkpoint (the message names it; a file that
+            ``torch.load`` cannot read at all says it is not an msf_torch checkpoint, without
+            torch's own text).
     """
-    payload = torch.load(path, map_location="cpu", weights_only=True)
+    try:
+        payload = torch.load(path, map_location="cpu", weights_only=True)
+    except (
+        pickle.UnpicklingError,
+        RuntimeError,
+        EOFError,
+        KeyError,
+        ValueError,
+        TypeError,
+        AttributeError,
+        IndexError,
+        UnicodeDecodeError,
+        zipfile.BadZipFile,
+    ) as err:
+        raise ValueError(
+            f"{path}: not an msf_torch checkpoint (torch.load cannot read it: "
+            f"{type(err).__name__}; checkpoints are written by save_checkpoint)"
+        ) from err
     if not isinstance(payload, dict) or payload.get("format") != _CHECKPOINT_FORMAT:
         raise ValueError(f"{path}: not a CovNet checkpoint (format {_CHECKPOINT_FORMAT})")
     try:

@@ -13,6 +13,7 @@ import math
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 
@@ -165,6 +166,28 @@ def test_checkpoint_round_trip_with_weights_only(tmp_path):
     torch.save({"state_dict": model.state_dict()}, tmp_path / "other.pt")
     with pytest.raises(ValueError, match="other.pt"):
         load_checkpoint(tmp_path / "other.pt")
+
+
+@pytest.mark.parametrize(
+    ("name", "content"),
+    [
+        ("text.pt", b"hello, not a checkpoint\n"),
+        ("empty.pt", b""),
+        ("graph.g2o", b"VERTEX_SE3:QUAT 0 0 0 0 0 0 0 1\n"),
+        ("scans.npz", None),  # a zip archive that is not torch's
+    ],
+)
+def test_a_file_that_is_no_checkpoint_gets_a_clean_error(tmp_path, name, content):
+    path = tmp_path / name
+    if content is None:
+        np.savez(path, a=np.zeros(3))
+    else:
+        path.write_bytes(content)
+    with pytest.raises(ValueError) as info:
+        load_checkpoint(path)
+    message = str(info.value)
+    assert message.startswith(f"{path}: not an msf_torch checkpoint (torch.load cannot read it")
+    assert "Could this error message be improved" not in message and "\n" not in message
 
 
 def test_residual_embedding_knows_which_source_is_bad():
