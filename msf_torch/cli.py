@@ -141,7 +141,7 @@ def build_parser() -> argparse.ArgumentParser:
         default="se3",
         help="align the estimate to the reference first: rigid (default), with scale, or not",
     )
-    ev.add_argument("--max-dt", type=float, default=0.01, help="association tolerance, s")
+    ev.add_argument("--max-dt", type=_tolerance, default=0.01, help="association tolerance, s")
     ev.add_argument("--delta", type=float, default=1.0, help="RPE step")
     ev.add_argument("--delta-unit", choices=("frames", "m", "s"), default="frames")
     ev.add_argument(
@@ -544,7 +544,13 @@ def _cmd_simulate(args) -> dict[str, Any]:
         if args.slip_episodes is not None:
             config = dataclasses.replace(config, slip_episodes=args.slip_episodes)
         summary["weather_seed"] = weather_seed
-    run = simulate_run(config, seed=args.seed)
+    try:
+        run = simulate_run(config, seed=args.seed)
+    except ValueError as err:
+        raise ValueError(
+            f"{err}; here --slip-episodes {config.slip_episodes}, --gnss-outages "
+            f"{args.gnss_outages}, --duration {args.duration}"
+        ) from None
     sequence = run.sequence
     if schedule is not None:
         wet = apply_weather(run, schedule, seeds[2], pose_source=None)
@@ -590,8 +596,10 @@ def _cmd_posegraph(args) -> dict[str, Any]:
     )
 
     source = args.graph
-    if not Path(source).exists() and source in GTSAM_POSE3_FILES:
-        source = str(gtsam_pose_graph_path(source))
+    if not Path(source).exists():
+        named = [n for n in GTSAM_POSE3_FILES if source in (n, Path(n).stem)]
+        if named:
+            source = str(gtsam_pose_graph_path(named[0]))
     graph = read_pose_graph(source)
     config = pose_graph_config(
         max_iterations=args.max_iterations, relative_tolerance=args.tolerance

@@ -843,10 +843,12 @@ def _plot(path, seq, trajectory, result, withheld, options, summary) -> None:
 
     est = _single(trajectory)
     reference = None
+    reference_label = "ground truth"
     if seq.ground_truth is not None:
         reference = seq.ground_truth
     elif seq.gnss is not None or withheld is not None:
         streams = [s for s in (seq.gnss, withheld) if s is not None]
+        reference_label = "GNSS fixes"
         t = torch.cat([s.t[0, s.mask[0]] for s in streams])
         p = torch.cat([s.position[0, s.mask[0]] for s in streams])
         order = torch.argsort(t)
@@ -885,4 +887,5 @@ def _plot(path, seq, trajectory, result, withheld, options, summary) -> None:
         slip=slip,
         outage=outage,
         title=f"{summary['sequence']}",
+        reference_label=reference_label,
     )

@@ -66,6 +66,7 @@ def overview_figure(
     outage: SequenceABC[float] | None = None,
     title: str = "",
     slip_panel: bool = True,
+    reference_label: str = "reference",
 ) -> Path:
     """Write a three-panel PNG overview of one run.
 
@@ -91,6 +92,8 @@ def overview_figure(
         title: figure title.
         slip_panel: draw the wheel-slip panel (a figure of a run without wheels, as
             ``msf eval`` draws, leaves it out).
+        reference_label: what the reference is, for the legends (``"GNSS fixes"`` when the
+            run has no ground truth and is scored against its own fixes).
 
     Returns:
         The written path.
@@ -136,7 +139,13 @@ def overview_figure(
     # Top-down trajectory.
     if p_ref is not None:
         ax_xy.plot(
-            p_ref[:, 0], p_ref[:, 1], color=_REF_COLOR, ls="--", lw=1.3, label="reference", zorder=3
+            p_ref[:, 0],
+            p_ref[:, 1],
+            color=_REF_COLOR,
+            ls="--",
+            lw=1.3,
+            label=reference_label,
+            zorder=3,
         )
     ax_xy.plot(p_est[:, 0], p_est[:, 1], color=_EST_COLOR, lw=1.5, label="estimate")
     if p_est.shape[0]:
@@ -164,7 +173,10 @@ def overview_figure(
     if pairs["error"] is not None:
         tt, vv = pairs["error"]
         rmse = float(np.sqrt(np.mean(vv**2))) if vv.size else float("nan")
-        ax_err.plot(tt, vv, color=_EST_COLOR, lw=1.2, label=f"position error (RMSE {rmse:.3f} m)")
+        against = "" if reference_label == "reference" else f" vs {reference_label}"
+        ax_err.plot(
+            tt, vv, color=_EST_COLOR, lw=1.2, label=f"position error{against} (RMSE {rmse:.3f} m)"
+        )
         if span is not None:
             ax_err.axvspan(*span, color=_OUTAGE_COLOR, alpha=0.12, label="outage")
         ax_err.set_ylabel("position error [m]")

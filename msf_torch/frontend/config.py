@@ -615,7 +615,9 @@ def config_for_sequence(config: EskfConfig, meta: dict[str, Any], explicit: set[
 
     ``meta`` is ``Sequence.meta`` (B = 1); values come from ``meta["imu_noise"]`` (dataset
     files such as KITTI's metadata) and ``meta["sensor"]`` (native ``meta.json`` / the
-    simulator). Keys in ``explicit`` (set by the user's YAML or CLI; a YAML's are
+    simulator); ``meta["platform"] == "aerial"`` (EuRoC's MAV) turns the non-holonomic
+    constraint off (``nhc: auto`` would apply it to any run without wheels). Keys in
+    ``explicit`` (set by the user's YAML or CLI; a YAML's are
     ``set(read_config_keys(path))``) are left alone.
     """
     changes: dict[str, Any] = {}
@@ -631,6 +633,8 @@ def config_for_sequence(config: EskfConfig, meta: dict[str, Any], explicit: set[
     ):
         if cfg_key in imu_noise and cfg_key not in explicit:
             changes[cfg_key] = float(imu_noise[cfg_key])
+    if meta.get("platform") == "aerial" and "nhc" not in explicit:
+        changes["nhc"] = "off"  # an aerial vehicle slides sideways: no wheels, no constraint
     sensor = meta.get("sensor", {})
     if "wheel_track_m" in sensor and "wheel_track_m" not in explicit:
         changes["wheel_track_m"] = float(sensor["wheel_track_m"])

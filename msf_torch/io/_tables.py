@@ -509,8 +509,8 @@ def clean_stream(
                 path,
                 f"{here}time goes backwards: {float(t[i])!r} s comes after "
                 f"{float(t[i - 1])!r} s on "
-                f"{before} (to sort the streams by time instead: sort=True when loading, --sort "
-                f"for msf run)",
+                f"{before} (to sort the streams by time instead: msf run --sort, or sort=True "
+                f"when loading)",
                 **_where(lines, i, field_prefix, time_name),
             )
         order = np.argsort(t, kind="stable")

@@ -189,7 +189,12 @@ def read_euroc(folder: str | os.PathLike[str], sort: bool = False) -> Sequence:
         )
         gt["quaternion"] = _tables.normalise_quaternions(gt["quaternion"])
         ground_truth = _tables.stream_from_arrays(Trajectory, gt)
-    meta: dict[str, Any] = {"source": str(base), "format": "euroc", **report.to_meta()}
+    meta: dict[str, Any] = {
+        "source": str(base),
+        "format": "euroc",
+        "platform": "aerial",  # a MAV: no non-holonomic constraint (config_for_sequence)
+        **report.to_meta(),
+    }
     yaml_path = root / "imu0" / "sensor.yaml"
     if yaml_path.exists():
         noise = _read_sensor_yaml(yaml_path)

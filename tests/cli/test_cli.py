@@ -119,7 +119,7 @@ def test_backwards_time_needs_sort(tmp_path, capsys):
     )
     assert main(["run", str(folder), "--out", str(tmp_path / "o"), "--no-plot"]) == 2
     err = capsys.readouterr().err
-    assert "imu.csv:" in err and "--sort for msf run" in err  # names the option it has
+    assert "imu.csv:" in err and "msf run --sort" in err  # names the option it has
     assert main(["run", str(folder), "--out", str(tmp_path / "o"), "--no-plot", "--sort"]) == 0
 
 

@@ -89,3 +89,16 @@ def test_errors(tmp_path):
         read_euroc(folder)
     with pytest.raises(DataError, match="not a EuRoC ASL folder"):
         read_euroc(tmp_path)
+
+
+def test_aerial_platform_turns_the_nonholonomic_constraint_off(tmp_path):
+    """EuRoC is a MAV: its sequences say so, and the front end's ``nhc: auto`` (on for any
+    run without wheels) becomes off unless the user's config sets it."""
+    from msf_torch.frontend.config import load_sequence_config
+
+    seq = read_euroc(make_asl(tmp_path))
+    assert seq.meta["platform"] == "aerial"
+    assert load_sequence_config(seq.meta).nhc == "off"
+    config = tmp_path / "c.yaml"
+    config.write_text("nhc: on\n")
+    assert load_sequence_config(seq.meta, config).nhc == "on"
