@@ -13,6 +13,7 @@ import argparse
 import json
 import math
 import sys
+import warnings
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -674,7 +675,9 @@ def main(argv: list[str] | None = None) -> int:
         "config": _cmd_config,
     }
     try:
-        result = commands[args.command](args)
+        with warnings.catch_warnings():
+            warnings.showwarning = _warning_line(args.command)
+            result = commands[args.command](args)
     except (DataError, MissingExtraError, ValueError, FileNotFoundError) as err:
         print(f"msf {args.command}: error: {err}", file=sys.stderr)
         return 2
@@ -682,6 +685,16 @@ def main(argv: list[str] | None = None) -> int:
         return _interrupted(args, err)
     print(json.dumps(result, default=float))
     return 0
+
+
+def _warning_line(command: str):
+    """A ``warnings.showwarning`` that prints one ``msf COMMAND: warning: ...`` line on
+    stderr (no source location: the message names the file and what was skipped)."""
+
+    def show(message, category, filename, lineno, file=None, line=None) -> None:
+        print(f"msf {command}: warning: {message}", file=sys.stderr)
+
+    return show
 
 
 INTERRUPTED_STATUS = 130

@@ -80,3 +80,20 @@ def test_dead_reckoning_is_said(outage_run, tmp_path, capsys) -> None:
     summary, err = _summary(capsys)
     assert summary["absolute_aiding"] is False and summary["slip_detection_enabled"] is False
     assert "no GNSS or pose measurements were fused: dead reckoning" in err
+
+
+def test_reader_warnings_are_one_line(tmp_path, capsys) -> None:
+    """A reader's warning (here: a g2o tag it does not read) reaches the user as one
+    ``msf COMMAND: warning:`` line, not Python's two-line warning with a source location."""
+    info = "1 0 0 0 0 0 1 0 0 0 0 1 0 0 0 1 0 0 1 0 1"  # upper triangle of I (6 x 6)
+    graph = tmp_path / "graph.g2o"
+    graph.write_text(
+        "VERTEX_SE3:QUAT 0 0 0 0 0 0 0 1\n"
+        "VERTEX_SE3:QUAT 1 1 0 0 0 0 0 1\n"
+        f"EDGE_SE3:QUAT 0 1 1 0 0 0 0 0 1 {info}\n"
+        "FOO_BAR 1 2 3\n"
+    )
+    assert main(["posegraph", str(graph)]) == 0
+    err = capsys.readouterr().err.splitlines()
+    assert len(err) == 1 and err[0].startswith("msf posegraph: warning: ")
+    assert "'FOO_BAR' x1 (first on line 4)" in err[0]
