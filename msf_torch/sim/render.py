@@ -969,6 +969,19 @@ class RunRenderer:
         centre = position + rotation @ self.rig.body_translation_cam(right)
         return centre, rotation @ self.rig.body_rotation_cam()
 
+    def true_disparity(self, position: np.ndarray, rotation: np.ndarray) -> np.ndarray:
+        """The left camera's true stereo disparity ``fx b / z`` (H, W) px at a body pose
+        (position (3,) m, body -> world rotation (3, 3)), from the rendered ranges; 0 where
+        the ray meets nothing. A reference for stereo matching (e.g. a frame's
+        ``position`` / ``rotation``)."""
+        rig = self.rig
+        centre, rotation_wc = self.camera_pose(position, rotation)
+        _, distance = render_radiance(self.scene, rig, centre, rotation_wc, self.imaging)
+        u = (np.arange(rig.width) - rig.cx) / rig.fx
+        v = (np.arange(rig.height) - rig.cy) / rig.fy
+        ray_norm = np.sqrt(u[None, :] ** 2 + v[:, None] ** 2 + 1.0)
+        return rig.fx * rig.baseline_m * ray_norm / distance
+
     def frame(self, index: int, weather: FrameWeather | None = None) -> StereoFrame:
         """Render frame ``index`` (``weather`` overrides the schedule's)."""
         if not 0 <= index < len(self):

@@ -17,23 +17,11 @@ from __future__ import annotations
 
 import numpy as np
 
-from msf_torch.sim.render import render_radiance
 from msf_torch.vision import VoConfig
 from msf_torch.vision.features import AdaptiveFastDetector, stereo_search, track_klt
 
 PLANE_RADIUS_PX = 10
 SLANT_PX_PER_ROW = 0.02
-
-
-def _true_disparity(renderer, frame) -> np.ndarray:
-    """(H, W) fx b / depth of the left camera's view; 0 for the sky."""
-    rig = renderer.rig
-    centre, rotation_wc = renderer.camera_pose(frame.position, frame.rotation)
-    _, distance = render_radiance(renderer.scene, rig, centre, rotation_wc, renderer.imaging)
-    u = (np.arange(rig.width) - rig.cx) / rig.fx
-    v = (np.arange(rig.height) - rig.cy) / rig.fy
-    ray_norm = np.sqrt(u[None, :] ** 2 + v[:, None] ** 2 + 1.0)
-    return rig.fx * rig.baseline_m * ray_norm / distance
 
 
 def _slanted_plane(disparity: np.ndarray, points: np.ndarray) -> np.ndarray:
@@ -59,7 +47,7 @@ def test_stereo_match_is_unbiased_on_the_ground(rendered):
     fb = rig.fx * rig.baseline_m
     measured, true = [], []
     for frame in frames:
-        truth = _true_disparity(renderer, frame)
+        truth = renderer.true_disparity(frame.position, frame.rotation)
         points = AdaptiveFastDetector(cfg.detector).detect(frame.left)
         found, searched = stereo_search(
             frame.left, frame.right, points, fb / cfg.min_depth_m, cfg.stereo_patch_px

@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import numpy as np
 
-from msf_torch.sim.render import render_radiance
 from msf_torch.vision import StereoVisualOdometry, VoConfig
 from msf_torch.vision.features import (
     AdaptiveFastDetector,
@@ -30,17 +29,6 @@ from msf_torch.vision.features import (
 )
 
 EDGE_MAX_PX = 0.3
-
-
-def _true_disparity(renderer, frame) -> np.ndarray:
-    """(H, W) fx b / depth of the left camera's view, px; 0 for the sky."""
-    rig = renderer.rig
-    centre, rotation_wc = renderer.camera_pose(frame.position, frame.rotation)
-    _, distance = render_radiance(renderer.scene, rig, centre, rotation_wc, renderer.imaging)
-    u = (np.arange(rig.width) - rig.cx) / rig.fx
-    v = (np.arange(rig.height) - rig.cy) / rig.fy
-    ray_norm = np.sqrt(u[None, :] ** 2 + v[:, None] ** 2 + 1.0)
-    return rig.fx * rig.baseline_m * ray_norm / distance
 
 
 def _second_difference(disparity: np.ndarray, points: np.ndarray, r: int) -> np.ndarray:
@@ -69,7 +57,7 @@ def _checked_matches(rendered) -> tuple[np.ndarray, ...]:
     fb = rig.fx * rig.baseline_m
     relative, refused, edge, surface = [], [], [], []
     for frame in frames:
-        truth = _true_disparity(renderer, frame)
+        truth = renderer.true_disparity(frame.position, frame.rotation)
         points = AdaptiveFastDetector(cfg.detector).detect(frame.left)
         found, searched = stereo_search(
             frame.left, frame.right, points, fb / cfg.min_depth_m, cfg.stereo_patch_px
