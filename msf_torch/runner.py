@@ -52,7 +52,8 @@ where it stopped) and raises :class:`RunInterrupted`, with learned noise too
 
 With ``RunOptions.learned`` set, the filter's noise comes from a trained CovNet, per chunk
 of windows, applied as the checkpoint's training did (``learning.inference.learned_scales``;
-a sequence at another IMU rate is refused); ``summary.json`` then has ``"noise":
+an IMU at a whole multiple of the training rate is averaged down to it for the network,
+any other rate is refused); ``summary.json`` then has ``"noise":
 "learned"`` and a ``learned`` entry (checkpoint path and sha256, mean log-variance scales,
 inferred weather), else ``"noise": "config"``.
 """

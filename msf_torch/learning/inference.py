@@ -13,7 +13,8 @@ without the gradient truncation that only matters for training).
 :func:`learned_scales` applies a checkpoint as its training did
 (:class:`~msf_torch.learning.covnet.NoiseApplication`, stored in the checkpoint): the chunking,
 whether the network saw innovation features, whether the scales apply only where GNSS is
-out; it refuses a sequence whose IMU rate differs from the training runs' (a window of
+out; a sequence whose IMU runs at a whole multiple of the training runs' rate is shown to the
+network averaged down to it (:func:`decimate_imu`), any other rate is refused (a window of
 ``window_length`` samples would span another time, and each sample's noise differs).
 Checkpoints written before that record existed load with
 ``training/configs/default.yaml``'s chunking (:data:`DEFAULT_CHUNK_WINDOWS`) and no rate.
@@ -28,7 +29,8 @@ __all__ = [
     "LearnedModel",
     "WindowScales",
     "load_learned",
-    "check_imu_rate",
+    "decimate_imu",
+    "imu_decimation",
     "learned_scales",
     "window_scales",
     "run_piecewise",
@@ -61,7 +63,7 @@ from msf_torch.learning.covnet import (
     scaled_pose_covariance,
 )
 from msf_torch.learning.features import pose_source_of, run_features
-from msf_torch.types import NavState, Sequence
+from msf_torch.types import ImuSamples, NavState, Sequence
 
 DEFAULT_CHECKPOINT = (
     Path(__file__).resolve().parent.parent.parent / "checkpoints" / "covnet_default.pt"
@@ -105,6 +107,8 @@ class WindowScales:
         inferred: (W,) argmax of the weather head.
         gnss_outages_only: the scales were zeroed (configured noise) in chunks holding a
             GNSS fix.
+        imu_decimation: the sequence's IMU samples per network sample
+            (:func:`imu_decimation`); ``window_length`` counts the sequence's own samples.
     """
 
     log_scales: torch.Tensor
@@ -115,6 +119,7 @@ class WindowScales:
     from_labels: bool
     inferred: torch.Tensor
     gnss_outages_only: bool = False
+    imu_decimation: int = 1
 
 
 def load_learned(path: str | Path) -> LearnedModel:
@@ -135,29 +140,65 @@ def load_learned(path: str | Path) -> LearnedModel:
     return LearnedModel(model, path, digest, application)
 
 
-def check_imu_rate(seq: Sequence, learned: LearnedModel) -> float:
-    """The IMU rate of a B = 1 sequence, checked against the checkpoint's training runs.
-
-    Returns:
-        the sequence's median IMU rate, Hz.
+def imu_decimation(seq: Sequence, learned: LearnedModel) -> int:
+    """How many of a B = 1 sequence's IMU samples make one sample at the rate the
+    checkpoint was trained on: 1 when the rates agree within :data:`IMU_RATE_TOLERANCE`
+    (relative), ``k`` when the sequence's rate is ``k >= 2`` times the training rate within
+    it (a 200 or 400 Hz IMU for a 100 Hz network). The network then sees the means of
+    ``k`` consecutive samples (:func:`decimate_imu`): the noise the scales multiply is a
+    density, the same at either rate, and the mean of ``k`` samples has the per-sample
+    noise of the slower sensor. A checkpoint that recorded no rate gives 1.
 
     Raises:
-        ValueError: the rates differ by more than :data:`IMU_RATE_TOLERANCE` (relative);
-            the message names the sequence, both rates and the window spans. A checkpoint
-            that recorded no rate passes.
+        ValueError: any other rate (slower than the training rate, or not a whole multiple
+            of it); the message names the sequence, both rates and the window spans.
     """
     rate = float(seq.imu.median_rate_hz()[0])
     trained = learned.application.imu_rate_hz
-    if trained is None or abs(rate / trained - 1.0) <= IMU_RATE_TOLERANCE:
-        return rate
+    if trained is None:
+        return 1
+    ratio = max(1, round(rate / trained))
+    if abs(rate / (ratio * trained) - 1.0) <= IMU_RATE_TOLERANCE:
+        return ratio
     length = learned.model.config.window_length
     raise ValueError(
         f"sequence '{seq.names[0]}': its IMU runs at {rate:.6g} Hz, but CovNet checkpoint "
         f"{learned.path} was trained on {trained:.6g} Hz (windows of {length} samples: "
         f"{length / trained:.3g} s there, {length / rate:.3g} s here, and each sample's noise "
-        f"differs). Resample the IMU to {trained:.6g} Hz, train a network on your rate, or "
-        "run without learned noise (msf run --no-learned)."
+        f"differs; a whole multiple of {trained:.6g} Hz would be averaged down to it). "
+        f"Resample the IMU to {trained:.6g} Hz, train a network on your rate, or run without "
+        "learned noise (msf run --no-learned)."
     )
+
+
+def decimate_imu(seq: Sequence, factor: int) -> Sequence:
+    """A B = 1 sequence whose IMU samples are the means of ``factor`` consecutive real
+    samples of ``seq`` (``ImuSamples.compact``: masked samples are left out first, as the
+    windows of :func:`run_piecewise` count them), stamped at the first of each group; a
+    last incomplete group is dropped; the other streams unchanged. ``factor = 1`` returns
+    ``seq``.
+
+    Args:
+        seq: one run (B = 1); IMU (1, N) samples, rad/s and m/s^2.
+        factor: samples per group (>= 1).
+    Returns:
+        the sequence with (1, N // factor) IMU samples.
+    """
+    if factor == 1:
+        return seq
+    imu = seq.imu.compact()
+    count = (imu.t.shape[1] // factor) * factor
+
+    def groups(x: torch.Tensor) -> torch.Tensor:
+        return x[:, :count].unflatten(1, (count // factor, factor))
+
+    decimated = ImuSamples(
+        t=groups(imu.t)[:, :, 0],
+        gyro=groups(imu.gyro).mean(2),
+        accel=groups(imu.accel).mean(2),
+        mask=groups(imu.mask).all(2),
+    )
+    return dataclasses.replace(seq, imu=decimated)
 
 
 def learned_scales(
@@ -165,7 +206,9 @@ def learned_scales(
 ) -> WindowScales:
     """The network's noise per window of a B = 1 sequence, applied as its training did.
 
-    :func:`check_imu_rate` first; then :func:`window_scales` with the checkpoint's chunking,
+    :func:`imu_decimation` first (the network sees a faster IMU averaged down to its
+    training rate; a window then spans ``factor`` times its length in the sequence's own
+    samples); then :func:`window_scales` with the checkpoint's chunking,
     with the innovation features of a reference pass under ``cfg`` only where the network
     was trained with them; with ``gnss_outages_only`` the scales of chunks that hold a GNSS
     fix are zeroed (``msf_torch.learning.kitti.gate_outage_chunks``).
@@ -177,18 +220,21 @@ def learned_scales(
         use_labels: as :func:`window_scales`.
 
     Raises:
-        ValueError: the IMU rate differs from the training runs', or the run is shorter
-            than one window.
+        ValueError: the IMU rate is neither the training runs' nor a whole multiple of it,
+            or the run is shorter than one window.
     """
     application = learned.application
-    check_imu_rate(seq, learned)
+    factor = imu_decimation(seq, learned)
     scales = window_scales(
-        seq,
+        decimate_imu(seq, factor),
         learned.model,
         cfg if application.innovation_features else None,
         chunk_windows=application.chunk_windows,
         granularity=application.noise_granularity,
         use_labels=use_labels,
+    )
+    scales = dataclasses.replace(
+        scales, window_length=scales.window_length * factor, imu_decimation=factor
     )
     if not application.gnss_outages_only:
         return scales
@@ -452,6 +498,7 @@ def scales_summary(scales: WindowScales, learned: LearnedModel) -> dict[str, Any
         "window_length": scales.window_length,
         "chunk_windows": scales.chunk_windows,
         "trained_imu_rate_hz": learned.application.imu_rate_hz,
+        "imu_decimation": scales.imu_decimation,
         "gnss_outages_only": scales.gnss_outages_only,
         "mean_log_scales": {
             s: round(float(v), 4) for s, v in zip(LOG_SCALE_SENSORS, mean, strict=True)

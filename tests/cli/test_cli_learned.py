@@ -103,21 +103,29 @@ def test_checkpoint_sets_noise_as_the_scales_say(
     assert (tmp_path / "trajectory.tum").read_text() == (tmp_path / "direct.tum").read_text()
 
 
-@pytest.mark.parametrize("trained_hz", [200.0, 104.0])
+@pytest.mark.parametrize("trained_hz", [200.0, 104.0, 50.0, 40.0])
 def test_checkpoint_trained_at_another_imu_rate(
     weather_run, constant_checkpoint, tmp_path, capsys, trained_hz
 ):
+    """The run's IMU is at 100 Hz: a 104 Hz network takes it as it is (within 5 %), a
+    50 Hz one its pairs averaged (windows of twice the samples); 200 Hz (slower than the
+    network) and 40 Hz (not a whole multiple) are refused."""
     _, net = constant_checkpoint
     path = tmp_path / "rate.pt"
     save_checkpoint(path, net, NoiseApplication(imu_rate_hz=trained_hz))
     code, captured = _run([weather_run, "--out", tmp_path / "o", "--checkpoint", path], capsys)
-    if trained_hz == 104.0:  # within IMU_RATE_TOLERANCE (5 %) of the run's 100 Hz
+    if trained_hz in (104.0, 50.0):  # within IMU_RATE_TOLERANCE (5 %) of 100 Hz / 2 x 50 Hz
         assert code == 0, captured.err
-        summary = json.loads(captured.out.strip().splitlines()[-1])
-        assert summary["learned"]["trained_imu_rate_hz"] == 104.0
+        learned = json.loads(captured.out.strip().splitlines()[-1])["learned"]
+        assert learned["trained_imu_rate_hz"] == trained_hz
+        factor = 2 if trained_hz == 50.0 else 1
+        assert learned["imu_decimation"] == factor
+        assert learned["window_length"] == factor * net.config.window_length
         return
     assert code == 2
-    for part in ("'run'", "100 Hz", "200 Hz", "0.25 s there, 0.5 s here", "--no-learned"):
+    length = net.config.window_length
+    spans = f"{length / trained_hz:.3g} s there, {length / 100.0:.3g} s here"
+    for part in ("'run'", "100 Hz", f"{trained_hz:.6g} Hz", spans, "--no-learned"):
         assert part in captured.err, part
     assert not (tmp_path / "o" / "trajectory.tum").exists()
 

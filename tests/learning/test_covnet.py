@@ -404,3 +404,25 @@ def test_frontend_does_not_import_learning():
             else:
                 continue
             assert not any(n.startswith("msf_torch.learning") for n in names), path
+
+
+def test_decimate_imu_means_whole_groups() -> None:
+    """``learning.inference.decimate_imu``: each sample the mean of ``factor`` real samples
+    (numpy reshape as the reference), stamped at the group's first; a masked sample is left
+    out before grouping (as the filter's windows count samples); the incomplete last group
+    is dropped."""
+    from msf_torch.learning.inference import decimate_imu
+    from msf_torch.sim import SimConfig, simulate_run
+
+    seq = simulate_run(SimConfig(duration_s=2.0, slip_episodes=0), 1).sequence
+    imu = seq.imu
+    mask = imu.mask.clone()
+    mask[0, 7] = False
+    decimated = decimate_imu(dataclasses.replace(seq, imu=dataclasses.replace(imu, mask=mask)), 3)
+    kept = np.delete(np.arange(imu.t.shape[1]), 7)
+    count = kept.size // 3
+    groups = kept[: 3 * count].reshape(count, 3)
+    expected = imu.gyro[0].numpy()[groups].mean(1)
+    np.testing.assert_allclose(decimated.imu.gyro[0].numpy(), expected, rtol=0, atol=1e-15)
+    np.testing.assert_array_equal(decimated.imu.t[0].numpy(), imu.t[0].numpy()[groups[:, 0]])
+    assert decimate_imu(seq, 1) is seq
