@@ -198,7 +198,7 @@ def _native_path_problem(path: str | os.PathLike[str]) -> DataError | None:
     if p.is_dir():
         found = sorted(f.name for f in p.iterdir() if f.is_file() and _is_native_file(f.name))
         if found and TABLE_FILES["imu"] not in found:
-            return DataError(p, f"imu.csv missing in {p} (found: {_shown_files(found)})")
+            return DataError(p, f"imu.csv missing in this folder (found: {_shown_files(found)})")
     elif p.is_file() and _is_native_file(p.name) and (p.parent / TABLE_FILES["imu"]).is_file():
         return DataError(p, f"pass the folder {p.parent}, not one of its files")
     return None
@@ -267,7 +267,7 @@ def _read_folder(folder: Path, sort: bool) -> Sequence:
                 found = sorted(f.name for f in folder.iterdir() if f.is_file())
                 raise DataError(
                     folder,
-                    f"imu.csv missing in {folder} (the one required table; found: "
+                    "imu.csv missing in this folder (the one required table; found: "
                     f"{_shown_files(found) or 'no files'})",
                 )
             continue
