@@ -77,7 +77,15 @@ end's reprojection factors (:mod:`msf_torch.vision.tracks`).
 
 from __future__ import annotations
 
-__all__ = ["VoConfig", "VoFrame", "Keyframe", "VoResult", "StereoVisualOdometry", "STATUSES"]
+__all__ = [
+    "VoConfig",
+    "VoFrame",
+    "Keyframe",
+    "VoResult",
+    "StereoVisualOdometry",
+    "STATUSES",
+    "stereo_match",
+]
 
 import math
 import time
@@ -391,6 +399,53 @@ def _twist_to_origin(centre: np.ndarray) -> np.ndarray:
     return out
 
 
+def stereo_match(
+    left: np.ndarray,
+    right: np.ndarray,
+    points: np.ndarray,
+    config: VoConfig,
+    focal_baseline_px: float,
+    disparity_guess: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The odometry's left -> right stereo match of features in a rectified pair.
+
+    Features without a guess are first searched along their row
+    (:func:`~msf_torch.vision.features.stereo_search`), then all are refined by KLT
+    (``config.stereo_klt``); a match is good when the search found it, KLT converged, it
+    stays within ``config.stereo_max_row_px`` of its row and its depth lies within
+    ``[config.min_depth_m, config.max_depth_m]``.
+
+    Args:
+        left, right: (H, W) uint8 rectified images.
+        points: (N, 2) float32 left pixels.
+        config: the odometry's settings.
+        focal_baseline_px: ``fx * baseline``, px m.
+        disparity_guess: (N,) px, NaN where there is none (None: none at all).
+    Returns:
+        matched (N, 2) right pixels, disparity (N,) px (left x - right x), good (N,) bool.
+    """
+    count = len(points)
+    guess = np.full(count, np.nan) if disparity_guess is None else disparity_guess.copy()
+    searched = np.ones(count, bool)
+    missing = np.isnan(guess)
+    if missing.any():
+        guess[missing], searched[missing] = stereo_search(
+            left,
+            right,
+            points[missing],
+            focal_baseline_px / config.min_depth_m,
+            config.stereo_patch_px,
+        )
+    start = points - np.stack((guess, np.zeros(count)), -1).astype(np.float32)
+    matched, good = track_klt(left, right, points, config.stereo_klt, start)
+    disparity = points[:, 0] - matched[:, 0]
+    good &= searched & (np.abs(matched[:, 1] - points[:, 1]) <= config.stereo_max_row_px)
+    good &= (disparity >= focal_baseline_px / config.max_depth_m) & (
+        disparity <= focal_baseline_px / config.min_depth_m
+    )
+    return matched, disparity, good
+
+
 class StereoVisualOdometry:
     """Stereo visual odometry (see the module docstring). Feed frames in time order with
     :meth:`process`, or a whole sequence with :meth:`run`.
@@ -487,18 +542,8 @@ class StereoVisualOdometry:
             rot, _ = cv2.Rodrigues(rvec.reshape(3, 1))
             depth = (self._xyz[rows[mapped]] @ rot.T + tvec)[:, 2]
             disparity_guess[mapped] = fb / np.clip(depth, cfg.min_depth_m, cfg.max_depth_m)
-        searched = np.ones(len(rows), bool)
-        if (~mapped).any():
-            found, searched[~mapped] = stereo_search(
-                left, right, points[~mapped], fb / cfg.min_depth_m, cfg.stereo_patch_px
-            )
-            disparity_guess[~mapped] = found
-        guess = points - np.stack((disparity_guess, np.zeros(len(rows))), -1).astype(np.float32)
-        matched, good = track_klt(left, right, points, cfg.stereo_klt, guess)
-        good &= searched
-        disp = points[:, 0] - matched[:, 0]
-        good &= np.abs(matched[:, 1] - points[:, 1]) <= cfg.stereo_max_row_px
-        good &= (disp >= fb / cfg.max_depth_m) & (disp <= fb / cfg.min_depth_m)
+        disparity_guess[~mapped] = np.nan
+        matched, disp, good = stereo_match(left, right, points, cfg, fb, disparity_guess)
         if cfg.stereo_edge_max_px is not None:
             good &= ~self._edge_matches(left, right, points, matched, good, mapped, disp)
         disp = np.where(good, disp, 1.0)

@@ -1,6 +1,6 @@
 """The keyframe stereo match against the rendered true disparity, on the ground.
 
-New features are matched as ``StereoVisualOdometry`` matches them (the row search with
+New features are matched as ``StereoVisualOdometry`` matches them (``stereo_match``: the row search with
 ``stereo_patch_px``, then KLT with ``stereo_klt``) on the 41 frames of the shared 4 s drive;
 the truth is the renderer's range at the left pixel. On features whose 21 x 21 px
 neighbourhood lies on one surface (the true disparity is affine there: second differences
@@ -18,7 +18,8 @@ from __future__ import annotations
 import numpy as np
 
 from msf_torch.vision import VoConfig
-from msf_torch.vision.features import AdaptiveFastDetector, stereo_search, track_klt
+from msf_torch.vision.features import AdaptiveFastDetector
+from msf_torch.vision.odometry import stereo_match
 
 PLANE_RADIUS_PX = 10
 SLANT_PX_PER_ROW = 0.02
@@ -49,12 +50,7 @@ def test_stereo_match_is_unbiased_on_the_ground(rendered):
     for frame in frames:
         truth = renderer.true_disparity(frame.position, frame.rotation)
         points = AdaptiveFastDetector(cfg.detector).detect(frame.left)
-        found, searched = stereo_search(
-            frame.left, frame.right, points, fb / cfg.min_depth_m, cfg.stereo_patch_px
-        )
-        guess = points - np.stack((found, np.zeros_like(found)), -1)
-        matched, good = track_klt(frame.left, frame.right, points, cfg.stereo_klt, guess)
-        good &= searched & (np.abs(matched[:, 1] - points[:, 1]) <= cfg.stereo_max_row_px)
+        matched, _, good = stereo_match(frame.left, frame.right, points, cfg, fb)
         good &= _slanted_plane(truth, points)
         # the truth is affine around these points: bilinear interpolation is exact
         x, y = points[good, 0], points[good, 1]

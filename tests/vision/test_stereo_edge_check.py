@@ -21,12 +21,8 @@ from __future__ import annotations
 import numpy as np
 
 from msf_torch.vision import StereoVisualOdometry, VoConfig
-from msf_torch.vision.features import (
-    AdaptiveFastDetector,
-    stereo_search,
-    stereo_window_gaps,
-    track_klt,
-)
+from msf_torch.vision.features import AdaptiveFastDetector, stereo_window_gaps
+from msf_torch.vision.odometry import stereo_match
 
 EDGE_MAX_PX = 0.3
 
@@ -59,14 +55,8 @@ def _checked_matches(rendered) -> tuple[np.ndarray, ...]:
     for frame in frames:
         truth = renderer.true_disparity(frame.position, frame.rotation)
         points = AdaptiveFastDetector(cfg.detector).detect(frame.left)
-        found, searched = stereo_search(
-            frame.left, frame.right, points, fb / cfg.min_depth_m, cfg.stereo_patch_px
-        )
-        guess = points - np.stack((found, np.zeros_like(found)), -1)
-        matched, good = track_klt(frame.left, frame.right, points, cfg.stereo_klt, guess)
-        disparity = points[:, 0] - matched[:, 0]
-        good &= searched & (np.abs(matched[:, 1] - points[:, 1]) <= cfg.stereo_max_row_px)
-        good &= (disparity >= fb / cfg.max_depth_m) & (disparity < cfg.stereo_edge_max_disparity_px)
+        matched, disparity, good = stereo_match(frame.left, frame.right, points, cfg, fb)
+        good &= disparity < cfg.stereo_edge_max_disparity_px
         points, matched, disparity = points[good], matched[good], disparity[good]
         gaps = stereo_window_gaps(
             frame.left,
