@@ -1,7 +1,8 @@
 """The keyframe stereo match against the rendered true disparity, on the ground.
 
-New features are matched as ``StereoVisualOdometry`` matches them (``stereo_match``: the row search with
-``stereo_patch_px``, then KLT with ``stereo_klt``) on the 41 frames of the shared 4 s drive;
+New features are matched as ``StereoVisualOdometry`` matches them (``stereo_match``: the row
+search with ``stereo_patch_px``, then KLT with ``stereo_klt``) on the 41 frames of the shared
+4 s drive;
 the truth is the renderer's range at the left pixel. On features whose 21 x 21 px
 neighbourhood lies on one surface (the true disparity is affine there: second differences
 below 0.05 px) and whose disparity changes down the column (the ground, seen at a grazing
