@@ -141,7 +141,7 @@ from msf_torch.frontend.keyframes import KeyframeConfig, select_keyframes
 from msf_torch.geometry import so3
 from msf_torch.geometry.conventions import gravity_world
 from msf_torch.geometry.quaternion import matrix_to_quat
-from msf_torch.io.yaml_files import did_you_mean, read_yaml
+from msf_torch.io.yaml_files import did_you_mean, named_key, read_yaml
 from msf_torch.sensors.imu import Preintegrated, propagate_nominal
 from msf_torch.sensors.imu_gaps import interpolated_imu_samples
 from msf_torch.types import Sequence, Trajectory
@@ -324,7 +324,7 @@ def load_smoother_config(path: str | Path | None = None, **overrides: Any) -> Sm
     except (TypeError, ValueError) as err:
         if document is None:
             raise
-        bad = next((k for k in values if f"'smoother.{k}'" in str(err)), None)
+        bad = named_key(err, values, "smoother.")
         keys = ("smoother",) if bad is None else ("smoother", bad)
         raise document.error(str(err), *keys) from None
     return config

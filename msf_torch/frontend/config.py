@@ -25,7 +25,7 @@ from pathlib import Path
 from typing import Any
 
 from msf_torch.io.errors import DataError
-from msf_torch.io.yaml_files import YamlDocument, did_you_mean, read_yaml
+from msf_torch.io.yaml_files import YamlDocument, did_you_mean, named_key, read_yaml
 
 
 @dataclass
@@ -537,7 +537,7 @@ def _config_error(document: YamlDocument | None, err: Exception, keys: Iterable[
     file), else the error with the file prefixed."""
     if document is None:
         return ValueError(str(err))
-    bad = next((k for k in keys if f"'{k}'" in str(err)), None)
+    bad = named_key(err, keys)
     if bad is None:
         return DataError(document.path, str(err))
     return document.error(str(err), bad)

@@ -18,7 +18,14 @@ is what people write in configs and what ROS 2 (yaml-cpp) reads:
 
 from __future__ import annotations
 
-__all__ = ["ConfigLoader", "YamlDocument", "did_you_mean", "line_map", "read_yaml"]
+__all__ = [
+    "ConfigLoader",
+    "YamlDocument",
+    "did_you_mean",
+    "line_map",
+    "named_key",
+    "read_yaml",
+]
 
 import difflib
 import os
@@ -65,6 +72,13 @@ def did_you_mean(key: object, known: Iterable[str]) -> str:
     an empty string when none is close (``difflib`` ratio >= 0.6)."""
     close = difflib.get_close_matches(str(key), sorted(known), n=2, cutoff=0.6)
     return f" (did you mean {' or '.join(repr(k) for k in close)}?)" if close else ""
+
+
+def named_key(message: object, keys: Iterable[str], prefix: str = "") -> str | None:
+    """The first of ``keys`` that a validation message names as ``'<prefix><key>'`` (the
+    config classes' wording), to locate the error at that key's line; None if none."""
+    text = str(message)
+    return next((k for k in keys if f"'{prefix}{k}'" in text), None)
 
 
 def line_map(text: str) -> tuple[dict[tuple, int], list[tuple[tuple, int, int]]]:

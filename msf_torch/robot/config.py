@@ -84,7 +84,7 @@ from msf_torch.io.rosbag import (
     BagLayout,
     SensorTopic,
 )
-from msf_torch.io.yaml_files import ConfigLoader, read_yaml
+from msf_torch.io.yaml_files import ConfigLoader, YamlDocument, named_key, read_yaml
 from msf_torch.robot.frames import FrameTree, StaticTransform
 
 ROBOT_KEYS = ("robot", "frames", "time", "sensors", "estimator", "smoother")
@@ -126,11 +126,7 @@ class _Checker:
         self.lines = lines
 
     def fail(self, keys: tuple, problem: str) -> DataError:
-        line = None
-        for cut in range(len(keys), 0, -1):
-            if keys[:cut] in self.lines:
-                line = self.lines[keys[:cut]]
-                break
+        line = YamlDocument(Path(self.path), None, self.lines).line_of(*keys)
         name = ".".join(str(k) if not isinstance(k, int) else f"[{k}]" for k in keys)
         return DataError(self.path, problem, line=line, field=name.replace(".[", "["))
 
@@ -396,7 +392,7 @@ def _eskf_config(values: dict[str, Any], fail) -> EskfConfig:
         config = EskfConfig(**values)
         config.validate()
     except (TypeError, ValueError) as err:
-        bad = next((k for k in values if f"'{k}'" in str(err)), None)
+        bad = named_key(err, values)
         raise fail(("estimator",) if bad is None else ("estimator", bad), str(err)) from None
     return config
 
@@ -409,7 +405,7 @@ def _smoother_config(check: _Checker, section: Any) -> None:
     try:
         SmootherConfig(**values).validate()
     except (TypeError, ValueError) as err:
-        bad = next((k for k in values if f"'smoother.{k}'" in str(err)), None)
+        bad = named_key(err, values, "smoother.")
         raise check.fail(("smoother",) if bad is None else ("smoother", bad), str(err)) from None
 
 
