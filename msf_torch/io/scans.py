@@ -8,7 +8,8 @@ Keys (float64):
   (``angles[-1] - angles[0] <= 2 pi`` + :data:`ANGLE_SPAN_TOLERANCE`; a wider span is
   taken for degrees and refused);
 * ``ranges`` (N, K): ranges, m; NaN (or inf) where a beam returned nothing (the scan
-  matcher and the grid also read 0 as no return);
+  matcher and the grid also read 0 as no return); a median return above
+  :data:`MAX_MEDIAN_RANGE_M` is taken for millimetres and refused;
 * ``odometry`` (N, 3), optional: wheel-odometry pose ``[x, y, yaw]`` at each scan (m, rad),
   used as PLICP's initial guesses; finite;
 * ``truth`` (N, 3), optional: true pose at each scan, for evaluation; finite.
@@ -25,7 +26,7 @@ Example:
 
 from __future__ import annotations
 
-__all__ = ["ANGLE_SPAN_TOLERANCE", "read_scans", "write_scans"]
+__all__ = ["ANGLE_SPAN_TOLERANCE", "MAX_MEDIAN_RANGE_M", "read_scans", "write_scans"]
 
 import os
 from pathlib import Path
@@ -39,6 +40,10 @@ from msf_torch.io.errors import DataError
 
 ANGLE_SPAN_TOLERANCE = 1e-3
 """rad: how far past one full turn (2 pi) the beam angles of a scan file may span."""
+
+MAX_MEDIAN_RANGE_M = 300.0
+"""m: the largest median return a scan file may have (2D LiDARs reach 30-100 m; ranges in
+millimetres read a thousand times their metres)."""
 
 _REQUIRED = ("t", "angles", "ranges")
 _SHOWN_KEYS = 8
@@ -135,6 +140,14 @@ def read_scans(path: str | os.PathLike[str]) -> dict[str, torch.Tensor]:
     if negative.any():
         scan, beam = np.argwhere(negative)[0]
         raise DataError(source, f"negative range at scan {scan}, beam {beam}", field="ranges")
+    returned = ranges[np.isfinite(ranges) & (ranges > 0)]
+    if returned.size and float(np.median(returned)) > MAX_MEDIAN_RANGE_M:
+        raise DataError(
+            source,
+            f"ranges look like millimetres (median {float(np.median(returned)):.6g}), expected "
+            f"metres (a 2D LiDAR's median return is under {MAX_MEDIAN_RANGE_M:g} m)",
+            field="ranges",
+        )
     arrays["ranges"] = np.where(np.isfinite(ranges), ranges, np.nan)
     for key in ("odometry", "truth"):
         if key in arrays and arrays[key].shape != (t.shape[0], 3):

@@ -61,6 +61,20 @@ def test_angles_in_degrees_are_refused(tmp_path):
     assert read_scans(path)["angles"][-1] == pytest.approx(2 * np.pi)
 
 
+def test_ranges_in_millimetres_are_refused(tmp_path):
+    """The simulated corridor's ranges in mm are refused; in m (and with far returns up to
+    the limit) they read."""
+    run = simulate_lidar_run(corridor_map(), seed=1, duration_s=0.5)
+    path = write_scans(tmp_path / "mm.npz", run.t, run.angles, run.ranges * 1000.0)
+    with pytest.raises(DataError) as info:
+        read_scans(path)
+    assert info.value.field == "ranges"
+    assert info.value.problem.startswith("ranges look like millimetres (median ")
+    far = tmp_path / "far.npz"
+    _save(far, angles=np.linspace(0.0, 1.0, 4), ranges=np.full((3, 4), 250.0))
+    assert float(read_scans(far)["ranges"].max()) == 250.0
+
+
 def test_non_finite_angle_is_named(tmp_path):
     path = tmp_path / "inf.npz"
     _save(path, angles=np.array([0.0, 0.1, np.inf, 0.3]))
