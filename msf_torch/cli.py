@@ -143,6 +143,9 @@ def build_parser() -> argparse.ArgumentParser:
         help="align the estimate to the reference first: rigid (default), with scale, or not",
     )
     ev.add_argument("--max-dt", type=_tolerance, default=0.01, help="association tolerance, s")
+    ev.add_argument(
+        "--sort", action="store_true", help="sort each file's poses by time instead of failing"
+    )
     ev.add_argument("--delta", type=float, default=1.0, help="RPE step")
     ev.add_argument("--delta-unit", choices=("frames", "m", "s"), default="frames")
     ev.add_argument(
@@ -509,6 +512,7 @@ def _cmd_eval(args) -> dict[str, Any]:
         delta=args.delta,
         delta_unit=args.delta_unit,
         plot=args.plot,
+        sort=args.sort,
     )
 
 

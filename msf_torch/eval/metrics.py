@@ -366,6 +366,7 @@ def evaluate_files(
     delta: float = 1,
     delta_unit: str = "frames",
     plot: str | os.PathLike | None = None,
+    sort: bool = False,
 ) -> dict[str, Any]:
     """ATE and RPE of a TUM estimate file against a TUM reference file.
 
@@ -381,6 +382,7 @@ def evaluate_files(
         plot: optional PNG path: the estimate moved by the ATE's alignment against the
             reference (top-down) and the position error over time
             (:func:`msf_torch.eval.plots.overview_figure`, no slip panel).
+        sort: sort each file's poses by time (else time going backwards is an error).
 
     Returns:
         ``{"ate": ate(...), "rpe": rpe(...), "matched": n, "align": align,
@@ -388,8 +390,8 @@ def evaluate_files(
     """
     from msf_torch.io.tum import read_tum
 
-    est = read_tum(estimate_path)
-    ref = read_tum(reference_path)
+    est = read_tum(estimate_path, sort=sort)
+    ref = read_tum(reference_path, sort=sort)
     ate_out = ate(est, ref, align=align, max_dt=max_dt)
     rpe_out = rpe(est, ref, delta=delta, delta_unit=delta_unit, align=align, max_dt=max_dt)
     out = {

@@ -509,8 +509,8 @@ def clean_stream(
                 path,
                 f"{here}time goes backwards: {float(t[i])!r} s comes after "
                 f"{float(t[i - 1])!r} s on "
-                f"{before} (to sort the streams by time instead: msf run --sort, or sort=True "
-                f"when loading)",
+                f"{before} (to sort by time instead: --sort for msf run and msf eval, "
+                f"sort=True when loading)",
                 **_where(lines, i, field_prefix, time_name),
             )
         order = np.argsort(t, kind="stable")

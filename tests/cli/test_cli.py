@@ -70,6 +70,13 @@ def test_eval_matches_library_ate(short_run, tmp_path, capsys):
     assert result["ate"]["rmse"] == pytest.approx(np.sqrt(3 * 0.25), rel=1e-9)
     assert main(["eval", str(est), str(ref), "--align", "se3"]) == 0
     assert _last_json(capsys)["ate"]["rmse"] < 1e-9
+    lines = est.read_text().splitlines()
+    header, first, second = lines[:3]
+    est.write_text("\n".join([header, second, first, *lines[3:]]) + "\n")  # two poses swapped
+    assert main(["eval", str(est), str(ref), "--align", "none"]) == 2
+    assert "--sort for msf run and msf eval" in capsys.readouterr().err
+    assert main(["eval", str(est), str(ref), "--align", "none", "--sort"]) == 0
+    assert _last_json(capsys)["ate"]["rmse"] == pytest.approx(np.sqrt(3 * 0.25), rel=1e-9)
 
 
 def test_simulate_is_deterministic(tmp_path, capsys):
@@ -119,7 +126,7 @@ def test_backwards_time_needs_sort(tmp_path, capsys):
     )
     assert main(["run", str(folder), "--out", str(tmp_path / "o"), "--no-plot"]) == 2
     err = capsys.readouterr().err
-    assert "imu.csv:" in err and "msf run --sort" in err  # names the option it has
+    assert "imu.csv:" in err and "--sort for msf run" in err  # names the option it has
     assert main(["run", str(folder), "--out", str(tmp_path / "o"), "--no-plot", "--sort"]) == 0
 
 
