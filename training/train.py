@@ -14,13 +14,18 @@ subclass of either with ``class_path`` / ``init_args`` (``training/configs/kitti
 :class:`msf_torch.learning.kitti.KittiDataModule`); without ``class_path`` the two base
 classes are used. TensorBoard logs go
 to ``runs/`` (``tensorboard --logdir runs``); the trained network is written to
-``<log_dir>/covnet.pt`` (:func:`msf_torch.learning.load_checkpoint`).
+``<log_dir>/covnet.pt`` (:func:`msf_torch.learning.load_checkpoint`). Bad input data (a
+run without ground truth, too short, at another IMU rate, a missing file: a
+:class:`~msf_torch.io.errors.DataError`) ends in one line naming the file, exit status 2.
 """
 
 from __future__ import annotations
 
+import sys
+
 from lightning.pytorch.cli import LightningCLI
 
+from msf_torch.io.errors import DataError
 from msf_torch.learning.data import RunDataModule
 from msf_torch.learning.module import CovNetModule
 
@@ -40,4 +45,8 @@ def main(args: list[str] | None = None, run: bool = True) -> LightningCLI:
 
 
 if __name__ == "__main__":
-    main()
+    try:
+        main()
+    except DataError as err:
+        print(f"train.py: error: {err}", file=sys.stderr)
+        raise SystemExit(2) from None

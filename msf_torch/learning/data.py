@@ -45,6 +45,7 @@ __all__ = [
 
 import dataclasses
 import functools
+import warnings
 from dataclasses import dataclass
 from typing import Any
 
@@ -274,6 +275,7 @@ class RunDataModule(L.LightningDataModule):
         self.gnss_outage_count = gnss_outage_count
         self.gnss_outage_duration_s = tuple(gnss_outage_duration_s)
         self.eskf_base = load_config(eskf_config)
+        self.eskf_config_path = eskf_config
         self.eskf_explicit: set[str] = set()
         if eskf_config is not None:
             self.eskf_explicit = set(read_config_keys(eskf_config))
@@ -331,6 +333,18 @@ class RunDataModule(L.LightningDataModule):
                 "(crop the run to the ground truth's span)",
                 field="ground_truth",
             )
+        unknown = sorted(
+            name.split(":", 1)[1]
+            for name in seq.labels
+            if name.startswith("weather:") and name.split(":", 1)[1] not in self.weather_classes
+        )
+        if unknown:
+            warnings.warn(
+                f"{path}: weather labels {', '.join(unknown)} are not among the network's "
+                f"weather_classes ({', '.join(self.weather_classes)}): their windows count as "
+                "unknown weather (no weather loss); rename them or set weather_classes",
+                stacklevel=2,
+            )
         return seq
 
     def _build(self, split: str) -> list[tuple[Sequence, RunFeatures]]:
@@ -385,10 +399,19 @@ class RunDataModule(L.LightningDataModule):
         ]
         theirs = (getattr(model, "eskf_base", None), getattr(model, "eskf_explicit", None))
         if theirs[0] is not None and theirs != (self.eskf_base, self.eskf_explicit):
+            keys = sorted(
+                set(theirs[0].differing_keys(self.eskf_base)) | (theirs[1] ^ self.eskf_explicit)
+            )
+            files = (self.eskf_config_path, model.hparams.get("eskf_config"))
+            named = [
+                f"{side}.eskf_config {'unset' if path is None else '= ' + str(path)}"
+                for side, path in zip(("data", "model"), files, strict=True)
+            ]
             differ.append(
                 "data.eskf_config and model.eskf_config give different filter settings "
-                "(the reference pass that feeds the network and the filter it trains through; "
-                "msf run uses one --config for both)"
+                f"({', '.join(named)}; they differ in {', '.join(keys)}: the reference pass "
+                "that feeds the network and the filter it trains through; msf run uses one "
+                "--config for both)"
             )
         if differ:
             raise ValueError(

@@ -33,7 +33,8 @@ label (``wheel`` and ``nhc`` in m/s, ``imu_gyro`` in rad/s/sqrt(Hz), ``imu_accel
 m/s^2/sqrt(Hz), ``gnss``, ``vo``, ``lidar`` as multipliers of the measurement sigma; before
 fusion weights); ``fusion/<source>/<weather>`` mean fusion weights; ``val/slip_factor_mean``
 and ``val/slip_flagged_fraction`` (epochs below ``EskfConfig.slip_flag_below``); a figure
-``val_trajectory/<run>`` (plan view and slip factor) for the first ``max_figures``
+``val_trajectory/<run>`` (``<run>-2``, ... for repeated names; plan view and slip factor)
+for the first ``max_figures``
 validation runs. At the end of ``fit`` the network is written with
 :func:`~msf_torch.learning.covnet.save_checkpoint` to ``<log_dir>/covnet.pt``.
 """
@@ -194,6 +195,7 @@ class CovNetModule(L.LightningModule):
         self.max_figures = max_figures
         self._val_stats: dict[str, torch.Tensor] = {}
         self._figures_done = 0
+        self._figure_tags: set[str] = set()
         self._val_cfg = self.eskf_base
         self._imu_rates_hz: list[float] = []
 
@@ -366,6 +368,7 @@ class CovNetModule(L.LightningModule):
             "epochs": torch.zeros((), device=self.device),
         }
         self._figures_done = 0
+        self._figure_tags = set()
 
     def validation_step(self, batch: RunBatch, batch_idx: int) -> None:
         """Loss terms (``val/*``), per-weather statistics and trajectory figures."""
@@ -417,9 +420,12 @@ class CovNetModule(L.LightningModule):
             ax_slip.plot(times[b][mask[b]], slip[b][mask[b]])
             ax_slip.set(xlabel="t [s]", ylabel="slip factor", ylim=(0.0, 1.05))
             fig.tight_layout()
-            self.logger.experiment.add_figure(
-                f"val_trajectory/{name}", fig, global_step=self.global_step
-            )
+            tag, repeat = f"val_trajectory/{name}", 1
+            while tag in self._figure_tags:  # two validation runs of one name (dayA/run.npz,
+                repeat += 1  # dayB/run.npz): one figure each
+                tag = f"val_trajectory/{name}-{repeat}"
+            self._figure_tags.add(tag)
+            self.logger.experiment.add_figure(tag, fig, global_step=self.global_step)
             self._figures_done += 1
 
     def _log_reduced(self, name: str, value: float) -> None:

@@ -202,8 +202,54 @@ def test_eskf_config_differing_from_the_model_is_named(tmp_path) -> None:
     data = RunDataModule(train_files=[str(tmp_path / "unread.npz")])  # default settings
     module = CovNetModule(eskf_config=str(config))
     trainer = L.Trainer(accelerator="cpu", max_epochs=1, logger=False, enable_progress_bar=False)
-    with pytest.raises(ValueError, match="data.eskf_config and model.eskf_config"):
+    with pytest.raises(ValueError, match="data.eskf_config and model.eskf_config") as err:
         trainer.fit(module, datamodule=data)
+    assert f"data.eskf_config unset, model.eskf_config = {config}" in str(err.value)
+    assert "they differ in gyro_noise_density:" in str(err.value)
     same = RunDataModule(train_files=[str(tmp_path / "unread.npz")], eskf_config=str(config))
     with pytest.raises(DataError, match="unread.npz"):  # the check passes; the file is next
         trainer.fit(module, datamodule=same)
+
+
+def test_train_script_names_bad_data_in_one_line(tmp_path) -> None:
+    """``training/train.py`` on a file that does not exist: exit status 2 and one error line
+    naming it, not Lightning's traceback (the same DataError ``msf run`` reports)."""
+    import os
+    import subprocess
+    import sys
+
+    root = Path(__file__).resolve().parents[2]
+    missing = tmp_path / "missing.npz"
+    run = subprocess.run(
+        [
+            sys.executable,
+            str(root / "training" / "train.py"),
+            "fit",
+            "--config",
+            str(root / "training" / "configs" / "smoke.yaml"),
+            f"--data.train_files=[{missing}]",
+            "--trainer.logger=false",
+        ],
+        capture_output=True,
+        text=True,
+        cwd=tmp_path,
+        env={**os.environ, "OMP_NUM_THREADS": "1"},
+        timeout=300,
+        check=False,
+    )
+    assert run.returncode == 2, run.stderr[-2000:]
+    errors = [line for line in run.stderr.splitlines() if "error" in line.lower()]
+    assert len(errors) == 1 and errors[0].startswith(f"train.py: error: {missing}: no such file")
+    assert "Traceback" not in run.stderr
+
+
+def test_unknown_weather_label_is_warned(tmp_path) -> None:
+    """A weather label the network has no class for (a typo, ``weather:Rain``) would
+    silently count as unknown weather: loading the run warns, naming it."""
+    seq = simulate_labelled_run(11, 4.0)
+    name = next(k for k in seq.labels if k.startswith("weather:"))
+    labels = {("weather:Rain" if k == name else k): v for k, v in seq.labels.items()}
+    path = write_native(dataclasses.replace(seq, labels=labels), tmp_path / "typo.npz")
+    data = _module([path], [path])
+    with pytest.warns(UserWarning, match=r"typo.npz: weather labels Rain are not among"):
+        data.setup("fit")

@@ -282,3 +282,27 @@ def test_labelled_weather_run_is_the_labelled_run_with_its_source_truth():
         white = torch.linalg.solve_triangular(chol, noise, upper=False)[..., 0] / k
         assert abs(float(white.var()) - 1.0) < 0.1, float(white.var())
     assert float(wet.source_truth["lidar"].error_scale.max()) > 2.0  # fog: k matters above
+
+
+def test_validation_figures_of_runs_with_one_name_get_their_own_tags(tiny_batch) -> None:
+    """Two validation runs named alike (``dayA/run.npz``, ``dayB/run.npz``) used to share
+    one TensorBoard tag, the second figure hiding the first."""
+    from types import SimpleNamespace
+
+    from msf_torch.types import batch_sequences
+
+    tags: list[str] = []
+    experiment = SimpleNamespace(add_figure=lambda tag, fig, global_step: tags.append(tag))
+    module = CovNetModule(max_figures=4)
+    module._trainer = SimpleNamespace(
+        logger=SimpleNamespace(experiment=experiment), global_step=0, loggers=[]
+    )
+    twice = dataclasses.replace(
+        tiny_batch,
+        sequence=batch_sequences([tiny_batch.sequence, tiny_batch.sequence]),
+    )
+    with torch.no_grad():
+        result = run_eskf(twice.sequence, module.eskf_base)
+    module._add_figures(twice, [result])
+    name = tiny_batch.sequence.names[0]
+    assert tags == [f"val_trajectory/{name}", f"val_trajectory/{name}-2"]
