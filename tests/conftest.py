@@ -2,6 +2,10 @@
 
 from __future__ import annotations
 
+import os
+import subprocess
+import sys
+
 import pytest
 import torch
 
@@ -15,3 +19,23 @@ def one_torch_thread():
     torch.set_num_threads(1)
     yield
     torch.set_num_threads(threads)
+
+
+@pytest.fixture
+def python_in(tmp_path):
+    """``python_in(*args, timeout=120)``: this interpreter run as a subprocess in the
+    test's temporary folder with one OpenMP thread; returns the ``CompletedProcess`` (text
+    stdout and stderr; a non-zero exit status does not raise)."""
+
+    def run(*args: str, timeout: float = 120) -> subprocess.CompletedProcess:
+        return subprocess.run(
+            [sys.executable, *args],
+            capture_output=True,
+            text=True,
+            cwd=tmp_path,
+            env={**os.environ, "OMP_NUM_THREADS": "1"},
+            timeout=timeout,
+            check=False,
+        )
+
+    return run

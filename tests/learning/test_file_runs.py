@@ -211,31 +211,19 @@ def test_eskf_config_differing_from_the_model_is_named(tmp_path) -> None:
         trainer.fit(module, datamodule=same)
 
 
-def test_train_script_names_bad_data_in_one_line(tmp_path) -> None:
+def test_train_script_names_bad_data_in_one_line(tmp_path, python_in) -> None:
     """``training/train.py`` on a file that does not exist: exit status 2 and one error line
     naming it, not Lightning's traceback (the same DataError ``msf run`` reports)."""
-    import os
-    import subprocess
-    import sys
-
     root = Path(__file__).resolve().parents[2]
     missing = tmp_path / "missing.npz"
-    run = subprocess.run(
-        [
-            sys.executable,
-            str(root / "training" / "train.py"),
-            "fit",
-            "--config",
-            str(root / "training" / "configs" / "smoke.yaml"),
-            f"--data.train_files=[{missing}]",
-            "--trainer.logger=false",
-        ],
-        capture_output=True,
-        text=True,
-        cwd=tmp_path,
-        env={**os.environ, "OMP_NUM_THREADS": "1"},
+    run = python_in(
+        str(root / "training" / "train.py"),
+        "fit",
+        "--config",
+        str(root / "training" / "configs" / "smoke.yaml"),
+        f"--data.train_files=[{missing}]",
+        "--trainer.logger=false",
         timeout=300,
-        check=False,
     )
     assert run.returncode == 2, run.stderr[-2000:]
     errors = [line for line in run.stderr.splitlines() if "error" in line.lower()]

@@ -2,10 +2,7 @@
 
 from __future__ import annotations
 
-import os
 import re
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
@@ -25,18 +22,10 @@ def test_load_robot_config_is_exported():
         msf_torch.robot.load_config  # noqa: B018
 
 
-def test_importing_robot_first_in_a_fresh_interpreter(tmp_path):
+def test_importing_robot_first_in_a_fresh_interpreter(python_in):
     """robot.config imports msf_torch.io, which imports msf_torch.robot: no import cycle."""
     code = "from msf_torch.robot import load_robot_config; print(load_robot_config.__module__)"
-    run = subprocess.run(
-        [sys.executable, "-c", code],
-        capture_output=True,
-        text=True,
-        cwd=tmp_path,
-        env={**os.environ, "OMP_NUM_THREADS": "1"},
-        timeout=120,
-        check=False,
-    )
+    run = python_in("-c", code)
     assert run.returncode == 0, run.stderr
     assert run.stdout.strip() == "msf_torch.robot.config"
 
