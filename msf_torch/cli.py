@@ -400,6 +400,9 @@ def _cmd_run(args) -> dict[str, Any]:
         return _cmd_run_batch(args)
     seq, cfg, source = _load(args, args.sequence[0] if args.sequence else None)
     smoother = _smoother_config(args, source)
+    learned = _learned(args)
+    if learned is not None:
+        _check_filter_settings(args, source, learned)
     options = RunOptions(
         out_dir=args.out,
         gnss_outage_s=args.gnss_outage,
@@ -407,7 +410,7 @@ def _cmd_run(args) -> dict[str, Any]:
         progress=_progress_factory(args.progress),
         smooth=args.smooth,
         smoother=smoother,
-        learned=_learned(args),
+        learned=learned,
         exports=args.export,
     )
     summary = run_sequence(seq, cfg, options)
@@ -485,6 +488,27 @@ def _cmd_run_batch(args) -> dict[str, Any]:
             _notes(json.load(handle), f"{name}: ")
     print(f"msf run: outputs in {args.out}", file=sys.stderr)
     return summary
+
+
+def _check_filter_settings(args, source: str | None, learned: Any) -> None:
+    """Warn (stderr) when the run's config YAML sets other front-end values than the
+    checkpoint's training did: the learned scales multiply those values."""
+    from msf_torch.frontend.config import packaged_config, read_config_keys
+    from msf_torch.learning.inference import filter_settings_mismatch
+
+    if args.topics is not None:
+        return  # a robot YAML's estimator: section is not compared (docs/learning.md)
+    path = args.config
+    if path is None and source in NAMED_DATASETS:
+        path = packaged_config(source)
+    differ = filter_settings_mismatch(learned, {} if path is None else read_config_keys(path))
+    if differ:
+        print(
+            f"msf run: warning: {learned.path} was trained with other filter settings than "
+            f"this run's ({'; '.join(differ)}); its scales multiply them: pass the training's "
+            "eskf_config as --config",
+            file=sys.stderr,
+        )
 
 
 def _learned(args) -> Any:

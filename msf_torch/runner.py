@@ -887,6 +887,6 @@ def _plot(path, seq, trajectory, result, withheld, options, summary) -> None:
         slip_t=slip_t,
         slip=slip,
         outage=outage,
-        title=f"{summary['sequence']}",
+        title=f"{summary['sequence']} ({summary.get('noise', 'config')} noise)",
         reference_label=reference_label,
     )

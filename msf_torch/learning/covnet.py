@@ -469,6 +469,9 @@ class NoiseApplication:
             pass with the run's configured noise (False: those features were zero).
         gnss_outages_only: the scales applied only in chunks holding no GNSS fix, the
             configured noise elsewhere (``msf_torch.learning.kitti.gate_outage_chunks``).
+        filter_settings: the front-end settings the training's ``eskf_config`` YAML set
+            (key -> value, plain types; ``{}``: none, the defaults), which the learned
+            scales multiply; None: not recorded (checkpoints before 2026-11-28).
     """
 
     imu_rate_hz: float | None = None
@@ -476,6 +479,7 @@ class NoiseApplication:
     noise_granularity: str = "chunk"
     innovation_features: bool = True
     gnss_outages_only: bool = False
+    filter_settings: dict[str, Any] | None = None
 
     def __post_init__(self) -> None:
         if self.chunk_windows < 1:

@@ -30,6 +30,7 @@ __all__ = [
     "WindowScales",
     "load_learned",
     "decimate_imu",
+    "filter_settings_mismatch",
     "imu_decimation",
     "learned_scales",
     "window_scales",
@@ -169,6 +170,29 @@ def imu_decimation(seq: Sequence, learned: LearnedModel) -> int:
         f"Resample the IMU to {trained:.6g} Hz, train a network on your rate, or run without "
         "learned noise (msf run --no-learned)."
     )
+
+
+def filter_settings_mismatch(learned: LearnedModel, settings: dict[str, Any]) -> list[str]:
+    """The front-end keys whose value differs between the checkpoint's training
+    (``NoiseApplication.filter_settings``) and a run's config YAML ``settings`` (key ->
+    value as the file sets them); a key only one side sets is compared with
+    :class:`~msf_torch.frontend.config.EskfConfig`'s default on the other. Empty when they
+    agree or the checkpoint recorded none.
+
+    Returns:
+        ``"key: trained with A, this run B"`` per differing key, sorted by key.
+    """
+    trained = learned.application.filter_settings
+    if trained is None:
+        return []
+    default = EskfConfig()
+    out = []
+    for key in sorted(set(trained) | (set(settings) - {"smoother"})):
+        ours = trained.get(key, getattr(default, key, None))
+        theirs = settings.get(key, getattr(default, key, None))
+        if ours != theirs:
+            out.append(f"{key}: trained with {ours!r}, this run {theirs!r}")
+    return out
 
 
 def decimate_imu(seq: Sequence, factor: int) -> Sequence:

@@ -481,12 +481,14 @@ class CovNetModule(L.LightningModule):
 
     def noise_application(self) -> NoiseApplication:
         """How this module applied the network's scales in training (stored in
-        ``covnet.pt``): its chunking and the median IMU rate of the training runs seen."""
+        ``covnet.pt``): its chunking, the median IMU rate of the training runs seen and the
+        filter settings its ``eskf_config`` set."""
         rates = self._imu_rates_hz
         return NoiseApplication(
             imu_rate_hz=round(statistics.median(rates), 6) if rates else None,
             chunk_windows=self.chunk_windows,
             noise_granularity=self.noise_granularity,
+            filter_settings={k: getattr(self.eskf_base, k) for k in sorted(self.eskf_explicit)},
         )
 
     def on_fit_end(self) -> None:

@@ -21,6 +21,7 @@ from msf_torch.learning import (
     CovNetConfig,
     NoiseApplication,
     apply_fusion_weights,
+    read_checkpoint,
     save_checkpoint,
     scaled_noise,
 )
@@ -199,3 +200,26 @@ def test_bad_checkpoint_names_the_file(weather_run, tmp_path, capsys, kind):
     code, captured = _run([weather_run, "--out", tmp_path / "o", "--checkpoint", path], capsys)
     assert code == 2
     assert str(path) in captured.err and "checkpoint" in captured.err
+
+
+def test_filter_settings_of_the_training_are_checked(
+    weather_run, constant_checkpoint, tmp_path, capsys
+):
+    """The checkpoint records the front-end values its training's eskf_config set; a run
+    whose --config sets others (or none) is warned, naming each key, since the learned
+    scales multiply those values; the same settings pass quietly."""
+    _, net = constant_checkpoint
+    path = tmp_path / "robot.pt"
+    trained = {"gyro_noise_density": 5.0e-3, "nhc": "on"}
+    save_checkpoint(path, net, NoiseApplication(imu_rate_hz=100.0, filter_settings=trained))
+    assert read_checkpoint(path)[1].filter_settings == trained
+    run = [weather_run, "--out", tmp_path / "o", "--checkpoint", path]
+    code, captured = _run(run, capsys)
+    assert code == 0, captured.err
+    warning = next(line for line in captured.err.splitlines() if "other filter settings" in line)
+    assert "gyro_noise_density: trained with 0.005, this run 9.9e-05" in warning
+    assert "nhc: trained with 'on', this run 'auto'" in warning
+    same = tmp_path / "robot.yaml"
+    same.write_text("gyro_noise_density: 5.0e-3\nnhc: on\n")
+    code, captured = _run([*run, "--config", same], capsys)
+    assert code == 0 and "other filter settings" not in captured.err

@@ -230,6 +230,7 @@ def test_checkpoint_keeps_how_training_applied_the_scales(tmp_path):
         noise_granularity="run",
         innovation_features=False,
         gnss_outages_only=True,
+        filter_settings={"gyro_noise_density": 5e-3, "gnss_sigma_m": [0.5, 0.5, 1.0]},
     )
     save_checkpoint(tmp_path / "a.pt", model, record)
     assert torch.load(tmp_path / "a.pt", weights_only=True)["application"] == {
@@ -238,6 +239,7 @@ def test_checkpoint_keeps_how_training_applied_the_scales(tmp_path):
         "noise_granularity": "run",
         "innovation_features": False,
         "gnss_outages_only": True,
+        "filter_settings": {"gyro_noise_density": 5e-3, "gnss_sigma_m": [0.5, 0.5, 1.0]},
     }
     loaded, application = read_checkpoint(tmp_path / "a.pt")
     assert application == record and loaded.config == model.config

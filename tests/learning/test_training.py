@@ -89,9 +89,10 @@ def test_smoke_fit_through_cli_logs_expected_tags(tmp_path: Path, train_script) 
     assert len(images) == 1 and images[0].startswith("val_trajectory/sim-")
     model, application = read_checkpoint(log_dir / "covnet.pt")
     assert model.config.window_length == 100
-    # how training applied the scales: smoke.yaml's chunking, the simulated 100 Hz IMU
+    # how training applied the scales: smoke.yaml's chunking, the simulated 100 Hz IMU,
+    # no eskf_config (the defaults: no filter setting recorded as set)
     assert application == NoiseApplication(
-        imu_rate_hz=100.0, chunk_windows=4, noise_granularity="chunk"
+        imu_rate_hz=100.0, chunk_windows=4, noise_granularity="chunk", filter_settings={}
     )
 
 
