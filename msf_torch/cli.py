@@ -496,12 +496,16 @@ def _check_filter_settings(args, source: str | None, learned: Any) -> None:
     from msf_torch.frontend.config import packaged_config, read_config_keys
     from msf_torch.learning.inference import filter_settings_mismatch
 
-    if args.topics is not None:
-        return  # a robot YAML's estimator: section is not compared (docs/learning.md)
-    path = args.config
-    if path is None and source in NAMED_DATASETS:
-        path = packaged_config(source)
-    differ = filter_settings_mismatch(learned, {} if path is None else read_config_keys(path))
+    if args.topics is not None:  # a bag: the robot YAML's estimator: section, then --config
+        from msf_torch.robot.config import load_robot_config
+
+        settings = {**load_robot_config(args.topics).estimator, **_config_overrides(args.config)}
+    else:
+        path = args.config
+        if path is None and source in NAMED_DATASETS:
+            path = packaged_config(source)
+        settings = {} if path is None else read_config_keys(path)
+    differ = filter_settings_mismatch(learned, settings)
     if differ:
         print(
             f"msf run: warning: {learned.path} was trained with other filter settings than "

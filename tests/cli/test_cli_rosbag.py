@@ -322,3 +322,27 @@ def test_smoothed_rosbag2_export_carries_covariance_and_twist(robot_run, tmp_pat
     assert np.abs(smoothed["angular"][:, 2]).max() > 0.2  # the run turns
     assert rate_gap < 0.003
     assert velocity_gap < 0.03
+
+
+def test_checkpoint_filter_settings_are_compared_with_the_robot_estimator(
+    robot_run, tmp_path, capsys
+) -> None:
+    """For a bag, the front-end values a checkpoint's training set are compared with the
+    robot YAML's ``estimator:`` section (then ``--config``): a checkpoint trained with the
+    defaults is warned about the robot's gyro noise; one trained with it is not."""
+    from msf_torch.learning import CovNet, CovNetConfig, NoiseApplication, save_checkpoint
+
+    robot = tmp_path / "robot.yaml"
+    robot.write_text(ROBOT + "estimator:\n  gyro_noise_density: 5.0e-3\n")
+    (tmp_path / "rover.urdf").write_text(URDF)
+    torch.manual_seed(0)
+    net = CovNet(CovNetConfig(window_length=50, channels=4, embedding=4, hidden=8))
+    common = ["run", str(robot_run["bag"]), "--topics", str(robot), "--no-plot"]
+    for trained, warned in (({}, True), ({"gyro_noise_density": 5.0e-3}, False)):
+        checkpoint = tmp_path / f"net{len(trained)}.pt"
+        save_checkpoint(checkpoint, net, NoiseApplication(filter_settings=trained))
+        out = tmp_path / f"out{len(trained)}"
+        assert main([*common, "--out", str(out), "--checkpoint", str(checkpoint)]) == 0
+        err = capsys.readouterr().err
+        expected = "gyro_noise_density: trained with 9.9e-05, this run 0.005"
+        assert (expected in err) is warned, err
