@@ -56,13 +56,14 @@ def unit_problems(seq: Sequence) -> list[str]:
     problems: list[str] = []
     low_step, high_step = UNIT_LIMITS["imu_step_s"]
     low_g, high_g = UNIT_LIMITS["accel_median_g"]
+    rates_hz = seq.imu.median_rate_hz()
     for b, name in enumerate(seq.names):
         prefix = f"{name}: " if seq.batch_size > 1 else ""
         keep = seq.imu.mask[b]
         if int(keep.sum()) < 3:
             continue
         t = seq.imu.t[b, keep]
-        step = float(torch.diff(t).median())
+        step = 1.0 / float(rates_hz[b])
         if not low_step <= step <= high_step:
             hint = (
                 "nanoseconds? divide by 1e9; milliseconds? divide by 1e3"
