@@ -192,8 +192,10 @@ def build_parser() -> argparse.ArgumentParser:
     check = config_sub.add_parser("check", help="validate FILE; print what it configures")
     check.add_argument("file", type=Path)
 
-    pg = sub.add_parser("posegraph", help="optimise a 3-D pose graph (g2o / TORO) by LM")
-    pg.add_argument("graph", help="g2o / TORO file, or the name of a 3-D graph shipped with gtsam")
+    pg = sub.add_parser("posegraph", help="optimise a 2-D or 3-D pose graph (g2o / TORO) by LM")
+    pg.add_argument(
+        "graph", help="g2o / TORO file (2-D or 3-D), or the name of a graph shipped with gtsam"
+    )
     pg.add_argument("--out", type=Path, default=None, help="write the optimised graph (g2o)")
     pg.add_argument(
         "--robust",
@@ -627,19 +629,28 @@ def _cmd_posegraph(args) -> dict[str, Any]:
         read_pose_graph,
         write_g2o,
     )
+    from msf_torch.io.g2o_2d import (
+        GTSAM_POSE2_FILES,
+        is_pose_graph_2d,
+        read_pose_graph_2d,
+        write_g2o_2d,
+    )
 
     source = args.graph
     if not Path(source).exists():
-        named = [n for n in GTSAM_POSE3_FILES if source in (n, Path(n).stem)]
+        shipped = GTSAM_POSE3_FILES + GTSAM_POSE2_FILES
+        named = [n for n in shipped if source in (n, Path(n).stem)]
         if named:
             source = str(gtsam_pose_graph_path(named[0]))
-    graph = read_pose_graph(source)
+    planar = is_pose_graph_2d(source)
+    graph = read_pose_graph_2d(source) if planar else read_pose_graph(source)
     config = pose_graph_config(
         max_iterations=args.max_iterations, relative_tolerance=args.tolerance
     )
     result = optimize_pose_graph(graph, robust=args.robust, config=config)
     summary: dict[str, Any] = {
         "graph": source,
+        "dimension": 2 if planar else 3,
         "poses": graph.num_vertices,
         "edges": graph.num_edges,
         "robust": None if args.robust is None else [args.robust.name, args.robust.scale],
@@ -650,7 +661,7 @@ def _cmd_posegraph(args) -> dict[str, Any]:
         "status": result.status,
     }
     if args.out is not None:
-        summary["out"] = str(write_g2o(args.out, result.graph))
+        summary["out"] = str((write_g2o_2d if planar else write_g2o)(args.out, result.graph))
     if args.plot is not None:
         from msf_torch.eval.plots import pose_graph_figure
 

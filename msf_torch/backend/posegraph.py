@@ -1,5 +1,6 @@
-"""3-D pose-graph optimisation: a :class:`~msf_torch.io.g2o.PoseGraph` solved by the batched
-LM of :mod:`msf_torch.backend.lm` with GTSAM's cost.
+"""Pose-graph optimisation: a 3-D :class:`~msf_torch.io.g2o.PoseGraph` (or a planar
+:class:`~msf_torch.io.g2o_2d.PoseGraph2D`, :mod:`msf_torch.backend.posegraph2d`) solved by
+the batched LM of :mod:`msf_torch.backend.lm` with GTSAM's cost.
 
 The graph becomes one :class:`~msf_torch.backend.problem.Problem` (B = 1) with one ``se3``
 variable group (the poses, moved by ``T <- T exp([rho, phi])``, GTSAM's ``Pose3``
@@ -49,11 +50,13 @@ import torch
 
 from msf_torch.backend.factors import BetweenFactor
 from msf_torch.backend.lm import LMConfig, solve
+from msf_torch.backend.posegraph2d import pose_graph_2d_problem
 from msf_torch.backend.posegraph4dof import YAW_POSITION, YawBetweenFactor
 from msf_torch.backend.problem import Problem
 from msf_torch.backend.robust import RobustKernel
 from msf_torch.backend.variables import pack_pose, unpack_pose
 from msf_torch.io.g2o import PoseGraph
+from msf_torch.io.g2o_2d import PoseGraph2D
 
 _GROUP = "pose"
 
@@ -64,7 +67,8 @@ class PoseGraphResult:
 
     Attributes:
         graph: the optimised graph: the input's edges with the solved vertex poses
-            (``rotations`` (N, 3, 3), ``positions`` (N, 3) m), same device and dtype.
+            (``rotations`` (N, 3, 3), ``positions`` (N, 3) m; for a 2-D graph ``positions``
+            (N, 2) m, ``headings`` (N,) rad), same device and dtype.
         initial_cost, final_cost: GTSAM-convention cost ``0.5 * sum rho(|W r|^2)`` before and
             after (with the robust loss when a kernel was given).
         iterations: linear solves run (accepted and rejected steps).
@@ -75,7 +79,7 @@ class PoseGraphResult:
             mixed m / rad), ``damping`` (lambda used), ``accepted`` (bool).
     """
 
-    graph: PoseGraph
+    graph: PoseGraph | PoseGraph2D
     initial_cost: float
     final_cost: float
     iterations: int
@@ -174,7 +178,7 @@ def pose_graph_problem(
 
 
 def optimize_pose_graph(
-    graph: PoseGraph,
+    graph: PoseGraph | PoseGraph2D,
     robust: RobustKernel | None = None,
     config: LMConfig | None = None,
     fixed: Sequence[int] | torch.Tensor | None = None,
@@ -184,7 +188,8 @@ def optimize_pose_graph(
 
     Args:
         graph: N vertices (the initial estimate), E edges; any device (CUDA works with the
-            sparse solver).
+            sparse solver). A :class:`~msf_torch.io.g2o_2d.PoseGraph2D` is solved over
+            planar poses (:mod:`msf_torch.backend.posegraph2d`).
         robust: kernel on every edge (e.g. ``RobustKernel("cauchy", 1.0)``), or None.
         config: LM settings; default :func:`pose_graph_config` ``()``.
         fixed: row indices of the vertices held constant (gauge); default (None) the
@@ -196,14 +201,30 @@ def optimize_pose_graph(
         :class:`PoseGraphResult`; the input graph is not modified.
 
     Raises:
-        ValueError: a malformed graph, bad ``fixed`` indices or ``dof`` not 4 or 6.
+        ValueError: a malformed graph, bad ``fixed`` indices, ``dof`` not 4 or 6, or
+            ``dof=4`` for a 2-D graph.
     """
     config = config or pose_graph_config()
     start = time.perf_counter()
-    problem = pose_graph_problem(graph, robust, fixed, dof)
+    planar = isinstance(graph, PoseGraph2D)
+    if planar and dof != 6:
+        raise ValueError(f"a 2-D pose graph has 3-dof poses; dof={dof} is for 3-D graphs")
+    if planar:
+        problem = pose_graph_2d_problem(graph, robust, fixed, _GROUP)
+    else:
+        problem = pose_graph_problem(graph, robust, fixed, dof)
     with torch.no_grad():
         result = solve(problem, config)
-    position, rotation = unpack_pose(result.values[_GROUP][0])
+    solved_values = result.values[_GROUP][0]
+    if planar:
+        solved = dataclasses.replace(
+            graph,
+            positions=solved_values[:, 0:2].clone(),
+            headings=solved_values[:, 2].clone(),
+        )
+    else:
+        position, rotation = unpack_pose(solved_values)
+        solved = dataclasses.replace(graph, rotations=rotation.clone(), positions=position.clone())
     initial_cost = float(result.initial_cost[0])
     final_cost = float(result.cost[0])
     seconds = time.perf_counter() - start
@@ -216,7 +237,6 @@ def optimize_pose_graph(
         }
         for entry in result.log
     ]
-    solved = dataclasses.replace(graph, rotations=rotation.clone(), positions=position.clone())
     return PoseGraphResult(
         graph=solved,
         initial_cost=initial_cost,

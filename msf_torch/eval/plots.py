@@ -239,14 +239,15 @@ def pose_graph_figure(
 ) -> Path:
     """Write a PNG of a pose graph before and after optimisation.
 
-    Panels: top view (x-y) and side view (x-z) of the vertex positions, initial in grey and
-    optimised in blue, with the edges between non-consecutive vertices (loop closures) drawn
-    faintly on the optimised poses; and the cost per iteration (log scale, rejected steps
-    marked), starting from ``initial_cost``.
+    Panels: top view (x-y) and side view (x-z; only the top view for a 2-D graph) of the
+    vertex positions, initial in grey and optimised in blue, with the edges between
+    non-consecutive vertices (loop closures) drawn faintly on the optimised poses; and the
+    cost per iteration (log scale, rejected steps marked), starting from ``initial_cost``.
 
     Args:
         path: the PNG file (parent folders are created; written atomically).
-        initial_positions, optimised_positions: (N, 3) m, vertex positions.
+        initial_positions, optimised_positions: (N, 3) m, vertex positions ((N, 2) for a
+            2-D graph).
         edge_index: (E, 2) vertex rows of each edge.
         log: one dict per iteration with ``cost`` and ``accepted``
             (:class:`~msf_torch.backend.posegraph.PoseGraphResult`'s ``log``).
@@ -257,15 +258,17 @@ def pose_graph_figure(
         the path written.
 
     Raises:
-        ValueError: the position arrays are not (N, 3) of one N, or ``edge_index`` is not
-            (E, 2) rows into them.
+        ValueError: the position arrays are not (N, 3) or (N, 2) of one N, or ``edge_index``
+            is not (E, 2) rows into them.
     """
     path = Path(path)
     before = np.asarray(torch.as_tensor(initial_positions).detach().cpu(), dtype=np.float64)
     after = np.asarray(torch.as_tensor(optimised_positions).detach().cpu(), dtype=np.float64)
     edges = np.asarray(torch.as_tensor(edge_index).detach().cpu(), dtype=np.int64)
-    if before.ndim != 2 or before.shape[1] != 3 or before.shape != after.shape:
-        raise ValueError(f"positions must be (N, 3) of one N, got {before.shape} and {after.shape}")
+    if before.ndim != 2 or before.shape[1] not in (2, 3) or before.shape != after.shape:
+        raise ValueError(
+            f"positions must be (N, 3) or (N, 2) of one N, got {before.shape} and {after.shape}"
+        )
     if (
         edges.ndim != 2
         or edges.shape[1] != 2
@@ -276,10 +279,11 @@ def pose_graph_figure(
 
     from matplotlib.collections import LineCollection
 
-    fig = Figure(figsize=(15.0, 5.2), dpi=_DPI, layout="constrained")
+    views = (((0, 1), "top view"), ((0, 2), "side view"))[: before.shape[1] - 1]
+    fig = Figure(figsize=(5.0 * len(views) + 4.5, 5.2), dpi=_DPI, layout="constrained")
     FigureCanvasAgg(fig)
-    axes = fig.subplots(1, 3, width_ratios=(1.0, 1.0, 0.9))
-    for ax, (u, v), name in zip(axes[:2], ((0, 1), (0, 2)), ("top view", "side view"), strict=True):
+    axes = fig.subplots(1, len(views) + 1, width_ratios=(1.0,) * len(views) + (0.9,))
+    for ax, ((u, v), name) in zip(axes[:-1], views, strict=True):
         if loops.size:
             segments = after[loops][:, :, [u, v]]
             ax.add_collection(
@@ -295,7 +299,7 @@ def pose_graph_figure(
         ax.set_title(f"{name} ({before.shape[0]} poses, {edges.shape[0]} edges)")
         ax.grid(True, alpha=0.35)
         ax.legend(loc="best", fontsize=8)
-    ax_cost = axes[2]
+    ax_cost = axes[-1]
     costs = np.array([initial_cost] + [float(entry["cost"]) for entry in log])
     accepted = np.array([True] + [bool(entry["accepted"]) for entry in log])
     steps = np.arange(costs.size)

@@ -17,15 +17,19 @@ KITTI pose files (:func:`write_kitti_poses`) and ``nav_msgs/Odometry`` rosbag2 f
 3-D pose graphs (g2o ``VERTEX_SE3:QUAT`` / ``EDGE_SE3:QUAT``, TORO ``VERTEX3`` / ``EDGE3``) are
 read by :func:`read_pose_graph` into a :class:`PoseGraph` and written by :func:`write_g2o`
 (:mod:`msf_torch.io.g2o`; information matrices in ``[dp, dtheta]`` order, costs equal to
-GTSAM's).
+GTSAM's). 2-D (planar) pose graphs (g2o ``VERTEX_SE2`` / ``EDGE_SE2``, TORO ``VERTEX2`` /
+``EDGE2``) are read by :func:`read_pose_graph_2d` into a :class:`PoseGraph2D` and written by
+:func:`write_g2o_2d` (:mod:`msf_torch.io.g2o_2d`); :func:`is_pose_graph_2d` tells the two apart.
 """
 
 from __future__ import annotations
 
 __all__ = [
     "FORMATS",
+    "GTSAM_POSE2_FILES",
     "GTSAM_POSE3_FILES",
     "PoseGraph",
+    "PoseGraph2D",
     "BagLayout",
     "SensorTopic",
     "DataError",
@@ -36,6 +40,7 @@ __all__ = [
     "detect_format",
     "gtsam_data_path",
     "gtsam_pose_graph_path",
+    "is_pose_graph_2d",
     "is_rosbag",
     "load_eqvio",
     "load_kitti_gtsam",
@@ -45,8 +50,10 @@ __all__ = [
     "read_rosbag",
     "read_native",
     "read_pose_graph",
+    "read_pose_graph_2d",
     "read_tum",
     "write_g2o",
+    "write_g2o_2d",
     "write_kitti_poses",
     "write_odometry_rosbag2",
     "write_rosbag",
@@ -67,6 +74,13 @@ from msf_torch.io.g2o import (
     gtsam_pose_graph_path,
     read_pose_graph,
     write_g2o,
+)
+from msf_torch.io.g2o_2d import (
+    GTSAM_POSE2_FILES,
+    PoseGraph2D,
+    is_pose_graph_2d,
+    read_pose_graph_2d,
+    write_g2o_2d,
 )
 from msf_torch.io.kitti_gtsam import KITTI_GTSAM_NAME, gtsam_data_path, load_kitti_gtsam
 from msf_torch.io.kitti_poses import read_kitti_poses, write_kitti_poses

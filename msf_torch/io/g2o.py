@@ -131,9 +131,10 @@ _INFO_FIELDS = tuple(f"info[{r},{c}]" for r, c in zip(_INFO_ROWS, _INFO_COLS, st
 _TAGS_2D = frozenset(
     {"VERTEX", "VERTEX2", "EDGE", "EDGE2", "ODOMETRY", "LANDMARK", "LANDMARK2", "BR", "EQUIV"}
 )
+POSE3_TAGS = frozenset({G2O_VERTEX_TAG, G2O_EDGE_TAG, TORO_VERTEX_TAG, TORO_EDGE_TAG})
 _ID = re.compile(r"[0-9]+")
-_FIX_TAG = "FIX"
-_TAGS = f"{G2O_VERTEX_TAG}, {G2O_EDGE_TAG}, {TORO_VERTEX_TAG}, {TORO_EDGE_TAG}, {_FIX_TAG}"
+FIX_TAG = "FIX"
+_TAGS = f"{G2O_VERTEX_TAG}, {G2O_EDGE_TAG}, {TORO_VERTEX_TAG}, {TORO_EDGE_TAG}, {FIX_TAG}"
 
 
 @dataclass(frozen=True)
@@ -220,15 +221,7 @@ class PoseGraph:
         Raises:
             ValueError: a fixed id that is not a vertex id.
         """
-        fixed = torch.as_tensor(self.fixed_ids, dtype=torch.int64, device=self.vertex_ids.device)
-        n = self.num_vertices
-        rows = torch.searchsorted(self.vertex_ids, fixed)
-        known = rows < n
-        if n:
-            known &= self.vertex_ids[rows.clamp(max=n - 1)] == fixed
-        if not bool(known.all()):
-            raise ValueError(f"PoseGraph.fixed_ids: {fixed[~known].tolist()} are not vertex ids")
-        return rows
+        return fixed_rows_of(self.vertex_ids, self.fixed_ids, "PoseGraph")
 
     def to(
         self, device: torch.device | str | None = None, dtype: torch.dtype | None = None
@@ -271,22 +264,52 @@ class PoseGraph:
             "edge_translations": (e, 3),
             "edge_information": (e, 6, 6),
         }
-        if self.edge_lines is not None:
-            shapes["edge_lines"] = (e,)
-        for name, shape in shapes.items():
-            value = getattr(self, name)
-            if tuple(value.shape) != shape:
-                raise ValueError(f"PoseGraph.{name}: shape {tuple(value.shape)}, expected {shape}")
-            integral = name in ("vertex_ids", "edge_index", "edge_lines")
-            if integral and value.dtype != torch.int64:
-                raise ValueError(f"PoseGraph.{name}: dtype {value.dtype}, expected torch.int64")
-            if not integral and not value.is_floating_point():
-                raise ValueError(f"PoseGraph.{name}: dtype {value.dtype}, expected floating")
-        if n > 1 and not bool((self.vertex_ids.diff() > 0).all()):
-            raise ValueError("PoseGraph.vertex_ids: not strictly increasing")
-        if e and (int(self.edge_index.min()) < 0 or int(self.edge_index.max()) >= n):
-            raise ValueError(f"PoseGraph.edge_index: row indices outside [0, {n})")
-        self.fixed_rows()
+        check_graph_fields(self, "PoseGraph", shapes)
+
+
+def fixed_rows_of(vertex_ids: torch.Tensor, fixed_ids: tuple[int, ...], owner: str) -> torch.Tensor:
+    """(F,) int64 rows of the sorted ``vertex_ids`` (N,) that hold ``fixed_ids``.
+
+    Raises:
+        ValueError: a fixed id that is not a vertex id (``owner`` names the graph class).
+    """
+    fixed = torch.as_tensor(fixed_ids, dtype=torch.int64, device=vertex_ids.device)
+    n = int(vertex_ids.shape[0])
+    rows = torch.searchsorted(vertex_ids, fixed)
+    known = rows < n
+    if n:
+        known &= vertex_ids[rows.clamp(max=n - 1)] == fixed
+    if not bool(known.all()):
+        raise ValueError(f"{owner}.fixed_ids: {fixed[~known].tolist()} are not vertex ids")
+    return rows
+
+
+def check_graph_fields(graph, owner: str, shapes: dict[str, tuple[int, ...]]) -> None:
+    """Shapes, dtypes and index ranges of a pose graph (``PoseGraph`` or ``PoseGraph2D``):
+    every field in ``shapes`` has that shape (and ``edge_lines`` (E,) when set), ids and
+    indices are int64, the rest floating; ids strictly increase; edges index vertices;
+    ``fixed_ids`` are vertex ids.
+
+    Raises:
+        ValueError: naming ``owner`` and the first field that is wrong.
+    """
+    n, e = graph.num_vertices, graph.num_edges
+    if graph.edge_lines is not None:
+        shapes = {**shapes, "edge_lines": (e,)}
+    for name, shape in shapes.items():
+        value = getattr(graph, name)
+        if tuple(value.shape) != shape:
+            raise ValueError(f"{owner}.{name}: shape {tuple(value.shape)}, expected {shape}")
+        integral = name in ("vertex_ids", "edge_index", "edge_lines")
+        if integral and value.dtype != torch.int64:
+            raise ValueError(f"{owner}.{name}: dtype {value.dtype}, expected torch.int64")
+        if not integral and not value.is_floating_point():
+            raise ValueError(f"{owner}.{name}: dtype {value.dtype}, expected floating")
+    if n > 1 and not bool((graph.vertex_ids.diff() > 0).all()):
+        raise ValueError(f"{owner}.vertex_ids: not strictly increasing")
+    if e and (int(graph.edge_index.min()) < 0 or int(graph.edge_index.max()) >= n):
+        raise ValueError(f"{owner}.edge_index: row indices outside [0, {n})")
+    graph.fixed_rows()
 
 
 # ----------------------------------------------------------------------------- reading
@@ -301,7 +324,8 @@ class _Records:
     values: list[list[float]] = field(default_factory=list)
 
 
-def _parse_id(path: str, token: str, line: int, name: str) -> int:
+def parse_id(path: str, token: str, line: int, name: str) -> int:
+    """A vertex id: a non-negative integer below 2^63, else a DataError naming the field."""
     if not _ID.fullmatch(token) or len(token.lstrip("0")) > 19 or int(token) >= 2**63:
         raise DataError(
             path,
@@ -312,7 +336,11 @@ def _parse_id(path: str, token: str, line: int, name: str) -> int:
     return int(token)
 
 
-def _parse_floats(path: str, tokens: list[str], line: int, names: tuple[str, ...]) -> list[float]:
+def parse_float_fields(
+    path: str, tokens: list[str], line: int, names: tuple[str, ...]
+) -> list[float]:
+    """Finite floats of ``tokens``, else a DataError naming the field (``names``, one per
+    token) of the first bad one."""
     try:
         values = [float(t) for t in tokens]
     except ValueError:
@@ -344,8 +372,8 @@ def _parse_line(path: str, spec: _Spec, tokens: list[str], line: int, records: _
         if missing is not None:
             problem += f"; '{missing}' and later fields are missing"
         raise DataError(path, problem, line=line, field=missing)
-    ids = tuple(_parse_id(path, tokens[1 + k], line, spec.fields[k]) for k in range(spec.n_ids))
-    values = _parse_floats(path, tokens[1 + spec.n_ids :], line, spec.fields[spec.n_ids :])
+    ids = tuple(parse_id(path, tokens[1 + k], line, spec.fields[k]) for k in range(spec.n_ids))
+    values = parse_float_fields(path, tokens[1 + spec.n_ids :], line, spec.fields[spec.n_ids :])
     if spec.quat:
         q = values[3:7]
         if math.sqrt(sum(x * x for x in q)) < 1e-6:
@@ -465,18 +493,18 @@ def read_pose_graph(
             continue
         tag = tokens[0]
         spec = _SPECS.get(tag)
-        if tag == _FIX_TAG:
+        if tag == FIX_TAG:
             if len(tokens) < 2:
                 raise DataError(path_str, "FIX names no vertex id", line=line_no, field="id")
             for token in tokens[1:]:
-                fixes.setdefault(_parse_id(path_str, token, line_no, "id"), line_no)
+                fixes.setdefault(parse_id(path_str, token, line_no, "id"), line_no)
             continue
         if spec is None:
             if _is_2d_tag(tag):
                 raise DataError(
                     path_str,
                     f"2-D pose-graph tag {_tables.shown(tag)}; this reader reads 3-D graphs "
-                    f"({_TAGS})",
+                    f"({_TAGS}); read 2-D graphs with msf_torch.io.read_pose_graph_2d",
                     line=line_no,
                     field="tag",
                 )
@@ -706,7 +734,7 @@ def write_g2o(path: str | os.PathLike[str], graph: PoseGraph) -> Path:
         for vid, p, qv in zip(ids.tolist(), pos.tolist(), q.tolist(), strict=True):
             handle.write(f"{G2O_VERTEX_TAG} {vid} " + " ".join(map(repr, p + qv)) + "\n")
         for vid in graph.fixed_ids:
-            handle.write(f"{_FIX_TAG} {vid}\n")
+            handle.write(f"{FIX_TAG} {vid}\n")
         for (i, j), t, qv, u in zip(
             pairs.tolist(), e_trans.tolist(), e_q.tolist(), upper.tolist(), strict=True
         ):

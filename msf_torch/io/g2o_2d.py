@@ -1,0 +1,470 @@
+"""2-D pose graphs: g2o (``VERTEX_SE2`` / ``EDGE_SE2``) and TORO (``VERTEX2`` / ``EDGE2``)
+files, read into a :class:`PoseGraph2D` and written back as g2o.
+
+Planar graphs are what a wheeled robot with a 2-D LiDAR or wheel odometry and loop closures
+produces (the classic benchmarks ``intel``, ``M3500``, ``w10000`` are in these formats).
+
+Formats
+    One record per line, space separated; ``#`` starts a comment; blank lines are ignored.
+    Ids are non-negative integers, lengths in m, angles in rad.
+
+    * ``VERTEX_SE2 id x y theta`` / ``VERTEX2 id x y theta`` -- the pose of vertex ``id``:
+      position ``[x, y]`` and heading ``theta`` (body -> world rotation ``R(theta)``).
+    * ``EDGE_SE2 i j dx dy dtheta I11 I12 I13 I22 I23 I33`` -- the measured relative pose
+      ``T_ij = T_i^-1 T_j`` and the upper triangle, row by row, of its 3x3 information
+      matrix in ``[x, y, theta]`` order (g2o's and GTSAM's ``readG2o`` layout).
+    * ``EDGE2 i j dx dy dtheta I_xx I_xy I_yy I_tt I_xt I_yt`` -- TORO's edge: the same
+      pose, the information matrix in TORO's order (``inf_ff inf_fs inf_ss inf_rr inf_fr
+      inf_sr``: forward, sideways, rotation), GTSAM's ``load2D(..., NoiseFormatTORO)``.
+    * ``FIX id [id ...]`` -- vertices held fixed by the optimiser (``PoseGraph2D.fixed_ids``).
+
+    A file with edges and no vertices (``cityTrees_reduced_1k.g2o``) is read with
+    ``has_vertices=False`` and GTSAM's ``load2D`` rule for the initial poses: edge by edge
+    in file order, a vertex i not yet placed goes to the origin, then a vertex j not yet
+    placed goes to ``T_i T_ij`` (for an odometry chain: ``T_{k+1} = T_k T_{k,k+1}`` from the
+    first vertex at the origin).
+
+Cost (the reference is GTSAM 4.3's ``BetweenFactor<Pose2>`` with its default ``Pose2``
+chart, which is also g2o's ``EdgeSE2`` error)
+    The error of edge ``ij`` is the error pose ``E = Z_ij^-1 T_i^-1 T_j`` as the vector
+    ``[E.x, E.y, E.theta]`` (``E.theta`` wrapped to (-pi, pi]), and the cost is
+    ``0.5 * sum e^T I e`` with the file's information ``I``. Unlike SE(3), no logarithm is
+    taken: the translation is the error pose's own.
+
+Rules
+    Malformed records raise :class:`DataError` naming file, 1-based line and field (``id``,
+    ``i``, ``j``, ``x``, ``y``, ``theta``, ``info[r,c]`` in the file's order): a wrong number
+    of values, a value that is not a finite number, a bad id, a duplicate vertex id, an edge
+    from a vertex to itself, an information matrix that is not positive definite, an edge
+    naming an undefined vertex (when the file defines any), a ``FIX`` naming no vertex of
+    the graph, and any 3-D pose tag (read those with
+    :func:`~msf_torch.io.g2o.read_pose_graph`). Other tags (``EQUIV``,
+    ``LANDMARK2``, ``BR``, ``ODOMETRY``, ``VERTEX_XY``, ``EDGE_SE2_XY``, ...) are skipped,
+    counted in ``PoseGraph2D.skipped`` and reported by one ``UserWarning`` (GTSAM's
+    ``readG2o`` skips them too); ``unknown_tags="error"`` raises instead.
+"""
+
+from __future__ import annotations
+
+__all__ = [
+    "GTSAM_POSE2_FILES",
+    "PoseGraph2D",
+    "is_pose_graph_2d",
+    "read_pose_graph_2d",
+    "write_g2o_2d",
+]
+
+import math
+import os
+import warnings
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+import torch
+
+from msf_torch.io import _tables
+from msf_torch.io.atomic import atomic_write
+from msf_torch.io.errors import DataError
+from msf_torch.io.g2o import (
+    FIX_TAG,
+    POSE3_TAGS,
+    check_graph_fields,
+    fixed_rows_of,
+    parse_float_fields,
+    parse_id,
+)
+
+G2O_VERTEX_TAG = "VERTEX_SE2"
+G2O_EDGE_TAG = "EDGE_SE2"
+TORO_VERTEX_TAG = "VERTEX2"
+TORO_EDGE_TAG = "EDGE2"
+POSE2_TAGS = frozenset({G2O_VERTEX_TAG, G2O_EDGE_TAG, TORO_VERTEX_TAG, TORO_EDGE_TAG})
+
+GTSAM_POSE2_FILES = (
+    "cityTrees_reduced_1k.g2o",
+    "noisyToyGraph.txt",
+    "optimizedNoisyToyGraph.txt",
+    "orientationsNoisyToyGraph.txt",
+    "pose2example.txt",
+    "victoriaPark_reduced_1k.g2o",
+    "w100.graph",
+    "w10000.graph",
+)
+"""2-D pose graphs shipped in the gtsam wheel's ``Data`` folder that
+:func:`read_pose_graph_2d` reads as GTSAM's ``load2D`` does (``.g2o`` / ``.txt`` files with
+``NoiseFormatG2O``, the TORO ``.graph`` files with ``NoiseFormatTORO``). Their ``EQUIV`` and
+``LANDMARK2`` lines are skipped by both. ``example.graph`` is not listed: GTSAM also reads
+its ``BR`` (bearing-range landmark) lines, which this reader skips."""
+
+_TAGS = f"{G2O_VERTEX_TAG}, {G2O_EDGE_TAG}, {TORO_VERTEX_TAG}, {TORO_EDGE_TAG}, {FIX_TAG}"
+_POSE_FIELDS = ("x", "y", "theta")
+_G2O_INFO = ("info[0,0]", "info[0,1]", "info[0,2]", "info[1,1]", "info[1,2]", "info[2,2]")
+_TORO_INFO = ("inf_ff", "inf_fs", "inf_ss", "inf_rr", "inf_fr", "inf_sr")
+# file position k of the six numbers -> (row, col) of the information in [x, y, theta]
+_G2O_CELLS = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
+_TORO_CELLS = ((0, 0), (0, 1), (1, 1), (2, 2), (0, 2), (1, 2))
+
+
+@dataclass
+class PoseGraph2D:
+    """A planar pose graph: vertices (x, y, heading) and relative-pose edges.
+
+    All tensors are float64 (int64 for ids and indices) on one device; N vertices, E edges.
+
+    Attributes:
+        vertex_ids: (N,) int64, the file's vertex ids, strictly increasing.
+        positions: (N, 2) m, position of each vertex in the world frame.
+        headings: (N,) rad, heading of each vertex (body -> world rotation ``R(theta)``).
+        edge_index: (E, 2) int64 ``[i, j]`` row indices into the vertex arrays, file order.
+        edge_translations: (E, 2) m, measured translation of ``T_ij = T_i^-1 T_j``.
+        edge_headings: (E,) rad, measured rotation angle of ``T_ij``.
+        edge_information: (E, 3, 3) symmetric positive definite information in
+            ``[x, y, theta]`` order (1/m^2, 1/(m rad), 1/rad^2).
+        has_vertices: False when the file held edges only (poses chained from the origin).
+        edge_lines: (E,) int64 1-based line of each edge in the source file, or None.
+        skipped: tag -> number of lines skipped.
+        source: the file read, or None.
+        fixed_ids: file ids of the vertices the file holds fixed (``FIX``), sorted.
+    """
+
+    vertex_ids: torch.Tensor
+    positions: torch.Tensor
+    headings: torch.Tensor
+    edge_index: torch.Tensor
+    edge_translations: torch.Tensor
+    edge_headings: torch.Tensor
+    edge_information: torch.Tensor
+    has_vertices: bool = True
+    edge_lines: torch.Tensor | None = None
+    skipped: dict[str, int] = field(default_factory=dict)
+    source: str | None = None
+    fixed_ids: tuple[int, ...] = ()
+
+    @property
+    def num_vertices(self) -> int:
+        """N, the number of vertices."""
+        return int(self.vertex_ids.shape[0])
+
+    @property
+    def num_edges(self) -> int:
+        """E, the number of edges."""
+        return int(self.edge_index.shape[0])
+
+    def fixed_rows(self) -> torch.Tensor:
+        """(F,) int64 row indices of :attr:`fixed_ids`.
+
+        Raises:
+            ValueError: a fixed id that is not a vertex id.
+        """
+        return fixed_rows_of(self.vertex_ids, self.fixed_ids, "PoseGraph2D")
+
+    def check(self) -> None:
+        """Check shapes, dtypes and index ranges.
+
+        Raises:
+            ValueError: naming the first field that is wrong.
+        """
+        n, e = self.num_vertices, self.num_edges
+        shapes = {
+            "vertex_ids": (n,),
+            "positions": (n, 2),
+            "headings": (n,),
+            "edge_index": (e, 2),
+            "edge_translations": (e, 2),
+            "edge_headings": (e,),
+            "edge_information": (e, 3, 3),
+        }
+        check_graph_fields(self, "PoseGraph2D", shapes)
+
+
+def _chain_2d(
+    path: str, ids: np.ndarray, pairs: np.ndarray, edges: np.ndarray, lines: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Positions (N, 2) and headings (N,) of an edge-only graph, GTSAM's ``load2D`` rule: in
+    file order, an edge's vertex i not yet placed goes to the origin, then its vertex j not
+    yet placed goes to ``T_i T_ij``; ``edges`` (E, 3) are the measured ``[dx, dy, dtheta]``."""
+    row = {int(v): k for k, v in enumerate(ids.tolist())}
+    positions = np.zeros((ids.shape[0], 2))
+    headings = np.zeros(ids.shape[0])
+    placed = np.zeros(ids.shape[0], dtype=bool)
+    for e, (i, j) in enumerate(pairs.tolist()):
+        a, b = row[i], row[j]
+        placed[a] = True
+        if placed[b]:
+            continue
+        c, s = math.cos(headings[a]), math.sin(headings[a])
+        dx, dy, dtheta = edges[e]
+        with np.errstate(over="ignore", invalid="ignore"):
+            positions[b] = positions[a] + (c * dx - s * dy, s * dx + c * dy)
+        if not np.isfinite(positions[b]).all():
+            raise DataError(
+                path,
+                f"the initial position of vertex {j}, chained along the edges, overflows (the "
+                "translations are too large)",
+                line=int(lines[e]),
+                field="x",
+            )
+        headings[b] = math.remainder(headings[a] + dtheta, 2 * math.pi)
+        placed[b] = True
+    return positions, headings
+
+
+def is_pose_graph_2d(path: str | os.PathLike[str]) -> bool:
+    """Whether the pose-graph file ``path`` is planar: its first pose tag (vertex or edge) is
+    a 2-D one (``VERTEX_SE2``, ``EDGE_SE2``, ``VERTEX2``, ``EDGE2``) rather than a 3-D one;
+    False when it holds neither (the 3-D reader then says what is wrong).
+
+    Raises:
+        DataError: the file cannot be read.
+    """
+    for raw in _tables.split_lines(_tables.read_text(os.fspath(path))):
+        tokens = raw.split("#", 1)[0].split(maxsplit=1)
+        if tokens and tokens[0] in POSE2_TAGS:
+            return True
+        if tokens and tokens[0] in POSE3_TAGS:
+            return False
+    return False
+
+
+def read_pose_graph_2d(
+    path: str | os.PathLike[str], *, unknown_tags: Literal["skip", "error"] = "skip"
+) -> PoseGraph2D:
+    """Read a 2-D pose graph from a g2o or TORO file (tags may be mixed).
+
+    Args:
+        path: the file.
+        unknown_tags: ``"skip"`` (default) skips and counts lines whose tag is not a 2-D pose
+            tag or ``FIX`` and warns once; ``"error"`` raises DataError on them. 3-D pose tags
+            always raise.
+
+    Returns:
+        a :class:`PoseGraph2D` in float64 on the CPU: vertices sorted by id, edges in file
+        order, information in ``[x, y, theta]`` order (module docstring).
+
+    Raises:
+        DataError: naming file, line and field of the first bad record; also a missing file,
+            one without vertices and edges, and one with skipped tags but no pose edge.
+        ValueError: an unknown ``unknown_tags``.
+
+    Warns:
+        UserWarning: once per file when lines were skipped (each tag's count, first line).
+    """
+    if unknown_tags not in ("skip", "error"):
+        raise ValueError(f"unknown_tags must be 'skip' or 'error', got {unknown_tags!r}")
+    path_str = os.fspath(path)
+    vertex_line: dict[int, int] = {}
+    vertices: list[list[float]] = []
+    edge_pairs: list[tuple[int, int]] = []
+    edge_values: list[list[float]] = []
+    edge_lines: list[int] = []
+    skipped: dict[str, int] = {}
+    skipped_first: dict[str, int] = {}
+    fixes: dict[int, int] = {}
+    for line_no, raw in enumerate(_tables.split_lines(_tables.read_text(path_str)), start=1):
+        tokens = raw.split("#", 1)[0].split()
+        if not tokens:
+            continue
+        tag = tokens[0]
+        if tag == FIX_TAG:
+            if len(tokens) < 2:
+                raise DataError(path_str, "FIX names no vertex id", line=line_no, field="id")
+            for token in tokens[1:]:
+                fixes.setdefault(parse_id(path_str, token, line_no, "id"), line_no)
+            continue
+        if tag not in POSE2_TAGS:
+            if tag in POSE3_TAGS:
+                raise DataError(
+                    path_str,
+                    f"3-D pose-graph tag {_tables.shown(tag)}; this reader reads 2-D graphs "
+                    f"({_TAGS}); read 3-D graphs with msf_torch.io.read_pose_graph",
+                    line=line_no,
+                    field="tag",
+                )
+            if unknown_tags == "error":
+                raise DataError(
+                    path_str,
+                    f"unknown tag {_tables.shown(tag)} (known: {_TAGS})",
+                    line=line_no,
+                    field="tag",
+                )
+            skipped[tag] = skipped.get(tag, 0) + 1
+            skipped_first.setdefault(tag, line_no)
+            continue
+        edge = tag in (G2O_EDGE_TAG, TORO_EDGE_TAG)
+        id_names = ("i", "j") if edge else ("id",)
+        info_names = (_G2O_INFO if tag == G2O_EDGE_TAG else _TORO_INFO) if edge else ()
+        names = (*id_names, *_POSE_FIELDS, *info_names)
+        given = len(tokens) - 1
+        if given != len(names):
+            problem = (
+                f"wrong number of values for {tag} ({tag} {' '.join(names)}): "
+                f"expected {len(names)}, got {given}"
+            )
+            missing = names[given] if given < len(names) else None
+            if missing is not None:
+                problem += f"; '{missing}' and later fields are missing"
+            raise DataError(path_str, problem, line=line_no, field=missing)
+        ids = [parse_id(path_str, tokens[1 + k], line_no, n) for k, n in enumerate(id_names)]
+        values = parse_float_fields(
+            path_str, tokens[1 + len(id_names) :], line_no, names[len(id_names) :]
+        )
+        if not edge:
+            if ids[0] in vertex_line:
+                raise DataError(
+                    path_str,
+                    f"duplicate vertex id {ids[0]} (first defined on line {vertex_line[ids[0]]})",
+                    line=line_no,
+                    field="id",
+                )
+            vertex_line[ids[0]] = line_no
+            vertices.append([float(ids[0]), *values])
+            continue
+        if ids[0] == ids[1]:
+            raise DataError(
+                path_str, f"edge from vertex {ids[0]} to itself", line=line_no, field="j"
+            )
+        cells = _G2O_CELLS if tag == G2O_EDGE_TAG else _TORO_CELLS
+        info = np.zeros((3, 3))
+        for (row, col), value in zip(cells, values[3:], strict=True):
+            info[row, col] = info[col, row] = value
+        if np.linalg.eigvalsh(info)[0] <= 0.0:
+            raise DataError(
+                path_str,
+                f"information matrix is not positive definite (eigenvalues "
+                f"{np.array2string(np.linalg.eigvalsh(info), precision=4)}; {tag} gives it as "
+                f"{' '.join(info_names)})",
+                line=line_no,
+                field="information",
+            )
+        edge_pairs.append((ids[0], ids[1]))
+        edge_values.append([*values[:3], *info.ravel()])
+        edge_lines.append(line_no)
+
+    tally = ", ".join(
+        f"{_tables.shown(tag)} x{count} (first on line {skipped_first[tag]})"
+        for tag, count in skipped.items()
+    )
+    if skipped and not edge_lines:
+        raise DataError(
+            path_str,
+            f"no 2-D pose edges ({G2O_EDGE_TAG} or {TORO_EDGE_TAG}), only tags this reader "
+            f"does not read: {tally} (tags read: {_TAGS})",
+        )
+    if not vertices and not edge_lines:
+        raise DataError(path_str, f"no vertices or edges (tags read: {_TAGS})")
+    pairs = np.array(edge_pairs, dtype=np.int64).reshape(-1, 2)
+    edges = np.array(edge_values, dtype=np.float64).reshape(-1, 12)
+    lines = np.array(edge_lines, dtype=np.int64)
+    if vertices:
+        table = np.array(vertices, dtype=np.float64)
+        order = np.argsort(table[:, 0], kind="stable")
+        vertex_ids = np.array(sorted(vertex_line), dtype=np.int64)
+        positions, headings = table[order, 1:3], table[order, 3]
+        rows = np.searchsorted(vertex_ids, pairs)
+        known = vertex_ids[np.minimum(rows, vertex_ids.size - 1)] == pairs
+        if not known.all():
+            k, side = (int(x) for x in np.argwhere(~known)[0])
+            raise DataError(
+                path_str,
+                f"edge names vertex {int(pairs[k, side])}, which no vertex line defines",
+                line=int(lines[k]),
+                field="ij"[side],
+            )
+    else:
+        vertex_ids = np.unique(pairs)
+        rows = np.searchsorted(vertex_ids, pairs)
+        positions, headings = _chain_2d(path_str, vertex_ids, pairs, edges[:, :3], lines)
+    unknown_fix = sorted(set(fixes) - set(vertex_ids.tolist()), key=fixes.__getitem__)
+    if unknown_fix:
+        vid = unknown_fix[0]
+        defined = "vertex line defines" if vertices else "edge names"
+        raise DataError(
+            path_str, f"FIX names vertex {vid}, which no {defined}", line=fixes[vid], field="id"
+        )
+    if skipped:
+        warnings.warn(
+            f"{path_str}: skipped {sum(skipped.values())} lines with tags this reader does not "
+            f"read: {tally} (tags read: {_TAGS})",
+            stacklevel=2,
+        )
+
+    def f64(x: np.ndarray) -> torch.Tensor:
+        return torch.as_tensor(np.ascontiguousarray(x), dtype=torch.float64)
+
+    graph = PoseGraph2D(
+        vertex_ids=torch.as_tensor(vertex_ids, dtype=torch.int64),
+        positions=f64(positions),
+        headings=f64(headings),
+        edge_index=torch.as_tensor(rows.reshape(-1, 2), dtype=torch.int64),
+        edge_translations=f64(edges[:, 0:2]),
+        edge_headings=f64(edges[:, 2]),
+        edge_information=f64(edges[:, 3:].reshape(-1, 3, 3)),
+        has_vertices=bool(vertices),
+        edge_lines=torch.as_tensor(lines, dtype=torch.int64),
+        skipped=skipped,
+        source=path_str,
+        fixed_ids=tuple(sorted(fixes)),
+    )
+    graph.check()
+    return graph
+
+
+def write_g2o_2d(path: str | os.PathLike[str], graph: PoseGraph2D) -> Path:
+    """Write a 2-D pose graph as a g2o file (``VERTEX_SE2``, ``FIX``, ``EDGE_SE2``),
+    atomically; the layout of GTSAM's ``writeG2o`` for ``Pose2`` graphs.
+
+    Numbers are written as Python's shortest round-trip decimal, so
+    ``read_pose_graph_2d(write_g2o_2d(p, g))`` gives back ``g`` exactly (an edge-only
+    graph is written with its chained poses as vertices).
+
+    Args:
+        path: the output file; missing parent folders are created.
+        graph: the graph; any device and floating dtype (written as float64).
+
+    Returns:
+        the path written.
+
+    Raises:
+        ValueError: a malformed graph, no vertices, a non-finite value or an information
+            matrix that is not symmetric (named by vertex id or edge index).
+    """
+    graph.check()
+    if graph.num_vertices == 0:
+        raise ValueError("a pose graph without vertices cannot be written")
+
+    def host(x: torch.Tensor) -> np.ndarray:
+        return x.detach().to(device="cpu", dtype=torch.float64).numpy()
+
+    ids = graph.vertex_ids.detach().cpu().numpy()
+    pairs = ids[graph.edge_index.detach().cpu().numpy()].reshape(-1, 2)
+    poses = np.concatenate((host(graph.positions), host(graph.headings)[:, None]), 1)
+    edges = np.concatenate((host(graph.edge_translations), host(graph.edge_headings)[:, None]), 1)
+    info = host(graph.edge_information)
+    for what, array, labels in (
+        ("vertex", poses, ids.tolist()),
+        ("edge", np.concatenate((edges, info.reshape(-1, 9)), 1), range(len(pairs))),
+    ):
+        bad = np.flatnonzero(~np.isfinite(array).all(axis=1))
+        if bad.size:
+            raise ValueError(f"{what} {list(labels)[int(bad[0])]}: not finite")
+    if info.shape[0]:
+        asym = np.abs(info - np.swapaxes(info, 1, 2)).max(axis=(1, 2))
+        bad = np.flatnonzero(asym > 1e-9 * np.maximum(np.abs(info).max(axis=(1, 2)), 1.0))
+        if bad.size:
+            k = int(bad[0])
+            raise ValueError(
+                f"edge {k} ({pairs[k, 0]} -> {pairs[k, 1]}): information matrix is not "
+                f"symmetric (max asymmetry {asym[k]:.3g})"
+            )
+    upper = info[:, [0, 0, 0, 1, 1, 2], [0, 1, 2, 1, 2, 2]]
+    target = Path(path)
+    with atomic_write(target, newline="") as handle:
+        for vid, pose in zip(ids.tolist(), poses.tolist(), strict=True):
+            handle.write(f"{G2O_VERTEX_TAG} {vid} " + " ".join(map(repr, pose)) + "\n")
+        for vid in graph.fixed_ids:
+            handle.write(f"{FIX_TAG} {vid}\n")
+        for (i, j), edge, u in zip(pairs.tolist(), edges.tolist(), upper.tolist(), strict=True):
+            handle.write(f"{G2O_EDGE_TAG} {i} {j} " + " ".join(map(repr, edge + u)) + "\n")
+    return target
