@@ -1,0 +1,272 @@
+"""Planar (SE(2)) pose graphs: the logarithm and retraction against closed forms and GTSAM,
+the edge Jacobians against finite differences and autodiff, and the solved graphs against
+GTSAM's LM and a simulated ground truth."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import warnings
+
+import numpy as np
+import pytest
+import torch
+
+from msf_torch.backend.posegraph import optimize_pose_graph, pose_graph_config
+from msf_torch.backend.posegraph2d import (
+    SE2,
+    Se2BetweenFactor,
+    pose_graph_2d_problem,
+    se2_between_residual,
+    se2_log,
+)
+from msf_torch.backend.problem import Factor
+from msf_torch.backend.robust import RobustKernel
+from msf_torch.io import PoseGraph2D, gtsam_pose_graph_path, read_pose_graph_2d
+
+DT = torch.float64
+TIGHT = pose_graph_config(max_iterations=200, relative_tolerance=1e-12)
+
+
+@pytest.fixture(scope="module")
+def gtsam():
+    return pytest.importorskip("gtsam")
+
+
+def _poses(count: int, generator: torch.Generator, spread: float = 3.0) -> torch.Tensor:
+    xy = torch.randn(count, 2, generator=generator, dtype=DT) * spread
+    heading = (torch.rand(count, generator=generator, dtype=DT) * 2 - 1) * math.pi
+    return torch.cat((xy, heading[:, None]), -1)
+
+
+def test_log_inverts_the_exponential_and_matches_closed_form():
+    """``Exp(Log(E)) = E`` through the retraction from the origin, for angles from 1e-9 rad
+    to just below pi; and the closed form ``V(theta)^-1 t`` directly."""
+    generator = torch.Generator().manual_seed(0)
+    angles = torch.tensor([1e-9, -3e-6, 5e-5, 1e-4, 0.3, -1.7, 3.1, -(math.pi - 1e-9)], dtype=DT)
+    t = torch.randn(angles.shape[0], 2, generator=generator, dtype=DT) * 4.0
+    poses = torch.cat((t, angles[:, None]), -1)
+    xi, _, _ = se2_log(poses)
+    back = SE2.retract(torch.zeros_like(poses), xi)
+    torch.testing.assert_close(back, poses, rtol=0, atol=1e-12)
+    w = angles
+    v = (
+        torch.stack(
+            (
+                torch.stack((torch.sin(w), torch.cos(w) - 1), -1),
+                torch.stack((1 - torch.cos(w), torch.sin(w)), -1),
+            ),
+            -2,
+        )
+        / w[:, None, None]
+    )
+    torch.testing.assert_close(
+        xi[:, 0:2], torch.linalg.solve(v, t[..., None]).squeeze(-1), rtol=0, atol=1e-8
+    )
+
+
+def test_log_and_retract_equal_gtsam(gtsam):
+    generator = torch.Generator().manual_seed(1)
+    poses = _poses(20, generator)
+    steps = torch.randn(20, 3, generator=generator, dtype=DT)
+    xi, _, _ = se2_log(poses)
+    moved = SE2.retract(poses, steps)
+    for k in range(20):
+        pose = gtsam.Pose2(*poses[k].tolist())
+        np.testing.assert_allclose(xi[k].numpy(), gtsam.Pose2.Logmap(pose), rtol=0, atol=1e-12)
+        ref = pose.retract(steps[k].numpy())
+        np.testing.assert_allclose(
+            moved[k].numpy(), [ref.x(), ref.y(), ref.theta()], rtol=0, atol=1e-12
+        )
+
+
+@pytest.mark.parametrize("case", ["random", "small_error", "error_near_pi"])
+def test_edge_jacobians_match_finite_differences_and_autodiff(case: str):
+    generator = torch.Generator().manual_seed(2)
+    count = 12
+    pose_i = _poses(count, generator)
+    pose_j = _poses(count, generator)
+    rot_i = torch.stack(
+        (
+            torch.stack((torch.cos(pose_i[:, 2]), -torch.sin(pose_i[:, 2])), -1),
+            torch.stack((torch.sin(pose_i[:, 2]), torch.cos(pose_i[:, 2])), -1),
+        ),
+        -2,
+    )
+    local = (rot_i.mT @ (pose_j[:, 0:2] - pose_i[:, 0:2])[..., None]).squeeze(-1)
+    turn = pose_j[:, 2] - pose_i[:, 2]
+    offset = {"random": 0.4, "small_error": 1e-7, "error_near_pi": 0.0}[case]
+    measured_t = local + offset * torch.randn(count, 2, generator=generator, dtype=DT)
+    measured_h = turn + offset * torch.randn(count, generator=generator, dtype=DT)
+    if case == "error_near_pi":
+        measured_h = turn - (math.pi - 1e-3)
+    covariance = torch.diag(torch.tensor([0.04, 0.09, 0.01], dtype=DT)).expand(1, count, 3, 3)
+    factor = Se2BetweenFactor(
+        "pose",
+        torch.arange(count),
+        torch.arange(count),
+        measured_t[None],
+        measured_h[None],
+        covariance,
+    )
+    factor.kinds = [SE2, SE2]
+    values = [pose_i[None], pose_j[None]]
+    residual, jacobians = factor.residual_and_jacobians(values, factor.kinds)
+    assert residual.shape == (1, count, 3) and jacobians[1].shape == (1, count, 3, 3)
+    step = 1e-6
+    for slot in range(2):
+        numeric = torch.zeros(1, count, 3, 3, dtype=DT)
+        for k in range(3):
+            delta = torch.zeros(1, count, 3, dtype=DT)
+            delta[..., k] = step
+            plus, minus = list(values), list(values)
+            plus[slot] = SE2.retract(values[slot], delta)
+            minus[slot] = SE2.retract(values[slot], -delta)
+            numeric[..., k] = (factor.residual(plus) - factor.residual(minus)) / (2 * step)
+        torch.testing.assert_close(jacobians[slot], numeric, atol=2e-7, rtol=1e-6)
+    _, autodiff = Factor.residual_and_jacobians(factor, values, factor.kinds)
+    for ours, reference in zip(jacobians, autodiff, strict=True):
+        torch.testing.assert_close(ours, reference, atol=1e-9, rtol=1e-9)
+
+
+def test_edge_error_equals_gtsam_between_factor(gtsam):
+    generator = torch.Generator().manual_seed(3)
+    pose_i, pose_j, measured = (_poses(15, generator) for _ in range(3))
+    residual, _, _ = se2_between_residual(pose_i, pose_j, measured[:, 0:2], measured[:, 2])
+    unit = gtsam.noiseModel.Unit.Create(3)
+    for k in range(15):
+        values = gtsam.Values()
+        values.insert(0, gtsam.Pose2(*pose_i[k].tolist()))
+        values.insert(1, gtsam.Pose2(*pose_j[k].tolist()))
+        factor = gtsam.BetweenFactorPose2(0, 1, gtsam.Pose2(*measured[k].tolist()), unit)
+        np.testing.assert_allclose(
+            residual[k].numpy(), factor.unwhitenedError(values), rtol=0, atol=1e-12
+        )
+
+
+def _gtsam_solve(gtsam, path: str):
+    fmt = gtsam.NoiseFormat.NoiseFormatTORO if path.endswith(".graph") else None
+    fmt = fmt or gtsam.NoiseFormat.NoiseFormatG2O
+    factors, initial = gtsam.load2D(path, noiseFormat=fmt)
+    held = gtsam.NonlinearFactorGraph(factors)
+    first = int(min(initial.keys()))
+    held.add(
+        gtsam.PriorFactorPose2(first, initial.atPose2(first), gtsam.noiseModel.Constrained.All(3))
+    )
+    params = gtsam.LevenbergMarquardtParams()
+    params.setRelativeErrorTol(1e-12)
+    params.setAbsoluteErrorTol(0.0)
+    params.setMaxIterations(200)
+    solved = gtsam.LevenbergMarquardtOptimizer(held, initial, params).optimize()
+    return factors, initial, solved
+
+
+@pytest.mark.parametrize(
+    "name", ["w100.graph", "pose2example.txt", "noisyToyGraph.txt", "orientationsNoisyToyGraph.txt"]
+)
+def test_cost_and_poses_equal_gtsam_lm(gtsam, name):
+    """Files the gtsam wheel ships: GTSAM reads and solves them itself; our initial cost
+    (reader + error) and our optimum (solver) agree with it."""
+    path = str(gtsam_pose_graph_path(name))
+    factors, initial, solved = _gtsam_solve(gtsam, path)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # w100's EQUIV lines
+        graph = read_pose_graph_2d(path)
+
+    result = optimize_pose_graph(graph, config=TIGHT)
+
+    assert result.status == "converged"
+    assert result.initial_cost == pytest.approx(factors.error(initial), rel=1e-12)
+    assert result.final_cost == pytest.approx(factors.error(solved), rel=1e-9)
+    ids = graph.vertex_ids.tolist()
+    reference = np.array(
+        [[solved.atPose2(i).x(), solved.atPose2(i).y(), solved.atPose2(i).theta()] for i in ids]
+    )
+    ours = torch.cat((result.graph.positions, result.graph.headings[:, None]), -1).numpy()
+    np.testing.assert_allclose(ours[:, 0:2], reference[:, 0:2], rtol=0, atol=1e-6)
+    turn = np.angle(np.exp(1j * (ours[:, 2] - reference[:, 2])))
+    assert np.abs(turn).max() < 1e-6
+    assert torch.equal(result.graph.positions[0], graph.positions[0])  # the gauge vertex
+
+
+def _square_grid(loops: bool, seed: int) -> tuple[PoseGraph2D, torch.Tensor]:
+    """A robot driving a 4 x 4 m square three times (1 m steps, a left turn each corner):
+    exact odometry and loop edges between revisits, a drifted initial estimate."""
+    rng = np.random.default_rng(seed)
+    truth = []
+    x, y, heading = 0.0, 0.0, 0.0
+    for step in range(48):
+        truth.append((x, y, heading))
+        x += math.cos(heading)
+        y += math.sin(heading)
+        if step % 4 == 3:
+            heading = math.remainder(heading + math.pi / 2, 2 * math.pi)
+    truth_t = torch.tensor(truth, dtype=DT)
+    edges = [(k, k + 1) for k in range(47)]
+    if loops:
+        edges += [(k, k + 16) for k in range(0, 32, 3)]
+
+    def relative(i: int, j: int) -> list[float]:
+        xi, yi, hi = truth[i]
+        xj, yj, hj = truth[j]
+        c, s = math.cos(hi), math.sin(hi)
+        dx, dy = xj - xi, yj - yi
+        return [c * dx + s * dy, -s * dx + c * dy, math.remainder(hj - hi, 2 * math.pi)]
+
+    measured = torch.tensor([relative(i, j) for i, j in edges], dtype=DT)
+    drifted = truth_t.clone()
+    drifted[1:, 0:2] += torch.as_tensor(rng.normal(0.0, 0.3, (47, 2)).cumsum(0))
+    drifted[1:, 2] += torch.as_tensor(rng.normal(0.0, 0.05, 47).cumsum(0))
+    info = torch.diag(torch.tensor([100.0, 100.0, 400.0], dtype=DT))
+    graph = PoseGraph2D(
+        vertex_ids=torch.arange(48),
+        positions=drifted[:, 0:2].contiguous(),
+        headings=drifted[:, 2].contiguous(),
+        edge_index=torch.tensor(edges),
+        edge_translations=measured[:, 0:2].contiguous(),
+        edge_headings=measured[:, 2].contiguous(),
+        edge_information=info.expand(len(edges), 3, 3).clone(),
+    )
+    return graph, truth_t
+
+
+def test_exact_edges_recover_the_simulated_truth():
+    graph, truth = _square_grid(loops=True, seed=4)
+    result = optimize_pose_graph(graph, config=TIGHT)
+    assert result.converged and result.final_cost < 1e-18
+    torch.testing.assert_close(result.graph.positions, truth[:, 0:2], rtol=0, atol=1e-9)
+    turn = torch.remainder(result.graph.headings - truth[:, 2] + math.pi, 2 * math.pi) - math.pi
+    assert float(turn.abs().max()) < 1e-9
+
+
+@pytest.mark.parametrize(("kernel", "limit_m"), [(RobustKernel("cauchy", 1.0), 0.05)])
+def test_wrong_loop_closure_is_downweighted_by_a_robust_kernel(kernel, limit_m):
+    graph, truth = _square_grid(loops=True, seed=5)
+    wrong = dataclasses.replace(
+        graph,
+        edge_index=torch.cat((graph.edge_index, torch.tensor([[2, 40]]))),
+        edge_translations=torch.cat((graph.edge_translations, torch.tensor([[0.0, 1.5]]))),
+        edge_headings=torch.cat((graph.edge_headings, torch.tensor([0.8], dtype=DT))),
+        edge_information=torch.cat((graph.edge_information, graph.edge_information[:1])),
+    )
+    plain = optimize_pose_graph(wrong, config=TIGHT)
+    robust = optimize_pose_graph(wrong, robust=kernel, config=TIGHT)
+    plain_error = float((plain.graph.positions - truth[:, 0:2]).norm(dim=1).max())
+    robust_error = float((robust.graph.positions - truth[:, 0:2]).norm(dim=1).max())
+    assert plain_error > 0.2
+    assert robust_error < limit_m
+
+
+def test_fix_record_and_fixed_rows_hold_their_vertex():
+    graph, _ = _square_grid(loops=True, seed=6)
+    held = dataclasses.replace(graph, fixed_ids=(47,))
+    result = optimize_pose_graph(held, config=TIGHT)
+    assert torch.equal(result.graph.positions[47], graph.positions[47])
+    assert torch.equal(result.graph.headings[47], graph.headings[47])
+    assert float((result.graph.positions[0] - graph.positions[0]).norm()) > 1e-3
+    explicit = optimize_pose_graph(graph, config=TIGHT, fixed=[47])
+    torch.testing.assert_close(result.graph.positions, explicit.graph.positions, rtol=0, atol=0)
+    with pytest.raises(ValueError, match=r"lie in \[0, 48\)"):
+        pose_graph_2d_problem(graph, fixed=[48])
+    with pytest.raises(ValueError, match="dof=4 is for 3-D graphs"):
+        optimize_pose_graph(graph, dof=4)
