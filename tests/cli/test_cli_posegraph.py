@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from msf_torch.cli import main
-from msf_torch.io import gtsam_pose_graph_path, read_pose_graph
+from msf_torch.io import gtsam_pose_graph_path, read_pose_graph, read_pose_graph_2d
 
 
 @pytest.fixture(scope="module")
@@ -90,3 +90,30 @@ def test_posegraph_bad_solver_options_are_errors(capsys, option, value, message)
     assert exit_info.value.code == 2
     err = capsys.readouterr().err
     assert f"argument {option}: {message}" in err
+
+
+def test_posegraph_2d_file_solves_as_gtsam_and_writes_g2o_and_a_top_view(gtsam, tmp_path, capsys):
+    """A planar graph (TORO EDGE2 with TORO's information order) is told from a 3-D one; the
+    optimum is GTSAM's, the written g2o reads back, the figure has the top view and costs."""
+    out, figure = tmp_path / "w100.g2o", tmp_path / "w100.png"
+    args = ["posegraph", "w100", "--out", str(out), "--plot", str(figure), "--tolerance", "1e-12"]
+    assert main(args) == 0
+    captured = capsys.readouterr()
+    summary = json.loads(captured.out.strip().splitlines()[-1])
+    assert "msf posegraph: warning:" in captured.err and "'EQUIV' x40" in captured.err
+
+    path = str(gtsam_pose_graph_path("w100.graph"))
+    factors, initial = gtsam.load2D(path, noiseFormat=gtsam.NoiseFormat.NoiseFormatTORO)
+    factors.add(gtsam.NonlinearEqualityPose2(0, initial.atPose2(0)))
+    params = gtsam.LevenbergMarquardtParams()
+    params.setRelativeErrorTol(1e-12)
+    params.setAbsoluteErrorTol(0.0)
+    solved = gtsam.LevenbergMarquardtOptimizer(factors, initial, params).optimize()
+
+    assert summary["dimension"] == 2 and (summary["poses"], summary["edges"]) == (100, 300)
+    assert summary["initial_cost"] == pytest.approx(factors.error(initial), rel=1e-12)
+    assert summary["final_cost"] == pytest.approx(factors.error(solved), rel=1e-9)
+    written = read_pose_graph_2d(out)
+    positions = np.stack([[solved.atPose2(i).x(), solved.atPose2(i).y()] for i in range(100)])
+    np.testing.assert_allclose(written.positions.numpy(), positions, atol=1e-6)
+    assert figure.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and figure.stat().st_size > 20_000
