@@ -329,7 +329,11 @@ def read_pose_graph_2d(
         info = np.zeros((3, 3))
         for (row, col), value in zip(cells, values[3:], strict=True):
             info[row, col] = info[col, row] = value
-        if np.linalg.eigvalsh(info)[0] <= 0.0:
+        # Cholesky, not the smallest eigenvalue: rounding can make a singular matrix's
+        # positive, and a PD diagonal's with entries 1e-308 and 1e308 zero
+        try:
+            np.linalg.cholesky(info)
+        except np.linalg.LinAlgError:
             raise DataError(
                 path_str,
                 f"information matrix is not positive definite (eigenvalues "
@@ -337,7 +341,7 @@ def read_pose_graph_2d(
                 f"{' '.join(info_names)})",
                 line=line_no,
                 field="information",
-            )
+            ) from None
         edge_pairs.append((ids[0], ids[1]))
         edge_values.append([*values[:3], *info.ravel()])
         edge_lines.append(line_no)
