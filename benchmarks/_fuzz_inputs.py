@@ -65,11 +65,13 @@ from msf_torch.io import (
     DataError,
     MissingExtraError,
     PoseGraph,
+    PoseGraph2D,
     load_eqvio,
     load_kitti_gtsam,
     read_euroc,
     read_native,
     read_pose_graph,
+    read_pose_graph_2d,
     read_tum,
 )
 from msf_torch.io.eqvio import EqvioRun
@@ -423,6 +425,34 @@ def _build_graph(rng: np.random.Generator, toro: bool) -> tuple[dict[str, Any], 
     return {name: "\n".join(lines) + "\n"}, name
 
 
+def _build_graph_2d(rng: np.random.Generator, toro: bool) -> tuple[dict[str, Any], str]:
+    """A planar pose graph like the gtsam wheel's: g2o (``noisyToyGraph.txt``: VERTEX_SE2,
+    EDGE_SE2 with the information in g2o order, LANDMARK2 lines as in
+    ``victoriaPark_reduced_1k.g2o``) or TORO (``w100.graph``: VERTEX2, EDGE2 in TORO order,
+    EQUIV lines); one in five has no vertices (``cityTrees_reduced_1k.g2o``)."""
+    n = int(rng.integers(1, 8))
+    vertex_tag, edge_tag = ("VERTEX2", "EDGE2") if toro else ("VERTEX_SE2", "EDGE_SE2")
+    lines = ["# a 2-D pose graph"]
+    with_vertices = n == 1 or rng.random() < 0.8
+    for i in range(n if with_vertices else 0):
+        pose = [*rng.normal(size=2), rng.uniform(-math.pi, math.pi)]
+        lines.append(" ".join([vertex_tag, str(i), *map(_num, pose)]))
+    edges = [(i, i + 1) for i in range(n - 1)] + [(0, n - 1)] * (n > 2)
+    cells = ([0, 0, 1, 2, 0, 1], [0, 1, 1, 2, 2, 2]) if toro else np.triu_indices(3)
+    for i, j in edges:
+        pose = [*rng.normal(size=2), rng.uniform(-math.pi, math.pi)]
+        a = rng.normal(size=(3, 3))
+        info = (a @ a.T + 3.0 * np.eye(3))[cells].tolist()
+        lines.append(" ".join([edge_tag, str(i), str(j), *map(_num, pose + info)]))
+    if n > 1 and rng.random() < 0.3:
+        extra = "EQUIV 1 0" if toro else "LANDMARK2 0 1 1.5 -0.5 1.581139 0 1.581139"
+        lines.insert(int(rng.integers(1, len(lines) + 1)), extra)
+    if rng.random() < 0.3:
+        lines.append("FIX 0")
+    name = "graph.graph" if toro else "graph.g2o"
+    return {name: "\n".join(lines) + "\n"}, name
+
+
 _EQVIO_HEADER = (
     "row_type,t_abs,t_rel,seq,frame_idx,landmark_id,gx,gy,gz,ax,ay,az,"
     "bgx,bgy,bgz,bax,bay,baz,u_norm,v_norm,key,value"
@@ -576,6 +606,21 @@ def _check_graph(graph: PoseGraph) -> str | None:
     return None
 
 
+def _check_graph_2d(graph: PoseGraph2D) -> str | None:
+    graph.check()
+    for name in ("positions", "headings", "edge_translations", "edge_headings"):
+        if not _finite(getattr(graph, name)):
+            return f"{name} holds a non-finite value"
+    info = graph.edge_information
+    if info.numel() and (
+        not _finite(info)
+        or not torch.equal(info, info.mT)
+        or bool(torch.linalg.cholesky_ex(info).info.ne(0).any())
+    ):
+        return "an information matrix is not finite symmetric positive definite"
+    return None
+
+
 def _check_eqvio(run: EqvioRun) -> str | None:
     problem = _check_stream("imu", run.imu)
     if problem:
@@ -626,6 +671,18 @@ READERS: dict[str, Reader] = {
             lambda p, s: read_pose_graph(p),
             _check_graph,
         ),
+        Reader(
+            "g2o_2d",
+            lambda rng: _build_graph_2d(rng, toro=False),
+            lambda p, s: read_pose_graph_2d(p),
+            _check_graph_2d,
+        ),
+        Reader(
+            "toro_2d",
+            lambda rng: _build_graph_2d(rng, toro=True),
+            lambda p, s: read_pose_graph_2d(p),
+            _check_graph_2d,
+        ),
         Reader("eqvio", _build_eqvio, lambda p, s: load_eqvio(p), _check_eqvio),
         Reader(
             "kitti_poses",
@@ -637,8 +694,8 @@ READERS: dict[str, Reader] = {
     )
 }
 """Reader name -> :class:`Reader`: native ``.npz`` and CSV folder, TUM, EuRoC ASL, the KITTI
-files gtsam ships (``data_dir``), g2o and TORO pose graphs, the EqVIO replay CSV, KITTI
-odometry poses + times, 2D LiDAR scans (``.npz``). Not here: rosbags (binary containers
+files gtsam ships (``data_dir``), g2o and TORO pose graphs (3-D and 2-D), the EqVIO replay
+CSV, KITTI odometry poses + times, 2D LiDAR scans (``.npz``). Not here: rosbags (binary containers
 written by ``rosbags``; their reader is tested on bags written by its own writers)."""
 
 
