@@ -645,7 +645,7 @@ def _cmd_posegraph(args) -> dict[str, Any]:
     planar = is_pose_graph_2d(source)
     graph = read_pose_graph_2d(source) if planar else read_pose_graph(source)
     config = pose_graph_config(
-        max_iterations=args.max_iterations, relative_tolerance=args.tolerance
+        max_iterations=args.max_iterations, relative_tolerance=args.tolerance, planar=planar
     )
     result = optimize_pose_graph(graph, robust=args.robust, config=config)
     summary: dict[str, Any] = {

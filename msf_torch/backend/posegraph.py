@@ -24,8 +24,9 @@ Solver defaults (:func:`pose_graph_config`) follow GTSAM's ``LevenbergMarquardtP
 identity damping (``lambda I``) starting at ``lambda = 1e-5``, relative cost-decrease
 tolerance 1e-5, at most 100 iterations; the normal equations are factored by MKL
 PARDISO when ``pypardiso`` is installed (extra ``[fast]``), else by CHOLMOD through
-cholespy (:mod:`msf_torch.backend.lm`). Two differences: the damping is updated by Nielsen's
-rule (GTSAM: divide / multiply by 10), and ``iterations`` counts every linear solve,
+cholespy (:mod:`msf_torch.backend.lm`). Two differences: for 3-D graphs the damping is
+updated by Nielsen's rule (GTSAM, and ours for 2-D graphs: divide / multiply by 10; see
+:func:`pose_graph_config`), and ``iterations`` counts every linear solve,
 including rejected steps (GTSAM counts outer iterations, each of which may retry with more
 damping).
 
@@ -99,10 +100,16 @@ def pose_graph_config(
     absolute_tolerance: float = 0.0,
     step_tolerance: float = 1e-12,
     initial_damping: float = 1e-5,
+    planar: bool = False,
 ) -> LMConfig:
-    """The LM settings for pose graphs: sparse solver, identity damping, Nielsen update.
+    """The LM settings for pose graphs: sparse solver, identity damping; Nielsen's damping
+    update for 3-D graphs, GTSAM's (divide / multiply by 10) for planar ones.
 
-    Defaults are GTSAM's ``LevenbergMarquardtParams`` defaults where the meaning agrees.
+    Defaults are GTSAM's ``LevenbergMarquardtParams`` defaults where the meaning agrees. The
+    update rule is the faster one on each kind's benchmark graph: on sphere2500 (3-D)
+    Nielsen's rule reaches rel 1e-12 in 96 linear solves where GTSAM's takes 200; on w10000
+    (2-D) GTSAM's rule reaches the minimum (144.86738) in the 8 solves after which Nielsen's
+    stops at 144.87139 at rel 1e-5, and rel 1e-12 in 10 solves instead of 15.
 
     Args:
         max_iterations: most linear solves.
@@ -112,6 +119,7 @@ def pose_graph_config(
         step_tolerance: converged when the step is at most this times the norm of the stacked
             variable values.
         initial_damping: lambda of the first iteration (GTSAM's ``lambdaInitial``).
+        planar: settings for a 2-D graph (GTSAM's damping update).
 
     Returns:
         an :class:`~msf_torch.backend.lm.LMConfig`.
@@ -124,6 +132,7 @@ def pose_graph_config(
         absolute_tolerance=absolute_tolerance,
         step_tolerance=step_tolerance,
         linear_solver="sparse",
+        damping_update="multiplicative" if planar else "nielsen",
     )
 
 
@@ -191,7 +200,8 @@ def optimize_pose_graph(
             sparse solver). A :class:`~msf_torch.io.g2o_2d.PoseGraph2D` is solved over
             planar poses (:mod:`msf_torch.backend.posegraph2d`).
         robust: kernel on every edge (e.g. ``RobustKernel("cauchy", 1.0)``), or None.
-        config: LM settings; default :func:`pose_graph_config` ``()``.
+        config: LM settings; default :func:`pose_graph_config` (``planar=True`` for a
+            2-D graph).
         fixed: row indices of the vertices held constant (gauge); default (None) the
             vertices the file's ``FIX`` records name (``graph.fixed_ids``), else the first.
         dof: 6 (full poses) or 4 (x, y, z and yaw move; every vertex keeps its roll and
@@ -204,9 +214,9 @@ def optimize_pose_graph(
         ValueError: a malformed graph, bad ``fixed`` indices, ``dof`` not 4 or 6, or
             ``dof=4`` for a 2-D graph.
     """
-    config = config or pose_graph_config()
-    start = time.perf_counter()
     planar = isinstance(graph, PoseGraph2D)
+    config = config or pose_graph_config(planar=planar)
+    start = time.perf_counter()
     if planar and dof != 6:
         raise ValueError(f"a 2-D pose graph has 3-dof poses; dof={dof} is for 3-D graphs")
     if planar:

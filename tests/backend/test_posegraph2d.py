@@ -270,3 +270,21 @@ def test_fix_record_and_fixed_rows_hold_their_vertex():
         pose_graph_2d_problem(graph, fixed=[48])
     with pytest.raises(ValueError, match="dof=4 is for 3-D graphs"):
         optimize_pose_graph(graph, dof=4)
+
+
+@pytest.mark.parametrize("name", ["noisyToyGraph.txt", "orientationsNoisyToyGraph.txt"])
+def test_default_settings_take_gtsams_lm_steps(gtsam, name):
+    """With the planar defaults (GTSAM's damping rule, lambda 1e-5, rel 1e-5) ours takes
+    GTSAM's steps: the same iterations and the same final cost to round-off, although
+    neither has converged to 1e-12 yet."""
+    path = str(gtsam_pose_graph_path(name))
+    factors, initial = gtsam.load2D(path, noiseFormat=gtsam.NoiseFormat.NoiseFormatG2O)
+    factors.add(gtsam.NonlinearEqualityPose2(0, initial.atPose2(0)))
+    optimizer = gtsam.LevenbergMarquardtOptimizer(
+        factors, initial, gtsam.LevenbergMarquardtParams()
+    )
+    solved = optimizer.optimize()
+    result = optimize_pose_graph(read_pose_graph_2d(path))
+    assert result.iterations == optimizer.iterations()
+    assert result.final_cost == pytest.approx(factors.error(solved), rel=1e-12)
+    assert all(entry["accepted"] for entry in result.log)
