@@ -10,7 +10,8 @@ What it measures
       (SE(2) variables with GTSAM's ``Pose2`` exponential-map retraction, the Logmap error of
       GTSAM's ``BetweenFactor<Pose2>``; sparse factorisation by MKL PARDISO when
       ``pypardiso`` is installed, else CHOLMOD through cholespy; identity damping from
-      lambda 1e-5, Nielsen update); wall time of problem building plus the solve.
+      lambda 1e-5 divided / multiplied by 10, GTSAM's rule, ``pose_graph_config(planar=True)``);
+      wall time of problem building plus the solve.
     * GTSAM (the ratio's peer): ``gtsam.load2D(path, noiseFormat=...)`` with
       ``NoiseFormatTORO`` for ``.graph`` files and ``NoiseFormatG2O`` otherwise, a gauge
       prior on the first vertex (``PriorFactorPose2`` at its initial pose with
@@ -209,7 +210,7 @@ def compare(
     median wall times, costs, iterations and the solution difference."""
     import gtsam
 
-    config = pose_graph_config(relative_tolerance=rel, max_iterations=max_iterations)
+    config = pose_graph_config(relative_tolerance=rel, max_iterations=max_iterations, planar=True)
     held = gtsam_problem(factors, initial)
     params = gtsam_params(rel, gtsam_absolute, max_iterations)
 

@@ -24,12 +24,12 @@ Formats
     placed goes to ``T_i T_ij`` (for an odometry chain: ``T_{k+1} = T_k T_{k,k+1}`` from the
     first vertex at the origin).
 
-Cost (the reference is GTSAM 4.3's ``BetweenFactor<Pose2>`` with its default ``Pose2``
-chart, which is also g2o's ``EdgeSE2`` error)
-    The error of edge ``ij`` is the error pose ``E = Z_ij^-1 T_i^-1 T_j`` as the vector
-    ``[E.x, E.y, E.theta]`` (``E.theta`` wrapped to (-pi, pi]), and the cost is
-    ``0.5 * sum e^T I e`` with the file's information ``I``. Unlike SE(3), no logarithm is
-    taken: the translation is the error pose's own.
+Cost (the reference is GTSAM 4.3's ``BetweenFactor<Pose2>`` as the gtsam wheel builds it)
+    The error of edge ``ij`` is the SE(2) logarithm of the error pose
+    ``E = Z_ij^-1 T_i^-1 T_j`` (``Pose2.Logmap``: ``[V(theta)^-1 t, theta]``, theta wrapped
+    to (-pi, pi]), and the cost is ``0.5 * sum e^T I e`` with the file's information ``I``
+    (:mod:`msf_torch.backend.posegraph2d`). g2o's ``EdgeSE2`` uses ``[t, theta]`` of the same
+    error pose; the two agree to first order.
 
 Rules
     Malformed records raise :class:`DataError` naming file, 1-based line and field (``id``,
