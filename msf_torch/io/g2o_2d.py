@@ -33,7 +33,8 @@ Cost (the reference is GTSAM 4.3's ``BetweenFactor<Pose2>`` as the gtsam wheel b
 
 Rules
     Malformed records raise :class:`DataError` naming file, 1-based line and field (``id``,
-    ``i``, ``j``, ``x``, ``y``, ``theta``, ``info[r,c]`` in the file's order): a wrong number
+    ``i``, ``j``, ``x``, ``y``, ``theta``; ``info[r,c]`` for ``EDGE_SE2``, TORO's own names
+    ``inf_ff`` ... ``inf_sr`` for ``EDGE2``): a wrong number
     of values, a value that is not a finite number, a bad id, a duplicate vertex id, an edge
     from a vertex to itself, an information matrix that is not positive definite, an edge
     naming an undefined vertex (when the file defines any), a ``FIX`` naming no vertex of

@@ -1,0 +1,257 @@
+"""Planar odometry + range-beacon smoothing: wheel odometry between SE(2) poses, ranges from
+the robot to beacons at known (or unknown) positions, a prior on the first pose; the whole
+run solved at once by :func:`~msf_torch.backend.lm.solve` (UWB anchors, radio tags).
+
+Variables: ``pose`` (:data:`~msf_torch.backend.posegraph2d.SE2`, (1, M + 1, 3)) and
+``beacon`` (:data:`POINT2`, (1, L, 2) m; held fixed when the positions are known).
+Factors, each GTSAM's counterpart so that costs agree with it:
+
+* odometry (:class:`~msf_torch.backend.posegraph2d.Se2BetweenFactor`): step k measures
+  ``Z_k = Pose2(distance_k, 0, turn_k)`` between poses k and k + 1
+  (``BetweenFactor<Pose2>``), covariance per step from :class:`OdometryNoise`;
+* range (:class:`Se2RangeFactor`, ``RangeFactor2D``): ``r = |b - p| - z`` (m) between a
+  pose and a beacon, sigma ``range_sigma_m`` under a robust kernel (outlier ranges are
+  common: multipath, a missed first path);
+* prior (:class:`Se2PriorFactor`, ``PriorFactorPose2``): ``r = Log(P^-1 T_0)`` on the first
+  pose.
+
+Jacobians of the range: the pose moves by ``T Exp(xi)``, so to first order
+``p <- p + R(theta) rho``, and with ``u = (b - p) / |b - p|``:
+``dr/dxi = [-u^T R(theta), 0]``, ``dr/db = u^T``.
+"""
+
+from __future__ import annotations
+
+__all__ = [
+    "POINT2",
+    "OdometryNoise",
+    "Point2Kind",
+    "Se2PriorFactor",
+    "Se2RangeFactor",
+    "odometry_range_problem",
+]
+
+from dataclasses import dataclass
+
+import torch
+
+from msf_torch.backend.factors import _Evaluated, _Unary, sqrt_information
+from msf_torch.backend.posegraph2d import SE2, Se2BetweenFactor, se2_between_residual, wrap_angle
+from msf_torch.backend.problem import Factor, Problem
+from msf_torch.backend.robust import RobustKernel
+from msf_torch.backend.variables import VariableKind
+
+
+@dataclass(frozen=True)
+class Point2Kind(VariableKind):
+    """Planar points ``[x, y]`` (m); steps add."""
+
+    def retract(self, value: torch.Tensor, step: torch.Tensor) -> torch.Tensor:
+        """``value + step`` (..., 2)."""
+        return value + step
+
+
+POINT2 = Point2Kind("point2", 2, 2)
+
+
+class Se2RangeFactor(_Evaluated, Factor):
+    """Range from an :data:`~msf_torch.backend.posegraph2d.SE2` pose's origin to a
+    :data:`POINT2` beacon: ``r = |b - p| - z`` (m) (GTSAM's ``RangeFactor2D``).
+
+    Args:
+        pose_group, pose_index: the poses (F,). beacon_group, beacon_index: the beacons (F,).
+        ranges: (B|1, F) measured ranges, m. variance: (B|1, F, 1, 1) m^2.
+        kernel: robust kernel, or None for plain least squares.
+    """
+
+    batched = ("ranges",)
+
+    def __init__(
+        self,
+        pose_group: str,
+        pose_index: torch.Tensor,
+        beacon_group: str,
+        beacon_index: torch.Tensor,
+        ranges: torch.Tensor,
+        variance: torch.Tensor,
+        kernel: RobustKernel | None = None,
+    ) -> None:
+        self.slots = ((pose_group, pose_index.long()), (beacon_group, beacon_index.long()))
+        self.sqrt_information = sqrt_information(variance)
+        self.kernel = kernel
+        self.ranges = ranges
+
+    def _evaluate(self, values, jacobians: bool):
+        pose, beacon = values
+        offset = beacon - pose[..., 0:2]
+        distance = offset.norm(dim=-1)
+        residual = (distance - self.ranges.expand_as(distance))[..., None]
+        if not jacobians:
+            return residual, None
+        unit = offset / distance.clamp_min(torch.finfo(offset.dtype).tiny)[..., None]
+        c, s = torch.cos(pose[..., 2]), torch.sin(pose[..., 2])
+        along = -(unit[..., 0] * c + unit[..., 1] * s)  # -u^T R(theta) e_x
+        across = -(-unit[..., 0] * s + unit[..., 1] * c)  # -u^T R(theta) e_y
+        jac_pose = torch.stack((along, across, torch.zeros_like(along)), -1)[..., None, :]
+        return residual, [jac_pose, unit[..., None, :]]
+
+
+class Se2PriorFactor(_Evaluated, _Unary):
+    """Prior on an :data:`~msf_torch.backend.posegraph2d.SE2` pose: ``r = Log(P^-1 T)``
+    (3,) (GTSAM's ``PriorFactorPose2``).
+
+    Args:
+        group, index: the poses (F,). prior: (B|1, F, 3) ``[x, y, theta]``.
+        covariance: (B|1, F, 3, 3). kernel: robust kernel, or None.
+    """
+
+    batched = ("prior",)
+
+    def __init__(
+        self,
+        group: str,
+        index: torch.Tensor,
+        prior: torch.Tensor,
+        covariance: torch.Tensor,
+        kernel: RobustKernel | None = None,
+    ) -> None:
+        super().__init__(group, index, covariance, kernel)
+        self.prior = prior
+
+    def _evaluate(self, values, jacobians: bool):
+        pose = values[0]
+        prior = self.prior.expand_as(pose)
+        residual, _, jac = se2_between_residual(
+            torch.zeros_like(pose), pose, prior[..., 0:2], prior[..., 2], jacobians
+        )
+        return residual, [jac] if jacobians else None
+
+
+@dataclass(frozen=True)
+class OdometryNoise:
+    """Covariance of one odometry step, growing with the distance it covers: ``diag(
+    forward * d + floor_m^2, lateral * d + floor_m^2, heading * d + floor_rad^2)`` for a step
+    of ``d`` m (a random walk per metre travelled).
+
+    Attributes:
+        forward, lateral: m^2 per m travelled. heading: rad^2 per m travelled.
+        floor_m, floor_rad: the sigma of a step that does not move, m and rad.
+    """
+
+    forward: float = 6e-4
+    lateral: float = 6e-4
+    heading: float = 5e-5
+    floor_m: float = 1e-3
+    floor_rad: float = 1e-3
+
+    def covariance(self, distance: torch.Tensor) -> torch.Tensor:
+        """(M, 3, 3) covariances of steps of ``distance`` (M,) m."""
+        d = distance.abs()
+        diagonal = torch.stack(
+            (
+                self.forward * d + self.floor_m**2,
+                self.lateral * d + self.floor_m**2,
+                self.heading * d + self.floor_rad**2,
+            ),
+            -1,
+        )
+        return torch.diag_embed(diagonal)
+
+
+def odometry_range_problem(
+    odometry: torch.Tensor,
+    range_pose: torch.Tensor,
+    range_beacon: torch.Tensor,
+    ranges: torch.Tensor,
+    beacons: torch.Tensor,
+    first_pose: torch.Tensor,
+    first_pose_covariance: torch.Tensor,
+    odometry_noise: OdometryNoise | None = None,
+    range_sigma_m: float = 1.0,
+    range_kernel: RobustKernel | None = None,
+    beacons_known: bool = True,
+    initial_poses: torch.Tensor | None = None,
+) -> Problem:
+    """The B = 1 smoothing problem of a planar run with odometry and beacon ranges.
+
+    Args:
+        odometry: (M, 2) distance (m) and heading change (rad) of each step.
+        range_pose: (K,) int64 pose (0..M) each range was taken at.
+        range_beacon: (K,) int64 row of ``beacons`` each range is to.
+        ranges: (K,) m (any known bias already removed).
+        beacons: (L, 2) m, beacon positions (the initial guess when not known).
+        first_pose: (3,) prior mean of pose 0 ``[x, y, theta]``.
+        first_pose_covariance: (3, 3).
+        odometry_noise: per-step covariance model (default :class:`OdometryNoise`).
+        range_sigma_m: sigma of a range, m.
+        range_kernel: robust kernel on the ranges (scale in sigmas), or None.
+        beacons_known: hold the beacons fixed (localisation) or solve for them too.
+        initial_poses: (M + 1, 3) initial estimate; default the odometry chained from
+            ``first_pose``.
+
+    Returns:
+        a :class:`~msf_torch.backend.problem.Problem` with groups ``pose`` and ``beacon``.
+
+    Raises:
+        ValueError: inconsistent shapes or indices out of range (named).
+    """
+    dtype = odometry.dtype
+    steps = odometry.shape[0]
+    if odometry.ndim != 2 or odometry.shape[1] != 2:
+        raise ValueError(f"odometry must be (M, 2), got {tuple(odometry.shape)}")
+    k = ranges.shape[0]
+    for name, tensor in (("range_pose", range_pose), ("range_beacon", range_beacon)):
+        if tensor.shape != (k,):
+            raise ValueError(f"{name} must be ({k},) like ranges, got {tuple(tensor.shape)}")
+    if k and (int(range_pose.min()) < 0 or int(range_pose.max()) > steps):
+        raise ValueError(f"range_pose must index the {steps + 1} poses")
+    if k and (int(range_beacon.min()) < 0 or int(range_beacon.max()) >= beacons.shape[0]):
+        raise ValueError(f"range_beacon must index the {beacons.shape[0]} beacons")
+    noise = odometry_noise or OdometryNoise()
+    if initial_poses is None:
+        initial_poses = _chain(first_pose, odometry)
+    measured = torch.stack((odometry[:, 0], torch.zeros_like(odometry[:, 0])), -1)
+    index = torch.arange(steps)
+    factors = [
+        Se2BetweenFactor(
+            "pose",
+            index,
+            index + 1,
+            measured[None],
+            odometry[None, :, 1],
+            noise.covariance(odometry[:, 0])[None],
+        ),
+        Se2RangeFactor(
+            "pose",
+            range_pose,
+            "beacon",
+            range_beacon,
+            ranges[None],
+            torch.full((1, k, 1, 1), range_sigma_m**2, dtype=dtype),
+            kernel=range_kernel,
+        ),
+        Se2PriorFactor(
+            "pose",
+            torch.zeros(1, dtype=torch.long),
+            first_pose[None, None],
+            first_pose_covariance[None, None],
+        ),
+    ]
+    fixed = {}
+    if beacons_known:
+        fixed["beacon"] = torch.ones(beacons.shape[0], dtype=torch.bool)
+    return Problem(
+        {"pose": (SE2, initial_poses[None]), "beacon": (POINT2, beacons.to(dtype)[None])},
+        factors,
+        fixed=fixed,
+    )
+
+
+def _chain(first_pose: torch.Tensor, odometry: torch.Tensor) -> torch.Tensor:
+    """(M + 1, 3) poses chained from ``first_pose`` (3,) by the steps ``odometry`` (M, 2):
+    ``T_{k+1} = T_k Pose2(distance_k, 0, turn_k)`` (move along the heading, then turn)."""
+    zero = odometry.new_zeros(1)
+    heading = first_pose[2] + torch.cat((zero, torch.cumsum(odometry[:, 1], 0)))
+    moves = odometry[:, 0:1] * torch.stack((torch.cos(heading[:-1]), torch.sin(heading[:-1])), -1)
+    position = first_pose[0:2] + torch.cat((zero.new_zeros(1, 2), torch.cumsum(moves, 0)))
+    return torch.cat((position, wrap_angle(heading)[:, None]), -1)

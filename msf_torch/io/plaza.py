@@ -1,0 +1,216 @@
+"""The Plaza range-beacon runs that the gtsam wheel ships: a wheeled robot's odometry, radio
+ranges to four fixed beacons and RTK-GPS ground truth (Carnegie Mellon's "emergency
+response" range data; Djugash, Singh, Kantor and Zhang, "Range-only SLAM for robots
+operating cooperatively with sensor networks", ICRA 2006).
+
+Files (in ``gtsam/Data``; ``NAME`` is ``Plaza1`` or ``Plaza2``)
+    * ``NAME_DR.txt``: one odometry step per line: time (s), distance travelled (m), heading
+      change (rad) since the previous line.
+    * ``NAME_TD.txt``: one range per line: time (s), sender (the robot's antenna), receiver
+      (the beacon's id), range (m).
+    * ``NAME_.mat`` (MATLAB): ``GT`` ground truth, one row per pose: time (s), x, y (m),
+      heading (rad), the first row the start pose and one row at every odometry time;
+      ``TL`` the beacons: id, x, y (m).
+
+    Plaza1: 1932 s, 1861 m, 9657 steps at 5 Hz, 3529 ranges. Plaza2: 409 s, 1354 m, 4090
+    steps at 10 Hz, 1816 ranges.
+
+What the files do not say (measured on them; ``PlazaRun.meta``)
+    * Plaza2's ground-truth heading points backwards: the course of its ground-truth
+      positions differs from it by a median 3.08 rad (Plaza1: -0.016 rad). The loader
+      turns a run's truth headings by pi when that median exceeds pi/2, so
+      ``truth[:, 2]`` is the direction of travel in both (``meta["truth_heading_turned"]``).
+    * Plaza1's truth heading is the odometry's own (their difference over any stretch is
+      0 to 1e-15 rad): only its positions are independent ground truth
+      (``meta["truth_heading_is_odometry"]``).
+    * Plaza1's range log has two blocks out of time order (the loader sorts the ranges by
+      time; ``meta["ranges_reordered"]`` counts the moved lines).
+    * The ranges read long: the median of range minus the true distance is +2.85 m on
+      Plaza1 and +2.80 m on Plaza2 (spread 1.2 / 1.8 m, 1.4826 MAD): a constant bias of the
+      radio ranging, not modelled here (the benchmark calibrates it on the other run).
+"""
+
+from __future__ import annotations
+
+__all__ = ["PLAZA_RUNS", "PlazaRun", "load_plaza"]
+
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import torch
+
+from msf_torch.io import _tables
+from msf_torch.io.errors import DataError
+from msf_torch.io.kitti_gtsam import gtsam_data_path
+
+PLAZA_RUNS = ("Plaza1", "Plaza2")
+
+
+@dataclass
+class PlazaRun:
+    """One Plaza run (float64 CPU tensors).
+
+    Attributes:
+        name: ``"Plaza1"`` or ``"Plaza2"``.
+        odometry_t: (M,) time of each odometry step, s.
+        odometry: (M, 2) distance travelled (m) and heading change (rad) of each step.
+        range_t: (K,) time of each range, s, increasing.
+        range_beacon: (K,) int64 beacon id of each range.
+        ranges: (K,) m, as measured (biased long, module docstring).
+        truth_t: (M + 1,) s: the start time, then the odometry times.
+        truth: (M + 1, 3) ``[x, y, heading]`` (m, m, rad; heading along the direction of
+            travel).
+        beacon_ids: (L,) int64. beacons: (L, 2) m, the beacons' positions.
+        meta: facts measured on the files (module docstring).
+    """
+
+    name: str
+    odometry_t: torch.Tensor
+    odometry: torch.Tensor
+    range_t: torch.Tensor
+    range_beacon: torch.Tensor
+    ranges: torch.Tensor
+    truth_t: torch.Tensor
+    truth: torch.Tensor
+    beacon_ids: torch.Tensor
+    beacons: torch.Tensor
+    meta: dict[str, Any] = field(default_factory=dict)
+
+    def odometry_poses(self, start: torch.Tensor | None = None) -> torch.Tensor:
+        """Dead reckoning: (M + 1, 3) poses chained from ``start`` (3,) (default the truth's
+        first pose), each step moving ``distance`` along the heading, then turning."""
+        pose = (self.truth[0] if start is None else start).tolist()
+        out = [list(pose)]
+        for distance, turn in self.odometry.tolist():
+            pose = [
+                pose[0] + distance * math.cos(pose[2]),
+                pose[1] + distance * math.sin(pose[2]),
+                math.remainder(pose[2] + turn, 2 * math.pi),
+            ]
+            out.append(pose)
+        return torch.tensor(out, dtype=torch.float64)
+
+    def range_pose_index(self) -> torch.Tensor:
+        """(K,) int64 row of ``truth`` (= pose) each range is assigned to: the first pose
+        at or after the range's time (GTSAM's Plaza examples do the same)."""
+        index = torch.searchsorted(self.truth_t, self.range_t)
+        return index.clamp(max=self.truth_t.shape[0] - 1)
+
+
+def _wrap(angle: np.ndarray) -> np.ndarray:
+    return np.angle(np.exp(1j * angle))
+
+
+def _matrix(path, mat: dict[str, Any], name: str, columns: int) -> np.ndarray:
+    value = mat.get(name)
+    if not isinstance(value, np.ndarray) or value.ndim != 2 or value.shape[1] != columns:
+        shape = getattr(value, "shape", None)
+        raise DataError(path, f"variable {name!r}: expected an (n, {columns}) matrix, got {shape}")
+    value = value.astype(np.float64)
+    if not np.isfinite(value).all():
+        raise DataError(path, f"variable {name!r}: not finite")
+    return value
+
+
+def load_plaza(name: str = "Plaza2") -> PlazaRun:
+    """Read one Plaza run from the installed gtsam's data folder.
+
+    Args:
+        name: ``"Plaza1"`` or ``"Plaza2"``.
+
+    Returns:
+        a :class:`PlazaRun`.
+
+    Raises:
+        ValueError: an unknown run name.
+        MissingExtraError: gtsam is not installed (``pip install 'msf_torch[peers]'``).
+        DataError: a missing or malformed file (naming file, line and field), ranges to a
+            beacon the run does not list, or truth rows that do not match the odometry.
+    """
+    if name not in PLAZA_RUNS:
+        raise ValueError(f"unknown Plaza run {name!r}; known: {', '.join(PLAZA_RUNS)}")
+    from scipy.io import loadmat
+
+    dr_path = gtsam_data_path(f"{name}_DR.txt")
+    td_path = gtsam_data_path(f"{name}_TD.txt")
+    mat_path = gtsam_data_path(f"{name}_.mat")
+    dr_names = ["time", "distance", "heading_change"]
+    dr = _tables.read_table(dr_path, delimiter=None, header="none", names=dr_names)
+    odometry = dr.floats(dr_names)
+    td_names = ["time", "sender", "receiver", "range"]
+    td = _tables.read_table(td_path, delimiter=None, header="none", names=td_names)
+    ranges = td.floats(td_names)
+    for table, values in ((dr, odometry), (td, ranges)):
+        if not np.isfinite(values).all():
+            row = int(np.argwhere(~np.isfinite(values))[0, 0])
+            raise DataError(table.path, "not finite", line=int(table.lines[row]))
+    back = np.flatnonzero(np.diff(odometry[:, 0]) <= 0)
+    if back.size:
+        raise DataError(
+            dr.path, "time does not increase", line=int(dr.lines[back[0] + 1]), field="time"
+        )
+    # Plaza1's range log holds two blocks out of time order: sorted (stable) by time
+    order = np.argsort(ranges[:, 0], kind="stable")
+    reordered = int((order != np.arange(order.size)).sum())
+    ranges, range_lines = ranges[order], td.lines[order]
+    try:
+        mat = loadmat(mat_path)
+    except (ValueError, TypeError, OSError) as err:
+        raise DataError(mat_path, f"not a readable MATLAB file ({err})") from None
+    truth = _matrix(mat_path, mat, "GT", 4)
+    beacons = _matrix(mat_path, mat, "TL", 3)
+    if truth.shape[0] != odometry.shape[0] + 1 or not np.allclose(
+        truth[1:, 0], odometry[:, 0], atol=1e-6
+    ):
+        raise DataError(
+            mat_path,
+            f"GT must hold the start pose and one row per odometry step ({odometry.shape[0] + 1} "
+            f"rows at the {dr_path.name} times), got {truth.shape[0]} rows",
+        )
+    beacon_ids = beacons[:, 0].astype(np.int64)
+    unknown = ~np.isin(ranges[:, 2].astype(np.int64), beacon_ids)
+    if unknown.any():
+        row = int(np.flatnonzero(unknown)[0])
+        raise DataError(
+            td_path,
+            f"range to beacon {ranges[row, 2]:g}, which TL does not list ({beacon_ids.tolist()})",
+            line=int(range_lines[row]),
+            field="receiver",
+        )
+    step = np.diff(truth[:, 1:3], axis=0)
+    moving = np.linalg.norm(step, axis=1) > 0.05
+    course_offset = float(
+        np.median(_wrap(np.arctan2(step[moving, 1], step[moving, 0]) - truth[1:, 3][moving]))
+    )
+    turned = abs(course_offset) > math.pi / 2
+    if turned:
+        truth[:, 3] = _wrap(truth[:, 3] + math.pi)
+    truth_turn = _wrap(np.diff(truth[:, 3]))
+    meta = {
+        "source": str(dr_path.parent),
+        "truth_course_offset_rad": course_offset,
+        "truth_heading_turned": turned,
+        "ranges_reordered": reordered,
+        "truth_heading_is_odometry": bool(
+            np.abs(_wrap(truth_turn - odometry[:, 2])).max() < 1e-9
+        ),
+    }
+
+    def f64(x: np.ndarray) -> torch.Tensor:
+        return torch.as_tensor(np.ascontiguousarray(x), dtype=torch.float64)
+
+    return PlazaRun(
+        name=name,
+        odometry_t=f64(odometry[:, 0]),
+        odometry=f64(odometry[:, 1:3]),
+        range_t=f64(ranges[:, 0]),
+        range_beacon=torch.as_tensor(ranges[:, 2].astype(np.int64)),
+        ranges=f64(ranges[:, 3]),
+        truth_t=f64(truth[:, 0]),
+        truth=f64(truth[:, 1:4]),
+        beacon_ids=torch.as_tensor(beacon_ids),
+        beacons=f64(beacons[:, 1:3]),
+        meta=meta,
+    )
