@@ -193,9 +193,7 @@ def load_plaza(name: str = "Plaza2") -> PlazaRun:
         "truth_course_offset_rad": course_offset,
         "truth_heading_turned": turned,
         "ranges_reordered": reordered,
-        "truth_heading_is_odometry": bool(
-            np.abs(_wrap(truth_turn - odometry[:, 2])).max() < 1e-9
-        ),
+        "truth_heading_is_odometry": bool(np.abs(_wrap(truth_turn - odometry[:, 2])).max() < 1e-9),
     }
 
     def f64(x: np.ndarray) -> torch.Tensor:
