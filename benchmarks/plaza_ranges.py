@@ -1,0 +1,395 @@
+"""Real wheeled-robot data with range beacons (Plaza): our planar smoother vs GTSAM's LM on
+the same graph, and both against RTK ground truth and dead reckoning.
+
+What it measures
+    Input: a Plaza run of the ``gtsam`` wheel (:func:`msf_torch.io.plaza.load_plaza`; default
+    test run ``Plaza2``: 409 s, 1354 m, 4090 odometry steps at 10 Hz, 1816 radio ranges to
+    four beacons at known positions). The settings come from the OTHER run (``Plaza1``,
+    ``--calibrate``), never from the test run:
+
+    * range bias = median of (range - true distance) and range sigma = 1.4826 MAD of it,
+      over the calibration run's ranges (true distances from its RTK positions);
+    * odometry noise (:class:`~msf_torch.backend.range2d.OdometryNoise`, variance per metre
+      travelled): over consecutive 100-step stretches of the calibration run, the forward
+      error of the chained odometry against the truth gives ``forward`` (and ``lateral``,
+      set equal), and the sideways error, read as a heading random walk
+      (``var_y = heading L^3 / 3`` over a stretch of ``L`` m), gives ``heading``.
+      (Plaza1's truth heading is its odometry's, so heading itself cannot be compared.)
+
+    The graph (ours and GTSAM's, built from the same numbers): poses at the start and every
+    odometry time; one ``BetweenFactor<Pose2>`` per step measuring ``Pose2(distance, 0,
+    turn)``; one ``RangeFactor2D`` per range (bias removed) to its beacon, attached to the
+    first pose at or after the range's time, under the robust kernel ``--kernel`` (scale in
+    sigmas); a ``PriorFactorPose2`` on pose 0 at the true start (0.1 m, 0.05 rad: the robot
+    starts from a known spot); beacons held at their surveyed positions (GTSAM:
+    ``NonlinearEqualityPoint2``). Initial values: dead reckoning from the start.
+
+    * ours: :func:`msf_torch.backend.range2d.odometry_range_problem` solved by
+      :func:`msf_torch.backend.lm.solve` (sparse, identity damping from 1e-5, GTSAM's
+      divide / multiply by 10 update);
+    * GTSAM (the ratio's peer): ``LevenbergMarquardtOptimizer`` with the same tolerances
+      (relative ``--tolerance``, absolute 0).
+
+    Accuracy: position RMSE and max error against the RTK truth at every pose (same frame: no
+    alignment), for ours, GTSAM and dead reckoning; agreement of the two solvers (final
+    costs, largest position difference). Time: medians of ``--repeats`` solves after one
+    warm-up each, ours and GTSAM alternating (graph building apart); ``ratio`` = ours /
+    GTSAM wall time. No issue names a target; the figures are reported as measured.
+
+How to run
+    .venv/bin/python benchmarks/plaza_ranges.py                       # Plaza2, ~30 s
+    .venv/bin/python benchmarks/plaza_ranges.py --test Plaza1 --calibrate Plaza2
+    .venv/bin/python benchmarks/plaza_ranges.py --plot plaza2.png     # truth, DR, ours, beacons
+
+    Progress goes to stderr; the last line on stdout is one JSON object.
+
+Options
+    --test RUN         the run solved (default Plaza2)
+    --calibrate RUN    the run the settings come from (default: the other one)
+    --kernel K[:S]     robust kernel on the ranges: cauchy (default, 2.3849 sigmas), huber
+                       (1.345), tukey (4.6851), none
+    --tolerance T      relative cost decrease that stops both solvers (default 1e-10)
+    --repeats N        timed repeats (median; default 3)
+    --threads N        torch intra-op threads (default: torch's default)
+    --plot PNG         write a figure of the test run
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+
+import numpy as np  # noqa: E402
+import torch  # noqa: E402
+
+from benchmarks._common import emit_json, log, machine_info, time_repeats  # noqa: E402
+from msf_torch.backend.lm import LMConfig, solve  # noqa: E402
+from msf_torch.backend.range2d import OdometryNoise, odometry_range_problem  # noqa: E402
+from msf_torch.backend.robust import RobustKernel  # noqa: E402
+from msf_torch.io.plaza import PLAZA_RUNS, PlazaRun, load_plaza  # noqa: E402
+
+DEFAULT_SCALES = {"cauchy": 2.3849, "huber": 1.345, "tukey": 4.6851}
+STRETCH_STEPS = 100
+START_SIGMA = (0.1, 0.1, 0.05)
+
+
+def _beacon_rows(run: PlazaRun) -> torch.Tensor:
+    rows = {int(b): k for k, b in enumerate(run.beacon_ids.tolist())}
+    return torch.tensor([rows[int(b)] for b in run.range_beacon.tolist()], dtype=torch.long)
+
+
+def range_errors(run: PlazaRun) -> torch.Tensor:
+    """(K,) range minus the true distance from the pose each range is attached to, m."""
+    true_position = run.truth[run.range_pose_index(), 0:2]
+    return run.ranges - (run.beacons[_beacon_rows(run)] - true_position).norm(dim=-1)
+
+
+def calibrate(run: PlazaRun) -> dict[str, float]:
+    """Range bias and sigma, and the odometry noise per metre, from one run (docstring)."""
+    errors = range_errors(run)
+    bias = float(errors.median())
+    sigma = float(1.4826 * (errors - bias).abs().median())
+    forward, sideways, lengths = [], [], []
+    odometry, truth = run.odometry.numpy(), run.truth.numpy()
+    for start in range(0, odometry.shape[0] - STRETCH_STEPS, STRETCH_STEPS):
+        x = y = heading = 0.0
+        for distance, turn in odometry[start : start + STRETCH_STEPS]:
+            x += distance * math.cos(heading)
+            y += distance * math.sin(heading)
+            heading += turn
+        a, b = truth[start], truth[start + STRETCH_STEPS]
+        c, s = math.cos(a[2]), math.sin(a[2])
+        dx, dy = b[0] - a[0], b[1] - a[1]
+        forward.append(x - (c * dx + s * dy))
+        sideways.append(y - (-s * dx + c * dy))
+        lengths.append(float(np.abs(odometry[start : start + STRETCH_STEPS, 0]).sum()))
+
+    def spread(values: list[float]) -> float:
+        v = np.asarray(values)
+        return float(1.4826 * np.median(np.abs(v - np.median(v))))
+
+    length = float(np.mean(lengths))
+    forward_per_m = spread(forward) ** 2 / length
+    heading_per_m = 3.0 * spread(sideways) ** 2 / length**3
+    return {
+        "range_bias_m": bias,
+        "range_sigma_m": sigma,
+        "odometry_forward_m2_per_m": forward_per_m,
+        "odometry_lateral_m2_per_m": forward_per_m,
+        "odometry_heading_rad2_per_m": heading_per_m,
+        "stretch_length_m": length,
+        "stretches": len(lengths),
+    }
+
+
+def parse_kernel(text: str) -> RobustKernel | None:
+    """``name[:scale]`` -> kernel (scale in sigmas), ``none`` -> None."""
+    name, _, scale = text.partition(":")
+    if name == "none":
+        return None
+    if name not in DEFAULT_SCALES:
+        raise SystemExit(f"--kernel: unknown kernel {name!r} (cauchy, huber, tukey, none)")
+    return RobustKernel(name, float(scale) if scale else DEFAULT_SCALES[name])
+
+
+def _errors(positions: np.ndarray, truth: np.ndarray) -> dict[str, float]:
+    distance = np.linalg.norm(positions - truth, axis=1)
+    return {
+        "rmse_m": float(np.sqrt(np.mean(distance**2))),
+        "max_m": float(distance.max()),
+        "final_m": float(distance[-1]),
+    }
+
+
+def gtsam_graph(
+    run: PlazaRun,
+    noise: OdometryNoise,
+    bias: float,
+    sigma: float,
+    kernel: RobustKernel | None,
+    first_covariance: np.ndarray,
+    initial_poses: np.ndarray,
+) -> tuple[Any, Any]:
+    """The same graph for GTSAM: (NonlinearFactorGraph, initial Values)."""
+    import gtsam
+
+    graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
+
+    def pose_key(i: int) -> int:
+        return gtsam.symbol("x", i)
+
+    def beacon_key(j: int) -> int:
+        return gtsam.symbol("l", j)
+
+    for i, pose in enumerate(initial_poses):
+        values.insert(pose_key(i), gtsam.Pose2(*pose))
+    for j, beacon in enumerate(run.beacons.numpy()):
+        values.insert(beacon_key(j), beacon.copy())
+        graph.add(gtsam.NonlinearEqualityPoint2(beacon_key(j), beacon.copy()))
+    start = gtsam.Pose2(*run.truth[0].numpy())
+    graph.add(
+        gtsam.PriorFactorPose2(
+            pose_key(0), start, gtsam.noiseModel.Gaussian.Covariance(first_covariance)
+        )
+    )
+    covariances = noise.covariance(run.odometry[:, 0]).numpy()
+    for i, (distance, turn) in enumerate(run.odometry.numpy()):
+        graph.add(
+            gtsam.BetweenFactorPose2(
+                pose_key(i),
+                pose_key(i + 1),
+                gtsam.Pose2(distance, 0.0, turn),
+                gtsam.noiseModel.Gaussian.Covariance(covariances[i]),
+            )
+        )
+    gaussian = gtsam.noiseModel.Isotropic.Sigma(1, sigma)
+    if kernel is None:
+        range_noise = gaussian
+    else:
+        estimator = {
+            "cauchy": gtsam.noiseModel.mEstimator.Cauchy,
+            "huber": gtsam.noiseModel.mEstimator.Huber,
+            "tukey": gtsam.noiseModel.mEstimator.Tukey,
+        }[kernel.name].Create(kernel.scale)
+        range_noise = gtsam.noiseModel.Robust.Create(estimator, gaussian)
+    pose_index = run.range_pose_index().tolist()
+    beacon_rows = _beacon_rows(run).tolist()
+    for i, j, z in zip(pose_index, beacon_rows, (run.ranges - bias).tolist(), strict=True):
+        graph.add(gtsam.RangeFactor2D(pose_key(i), beacon_key(j), z, range_noise))
+    return graph, values
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Run the benchmark (options in the module docstring); returns the exit status."""
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--test", choices=PLAZA_RUNS, default="Plaza2")
+    parser.add_argument("--calibrate", choices=PLAZA_RUNS, default=None)
+    parser.add_argument("--kernel", default="cauchy")
+    parser.add_argument("--tolerance", type=float, default=1e-10)
+    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--threads", type=int, default=None)
+    parser.add_argument("--plot", type=Path, default=None)
+    args = parser.parse_args(argv)
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    calibration_name = args.calibrate or next(r for r in PLAZA_RUNS if r != args.test)
+    if calibration_name == args.test:
+        raise SystemExit("--calibrate must name the other run (settings never come from the test)")
+    kernel = parse_kernel(args.kernel)
+    run, calibration_run = load_plaza(args.test), load_plaza(calibration_name)
+    settings = calibrate(calibration_run)
+    log(f"calibration on {calibration_name}: {settings}")
+    noise = OdometryNoise(
+        forward=settings["odometry_forward_m2_per_m"],
+        lateral=settings["odometry_lateral_m2_per_m"],
+        heading=settings["odometry_heading_rad2_per_m"],
+    )
+    bias, sigma = settings["range_bias_m"], settings["range_sigma_m"]
+    first_covariance = torch.diag(torch.tensor(START_SIGMA, dtype=torch.float64) ** 2)
+    dead_reckoning = run.odometry_poses()
+    truth = run.truth[:, 0:2].numpy()
+
+    def build():
+        return odometry_range_problem(
+            run.odometry,
+            run.range_pose_index(),
+            _beacon_rows(run),
+            run.ranges - bias,
+            run.beacons,
+            run.truth[0],
+            first_covariance,
+            odometry_noise=noise,
+            range_sigma_m=sigma,
+            range_kernel=kernel,
+        )
+
+    config = LMConfig(
+        max_iterations=200,
+        damping="identity",
+        linear_solver="sparse",
+        damping_update="multiplicative",
+        relative_tolerance=args.tolerance,
+        absolute_tolerance=0.0,
+    )
+    build_start = time.perf_counter()
+    problem = build()
+    build_s = time.perf_counter() - build_start
+
+    def ours():
+        with torch.no_grad():
+            return solve(problem, config)
+
+    import gtsam
+
+    graph, values = gtsam_graph(
+        run,
+        noise,
+        bias,
+        sigma,
+        kernel,
+        first_covariance.numpy(),
+        problem.values["pose"][0].numpy(),
+    )
+    params = gtsam.LevenbergMarquardtParams()
+    params.setRelativeErrorTol(args.tolerance)
+    params.setAbsoluteErrorTol(0.0)
+    params.setMaxIterations(200)
+
+    def peer():
+        optimizer = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
+        return optimizer, optimizer.optimize()
+
+    ours(), peer()  # warm-up (MKL / PARDISO start, first calls)
+    ours_walls, peer_walls, ours_result, peer_result = [], [], None, None
+    for k in range(max(1, args.repeats)):
+        wall, _, ours_result = time_repeats(ours, 1)
+        ours_walls.append(wall)
+        wall, _, peer_result = time_repeats(peer, 1)
+        peer_walls.append(wall)
+        log(f"repeat {k + 1}: ours {ours_walls[-1]:.3f} s, GTSAM {peer_walls[-1]:.3f} s")
+    ours_poses = ours_result.values["pose"][0].numpy()
+    optimizer, solved = peer_result
+    peer_positions = np.array(
+        [
+            [solved.atPose2(gtsam.symbol("x", i)).x(), solved.atPose2(gtsam.symbol("x", i)).y()]
+            for i in range(ours_poses.shape[0])
+        ]
+    )
+    ours_cost, peer_cost = float(ours_result.cost[0]), float(graph.error(solved))
+    ours_wall, peer_wall = float(np.median(ours_walls)), float(np.median(peer_walls))
+    record = {
+        "benchmark": "plaza_ranges",
+        "inputs": {
+            "test_run": args.test,
+            "calibration_run": calibration_name,
+            "odometry_steps": int(run.odometry.shape[0]),
+            "ranges": int(run.ranges.shape[0]),
+            "beacons": int(run.beacons.shape[0]),
+            "distance_m": float(run.odometry[:, 0].abs().sum()),
+            "kernel": None if kernel is None else [kernel.name, kernel.scale],
+            "start_sigma": list(START_SIGMA),
+            "tolerance": args.tolerance,
+            "repeats": args.repeats,
+            "calibration": settings,
+            "meta": run.meta,
+        },
+        "ours": {
+            "wall_s": ours_wall,
+            "repeats_s": ours_walls,
+            "build_s": build_s,
+            "initial_cost": float(ours_result.initial_cost[0]),
+            "final_cost": ours_cost,
+            "iterations": int(ours_result.iterations[0]),
+            "status": ours_result.status[0],
+            "error": _errors(ours_poses[:, 0:2], truth),
+        },
+        "gtsam": {
+            "wall_s": peer_wall,
+            "repeats_s": peer_walls,
+            "initial_cost": float(graph.error(values)),
+            "final_cost": peer_cost,
+            "iterations": int(optimizer.iterations()),
+            "error": _errors(peer_positions, truth),
+        },
+        "dead_reckoning": {"error": _errors(dead_reckoning[:, 0:2].numpy(), truth)},
+        "ratio": ours_wall / peer_wall,
+        "accuracy": {
+            "initial_cost_rel_diff": abs(float(ours_result.initial_cost[0]) - graph.error(values))
+            / graph.error(values),
+            "final_cost_rel_diff": abs(ours_cost - peer_cost) / peer_cost,
+            "max_position_diff_m": float(np.abs(ours_poses[:, 0:2] - peer_positions).max()),
+        },
+        "machine": machine_info(),
+    }
+    if args.plot is not None:
+        record["plot"] = str(
+            _plot(args.plot, run, dead_reckoning.numpy(), ours_poses, record["ours"]["error"])
+        )
+    emit_json(record, digits=12)
+    return 0
+
+
+def _plot(path: Path, run: PlazaRun, dead_reckoning, ours, error) -> Path:
+    """Top view: truth, dead reckoning, ours, beacons; error over time."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(13.0, 5.5), dpi=110, layout="constrained")
+    FigureCanvasAgg(fig)
+    top, over_time = fig.subplots(1, 2, width_ratios=(1.1, 1.0))
+    truth = run.truth.numpy()
+    top.plot(truth[:, 0], truth[:, 1], color="k", lw=1.2, label="RTK truth")
+    top.plot(dead_reckoning[:, 0], dead_reckoning[:, 1], color="0.6", lw=0.8, label="odometry")
+    top.plot(ours[:, 0], ours[:, 1], color="tab:blue", lw=0.9, label="odometry + ranges")
+    beacons = run.beacons.numpy()
+    top.plot(beacons[:, 0], beacons[:, 1], "^", color="tab:red", ms=9, label="beacons")
+    top.set_aspect("equal", adjustable="datalim")
+    top.set_xlabel("x [m]")
+    top.set_ylabel("y [m]")
+    top.legend(loc="best", fontsize=8)
+    top.grid(True, alpha=0.35)
+    top.set_title(f"{run.name}: {run.ranges.shape[0]} ranges to {beacons.shape[0]} beacons")
+    t = run.truth_t.numpy() - float(run.truth_t[0])
+    for positions, name, color in ((dead_reckoning, "odometry", "0.6"), (ours, "ours", "tab:blue")):
+        over_time.plot(
+            t, np.linalg.norm(positions[:, 0:2] - truth[:, 0:2], axis=1), color=color, label=name
+        )
+    over_time.set_yscale("log")
+    over_time.set_xlabel("time [s]")
+    over_time.set_ylabel("position error [m]")
+    over_time.set_title(f"ours: RMSE {error['rmse_m']:.2f} m, max {error['max_m']:.2f} m")
+    over_time.grid(True, alpha=0.35, which="both")
+    over_time.legend(loc="best", fontsize=8)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path)
+    return path
+
+
+if __name__ == "__main__":
+    sys.exit(main())
