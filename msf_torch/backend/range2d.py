@@ -28,6 +28,7 @@ __all__ = [
     "Point2Kind",
     "Se2PriorFactor",
     "Se2RangeFactor",
+    "multilaterate",
     "odometry_range_problem",
 ]
 
@@ -245,6 +246,38 @@ def odometry_range_problem(
         factors,
         fixed=fixed,
     )
+
+
+def multilaterate(
+    positions: torch.Tensor, ranges: torch.Tensor, iterations: int = 50
+) -> torch.Tensor:
+    """Least-squares position (2,) of a beacon from ranges (N,) m taken at known positions
+    (N, 2) m: Gauss-Newton on ``sum (|b - p_n| - r_n)^2`` from nine starts around the
+    positions (their centroid and eight points one spread away), the lowest cost kept (a
+    range-only fix has a mirror image across a straight path: the starts find both).
+
+    Raises:
+        ValueError: fewer than three ranges.
+    """
+    if positions.shape[0] < 3 or ranges.shape != positions.shape[:1]:
+        raise ValueError(
+            f"multilaterate: need N >= 3 positions (N, 2) and ranges (N,), got "
+            f"{tuple(positions.shape)} and {tuple(ranges.shape)}"
+        )
+    centre = positions.mean(0)
+    spread = float((positions - centre).norm(dim=-1).mean()) + float(ranges.mean())
+    angles = torch.arange(8, dtype=positions.dtype) * (torch.pi / 4)
+    ring = spread * torch.stack((torch.cos(angles), torch.sin(angles)), -1)
+    beacon = torch.cat((centre[None], centre + ring))  # (9, 2) starts, solved together
+    for _ in range(iterations):
+        offset = beacon[:, None, :] - positions[None]  # (9, N, 2)
+        distance = offset.norm(dim=-1).clamp_min(1e-9)
+        jac = offset / distance[..., None]
+        residual = distance - ranges
+        normal = jac.mT @ jac + 1e-9 * torch.eye(2, dtype=positions.dtype)
+        beacon = beacon - torch.linalg.solve(normal, (jac.mT @ residual[..., None]))[..., 0]
+    cost = ((beacon[:, None, :] - positions[None]).norm(dim=-1) - ranges).pow(2).sum(-1)
+    return beacon[int(cost.argmin())]
 
 
 def _chain(first_pose: torch.Tensor, odometry: torch.Tensor) -> torch.Tensor:

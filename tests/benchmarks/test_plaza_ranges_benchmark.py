@@ -28,6 +28,11 @@ def test_plaza2_matches_gtsam_and_beats_dead_reckoning(capsys, tmp_path, one_tor
     assert record["ours"]["error"]["rmse_m"] < 0.6
     assert record["dead_reckoning"]["error"]["rmse_m"] > 25.0
     assert record["ratio"] > 0
+    slam = record["slam"]  # beacons unknown: the same optimum as GTSAM, a rigid turn off
+    assert slam["accuracy"]["final_cost_rel_diff"] < 1e-8
+    assert slam["ours"]["aligned_error"]["rmse_m"] < 0.6
+    assert max(slam["beacons"]["aligned_error_m"]) < 1.5
+    assert max(slam["beacons"]["error_m"]) < max(slam["beacons"]["initial_error_m"])
     assert figure.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
