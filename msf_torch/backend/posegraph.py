@@ -51,7 +51,7 @@ import torch
 
 from msf_torch.backend.factors import BetweenFactor
 from msf_torch.backend.lm import LMConfig, solve
-from msf_torch.backend.posegraph2d import pose_graph_2d_problem
+from msf_torch.backend.posegraph2d import held_vertices, pose_graph_2d_problem
 from msf_torch.backend.posegraph4dof import YAW_POSITION, YawBetweenFactor
 from msf_torch.backend.problem import Problem
 from msf_torch.backend.robust import RobustKernel
@@ -162,15 +162,8 @@ def pose_graph_problem(
     if dof not in (4, 6):
         raise ValueError(f"pose graph dof must be 4 or 6, got {dof}")
     graph.check()
-    n = graph.num_vertices
-    device, dtype = graph.positions.device, graph.positions.dtype
-    if fixed is None:
-        fixed = graph.fixed_rows() if graph.fixed_ids else (0,)
-    index = torch.as_tensor(fixed, dtype=torch.int64, device=device).reshape(-1)
-    if index.numel() and (int(index.min()) < 0 or int(index.max()) >= n):
-        raise ValueError(f"fixed vertex indices must lie in [0, {n}), got {index.tolist()}")
-    held = torch.zeros(n, dtype=torch.bool, device=device)
-    held[index] = True
+    dtype = graph.positions.dtype
+    held = held_vertices(graph, fixed)
     covariance = torch.linalg.inv(graph.edge_information.to(dtype))
     factor = (BetweenFactor if dof == 6 else YawBetweenFactor)(
         _GROUP,

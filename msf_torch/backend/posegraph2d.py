@@ -40,6 +40,7 @@ __all__ = [
     "Se2BetweenFactor",
     "se2_between_residual",
     "se2_log",
+    "held_vertices",
     "pose_graph_2d_problem",
     "wrap_angle",
 ]
@@ -53,6 +54,7 @@ from msf_torch.backend.factors import _Binary, _Evaluated
 from msf_torch.backend.problem import Problem
 from msf_torch.backend.robust import RobustKernel
 from msf_torch.backend.variables import VariableKind
+from msf_torch.io.g2o import PoseGraph
 from msf_torch.io.g2o_2d import PoseGraph2D
 
 
@@ -208,6 +210,27 @@ class Se2BetweenFactor(_Evaluated, _Binary):
         return residual, [jac_i, jac_j] if jacobians else None
 
 
+def held_vertices(
+    graph: PoseGraph | PoseGraph2D, fixed: Sequence[int] | torch.Tensor | None
+) -> torch.Tensor:
+    """(N,) bool mask of the vertices a pose-graph solve holds (the gauge): the rows
+    ``fixed``, or when None the file's ``FIX`` vertices, else the first vertex.
+
+    Raises:
+        ValueError: a fixed row outside ``[0, N)``.
+    """
+    n = graph.num_vertices
+    device = graph.positions.device
+    if fixed is None:
+        fixed = graph.fixed_rows() if graph.fixed_ids else (0,)
+    index = torch.as_tensor(fixed, dtype=torch.int64, device=device).reshape(-1)
+    if index.numel() and (int(index.min()) < 0 or int(index.max()) >= n):
+        raise ValueError(f"fixed vertex indices must lie in [0, {n}), got {index.tolist()}")
+    held = torch.zeros(n, dtype=torch.bool, device=device)
+    held[index] = True
+    return held
+
+
 def pose_graph_2d_problem(
     graph: PoseGraph2D,
     robust: RobustKernel | None = None,
@@ -231,15 +254,8 @@ def pose_graph_2d_problem(
         ValueError: a malformed graph or a fixed index outside ``[0, N)``.
     """
     graph.check()
-    n = graph.num_vertices
-    device, dtype = graph.positions.device, graph.positions.dtype
-    if fixed is None:
-        fixed = graph.fixed_rows() if graph.fixed_ids else (0,)
-    index = torch.as_tensor(fixed, dtype=torch.int64, device=device).reshape(-1)
-    if index.numel() and (int(index.min()) < 0 or int(index.max()) >= n):
-        raise ValueError(f"fixed vertex indices must lie in [0, {n}), got {index.tolist()}")
-    held = torch.zeros(n, dtype=torch.bool, device=device)
-    held[index] = True
+    dtype = graph.positions.dtype
+    held = held_vertices(graph, fixed)
     covariance = torch.linalg.inv(graph.edge_information.to(dtype))
     factor = Se2BetweenFactor(
         group,

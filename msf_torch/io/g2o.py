@@ -161,8 +161,35 @@ _SPECS = {
 }
 
 
+class GraphSizes:
+    """What 3-D and 2-D pose graphs share: sizes and the rows of the fixed vertices (needs
+    ``vertex_ids``, ``edge_index`` and ``fixed_ids``)."""
+
+    vertex_ids: torch.Tensor
+    edge_index: torch.Tensor
+    fixed_ids: tuple[int, ...]
+
+    @property
+    def num_vertices(self) -> int:
+        """N, the number of vertices."""
+        return int(self.vertex_ids.shape[0])
+
+    @property
+    def num_edges(self) -> int:
+        """E, the number of edges."""
+        return int(self.edge_index.shape[0])
+
+    def fixed_rows(self) -> torch.Tensor:
+        """(F,) int64 row indices (into the vertex arrays) of :attr:`fixed_ids`.
+
+        Raises:
+            ValueError: a fixed id that is not a vertex id.
+        """
+        return fixed_rows_of(self.vertex_ids, self.fixed_ids, type(self).__name__)
+
+
 @dataclass
-class PoseGraph:
+class PoseGraph(GraphSizes):
     """A 3-D pose graph: vertices (poses) and relative-pose edges with information matrices.
 
     All tensors are float64 (int64 for ids and indices) on one device; N vertices, E edges.
@@ -201,27 +228,9 @@ class PoseGraph:
     source: str | None = None
     fixed_ids: tuple[int, ...] = ()
 
-    @property
-    def num_vertices(self) -> int:
-        """N, the number of vertices."""
-        return int(self.vertex_ids.shape[0])
-
-    @property
-    def num_edges(self) -> int:
-        """E, the number of edges."""
-        return int(self.edge_index.shape[0])
-
     def edge_ids(self) -> torch.Tensor:
         """(E, 2) int64 file ids ``[id_i, id_j]`` of every edge."""
         return self.vertex_ids[self.edge_index]
-
-    def fixed_rows(self) -> torch.Tensor:
-        """(F,) int64 row indices (into the vertex arrays) of :attr:`fixed_ids`.
-
-        Raises:
-            ValueError: a fixed id that is not a vertex id.
-        """
-        return fixed_rows_of(self.vertex_ids, self.fixed_ids, "PoseGraph")
 
     def to(
         self, device: torch.device | str | None = None, dtype: torch.dtype | None = None

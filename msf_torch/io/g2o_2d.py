@@ -71,8 +71,8 @@ from msf_torch.io.errors import DataError
 from msf_torch.io.g2o import (
     FIX_TAG,
     POSE3_TAGS,
+    GraphSizes,
     check_graph_fields,
-    fixed_rows_of,
     parse_float_fields,
     parse_id,
 )
@@ -109,7 +109,7 @@ _TORO_CELLS = ((0, 0), (0, 1), (1, 1), (2, 2), (0, 2), (1, 2))
 
 
 @dataclass
-class PoseGraph2D:
+class PoseGraph2D(GraphSizes):
     """A planar pose graph: vertices (x, y, heading) and relative-pose edges.
 
     All tensors are float64 (int64 for ids and indices) on one device; N vertices, E edges.
@@ -142,24 +142,6 @@ class PoseGraph2D:
     skipped: dict[str, int] = field(default_factory=dict)
     source: str | None = None
     fixed_ids: tuple[int, ...] = ()
-
-    @property
-    def num_vertices(self) -> int:
-        """N, the number of vertices."""
-        return int(self.vertex_ids.shape[0])
-
-    @property
-    def num_edges(self) -> int:
-        """E, the number of edges."""
-        return int(self.edge_index.shape[0])
-
-    def fixed_rows(self) -> torch.Tensor:
-        """(F,) int64 row indices of :attr:`fixed_ids`.
-
-        Raises:
-            ValueError: a fixed id that is not a vertex id.
-        """
-        return fixed_rows_of(self.vertex_ids, self.fixed_ids, "PoseGraph2D")
 
     def check(self) -> None:
         """Check shapes, dtypes and index ranges.
