@@ -242,6 +242,7 @@ def read_pose_graph_2d(
     edge_pairs: list[tuple[int, int]] = []
     edge_values: list[list[float]] = []
     edge_lines: list[int] = []
+    edge_tags: list[str] = []
     skipped: dict[str, int] = {}
     skipped_first: dict[str, int] = {}
     fixes: dict[int, int] = {}
@@ -312,22 +313,28 @@ def read_pose_graph_2d(
         info = np.zeros((3, 3))
         for (row, col), value in zip(cells, values[3:], strict=True):
             info[row, col] = info[col, row] = value
-        # Cholesky, not the smallest eigenvalue: rounding can make a singular matrix's
-        # positive, and a PD diagonal's with entries 1e-308 and 1e308 zero
-        try:
-            np.linalg.cholesky(info)
-        except np.linalg.LinAlgError:
-            raise DataError(
-                path_str,
-                f"information matrix is not positive definite (eigenvalues "
-                f"{np.array2string(np.linalg.eigvalsh(info), precision=4)}; {tag} gives it as "
-                f"{' '.join(info_names)})",
-                line=line_no,
-                field="information",
-            ) from None
         edge_pairs.append((ids[0], ids[1]))
         edge_values.append([*values[:3], *info.ravel()])
         edge_lines.append(line_no)
+        edge_tags.append(tag)
+    if edge_values:
+        # Cholesky, not the smallest eigenvalue: rounding can make a singular matrix's
+        # positive, and a PD diagonal's with entries 1e-308 and 1e308 zero; one batched
+        # factorisation for all edges
+        matrices = torch.tensor([v[3:] for v in edge_values], dtype=torch.float64)
+        failed = torch.nonzero(torch.linalg.cholesky_ex(matrices.reshape(-1, 3, 3)).info)
+        if failed.numel():
+            k = int(failed[0, 0])
+            info = matrices[k].reshape(3, 3).numpy()
+            names = _G2O_INFO if edge_tags[k] == G2O_EDGE_TAG else _TORO_INFO
+            raise DataError(
+                path_str,
+                f"information matrix is not positive definite (eigenvalues "
+                f"{np.array2string(np.linalg.eigvalsh(info), precision=4)}; {edge_tags[k]} "
+                f"gives it as {' '.join(names)})",
+                line=edge_lines[k],
+                field="information",
+            )
 
     tally = ", ".join(
         f"{_tables.shown(tag)} x{count} (first on line {skipped_first[tag]})"
