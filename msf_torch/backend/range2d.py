@@ -196,7 +196,7 @@ def odometry_range_problem(
     Raises:
         ValueError: inconsistent shapes or indices out of range (named).
     """
-    dtype = odometry.dtype
+    dtype, device = odometry.dtype, odometry.device
     steps = odometry.shape[0]
     if odometry.ndim != 2 or odometry.shape[1] != 2:
         raise ValueError(f"odometry must be (M, 2), got {tuple(odometry.shape)}")
@@ -212,7 +212,7 @@ def odometry_range_problem(
     if initial_poses is None:
         initial_poses = _chain(first_pose, odometry)
     measured = torch.stack((odometry[:, 0], torch.zeros_like(odometry[:, 0])), -1)
-    index = torch.arange(steps)
+    index = torch.arange(steps, device=device)
     factors = [
         Se2BetweenFactor(
             "pose",
@@ -228,21 +228,24 @@ def odometry_range_problem(
             "beacon",
             range_beacon,
             ranges[None],
-            torch.full((1, k, 1, 1), range_sigma_m**2, dtype=dtype),
+            torch.full((1, k, 1, 1), range_sigma_m**2, dtype=dtype, device=device),
             kernel=range_kernel,
         ),
         Se2PriorFactor(
             "pose",
-            torch.zeros(1, dtype=torch.long),
+            torch.zeros(1, dtype=torch.long, device=device),
             first_pose[None, None],
             first_pose_covariance[None, None],
         ),
     ]
     fixed = {}
     if beacons_known:
-        fixed["beacon"] = torch.ones(beacons.shape[0], dtype=torch.bool)
+        fixed["beacon"] = torch.ones(beacons.shape[0], dtype=torch.bool, device=device)
     return Problem(
-        {"pose": (SE2, initial_poses[None]), "beacon": (POINT2, beacons.to(dtype)[None])},
+        {
+            "pose": (SE2, initial_poses[None]),
+            "beacon": (POINT2, beacons.to(dtype=dtype, device=device)[None]),
+        },
         factors,
         fixed=fixed,
     )
@@ -266,7 +269,7 @@ def multilaterate(
         )
     centre = positions.mean(0)
     spread = float((positions - centre).norm(dim=-1).mean()) + float(ranges.mean())
-    angles = torch.arange(8, dtype=positions.dtype) * (torch.pi / 4)
+    angles = torch.arange(8, dtype=positions.dtype, device=positions.device) * (torch.pi / 4)
     ring = spread * torch.stack((torch.cos(angles), torch.sin(angles)), -1)
     beacon = torch.cat((centre[None], centre + ring))  # (9, 2) starts, solved together
     for _ in range(iterations):
@@ -274,7 +277,7 @@ def multilaterate(
         distance = offset.norm(dim=-1).clamp_min(1e-9)
         jac = offset / distance[..., None]
         residual = distance - ranges
-        normal = jac.mT @ jac + 1e-9 * torch.eye(2, dtype=positions.dtype)
+        normal = jac.mT @ jac + 1e-9 * torch.eye(2, dtype=positions.dtype, device=positions.device)
         beacon = beacon - torch.linalg.solve(normal, (jac.mT @ residual[..., None]))[..., 0]
     cost = ((beacon[:, None, :] - positions[None]).norm(dim=-1) - ranges).pow(2).sum(-1)
     return beacon[int(cost.argmin())]
