@@ -56,12 +56,12 @@ class PlazaRun:
         name: ``"Plaza1"`` or ``"Plaza2"``.
         odometry_t: (M,) time of each odometry step, s.
         odometry: (M, 2) distance travelled (m) and heading change (rad) of each step.
-        range_t: (K,) time of each range, s, increasing.
+        range_t: (K,) time of each range, s, non-decreasing.
         range_beacon: (K,) int64 beacon id of each range.
         ranges: (K,) m, as measured (biased long, module docstring).
         truth_t: (M + 1,) s: the start time, then the odometry times.
         truth: (M + 1, 3) ``[x, y, heading]`` (m, m, rad; heading along the direction of
-            travel).
+            travel, wrapped to [-pi, pi]).
         beacon_ids: (L,) int64. beacons: (L, 2) m, the beacons' positions.
         meta: facts measured on the files (module docstring).
     """
@@ -185,8 +185,7 @@ def load_plaza(name: str = "Plaza2") -> PlazaRun:
         np.median(_wrap(np.arctan2(step[moving, 1], step[moving, 0]) - truth[1:, 3][moving]))
     )
     turned = abs(course_offset) > math.pi / 2
-    if turned:
-        truth[:, 3] = _wrap(truth[:, 3] + math.pi)
+    truth[:, 3] = _wrap(truth[:, 3] + (math.pi if turned else 0.0))
     truth_turn = _wrap(np.diff(truth[:, 3]))
     meta = {
         "source": str(dr_path.parent),
