@@ -42,7 +42,6 @@ __all__ = [
     "se2_log",
     "held_vertices",
     "pose_graph_2d_problem",
-    "wrap_angle",
 ]
 
 from collections.abc import Sequence
@@ -54,20 +53,9 @@ from msf_torch.backend.factors import _Binary, _Evaluated
 from msf_torch.backend.problem import Problem
 from msf_torch.backend.robust import RobustKernel
 from msf_torch.backend.variables import VariableKind
+from msf_torch.geometry.se2 import compose, rotation, wrap_angle
 from msf_torch.io.g2o import PoseGraph
 from msf_torch.io.g2o_2d import PoseGraph2D
-
-
-def wrap_angle(angle: torch.Tensor) -> torch.Tensor:
-    """Angles (...) rad wrapped to (-pi, pi] (as ``atan2(sin, cos)``; GTSAM's ``Rot2.theta``)."""
-    return torch.atan2(torch.sin(angle), torch.cos(angle))
-
-
-def _rotation_2d(angle: torch.Tensor) -> torch.Tensor:
-    """``R(angle)`` (..., 2, 2) of angles (...) rad."""
-    c, s = torch.cos(angle), torch.sin(angle)
-    return torch.stack((torch.stack((c, -s), -1), torch.stack((s, c), -1)), -2)
-
 
 _SMALL_ANGLE = 1e-4  # rad: below it the series forms (error ~theta^6)
 
@@ -112,12 +100,8 @@ class Se2Kind(VariableKind):
 
     def retract(self, value: torch.Tensor, step: torch.Tensor) -> torch.Tensor:
         """``T Exp(step)`` for values (..., 3) and steps (..., 3); heading in (-pi, pi]."""
-        heading = value[..., 2]
         local = _exp_translation(step[..., 0:2], step[..., 2])
-        c, s = torch.cos(heading), torch.sin(heading)
-        x = value[..., 0] + c * local[..., 0] - s * local[..., 1]
-        y = value[..., 1] + s * local[..., 0] + c * local[..., 1]
-        return torch.stack((x, y, wrap_angle(heading + step[..., 2])), -1)
+        return compose(value, torch.cat((local, step[..., 2:3]), -1))
 
 
 SE2 = Se2Kind("se2", 3, 3)
@@ -142,8 +126,8 @@ def se2_between_residual(
         Jacobians (..., 3, 3) w.r.t. the tangent steps of i and j (module docstring), or
         None, None.
     """
-    rot_i_t = _rotation_2d(-pose_i[..., 2])
-    rot_z_t = _rotation_2d(-measured_heading)
+    rot_i_t = rotation(-pose_i[..., 2])
+    rot_z_t = rotation(-measured_heading)
     local = (rot_i_t @ (pose_j[..., 0:2] - pose_i[..., 0:2])[..., None]).squeeze(-1)
     error_t = (rot_z_t @ (local - measured_translation)[..., None]).squeeze(-1)
     turn = pose_j[..., 2] - pose_i[..., 2] - measured_heading
@@ -168,7 +152,7 @@ def se2_between_residual(
     moved_i[..., 0:2, 2] = (rot_z_t @ swapped[..., None]).squeeze(-1)
     moved_i[..., 2, 2] = -1.0
     moved_j = residual.new_zeros(*lead, 3, 3)
-    moved_j[..., 0:2, 0:2] = _rotation_2d(turn)
+    moved_j[..., 0:2, 0:2] = rotation(turn)
     moved_j[..., 2, 2] = 1.0
     return residual, log_jac @ moved_i, log_jac @ moved_j
 

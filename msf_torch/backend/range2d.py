@@ -37,10 +37,11 @@ from dataclasses import dataclass
 import torch
 
 from msf_torch.backend.factors import _Evaluated, _Unary, sqrt_information
-from msf_torch.backend.posegraph2d import SE2, Se2BetweenFactor, se2_between_residual, wrap_angle
+from msf_torch.backend.posegraph2d import SE2, Se2BetweenFactor, se2_between_residual
 from msf_torch.backend.problem import Factor, Problem
 from msf_torch.backend.robust import RobustKernel
 from msf_torch.backend.variables import VariableKind
+from msf_torch.geometry.se2 import wrap_angle
 
 
 @dataclass(frozen=True)
