@@ -32,6 +32,7 @@ __all__ = [
     "odometry_range_problem",
 ]
 
+import math
 from dataclasses import dataclass
 
 import torch
@@ -195,16 +196,48 @@ def odometry_range_problem(
         a :class:`~msf_torch.backend.problem.Problem` with groups ``pose`` and ``beacon``.
 
     Raises:
-        ValueError: inconsistent shapes or indices out of range (named).
+        ValueError: inconsistent shapes, indices that are not integers or out of range, a
+            value that is not finite, a first-pose covariance that is not positive definite
+            or a range sigma that is not positive (each named).
     """
     dtype, device = odometry.dtype, odometry.device
     steps = odometry.shape[0]
     if odometry.ndim != 2 or odometry.shape[1] != 2:
         raise ValueError(f"odometry must be (M, 2), got {tuple(odometry.shape)}")
+    if ranges.ndim != 1:
+        raise ValueError(f"ranges must be (K,), got {tuple(ranges.shape)}")
     k = ranges.shape[0]
     for name, tensor in (("range_pose", range_pose), ("range_beacon", range_beacon)):
         if tensor.shape != (k,):
             raise ValueError(f"{name} must be ({k},) like ranges, got {tuple(tensor.shape)}")
+        if tensor.is_floating_point() or tensor.is_complex() or tensor.dtype == torch.bool:
+            raise ValueError(f"{name} must hold integer indices, got {tensor.dtype}")
+    shapes = {  # name -> (tensor, wanted shape, its description)
+        "beacons": (beacons, (beacons.shape[0], 2), "(L, 2)"),
+        "first_pose": (first_pose, (3,), "(3,)"),
+        "first_pose_covariance": (first_pose_covariance, (3, 3), "(3, 3)"),
+    }
+    if initial_poses is not None:
+        shapes["initial_poses"] = (initial_poses, (steps + 1, 3), f"({steps + 1}, 3)")
+    for name, (tensor, shape, shown) in shapes.items():
+        if tuple(tensor.shape) != shape:
+            raise ValueError(f"{name} must be {shown}, got {tuple(tensor.shape)}")
+    inputs = {"odometry": odometry, "ranges": ranges, **{n: t[0] for n, t in shapes.items()}}
+    for name, tensor in inputs.items():
+        bad = torch.nonzero(~torch.isfinite(tensor))
+        if bad.numel():
+            where = ", ".join(str(int(i)) for i in bad[0])
+            raise ValueError(f"{name}[{where}] is not finite ({float(tensor[tuple(bad[0])])})")
+    ranges, first_pose, first_pose_covariance = (
+        x.to(dtype=dtype, device=device) for x in (ranges, first_pose, first_pose_covariance)
+    )
+    if int(torch.linalg.cholesky_ex(first_pose_covariance).info):
+        raise ValueError(
+            "first_pose_covariance must be a positive definite (3, 3) covariance "
+            f"(m^2, rad^2; not sigmas), got {first_pose_covariance.tolist()}"
+        )
+    if not math.isfinite(range_sigma_m) or range_sigma_m <= 0:
+        raise ValueError(f"range_sigma_m must be a positive number of metres, got {range_sigma_m}")
     if k and (int(range_pose.min()) < 0 or int(range_pose.max()) > steps):
         raise ValueError(f"range_pose must index the {steps + 1} poses")
     if k and (int(range_beacon.min()) < 0 or int(range_beacon.max()) >= beacons.shape[0]):
@@ -212,6 +245,7 @@ def odometry_range_problem(
     noise = odometry_noise or OdometryNoise()
     if initial_poses is None:
         initial_poses = _chain(first_pose, odometry)
+    initial_poses = initial_poses.to(dtype=dtype, device=device)
     measured = torch.stack((odometry[:, 0], torch.zeros_like(odometry[:, 0])), -1)
     index = torch.arange(steps, device=device)
     factors = [
@@ -261,13 +295,17 @@ def multilaterate(
     range-only fix has a mirror image across a straight path: the starts find both).
 
     Raises:
-        ValueError: fewer than three ranges.
+        ValueError: fewer than three ranges, mismatched shapes or a value that is not finite.
     """
     if positions.shape[0] < 3 or ranges.shape != positions.shape[:1]:
         raise ValueError(
             f"multilaterate: need N >= 3 positions (N, 2) and ranges (N,), got "
             f"{tuple(positions.shape)} and {tuple(ranges.shape)}"
         )
+    for name, tensor in (("positions", positions), ("ranges", ranges)):
+        bad = torch.nonzero(~torch.isfinite(tensor))
+        if bad.numel():
+            raise ValueError(f"multilaterate: {name}[{int(bad[0, 0])}] is not finite")
     centre = positions.mean(0)
     spread = float((positions - centre).norm(dim=-1).mean()) + float(ranges.mean())
     angles = torch.arange(8, dtype=positions.dtype, device=positions.device) * (torch.pi / 4)

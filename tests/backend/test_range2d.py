@@ -287,7 +287,27 @@ def test_problem_checks_shapes_and_indices(loop):
         ({"range_pose": range_pose + 1}, "range_pose must index the 121 poses"),
         ({"range_beacon": range_beacon - 1}, "range_beacon must index the 4 beacons"),
         ({"range_beacon": range_beacon + 1}, "range_beacon must index the 4 beacons"),
+        ({"ranges": ranges[:, None]}, r"ranges must be \(K,\), got \(61, 1\)"),
+        ({"range_pose": range_pose.to(DT)}, "range_pose must hold integer indices"),
+        ({"beacons": BEACONS.T.contiguous()}, r"beacons must be \(L, 2\), got \(2, 4\)"),
+        ({"first_pose": truth[0, :2]}, r"first_pose must be \(3,\), got \(2,\)"),
+        (
+            {"first_pose_covariance": FIRST_COVARIANCE.diagonal().sqrt()},
+            r"first_pose_covariance must be \(3, 3\), got \(3,\)",
+        ),
+        (
+            {"first_pose_covariance": -FIRST_COVARIANCE},
+            r"first_pose_covariance must be a positive definite",
+        ),
+        ({"initial_poses": truth[:-1]}, r"initial_poses must be \(121, 3\), got \(120, 3\)"),
+        ({"range_sigma_m": 0.0}, "range_sigma_m must be a positive number"),
+        ({"range_sigma_m": -1.0}, "range_sigma_m must be a positive number"),
     ]
+    for name, index in (("ranges", (5,)), ("odometry", (3, 0)), ("beacons", (1, 1))):
+        bad = args[name].clone()
+        bad[index] = math.nan
+        message = rf"{name}\[{', '.join(map(str, index))}\] is not finite \(nan\)"
+        cases.append(({name: bad}, message))
     for change, message in cases:
         with pytest.raises(ValueError, match=message):
             odometry_range_problem(**{**args, **change})
@@ -334,3 +354,7 @@ def test_multilaterate_recovers_a_beacon_from_exact_ranges(loop):
         multilaterate(positions[:2], torch.ones(2, dtype=DT))
     with pytest.raises(ValueError, match=r"got \(30, 2\) and \(29,\)"):
         multilaterate(positions, torch.ones(29, dtype=DT))
+    ranges = torch.ones(30, dtype=DT)
+    ranges[4] = math.inf
+    with pytest.raises(ValueError, match=r"ranges\[4\] is not finite"):
+        multilaterate(positions, ranges)
