@@ -259,10 +259,17 @@ def read_pose_graph_2d(
             continue
         if tag not in POSE2_TAGS:
             if tag in POSE3_TAGS:
+                first_2d = min([*vertex_line.values(), *edge_lines[:1]], default=None)
+                advice = (
+                    "read 3-D graphs with msf_torch.io.read_pose_graph"
+                    if first_2d is None
+                    else f"the file mixes it with 2-D records (the first on line {first_2d}); "
+                    "keep one kind per file"
+                )
                 raise DataError(
                     path_str,
                     f"3-D pose-graph tag {_tables.shown(tag)}; this reader reads 2-D graphs "
-                    f"({_TAGS}); read 3-D graphs with msf_torch.io.read_pose_graph",
+                    f"({_TAGS}); {advice}",
                     line=line_no,
                     field="tag",
                 )
