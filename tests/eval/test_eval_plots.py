@@ -80,8 +80,12 @@ def test_pose_graph_figure_and_its_input_checks(tmp_path):
     ]
     path = pose_graph_figure(tmp_path / "g.png", before, after, edges, log, 1e3, title="ring")
     assert path.read_bytes()[:8] == PNG_MAGIC and path.stat().st_size > 20_000
-    with pytest.raises(ValueError, match=r"\(N, 3\) of one N"):
+    planar = pose_graph_figure(tmp_path / "p.png", before[:, :2], after[:, :2], edges, log, 1e3)
+    assert planar.read_bytes()[:8] == PNG_MAGIC  # a 2-D graph: top view and costs
+    with pytest.raises(ValueError, match=r"\(N, 3\) or \(N, 2\) of one N"):
         pose_graph_figure(tmp_path / "h.png", before[:10], after, edges, log, 1e3)
+    with pytest.raises(ValueError, match=r"\(N, 3\) or \(N, 2\) of one N"):
+        pose_graph_figure(tmp_path / "h.png", before[:, :2], after, edges, log, 1e3)
     with pytest.raises(ValueError, match="rows of the 60 vertices"):
         pose_graph_figure(tmp_path / "h.png", before, after, edges + 10, log, 1e3)
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["g.png"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["g.png", "p.png"]
