@@ -1,4 +1,4 @@
-"""Command line: ``msf run | eval | simulate | config check | posegraph | lidar-map``.
+"""Command line: ``msf run | eval | simulate | config check | posegraph | ranges | lidar-map``.
 
 Each command parses its arguments, calls the library and prints its result as one JSON
 line last. Errors in the input (a bad file, a bad config key) end with a one-line message
@@ -220,6 +220,50 @@ def build_parser() -> argparse.ArgumentParser:
         help="stop when a step lowers the cost by at most this fraction (GTSAM's relativeErrorTol)",
     )
 
+    rg = sub.add_parser(
+        "ranges",
+        help="smooth wheel odometry + anchor ranges (UWB, radio beacons) over a whole run",
+    )
+    rg.add_argument(
+        "run",
+        nargs="?",
+        default=None,
+        choices=("plaza1", "plaza2"),
+        help="a real run shipped with gtsam (settings calibrated on the other one); or give "
+        "--odometry, --ranges and --anchors",
+    )
+    rg.add_argument("--odometry", type=Path, help="CSV t,x,y,heading (odometry poses)")
+    rg.add_argument("--ranges", type=Path, help="CSV t,anchor,range")
+    rg.add_argument("--anchors", type=Path, help="CSV anchor,x,y (map frame)")
+    rg.add_argument("--truth", type=Path, help="CSV t,x,y reference positions (errors)")
+    rg.add_argument("--out", type=Path, default=None, help="folder: trajectory.tum, anchors.csv")
+    rg.add_argument("--plot", type=Path, default=None, metavar="PNG", help="write a figure")
+    rg.add_argument("--range-sigma", type=_positive_float, default=None, help="m (default 0.3)")
+    rg.add_argument("--range-bias", type=_finite_float, default=None, help="m, subtracted")
+    rg.add_argument(
+        "--robust",
+        type=_robust_or_none,
+        default="cauchy",
+        metavar="KERNEL[:SCALE]|none",
+        help="robust kernel on the ranges (default cauchy:2.3849)",
+    )
+    rg.add_argument(
+        "--odometry-noise",
+        type=_triple,
+        default=None,
+        metavar="FWD,LAT,HEADING",
+        help="odometry variance per metre travelled: m^2/m, m^2/m, rad^2/m "
+        "(default 6e-4,6e-4,5e-5)",
+    )
+    rg.add_argument(
+        "--start", type=_triple, default=None, metavar="X,Y,HEADING", help="start pose (map)"
+    )
+    rg.add_argument(
+        "--solve-anchors",
+        action="store_true",
+        help="solve for the anchors too (range-only SLAM; the map frame is then the start)",
+    )
+
     lm = sub.add_parser(
         "lidar-map", help="2D LiDAR scan odometry (PLICP) and an occupancy map (PNG + YAML)"
     )
@@ -296,6 +340,38 @@ def _tolerance(text: str) -> float:
     if not (math.isfinite(value) and value >= 0.0):
         raise argparse.ArgumentTypeError(f"expected a finite number >= 0, got {text!r}")
     return value
+
+
+def _finite_float(text: str) -> float:
+    """A finite number."""
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not math.isfinite(value):
+        raise argparse.ArgumentTypeError(f"expected a finite number, got {text!r}")
+    return value
+
+
+def _positive_float(text: str) -> float:
+    """A finite number > 0."""
+    value = _finite_float(text)
+    if value <= 0.0:
+        raise argparse.ArgumentTypeError(f"expected a number > 0, got {text!r}")
+    return value
+
+
+def _triple(text: str) -> tuple[float, float, float]:
+    """Three finite numbers separated by commas."""
+    parts = text.split(",")
+    if len(parts) != 3:
+        raise argparse.ArgumentTypeError(f"expected three numbers A,B,C, got {text!r}")
+    return tuple(_finite_float(part) for part in parts)  # type: ignore[return-value]
+
+
+def _robust_or_none(text: str) -> RobustKernel | None:
+    """``none`` or a kernel as :func:`_robust` reads it."""
+    return None if text == "none" else _robust(text)
 
 
 def _load(args, source: str | None) -> tuple[Any, Any, str]:
@@ -623,15 +699,18 @@ def _cmd_config(args) -> dict[str, Any]:
 
 def _cmd_posegraph(args) -> dict[str, Any]:
     from msf_torch.backend.posegraph import optimize_pose_graph, pose_graph_config
+    from msf_torch.io.errors import DataError
     from msf_torch.io.g2o import (
         GTSAM_POSE3_FILES,
+        POSE3_TAGS,
         gtsam_pose_graph_path,
         read_pose_graph,
         write_g2o,
     )
     from msf_torch.io.g2o_2d import (
         GTSAM_POSE2_FILES,
-        is_pose_graph_2d,
+        POSE2_TAGS,
+        pose_graph_kind,
         read_pose_graph_2d,
         write_g2o_2d,
     )
@@ -642,12 +721,28 @@ def _cmd_posegraph(args) -> dict[str, Any]:
         named = [n for n in shipped if source in (n, Path(n).stem)]
         if named:
             source = str(gtsam_pose_graph_path(named[0]))
-    planar = is_pose_graph_2d(source)
+    for option, path in (("--out", args.out), ("--plot", args.plot)):
+        if path is not None and path.is_dir():
+            raise ValueError(f"{option} {path} is a folder; give a file name")
+    kind = pose_graph_kind(source)
+    if kind is None:
+        raise DataError(
+            source,
+            f"no pose-graph records: neither 2-D ({', '.join(sorted(POSE2_TAGS))}) nor 3-D "
+            f"({', '.join(sorted(POSE3_TAGS))}) tags (tags are case-sensitive)",
+        )
+    planar = kind == 2
     graph = read_pose_graph_2d(source) if planar else read_pose_graph(source)
     config = pose_graph_config(
         max_iterations=args.max_iterations, relative_tolerance=args.tolerance, planar=planar
     )
     result = optimize_pose_graph(graph, robust=args.robust, config=config)
+    if not math.isfinite(result.initial_cost):
+        raise DataError(
+            source,
+            f"the cost at the initial poses is not finite ({result.initial_cost}): a vertex or "
+            "edge value is too large (positions and translations are in metres)",
+        )
     summary: dict[str, Any] = {
         "graph": source,
         "dimension": 2 if planar else 3,
@@ -676,6 +771,89 @@ def _cmd_posegraph(args) -> dict[str, Any]:
                 title=Path(source).name,
             )
         )
+    return summary
+
+
+def _cmd_ranges(args) -> dict[str, Any]:
+    import torch
+
+    from msf_torch.backend.range2d import OdometryNoise
+    from msf_torch.backend.range_smoother import (
+        RangeSmootherSettings,
+        calibrate_from_truth,
+        smooth_ranges,
+    )
+    from msf_torch.io.plaza import load_plaza
+    from msf_torch.io.ranges import read_range_run, write_anchors
+    from msf_torch.io.tum import write_tum
+    from msf_torch.types import Trajectory
+
+    files = (args.odometry, args.ranges, args.anchors)
+    if args.run is not None and any(f is not None for f in (*files, args.truth)):
+        raise ValueError("give a shipped run or the CSV files, not both")
+    settings = RangeSmootherSettings(solve_anchors=args.solve_anchors)
+    if args.run is not None:
+        name = {"plaza1": "Plaza1", "plaza2": "Plaza2"}[args.run]
+        other = "Plaza2" if name == "Plaza1" else "Plaza1"
+        run = load_plaza(name)
+        settings = calibrate_from_truth(load_plaza(other), settings)
+        settings.start = run.truth[0]
+    elif any(f is None for f in files):
+        raise ValueError("give --odometry, --ranges and --anchors (or a shipped run name)")
+    else:
+        run = read_range_run(*files, truth=args.truth)
+    if args.range_sigma is not None:
+        settings.range_sigma_m = args.range_sigma
+    if args.range_bias is not None:
+        settings.range_bias_m = args.range_bias
+    settings.kernel = args.robust
+    if args.odometry_noise is not None:
+        forward, lateral, heading = args.odometry_noise
+        settings.odometry_noise = OdometryNoise(forward=forward, lateral=lateral, heading=heading)
+    if args.start is not None:
+        settings.start = torch.tensor(args.start, dtype=torch.float64)
+    result = smooth_ranges(run, settings)
+    summary: dict[str, Any] = {
+        "run": run.name,
+        "poses": int(run.pose_t.shape[0]),
+        "ranges": int(run.ranges.shape[0]),
+        "anchors": int(run.anchors.shape[0]),
+        "settings": {
+            "range_sigma_m": settings.range_sigma_m,
+            "range_bias_m": settings.range_bias_m,
+            "robust": None
+            if settings.kernel is None
+            else [settings.kernel.name, settings.kernel.scale],
+            "odometry_noise": [
+                settings.odometry_noise.forward,
+                settings.odometry_noise.lateral,
+                settings.odometry_noise.heading,
+            ],
+            "solve_anchors": settings.solve_anchors,
+        },
+        **result.summary(),
+        "meta": run.meta,
+    }
+    if args.out is not None:
+        args.out.mkdir(parents=True, exist_ok=True)
+        poses = result.poses
+        half = 0.5 * poses[:, 2]
+        zero = torch.zeros_like(half)
+        trajectory = Trajectory(
+            t=run.pose_t[None],
+            position=torch.stack((poses[:, 0], poses[:, 1], zero), -1)[None],
+            quaternion=torch.stack((torch.cos(half), zero, zero, torch.sin(half)), -1)[None],
+            mask=torch.ones(1, poses.shape[0], dtype=torch.bool),
+        )
+        summary["files"] = {"trajectory": str(write_tum(trajectory, args.out / "trajectory.tum"))}
+        if settings.solve_anchors:
+            summary["files"]["anchors"] = str(
+                write_anchors(args.out / "anchors.csv", run.anchor_ids, result.anchors)
+            )
+    if args.plot is not None:
+        from msf_torch.eval.plots import range_run_figure
+
+        summary["plot"] = str(range_run_figure(args.plot, run, result.poses, result.anchors))
     return summary
 
 
@@ -715,6 +893,7 @@ def main(argv: list[str] | None = None) -> int:
         "simulate": _cmd_simulate,
         "posegraph": _cmd_posegraph,
         "lidar-map": _cmd_lidar_map,
+        "ranges": _cmd_ranges,
         "config": _cmd_config,
     }
     try:

@@ -284,14 +284,21 @@ class _PardisoSystem:
         self.solver = _pardiso_solver()
 
     def solve(self, values: torch.Tensor, rhs: torch.Tensor) -> torch.Tensor:
+        """Step (n,) float64; NaN where PARDISO refuses the system (non-finite or
+        overflowing entries), which the LM treats as a failed solve (more damping)."""
         import scipy.sparse
+        from pypardiso.pardiso_wrapper import PyPardisoError
 
-        data = values.cpu()[self.select].numpy()
+        data = values.cpu().to(torch.float64)[self.select].numpy()  # PARDISO: float64 only
         matrix = scipy.sparse.csr_matrix(
             (data, self.indices, self.indptr), shape=(self.size, self.size)
         )
-        self.solver.factorize(matrix)
-        return torch.from_numpy(self.solver.solve(matrix, rhs.cpu().numpy().reshape(-1)))
+        right = rhs.cpu().to(torch.float64).numpy().reshape(-1)
+        try:
+            self.solver.factorize(matrix)
+            return torch.from_numpy(self.solver.solve(matrix, right))
+        except PyPardisoError:
+            return torch.full((self.size,), torch.nan, dtype=torch.float64)
 
 
 def _solve_sparse(
@@ -313,15 +320,17 @@ def _solve_sparse(
     else:
         import cholespy
 
-        solver = cholespy.CholeskySolverD(
+        solver = cholespy.CholeskySolverD(  # double precision only
             total,
             rows.to(torch.int32).contiguous(),
             cols.to(torch.int32).contiguous(),
-            values.contiguous(),
+            values.to(torch.float64).contiguous(),
             cholespy.MatrixType.COO,
         )
-        step = torch.zeros_like(rhs)
-        solver.solve(rhs, step)
+        right = rhs.to(torch.float64).contiguous()
+        step = torch.zeros_like(right)
+        solver.solve(right, step)
+        step = step.to(values.dtype)
     step = step.reshape(problem.batch_size, problem.dim)
     ok = torch.isfinite(step).all(-1)
     step = torch.where(ok[:, None], step, torch.zeros_like(step))

@@ -510,10 +510,17 @@ def read_pose_graph(
             continue
         if spec is None:
             if _is_2d_tag(tag):
+                first_3d = min((r.lines[0] for r in records.values() if r.lines), default=None)
+                advice = (
+                    "read 2-D graphs with msf_torch.io.read_pose_graph_2d"
+                    if first_3d is None
+                    else f"the file mixes it with 3-D records (the first on line {first_3d}); "
+                    "keep one kind per file"
+                )
                 raise DataError(
                     path_str,
                     f"2-D pose-graph tag {_tables.shown(tag)}; this reader reads 3-D graphs "
-                    f"({_TAGS}); read 2-D graphs with msf_torch.io.read_pose_graph_2d",
+                    f"({_TAGS}); {advice}",
                     line=line_no,
                     field="tag",
                 )

@@ -51,6 +51,7 @@ __all__ = [
     "GTSAM_POSE2_FILES",
     "PoseGraph2D",
     "is_pose_graph_2d",
+    "pose_graph_kind",
     "read_pose_graph_2d",
     "write_g2o_2d",
 ]
@@ -194,10 +195,11 @@ def _chain_2d(
     return positions, headings
 
 
-def is_pose_graph_2d(path: str | os.PathLike[str]) -> bool:
-    """Whether the pose-graph file ``path`` is planar: its first pose tag (vertex or edge) is
-    a 2-D one (``VERTEX_SE2``, ``EDGE_SE2``, ``VERTEX2``, ``EDGE2``) rather than a 3-D one;
-    False when it holds neither (the 3-D reader then says what is wrong).
+def pose_graph_kind(path: str | os.PathLike[str]) -> int | None:
+    """2 or 3: the kind of the first pose tag (vertex or edge) in the pose-graph file
+    ``path`` (2-D: ``VERTEX_SE2``, ``EDGE_SE2``, ``VERTEX2``, ``EDGE2``; 3-D:
+    ``VERTEX_SE3:QUAT``, ``EDGE_SE3:QUAT``, ``VERTEX3``, ``EDGE3``); None when it holds
+    neither.
 
     Raises:
         DataError: the file cannot be read.
@@ -205,10 +207,20 @@ def is_pose_graph_2d(path: str | os.PathLike[str]) -> bool:
     for raw in _tables.split_lines(_tables.read_text(os.fspath(path))):
         tokens = raw.split("#", 1)[0].split(maxsplit=1)
         if tokens and tokens[0] in POSE2_TAGS:
-            return True
+            return 2
         if tokens and tokens[0] in POSE3_TAGS:
-            return False
-    return False
+            return 3
+    return None
+
+
+def is_pose_graph_2d(path: str | os.PathLike[str]) -> bool:
+    """Whether the pose-graph file ``path`` is planar (:func:`pose_graph_kind` is 2); False
+    when it holds 3-D or no pose tags (the 3-D reader then says what is wrong).
+
+    Raises:
+        DataError: the file cannot be read.
+    """
+    return pose_graph_kind(path) == 2
 
 
 def read_pose_graph_2d(

@@ -288,3 +288,29 @@ def test_default_settings_take_gtsams_lm_steps(gtsam, name):
     assert result.iterations == optimizer.iterations()
     assert result.final_cost == pytest.approx(factors.error(solved), rel=1e-12)
     assert all(entry["accepted"] for entry in result.log)
+
+
+@pytest.mark.parametrize("backend", ["pardiso", "cholespy"])
+def test_sparse_backends_take_float32_and_refuse_overflow_without_raising(backend):
+    """PARDISO and cholespy factor in float64 only (float32 raised a TypeError); a system
+    PARDISO refuses (an entry that overflows) counts as a failed solve, not an exception."""
+    from msf_torch.backend.lm import sparse_backend_available
+
+    if not sparse_backend_available(backend):
+        pytest.skip(f"{backend} not installed")
+    graph, truth = _square_grid(loops=True, seed=7)
+    config = dataclasses.replace(TIGHT, sparse_backend=backend)
+    single = dataclasses.replace(
+        graph,
+        positions=graph.positions.float(),
+        headings=graph.headings.float(),
+        edge_translations=graph.edge_translations.float(),
+        edge_headings=graph.edge_headings.float(),
+        edge_information=graph.edge_information.float(),
+    )
+    result = optimize_pose_graph(single, config=config)
+    assert result.graph.positions.dtype == torch.float32
+    assert float((result.graph.positions.double() - truth[:, 0:2]).norm(dim=1).max()) < 1e-3
+    huge = dataclasses.replace(graph, positions=graph.positions.clone())
+    huge.positions[5, 0] = 1e200
+    assert optimize_pose_graph(huge, config=config).status == "stalled"

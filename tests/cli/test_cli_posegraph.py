@@ -117,3 +117,44 @@ def test_posegraph_2d_file_solves_as_gtsam_and_writes_g2o_and_a_top_view(gtsam, 
     positions = np.stack([[solved.atPose2(i).x(), solved.atPose2(i).y()] for i in range(100)])
     np.testing.assert_allclose(written.positions.numpy(), positions, atol=1e-6)
     assert figure.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and figure.stat().st_size > 20_000
+
+
+@pytest.mark.parametrize(
+    "text", ["", "# only a comment\n", "vertex_se2 0 0 0 0\nedge_se2 0 1 1 0 0 1 0 0 1 0 1\n"]
+)
+def test_posegraph_file_without_pose_tags_names_both_kinds(tmp_path, capsys, text):
+    """Was the 3-D reader's message, listing only the 3-D tags."""
+    path = tmp_path / "graph.g2o"
+    path.write_text(text)
+    assert main(["posegraph", str(path)]) == 2
+    err = capsys.readouterr().err
+    assert "neither 2-D" in err and "VERTEX_SE2" in err and "VERTEX_SE3:QUAT" in err
+
+
+def test_posegraph_output_paths_that_are_folders_are_refused_before_solving(tmp_path, capsys):
+    """Was an IsADirectoryError traceback after the solve."""
+    folder = tmp_path / "out.g2o"
+    folder.mkdir()
+    for option in ("--out", "--plot"):
+        assert main(["posegraph", "w100", option, str(folder)]) == 2
+        err = capsys.readouterr().err
+        assert f"{option} {folder} is a folder" in err
+
+
+def test_posegraph_overflowing_values_are_an_error_not_infinity(tmp_path, capsys):
+    """Was a PARDISO traceback (2-D) or 'initial_cost': Infinity with exit 0 (3-D)."""
+    planar = tmp_path / "planar.g2o"
+    planar.write_text(
+        "VERTEX_SE2 0 0 0 0\nVERTEX_SE2 1 1e200 0 0\nEDGE_SE2 0 1 1 0 0 1 0 0 1 0 1\n"
+    )
+    spatial = tmp_path / "spatial.g2o"
+    spatial.write_text(
+        "VERTEX_SE3:QUAT 0 0 0 0 0 0 0 1\nVERTEX_SE3:QUAT 1 1 0 0 0 0 0 1\n"
+        "EDGE_SE3:QUAT 0 1 1e300 0 0 0 0 0 1 "
+        + " ".join(["1 0 0 0 0 0 1 0 0 0 0 1 0 0 0 1 0 0 1 0 1"])
+        + "\n"
+    )
+    for path in (planar, spatial):
+        assert main(["posegraph", str(path)]) == 2
+        captured = capsys.readouterr()
+        assert "is not finite" in captured.err and captured.out == ""

@@ -552,3 +552,11 @@ def test_bad_input_names_file_line_and_field(tmp_path, text, line, field, fragme
 def test_missing_file(tmp_path):
     with pytest.raises(DataError, match="no such file"):
         read_pose_graph(tmp_path / "absent.g2o")
+
+
+def test_a_2d_tag_after_3d_records_says_the_file_mixes_them(tmp_path):
+    """Was the advice to read the file as a 2-D graph."""
+    path = tmp_path / "mixed.g2o"
+    path.write_text(VERTEX.format(0) + "VERTEX_SE2 1 0 0 0\n")
+    with pytest.raises(DataError, match=r"mixes it with 3-D records \(the first on line 1\)"):
+        read_pose_graph(path)
