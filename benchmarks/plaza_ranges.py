@@ -89,61 +89,14 @@ from msf_torch.backend.range2d import (  # noqa: E402
     multilaterate,
     odometry_range_problem,
 )
+from msf_torch.backend.range_smoother import calibrate_from_truth  # noqa: E402
 from msf_torch.backend.robust import RobustKernel  # noqa: E402
-from msf_torch.io.plaza import PLAZA_RUNS, PlazaRun, load_plaza  # noqa: E402
+from msf_torch.eval.plots import range_run_figure  # noqa: E402
+from msf_torch.io.plaza import PLAZA_RUNS, load_plaza  # noqa: E402
+from msf_torch.io.ranges import RangeRun  # noqa: E402
 
 DEFAULT_SCALES = {"cauchy": 2.3849, "huber": 1.345, "tukey": 4.6851}
-STRETCH_STEPS = 100
 START_SIGMA = (0.1, 0.1, 0.05)
-
-
-def _beacon_rows(run: PlazaRun) -> torch.Tensor:
-    rows = {int(b): k for k, b in enumerate(run.beacon_ids.tolist())}
-    return torch.tensor([rows[int(b)] for b in run.range_beacon.tolist()], dtype=torch.long)
-
-
-def range_errors(run: PlazaRun) -> torch.Tensor:
-    """(K,) range minus the true distance from the pose each range is attached to, m."""
-    true_position = run.truth[run.range_pose_index(), 0:2]
-    return run.ranges - (run.beacons[_beacon_rows(run)] - true_position).norm(dim=-1)
-
-
-def calibrate(run: PlazaRun) -> dict[str, float]:
-    """Range bias and sigma, and the odometry noise per metre, from one run (docstring)."""
-    errors = range_errors(run)
-    bias = float(errors.median())
-    sigma = float(1.4826 * (errors - bias).abs().median())
-    forward, sideways, lengths = [], [], []
-    odometry, truth = run.odometry.numpy(), run.truth.numpy()
-    for start in range(0, odometry.shape[0] - STRETCH_STEPS, STRETCH_STEPS):
-        x = y = heading = 0.0
-        for distance, turn in odometry[start : start + STRETCH_STEPS]:
-            x += distance * math.cos(heading)
-            y += distance * math.sin(heading)
-            heading += turn
-        a, b = truth[start], truth[start + STRETCH_STEPS]
-        c, s = math.cos(a[2]), math.sin(a[2])
-        dx, dy = b[0] - a[0], b[1] - a[1]
-        forward.append(x - (c * dx + s * dy))
-        sideways.append(y - (-s * dx + c * dy))
-        lengths.append(float(np.abs(odometry[start : start + STRETCH_STEPS, 0]).sum()))
-
-    def spread(values: list[float]) -> float:
-        v = np.asarray(values)
-        return float(1.4826 * np.median(np.abs(v - np.median(v))))
-
-    length = float(np.mean(lengths))
-    forward_per_m = spread(forward) ** 2 / length
-    heading_per_m = 3.0 * spread(sideways) ** 2 / length**3
-    return {
-        "range_bias_m": bias,
-        "range_sigma_m": sigma,
-        "odometry_forward_m2_per_m": forward_per_m,
-        "odometry_lateral_m2_per_m": forward_per_m,
-        "odometry_heading_rad2_per_m": heading_per_m,
-        "stretch_length_m": length,
-        "stretches": len(lengths),
-    }
 
 
 def parse_kernel(text: str) -> RobustKernel | None:
@@ -175,23 +128,23 @@ def rigid_alignment(estimate: np.ndarray, truth: np.ndarray) -> tuple[np.ndarray
     return rotation, mean_t - rotation @ mean_e
 
 
-def initial_beacons(run: PlazaRun, ranges: torch.Tensor, window_s: float) -> torch.Tensor:
+def initial_beacons(run: RangeRun, ranges: torch.Tensor, window_s: float) -> torch.Tensor:
     """(L, 2) beacon guesses for range-only SLAM: each beacon multilaterated from its
     (bias-removed) ranges of the first ``window_s`` seconds, taken at the dead-reckoned
     poses."""
     dead_reckoning = run.odometry_poses()[run.range_pose_index(), 0:2]
-    rows = _beacon_rows(run)
+    rows = run.range_anchor_rows()
     early = run.range_t <= run.range_t[0] + window_s
     return torch.stack(
         [
             multilaterate(dead_reckoning[early & (rows == j)], ranges[early & (rows == j)])
-            for j in range(run.beacons.shape[0])
+            for j in range(run.anchors.shape[0])
         ]
     )
 
 
 def gtsam_graph(
-    run: PlazaRun,
+    run: RangeRun,
     noise: OdometryNoise,
     bias: float,
     sigma: float,
@@ -215,7 +168,7 @@ def gtsam_graph(
     for i, pose in enumerate(initial_poses):
         values.insert(pose_key(i), gtsam.Pose2(*pose))
     known = initial_beacons is None
-    for j, beacon in enumerate(run.beacons.numpy() if known else initial_beacons):
+    for j, beacon in enumerate(run.anchors.numpy() if known else initial_beacons):
         values.insert(beacon_key(j), beacon.copy())
         if known:
             graph.add(gtsam.NonlinearEqualityPoint2(beacon_key(j), beacon.copy()))
@@ -225,13 +178,13 @@ def gtsam_graph(
             pose_key(0), start, gtsam.noiseModel.Gaussian.Covariance(first_covariance)
         )
     )
-    covariances = noise.covariance(run.odometry[:, 0]).numpy()
-    for i, (distance, turn) in enumerate(run.odometry.numpy()):
+    covariances = noise.covariance(run.odometry[:, 0:2].norm(dim=-1)).numpy()
+    for i, (dx, dy, turn) in enumerate(run.odometry.numpy()):
         graph.add(
             gtsam.BetweenFactorPose2(
                 pose_key(i),
                 pose_key(i + 1),
-                gtsam.Pose2(distance, 0.0, turn),
+                gtsam.Pose2(dx, dy, turn),
                 gtsam.noiseModel.Gaussian.Covariance(covariances[i]),
             )
         )
@@ -246,7 +199,7 @@ def gtsam_graph(
         }[kernel.name].Create(kernel.scale)
         range_noise = gtsam.noiseModel.Robust.Create(estimator, gaussian)
     pose_index = run.range_pose_index().tolist()
-    beacon_rows = _beacon_rows(run).tolist()
+    beacon_rows = run.range_anchor_rows().tolist()
     for i, j, z in zip(pose_index, beacon_rows, (run.ranges - bias).tolist(), strict=True):
         graph.add(gtsam.RangeFactor2D(pose_key(i), beacon_key(j), z, range_noise))
     return graph, values
@@ -256,7 +209,7 @@ def gtsam_graph(
 class Setting:
     """What both solvers share: the run, its calibration and the LM settings."""
 
-    run: PlazaRun
+    run: RangeRun
     noise: OdometryNoise
     bias: float
     sigma: float
@@ -278,9 +231,9 @@ def solve_case(setting: Setting, beacons: torch.Tensor | None) -> dict[str, Any]
     problem = odometry_range_problem(
         run.odometry,
         run.range_pose_index(),
-        _beacon_rows(run),
+        run.range_anchor_rows(),
         ranges,
-        run.beacons if known else beacons,
+        run.anchors if known else beacons,
         run.truth[0],
         setting.first_covariance,
         odometry_noise=setting.noise,
@@ -374,7 +327,7 @@ def solve_case(setting: Setting, beacons: torch.Tensor | None) -> dict[str, Any]
         case["ours"]["alignment_rotation_deg"] = math.degrees(
             math.atan2(rotation[1, 0], rotation[0, 0])
         )
-        surveyed = run.beacons.numpy()
+        surveyed = run.anchors.numpy()
         case["beacons"] = {
             "initial_error_m": np.linalg.norm(beacons.numpy() - surveyed, axis=1).tolist(),
             "error_m": np.linalg.norm(solved_beacons - surveyed, axis=1).tolist(),
@@ -404,17 +357,20 @@ def main(argv: list[str] | None = None) -> int:
         raise SystemExit("--calibrate must name the other run (settings never come from the test)")
     kernel = parse_kernel(args.kernel)
     run, calibration_run = load_plaza(args.test), load_plaza(calibration_name)
-    settings = calibrate(calibration_run)
+    calibrated = calibrate_from_truth(calibration_run)
+    settings = {
+        "range_bias_m": calibrated.range_bias_m,
+        "range_sigma_m": calibrated.range_sigma_m,
+        "odometry_forward_m2_per_m": calibrated.odometry_noise.forward,
+        "odometry_lateral_m2_per_m": calibrated.odometry_noise.lateral,
+        "odometry_heading_rad2_per_m": calibrated.odometry_noise.heading,
+    }
     log(f"calibration on {calibration_name}: {settings}")
     setting = Setting(
         run=run,
-        noise=OdometryNoise(
-            forward=settings["odometry_forward_m2_per_m"],
-            lateral=settings["odometry_lateral_m2_per_m"],
-            heading=settings["odometry_heading_rad2_per_m"],
-        ),
-        bias=settings["range_bias_m"],
-        sigma=settings["range_sigma_m"],
+        noise=calibrated.odometry_noise,
+        bias=calibrated.range_bias_m,
+        sigma=calibrated.range_sigma_m,
         kernel=kernel,
         first_covariance=torch.diag(torch.tensor(START_SIGMA, dtype=torch.float64) ** 2),
         tolerance=args.tolerance,
@@ -435,8 +391,8 @@ def main(argv: list[str] | None = None) -> int:
             "calibration_run": calibration_name,
             "odometry_steps": int(run.odometry.shape[0]),
             "ranges": int(run.ranges.shape[0]),
-            "beacons": int(run.beacons.shape[0]),
-            "distance_m": float(run.odometry[:, 0].abs().sum()),
+            "beacons": int(run.anchors.shape[0]),
+            "distance_m": float(run.odometry[:, 0:2].norm(dim=-1).sum()),
             "kernel": None if kernel is None else [kernel.name, kernel.scale],
             "start_sigma": list(START_SIGMA),
             "tolerance": args.tolerance,
@@ -453,47 +409,9 @@ def main(argv: list[str] | None = None) -> int:
         "machine": machine_info(),
     }
     if args.plot is not None:
-        record["plot"] = str(
-            _plot(args.plot, run, dead_reckoning.numpy(), poses, record["ours"]["error"])
-        )
+        record["plot"] = str(range_run_figure(args.plot, run, torch.as_tensor(poses), run.anchors))
     emit_json(record, digits=12)
     return 0
-
-
-def _plot(path: Path, run: PlazaRun, dead_reckoning, ours, error) -> Path:
-    """Top view: truth, dead reckoning, ours, beacons; error over time."""
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.figure import Figure
-
-    fig = Figure(figsize=(13.0, 5.5), dpi=110, layout="constrained")
-    FigureCanvasAgg(fig)
-    top, over_time = fig.subplots(1, 2, width_ratios=(1.1, 1.0))
-    truth = run.truth.numpy()
-    top.plot(truth[:, 0], truth[:, 1], color="k", lw=1.2, label="RTK truth")
-    top.plot(dead_reckoning[:, 0], dead_reckoning[:, 1], color="0.6", lw=0.8, label="odometry")
-    top.plot(ours[:, 0], ours[:, 1], color="tab:blue", lw=0.9, label="odometry + ranges")
-    beacons = run.beacons.numpy()
-    top.plot(beacons[:, 0], beacons[:, 1], "^", color="tab:red", ms=9, label="beacons")
-    top.set_aspect("equal", adjustable="datalim")
-    top.set_xlabel("x [m]")
-    top.set_ylabel("y [m]")
-    top.legend(loc="best", fontsize=8)
-    top.grid(True, alpha=0.35)
-    top.set_title(f"{run.name}: {run.ranges.shape[0]} ranges to {beacons.shape[0]} beacons")
-    t = run.truth_t.numpy() - float(run.truth_t[0])
-    for positions, name, color in ((dead_reckoning, "odometry", "0.6"), (ours, "ours", "tab:blue")):
-        over_time.plot(
-            t, np.linalg.norm(positions[:, 0:2] - truth[:, 0:2], axis=1), color=color, label=name
-        )
-    over_time.set_yscale("log")
-    over_time.set_xlabel("time [s]")
-    over_time.set_ylabel("position error [m]")
-    over_time.set_title(f"ours: RMSE {error['rmse_m']:.2f} m, max {error['max_m']:.2f} m")
-    over_time.grid(True, alpha=0.35, which="both")
-    over_time.legend(loc="best", fontsize=8)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path)
-    return path
 
 
 if __name__ == "__main__":

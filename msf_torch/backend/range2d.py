@@ -7,7 +7,7 @@ Variables: ``pose`` (:data:`~msf_torch.backend.posegraph2d.SE2`, (1, M + 1, 3)) 
 Factors, each GTSAM's counterpart so that costs agree with it:
 
 * odometry (:class:`~msf_torch.backend.posegraph2d.Se2BetweenFactor`): step k measures
-  ``Z_k = Pose2(distance_k, 0, turn_k)`` between poses k and k + 1
+  the relative pose ``Z_k = Pose2(dx_k, dy_k, dheading_k)`` between poses k and k + 1
   (``BetweenFactor<Pose2>``), covariance per step from :class:`OdometryNoise`;
 * range (:class:`Se2RangeFactor`, ``RangeFactor2D``): ``r = |b - p| - z`` (m) between a
   pose and a beacon, sigma ``range_sigma_m`` under a robust kernel (outlier ranges are
@@ -42,7 +42,7 @@ from msf_torch.backend.posegraph2d import SE2, Se2BetweenFactor, se2_between_res
 from msf_torch.backend.problem import Factor, Problem
 from msf_torch.backend.robust import RobustKernel
 from msf_torch.backend.variables import VariableKind
-from msf_torch.geometry.se2 import wrap_angle
+from msf_torch.geometry.se2 import chain
 
 
 @dataclass(frozen=True)
@@ -178,7 +178,8 @@ def odometry_range_problem(
     """The B = 1 smoothing problem of a planar run with odometry and beacon ranges.
 
     Args:
-        odometry: (M, 2) distance (m) and heading change (rad) of each step.
+        odometry: (M, 3) ``[dx, dy, dheading]`` (m, m, rad) of each step: pose k + 1 in
+            pose k's frame (a unicycle's step of ``d`` m then a turn: ``[d, 0, turn]``).
         range_pose: (K,) int64 pose (0..M) each range was taken at.
         range_beacon: (K,) int64 row of ``beacons`` each range is to.
         ranges: (K,) m (any known bias already removed).
@@ -202,8 +203,11 @@ def odometry_range_problem(
     """
     dtype, device = odometry.dtype, odometry.device
     steps = odometry.shape[0]
-    if odometry.ndim != 2 or odometry.shape[1] != 2:
-        raise ValueError(f"odometry must be (M, 2), got {tuple(odometry.shape)}")
+    if odometry.ndim != 2 or odometry.shape[1] != 3:
+        raise ValueError(
+            f"odometry must be (M, 3) relative poses [dx, dy, dheading], got "
+            f"{tuple(odometry.shape)}"
+        )
     if ranges.ndim != 1:
         raise ValueError(f"ranges must be (K,), got {tuple(ranges.shape)}")
     k = ranges.shape[0]
@@ -244,18 +248,17 @@ def odometry_range_problem(
         raise ValueError(f"range_beacon must index the {beacons.shape[0]} beacons")
     noise = odometry_noise or OdometryNoise()
     if initial_poses is None:
-        initial_poses = _chain(first_pose, odometry)
+        initial_poses = chain(first_pose, odometry)
     initial_poses = initial_poses.to(dtype=dtype, device=device)
-    measured = torch.stack((odometry[:, 0], torch.zeros_like(odometry[:, 0])), -1)
     index = torch.arange(steps, device=device)
     factors = [
         Se2BetweenFactor(
             "pose",
             index,
             index + 1,
-            measured[None],
-            odometry[None, :, 1],
-            noise.covariance(odometry[:, 0])[None],
+            odometry[None, :, 0:2],
+            odometry[None, :, 2],
+            noise.covariance(odometry[:, 0:2].norm(dim=-1))[None],
         ),
         Se2RangeFactor(
             "pose",
@@ -320,13 +323,3 @@ def multilaterate(
         beacon = beacon - torch.linalg.solve(normal, (jac.mT @ residual[..., None]))[..., 0]
     cost = ((beacon[:, None, :] - positions[None]).norm(dim=-1) - ranges).pow(2).sum(-1)
     return beacon[int(cost.argmin())]
-
-
-def _chain(first_pose: torch.Tensor, odometry: torch.Tensor) -> torch.Tensor:
-    """(M + 1, 3) poses chained from ``first_pose`` (3,) by the steps ``odometry`` (M, 2):
-    ``T_{k+1} = T_k Pose2(distance_k, 0, turn_k)`` (move along the heading, then turn)."""
-    zero = odometry.new_zeros(1)
-    heading = first_pose[2] + torch.cat((zero, torch.cumsum(odometry[:, 1], 0)))
-    moves = odometry[:, 0:1] * torch.stack((torch.cos(heading[:-1]), torch.sin(heading[:-1])), -1)
-    position = first_pose[0:2] + torch.cat((zero.new_zeros(1, 2), torch.cumsum(moves, 0)))
-    return torch.cat((position, wrap_angle(heading)[:, None]), -1)

@@ -1,5 +1,5 @@
-"""Figures: the overview of one run (top-down trajectory, position error, wheel slip factor)
-and a pose graph before and after optimisation.
+"""Figures: the overview of one run (top-down trajectory, position error, wheel slip factor),
+a pose graph before and after optimisation, and a smoothed odometry + anchor-range run.
 
 Drawn with matplotlib's object API on an Agg canvas (no pyplot state, no display needed) and
 written atomically: a temporary file in the target directory, then ``os.replace``, so a reader
@@ -8,7 +8,7 @@ never sees a half-written PNG and a failed save leaves no stray file.
 
 from __future__ import annotations
 
-__all__ = ["overview_figure", "pose_graph_figure"]
+__all__ = ["overview_figure", "pose_graph_figure", "range_run_figure"]
 
 import os
 import tempfile
@@ -319,3 +319,74 @@ def pose_graph_figure(
     if title:
         fig.suptitle(title)
     return _save_png(fig, path)
+
+
+def range_run_figure(
+    path: str | os.PathLike[str],
+    run: Any,
+    poses: Any,
+    anchors: Any,
+    dead_reckoning: Any | None = None,
+) -> Path:
+    """Write a PNG of a smoothed odometry + anchor-range run.
+
+    Panels: top view of the estimate (blue), the dead-reckoned odometry from the same start
+    (grey), the truth when the run has one (black), the anchors as the run gives them (red
+    triangles) and as solved when they moved (orange crosses); and, with a truth, the
+    position error over time (estimate and odometry, log scale).
+
+    Args:
+        path: the PNG file (parent folders are created; written atomically).
+        run: a :class:`~msf_torch.io.ranges.RangeRun`.
+        poses: (M + 1, 3) ``[x, y, heading]`` estimate at ``run.pose_t``.
+        anchors: (L, 2) m, the anchors after the solve.
+        dead_reckoning: (M + 1, 3) odometry chained from the estimate's start (default:
+            computed from ``run``).
+
+    Returns:
+        the path written.
+    """
+
+    def table(x: Any) -> np.ndarray:
+        return np.asarray(torch.as_tensor(x).detach().cpu().to(torch.float64))
+
+    estimate = table(poses)
+    if dead_reckoning is None:
+        dead_reckoning = run.odometry_poses(torch.as_tensor(estimate[0]))
+    odometry = table(dead_reckoning)
+    given, solved = table(run.anchors), table(anchors)
+    truth = None if run.truth is None else table(run.truth)
+    panels = 1 if truth is None else 2
+    fig = Figure(figsize=(6.5 * panels + 0.5, 5.5), dpi=_DPI, layout="constrained")
+    FigureCanvasAgg(fig)
+    axes = np.atleast_1d(fig.subplots(1, panels))
+    top = axes[0]
+    if truth is not None:
+        top.plot(truth[:, 0], truth[:, 1], color="k", lw=1.2, label="truth")
+    top.plot(odometry[:, 0], odometry[:, 1], color="0.6", lw=0.8, label="odometry")
+    top.plot(estimate[:, 0], estimate[:, 1], color=_EST_COLOR, lw=0.9, label="estimate")
+    top.plot(given[:, 0], given[:, 1], "^", color="tab:red", ms=9, label="anchors")
+    if np.abs(solved - given).max() > 1e-9:
+        top.plot(solved[:, 0], solved[:, 1], "x", color="tab:orange", ms=9, label="solved")
+    top.set_aspect("equal", adjustable="datalim")
+    top.set_xlabel("x [m]")
+    top.set_ylabel("y [m]")
+    top.set_title(f"{run.name}: {run.ranges.shape[0]} ranges, {given.shape[0]} anchors")
+    top.grid(True, alpha=0.35)
+    top.legend(loc="best", fontsize=8)
+    if truth is not None:
+        errors = axes[1]
+        t = table(run.pose_t) - float(run.pose_t[0])
+        for positions, name, color in (
+            (odometry, "odometry", "0.6"),
+            (estimate, "estimate", _EST_COLOR),
+        ):
+            distance = np.linalg.norm(positions[:, 0:2] - truth[:, 0:2], axis=1)
+            rmse = float(np.sqrt(np.mean(distance**2)))
+            errors.plot(t, distance, color=color, label=f"{name} (RMSE {rmse:.2f} m)")
+        errors.set_yscale("log")
+        errors.set_xlabel("time [s]")
+        errors.set_ylabel("position error [m]")
+        errors.grid(True, alpha=0.35, which="both")
+        errors.legend(loc="best", fontsize=8)
+    return _save_png(fig, Path(path))

@@ -14,7 +14,15 @@ Example:
 
 from __future__ import annotations
 
-__all__ = ["wrap_angle", "rotation", "compose", "inverse", "between", "transform_points"]
+__all__ = [
+    "wrap_angle",
+    "rotation",
+    "compose",
+    "inverse",
+    "between",
+    "chain",
+    "transform_points",
+]
 
 import math
 
@@ -51,6 +59,18 @@ def inverse(a: torch.Tensor) -> torch.Tensor:
 def between(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     """``a^-1 (+) b``, the pose of ``b`` in the frame of ``a``: (..., 3) -> (..., 3)."""
     return compose(inverse(a), b)
+
+
+def chain(start: torch.Tensor, steps: torch.Tensor) -> torch.Tensor:
+    """Poses (M + 1, 3) from ``start`` (3,) and relative steps (M, 3): pose k + 1 =
+    ``compose(pose k, steps[k])``, in closed form (headings by a cumulative sum, positions
+    by one of the rotated steps) instead of M sequential compositions."""
+    zero = steps.new_zeros(1)
+    heading = start[2] + torch.cat((zero, torch.cumsum(steps[:, 2], 0)))
+    c, s = torch.cos(heading[:-1]), torch.sin(heading[:-1])
+    moves = torch.stack((c * steps[:, 0] - s * steps[:, 1], s * steps[:, 0] + c * steps[:, 1]), -1)
+    position = start[0:2] + torch.cat((steps.new_zeros(1, 2), torch.cumsum(moves, 0)))
+    return torch.cat((position, wrap_angle(heading)[:, None]), -1)
 
 
 def transform_points(pose: torch.Tensor, points: torch.Tensor) -> torch.Tensor:

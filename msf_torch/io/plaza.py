@@ -15,7 +15,7 @@ Files (in ``gtsam/Data``; ``NAME`` is ``Plaza1`` or ``Plaza2``)
     Plaza1: 1932 s, 1861 m, 9657 steps at 5 Hz, 3529 ranges. Plaza2: 409 s, 1354 m, 4090
     steps at 10 Hz, 1816 ranges.
 
-What the files do not say (measured on them; ``PlazaRun.meta``)
+What the files do not say (measured on them; ``RangeRun.meta``)
     * Plaza2's ground-truth heading points backwards: the course of its ground-truth
       positions differs from it by a median 3.08 rad (Plaza1: -0.016 rad). The loader
       turns a run's truth headings by pi when that median exceeds pi/2, so
@@ -32,10 +32,9 @@ What the files do not say (measured on them; ``PlazaRun.meta``)
 
 from __future__ import annotations
 
-__all__ = ["PLAZA_RUNS", "PlazaRun", "load_plaza"]
+__all__ = ["PLAZA_RUNS", "load_plaza"]
 
 import math
-from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -44,59 +43,9 @@ import torch
 from msf_torch.io import _tables
 from msf_torch.io.errors import DataError
 from msf_torch.io.kitti_gtsam import gtsam_data_path
+from msf_torch.io.ranges import RangeRun
 
 PLAZA_RUNS = ("Plaza1", "Plaza2")
-
-
-@dataclass
-class PlazaRun:
-    """One Plaza run (float64 CPU tensors).
-
-    Attributes:
-        name: ``"Plaza1"`` or ``"Plaza2"``.
-        odometry_t: (M,) time of each odometry step, s.
-        odometry: (M, 2) distance travelled (m) and heading change (rad) of each step.
-        range_t: (K,) time of each range, s, non-decreasing.
-        range_beacon: (K,) int64 beacon id of each range.
-        ranges: (K,) m, as measured (biased long, module docstring).
-        truth_t: (M + 1,) s: the start time, then the odometry times.
-        truth: (M + 1, 3) ``[x, y, heading]`` (m, m, rad; heading along the direction of
-            travel, wrapped to [-pi, pi]).
-        beacon_ids: (L,) int64. beacons: (L, 2) m, the beacons' positions.
-        meta: facts measured on the files (module docstring).
-    """
-
-    name: str
-    odometry_t: torch.Tensor
-    odometry: torch.Tensor
-    range_t: torch.Tensor
-    range_beacon: torch.Tensor
-    ranges: torch.Tensor
-    truth_t: torch.Tensor
-    truth: torch.Tensor
-    beacon_ids: torch.Tensor
-    beacons: torch.Tensor
-    meta: dict[str, Any] = field(default_factory=dict)
-
-    def odometry_poses(self, start: torch.Tensor | None = None) -> torch.Tensor:
-        """Dead reckoning: (M + 1, 3) poses chained from ``start`` (3,) (default the truth's
-        first pose), each step moving ``distance`` along the heading, then turning."""
-        pose = (self.truth[0] if start is None else start).tolist()
-        out = [list(pose)]
-        for distance, turn in self.odometry.tolist():
-            pose = [
-                pose[0] + distance * math.cos(pose[2]),
-                pose[1] + distance * math.sin(pose[2]),
-                math.remainder(pose[2] + turn, 2 * math.pi),
-            ]
-            out.append(pose)
-        return torch.tensor(out, dtype=torch.float64)
-
-    def range_pose_index(self) -> torch.Tensor:
-        """(K,) int64 row of ``truth`` (= pose) each range is assigned to: the first pose
-        at or after the range's time (GTSAM's Plaza examples do the same)."""
-        index = torch.searchsorted(self.truth_t, self.range_t)
-        return index.clamp(max=self.truth_t.shape[0] - 1)
 
 
 def _wrap(angle: np.ndarray) -> np.ndarray:
@@ -114,14 +63,17 @@ def _matrix(path, mat: dict[str, Any], name: str, columns: int) -> np.ndarray:
     return value
 
 
-def load_plaza(name: str = "Plaza2") -> PlazaRun:
+def load_plaza(name: str = "Plaza2") -> RangeRun:
     """Read one Plaza run from the installed gtsam's data folder.
 
     Args:
         name: ``"Plaza1"`` or ``"Plaza2"``.
 
     Returns:
-        a :class:`PlazaRun`.
+        a :class:`~msf_torch.io.ranges.RangeRun`: poses at the start and every odometry
+        time (``pose_t``, the truth's times), each odometry step as the relative pose
+        ``[distance, 0, heading change]`` (move, then turn), anchors = the beacons sorted by
+        id, ``truth`` (M + 1, 3) with its heading along the direction of travel, wrapped.
 
     Raises:
         ValueError: an unknown run name.
@@ -198,16 +150,17 @@ def load_plaza(name: str = "Plaza2") -> PlazaRun:
     def f64(x: np.ndarray) -> torch.Tensor:
         return torch.as_tensor(np.ascontiguousarray(x), dtype=torch.float64)
 
-    return PlazaRun(
+    by_id = np.argsort(beacon_ids)
+    steps = np.stack((odometry[:, 1], np.zeros(odometry.shape[0]), odometry[:, 2]), -1)
+    return RangeRun(
         name=name,
-        odometry_t=f64(odometry[:, 0]),
-        odometry=f64(odometry[:, 1:3]),
+        pose_t=f64(truth[:, 0]),
+        odometry=f64(steps),
         range_t=f64(ranges[:, 0]),
-        range_beacon=torch.as_tensor(ranges[:, 2].astype(np.int64)),
+        range_anchor=torch.as_tensor(ranges[:, 2].astype(np.int64)),
         ranges=f64(ranges[:, 3]),
-        truth_t=f64(truth[:, 0]),
+        anchor_ids=torch.as_tensor(beacon_ids[by_id]),
+        anchors=f64(beacons[by_id, 1:3]),
         truth=f64(truth[:, 1:4]),
-        beacon_ids=torch.as_tensor(beacon_ids),
-        beacons=f64(beacons[:, 1:3]),
         meta=meta,
     )

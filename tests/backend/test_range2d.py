@@ -12,7 +12,7 @@ import pytest
 import torch
 
 from msf_torch.backend.lm import LMConfig, solve
-from msf_torch.backend.posegraph2d import SE2
+from msf_torch.backend.posegraph2d import SE2, Se2BetweenFactor
 from msf_torch.backend.problem import Factor
 from msf_torch.backend.range2d import (
     POINT2,
@@ -148,13 +148,15 @@ FIRST_COVARIANCE = torch.diag(torch.tensor([0.1**2, 0.1**2, 0.05**2], dtype=DT))
 
 
 def _dead_reckoning(start: tuple[float, float, float], odometry: torch.Tensor) -> torch.Tensor:
-    """(M + 1, 3) poses: each step moves ``distance`` along the heading, then turns."""
+    """(M + 1, 3) poses, composed one step at a time: each step ``[dx, dy, dheading]`` is
+    the next pose in the current pose's frame."""
     pose = list(start)
     out = [list(pose)]
-    for distance, turn in odometry.tolist():
+    for dx, dy, turn in odometry.tolist():
+        c, s = math.cos(pose[2]), math.sin(pose[2])
         pose = [
-            pose[0] + distance * math.cos(pose[2]),
-            pose[1] + distance * math.sin(pose[2]),
+            pose[0] + c * dx - s * dy,
+            pose[1] + s * dx + c * dy,
             math.remainder(pose[2] + turn, 2 * math.pi),
         ]
         out.append(pose)
@@ -163,19 +165,25 @@ def _dead_reckoning(start: tuple[float, float, float], odometry: torch.Tensor) -
 
 @pytest.fixture(scope="module")
 def loop():
-    """A robot driving one loop (~60 m) among four beacons: exact odometry (M, 2), the true
-    poses (M + 1, 3), a range from every second pose to the beacons in turn (exact), and
-    an initial estimate from odometry with 5 % scale and 4 mrad/step heading drift
-    (4.6 m off at worst)."""
+    """A robot driving one loop (~60 m) among four beacons: exact odometry (M, 3) with a
+    small sideways part (a skidding robot), the true poses (M + 1, 3), a range from every
+    second pose to the beacons in turn (exact), and an initial estimate from odometry with
+    5 % scale and 4 mrad/step heading drift (4.6 m off at worst)."""
     k = torch.arange(STEPS, dtype=DT)
     odometry = torch.stack(
-        (0.5 + 0.1 * torch.sin(k / 7), 2 * math.pi / STEPS + 0.01 * torch.cos(k / 5)), -1
+        (
+            0.5 + 0.1 * torch.sin(k / 7),
+            0.03 * torch.cos(k / 3),
+            2 * math.pi / STEPS + 0.01 * torch.cos(k / 5),
+        ),
+        -1,
     )
     truth = _dead_reckoning(START, odometry)
     range_pose = torch.arange(0, STEPS + 1, 2)
     range_beacon = (range_pose // 2) % 4
     ranges = (BEACONS[range_beacon] - truth[range_pose, 0:2]).norm(dim=-1)
-    drift = odometry * torch.tensor([1.05, 1.0], dtype=DT) + torch.tensor([0.0, 0.004], dtype=DT)
+    drift = odometry * torch.tensor([1.05, 1.05, 1.0], dtype=DT)
+    drift[:, 2] += 0.004
     drifted = _dead_reckoning(START, drift)
     assert (drifted[:, 0:2] - truth[:, 0:2]).norm(dim=-1).max() > 4.0
     return odometry, truth, range_pose, range_beacon, ranges, drifted
@@ -188,6 +196,32 @@ def test_default_initial_estimate_chains_the_odometry(loop):
     )
     torch.testing.assert_close(problem.values["pose"][0], truth, rtol=0, atol=1e-12)
     torch.testing.assert_close(problem.values["beacon"][0], BEACONS, rtol=0, atol=0)
+
+
+def test_odometry_factor_measures_the_relative_pose_weighted_by_its_length():
+    """Each step is the between factor's measurement as given (sideways part included); its
+    covariance depends on the step's length, not on which way it points."""
+    d = 0.8
+    odometry = torch.tensor(
+        [[d, 0.0, 0.0], [0.0, d, 0.1], [0.6 * d, -0.8 * d, -0.2], [0.0, 0.0, 0.3]], dtype=DT
+    )
+    empty = torch.zeros(0, dtype=torch.long)
+    problem = odometry_range_problem(
+        odometry,
+        empty,
+        empty,
+        torch.zeros(0, dtype=DT),
+        BEACONS,
+        torch.zeros(3, dtype=DT),
+        FIRST_COVARIANCE,
+    )
+    (between,) = [f for f in problem.factors if isinstance(f, Se2BetweenFactor)]
+    torch.testing.assert_close(between.translation[0], odometry[:, 0:2], rtol=0, atol=0)
+    torch.testing.assert_close(between.heading[0], odometry[:, 2], rtol=0, atol=0)
+    information = between.sqrt_information[0]
+    torch.testing.assert_close(information[1], information[0], rtol=1e-14, atol=0)
+    torch.testing.assert_close(information[2], information[0], rtol=1e-14, atol=0)
+    assert not torch.allclose(information[3], information[0])
 
 
 def test_simulated_loop_recovers_the_truth_with_known_beacons(loop):
@@ -279,8 +313,12 @@ def test_problem_checks_shapes_and_indices(loop):
         first_pose_covariance=FIRST_COVARIANCE,
     )
     cases = [
-        ({"odometry": odometry[:, :1]}, r"odometry must be \(M, 2\), got \(120, 1\)"),
-        ({"odometry": torch.zeros(120, 3, dtype=DT)}, r"odometry must be \(M, 2\)"),
+        (
+            {"odometry": odometry[:, :1]},
+            r"odometry must be \(M, 3\) relative poses \[dx, dy, dheading\], got \(120, 1\)",
+        ),
+        ({"odometry": odometry[:, :2]}, r"odometry must be \(M, 3\) .*got \(120, 2\)"),
+        ({"odometry": odometry[None]}, r"odometry must be \(M, 3\) .*got \(1, 120, 3\)"),
         ({"range_pose": range_pose[:-1]}, r"range_pose must be \(61,\) like ranges"),
         ({"range_beacon": range_beacon[None]}, r"range_beacon must be \(61,\) like ranges"),
         ({"range_pose": range_pose - 1}, "range_pose must index the 121 poses"),

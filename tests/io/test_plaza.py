@@ -16,7 +16,8 @@ from msf_torch.backend.range2d import OdometryNoise, odometry_range_problem
 from msf_torch.backend.robust import RobustKernel
 from msf_torch.io import DataError, gtsam_data_path
 from msf_torch.io import plaza as plaza_module
-from msf_torch.io.plaza import PlazaRun, load_plaza
+from msf_torch.io.plaza import load_plaza
+from msf_torch.io.ranges import RangeRun
 
 DT = torch.float64
 # the range bias and spread measured on Plaza1 (median and 1.4826 MAD of range minus the
@@ -36,10 +37,10 @@ def runs(gtsam):
     return {name: load_plaza(name) for name in ("Plaza1", "Plaza2")}
 
 
-def _beacon_rows(run) -> torch.Tensor:
-    """(K,) row of ``run.beacons`` each range is to."""
-    rows = {int(i): k for k, i in enumerate(run.beacon_ids)}
-    return torch.tensor([rows[int(i)] for i in run.range_beacon])
+def _anchor_rows(run) -> torch.Tensor:
+    """(K,) row of ``run.anchors`` each range is to, by a lookup table."""
+    rows = {int(i): k for k, i in enumerate(run.anchor_ids)}
+    return torch.tensor([rows[int(i)] for i in run.range_anchor])
 
 
 @pytest.mark.parametrize(
@@ -47,20 +48,50 @@ def _beacon_rows(run) -> torch.Tensor:
     [("Plaza1", 9657, 3529, [0, 1, 6, 5]), ("Plaza2", 4090, 1816, [1, 6, 0, 5])],
 )
 def test_shapes_and_times(runs, name, steps, count, ids):
+    """``ids``: the beacons in the file's order (TL); the run holds them sorted by id."""
     run = runs[name]
     assert run.name == name
-    assert run.odometry_t.shape == (steps,) and run.odometry.shape == (steps, 2)
-    assert run.range_t.shape == run.range_beacon.shape == run.ranges.shape == (count,)
-    assert run.truth_t.shape == (steps + 1,) and run.truth.shape == (steps + 1, 3)
-    assert run.beacon_ids.tolist() == ids and run.beacons.shape == (4, 2)
-    assert run.range_beacon.dtype == run.beacon_ids.dtype == torch.int64
-    assert all(t.dtype == DT for t in (run.odometry, run.ranges, run.truth, run.beacons))
-    # the truth: the start pose, then one row at each odometry time
-    assert run.truth_t[0] < run.odometry_t[0]
-    assert torch.equal(run.truth_t[1:], run.odometry_t)
-    assert (run.odometry_t.diff() > 0).all()
+    assert run.odometry.shape == (steps, 3)
+    assert run.range_t.shape == run.range_anchor.shape == run.ranges.shape == (count,)
+    assert run.pose_t.shape == (steps + 1,) and run.truth.shape == (steps + 1, 3)
+    assert run.anchor_ids.tolist() == sorted(ids) and run.anchors.shape == (4, 2)
+    assert run.range_anchor.dtype == run.anchor_ids.dtype == torch.int64
+    assert all(t.dtype == DT for t in (run.odometry, run.ranges, run.truth, run.anchors))
+    # the poses: the start pose, then one at each odometry time (the DR file's first column)
+    odometry_t = np.loadtxt(gtsam_data_path(f"{name}_DR.txt"))[:, 0]
+    assert run.pose_t[0] < odometry_t[0]
+    np.testing.assert_allclose(run.pose_t[1:].numpy(), odometry_t, rtol=0, atol=1e-6)
+    assert (run.pose_t.diff() > 0).all()
     assert (run.range_t.diff() >= 0).all()  # Plaza1 has ranges at equal times
-    assert set(run.range_beacon.tolist()) == set(ids)
+    assert set(run.range_anchor.tolist()) == set(ids)
+
+
+@pytest.mark.parametrize("name", ["Plaza1", "Plaza2"])
+def test_anchors_sorted_with_their_positions_and_rows(runs, name):
+    """Each anchor keeps its own position from TL after the sort; ``range_anchor_rows``
+    equals a lookup by id."""
+    from scipy.io import loadmat
+
+    run = runs[name]
+    beacons = loadmat(gtsam_data_path(f"{name}_.mat"))["TL"]
+    for anchor, position in zip(run.anchor_ids.tolist(), run.anchors, strict=True):
+        (row,) = np.flatnonzero(beacons[:, 0] == anchor)
+        np.testing.assert_array_equal(position.numpy(), beacons[row, 1:3])
+    rows = run.range_anchor_rows()
+    assert rows.dtype == torch.int64
+    assert torch.equal(rows, _anchor_rows(run))
+    assert torch.equal(run.anchor_ids[rows], run.range_anchor)
+
+
+@pytest.mark.parametrize("name", ["Plaza1", "Plaza2"])
+def test_odometry_steps_move_then_turn(runs, name):
+    """Each DR line ``distance, heading change`` is the relative pose ``[distance, 0,
+    heading change]``."""
+    run = runs[name]
+    lines = np.loadtxt(gtsam_data_path(f"{name}_DR.txt"))
+    np.testing.assert_array_equal(run.odometry[:, 0].numpy(), lines[:, 1])
+    assert (run.odometry[:, 1] == 0).all()
+    np.testing.assert_array_equal(run.odometry[:, 2].numpy(), lines[:, 2])
 
 
 def test_meta_facts(runs):
@@ -103,27 +134,28 @@ def test_range_pose_index_is_the_first_pose_at_or_after_the_range(runs, name):
     run = runs[name]
     index = run.range_pose_index()
     assert index.shape == run.range_t.shape and index.dtype == torch.int64
-    truth_t, range_t = run.truth_t.numpy(), run.range_t.numpy()
+    truth_t, range_t = run.pose_t.numpy(), run.range_t.numpy()
     for k, i in enumerate(index.tolist()):
         before = truth_t[i - 1] < range_t[k] if i > 0 else True
         assert before and (truth_t[i] >= range_t[k] or i == len(truth_t) - 1), k
 
 
-def _toy_run() -> PlazaRun:
+def _toy_run() -> RangeRun:
     """Three steps of 1 m: turn left, turn left, straight; ranges at and between the
     pose times (0, 1, 2, 3 s), one after the last."""
-    odometry = torch.tensor([[1.0, math.pi / 2], [1.0, math.pi / 2], [1.0, 0.0]], dtype=DT)
-    return PlazaRun(
+    odometry = torch.tensor(
+        [[1.0, 0.0, math.pi / 2], [1.0, 0.0, math.pi / 2], [1.0, 0.0, 0.0]], dtype=DT
+    )
+    return RangeRun(
         name="toy",
-        odometry_t=torch.tensor([1.0, 2.0, 3.0], dtype=DT),
+        pose_t=torch.tensor([0.0, 1.0, 2.0, 3.0], dtype=DT),
         odometry=odometry,
         range_t=torch.tensor([0.0, 0.5, 1.0, 2.9, 3.0, 5.0], dtype=DT),
-        range_beacon=torch.zeros(6, dtype=torch.int64),
+        range_anchor=torch.zeros(6, dtype=torch.int64),
         ranges=torch.ones(6, dtype=DT),
-        truth_t=torch.tensor([0.0, 1.0, 2.0, 3.0], dtype=DT),
+        anchor_ids=torch.zeros(1, dtype=torch.int64),
+        anchors=torch.zeros(1, 2, dtype=DT),
         truth=torch.zeros(4, 3, dtype=DT),
-        beacon_ids=torch.zeros(1, dtype=torch.int64),
-        beacons=torch.zeros(1, 2, dtype=DT),
     )
 
 
@@ -145,7 +177,7 @@ def test_toy_run_range_pose_index_at_equal_times():
 def test_ranges_read_long_by_the_documented_bias(runs, name, bias):
     """Median of range minus the true distance from the assigned pose: +2.85 / +2.80 m."""
     run = runs[name]
-    distance = (run.beacons[_beacon_rows(run)] - run.truth[run.range_pose_index(), 0:2]).norm(
+    distance = (run.anchors[_anchor_rows(run)] - run.truth[run.range_pose_index(), 0:2]).norm(
         dim=-1
     )
     assert (run.ranges - distance).median().item() == pytest.approx(bias, abs=0.01)
@@ -155,7 +187,7 @@ def test_plaza2_solve_equals_gtsam_on_the_same_graph(runs, gtsam):
     """Known beacons, the Plaza1 bias removed, Cauchy at 2.3849 sigmas: initial and final
     costs equal GTSAM's LM on the same factors; 0.42 m RMSE where dead reckoning is 32 m."""
     run = runs["Plaza2"]
-    beacon_rows, range_pose = _beacon_rows(run), run.range_pose_index()
+    beacon_rows, range_pose = _anchor_rows(run), run.range_pose_index()
     ranges = run.ranges - RANGE_BIAS_M
     noise = OdometryNoise()
     kernel = RobustKernel("cauchy", 2.3849)
@@ -165,7 +197,7 @@ def test_plaza2_solve_equals_gtsam_on_the_same_graph(runs, gtsam):
         range_pose,
         beacon_rows,
         ranges,
-        run.beacons,
+        run.anchors,
         first,
         FIRST_COVARIANCE,
         odometry_noise=noise,
@@ -194,7 +226,7 @@ def test_plaza2_solve_equals_gtsam_on_the_same_graph(runs, gtsam):
 
     for i, pose in enumerate(problem.values["pose"][0].tolist()):
         initial.insert(pose_key(i), gtsam.Pose2(*pose))
-    for j, beacon in enumerate(run.beacons.numpy()):
+    for j, beacon in enumerate(run.anchors.numpy()):
         initial.insert(beacon_key(j), beacon.copy())
         graph.add(gtsam.NonlinearEqualityPoint2(beacon_key(j), beacon.copy()))
     graph.add(
@@ -205,12 +237,12 @@ def test_plaza2_solve_equals_gtsam_on_the_same_graph(runs, gtsam):
         )
     )
     covariances = noise.covariance(run.odometry[:, 0]).numpy()
-    for i, (distance, turn) in enumerate(run.odometry.tolist()):
+    for i, (distance, sideways, turn) in enumerate(run.odometry.tolist()):
         graph.add(
             gtsam.BetweenFactorPose2(
                 pose_key(i),
                 pose_key(i + 1),
-                gtsam.Pose2(distance, 0.0, turn),
+                gtsam.Pose2(distance, sideways, turn),
                 gtsam.noiseModel.Gaussian.Covariance(covariances[i]),
             )
         )
@@ -274,7 +306,7 @@ def test_out_of_order_ranges_are_sorted(runs, plaza2_copy):
     run = load_plaza("Plaza2")
     assert run.meta["ranges_reordered"] == 2
     original = runs["Plaza2"]
-    for name in ("range_t", "range_beacon", "ranges"):
+    for name in ("range_t", "range_anchor", "ranges"):
         assert torch.equal(getattr(run, name), getattr(original, name)), name
 
 

@@ -1,0 +1,237 @@
+"""Odometry + range-beacon runs from CSV files: a wheeled robot's odometry poses, ranges to
+anchors (UWB anchors, radio beacons) and the anchors' positions; read into a
+:class:`RangeRun` for :mod:`msf_torch.backend.range2d` (``msf ranges``).
+
+Files (CSV with a header line, columns in any order; ``#`` comment lines and blank lines are
+skipped; times in s, lengths in m, angles in rad)
+    * odometry: ``t,x,y,heading`` -- the robot's wheel-odometry poses in its odometry frame
+      (a ``nav_msgs/Odometry`` topic exported, heading = yaw). Consecutive rows give the
+      odometry steps (the pose of row k + 1 seen from row k); the run's poses sit at these
+      times.
+    * ranges: ``t,anchor,range`` -- anchor ids are integers.
+    * anchors: ``anchor,x,y`` -- the anchors' positions in the map frame (surveyed, or a
+      first guess when they are solved for).
+    * truth (optional): ``t,x,y`` -- reference positions in the map frame (RTK, a motion
+      capture), interpolated linearly to the pose times for the error figures.
+
+Rules
+    A missing or unknown column, a value that is not a finite number, odometry times that do
+    not increase, a duplicate anchor id, an anchor id or range that is not a whole number or
+    is negative, and a range to an anchor the anchors file does not list are DataErrors
+    naming file, line and column. Ranges out of time order are sorted (``meta``
+    counts them); ranges before the first or after the last odometry time are dropped
+    (counted in ``meta["ranges_outside"]``); the truth must span the odometry's times.
+"""
+
+from __future__ import annotations
+
+__all__ = ["RangeRun", "read_range_run", "write_anchors"]
+
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from msf_torch.geometry.se2 import between, chain
+from msf_torch.io import _tables
+from msf_torch.io.atomic import atomic_write
+from msf_torch.io.errors import DataError
+
+
+@dataclass
+class RangeRun:
+    """One run of odometry and anchor ranges (float64 CPU tensors).
+
+    Attributes:
+        name: a label (file stem or dataset name).
+        pose_t: (M + 1,) s, the time of each pose.
+        odometry: (M, 3) ``[dx, dy, dheading]`` (m, m, rad): pose k + 1 in pose k's frame.
+        range_t: (K,) s, non-decreasing. range_anchor: (K,) int64 anchor id of each range.
+        ranges: (K,) m, as measured.
+        anchor_ids: (L,) int64. anchors: (L, 2) m, positions in the map frame.
+        truth: (M + 1, 3) ``[x, y, heading]`` at the pose times in the map frame (heading
+            NaN where the source has none), or None.
+        meta: what the reader did and noticed.
+    """
+
+    name: str
+    pose_t: torch.Tensor
+    odometry: torch.Tensor
+    range_t: torch.Tensor
+    range_anchor: torch.Tensor
+    ranges: torch.Tensor
+    anchor_ids: torch.Tensor
+    anchors: torch.Tensor
+    truth: torch.Tensor | None = None
+    meta: dict[str, Any] = field(default_factory=dict)
+
+    def range_pose_index(self) -> torch.Tensor:
+        """(K,) int64 pose each range is attached to: the first pose at or after its time."""
+        index = torch.searchsorted(self.pose_t, self.range_t)
+        return index.clamp(max=self.pose_t.shape[0] - 1)
+
+    def range_anchor_rows(self) -> torch.Tensor:
+        """(K,) int64 row of ``anchors`` each range is to."""
+        return torch.searchsorted(self.anchor_ids, self.range_anchor)
+
+    def odometry_poses(self, start: torch.Tensor | None = None) -> torch.Tensor:
+        """Dead reckoning: (M + 1, 3) poses chained from ``start`` (3,) by the odometry
+        (default: the truth's first pose when there is a truth, else the origin)."""
+        if start is None:
+            has_truth = self.truth is not None and bool(torch.isfinite(self.truth[0]).all())
+            start = self.truth[0] if has_truth else self.odometry.new_zeros(3)
+        return chain(start.to(self.odometry.dtype), self.odometry)
+
+
+def _read(path: str | os.PathLike[str], required: list[str]) -> tuple[Any, np.ndarray]:
+    table = _tables.read_table(path)
+    _tables.check_columns(table, required)
+    values = table.floats(required)
+    bad = ~np.isfinite(values)
+    if bad.any():
+        row, col = (int(x) for x in np.argwhere(bad)[0])
+        raise DataError(table.path, "not finite", line=int(table.lines[row]), field=required[col])
+    return table, values
+
+
+def _whole(table: Any, values: np.ndarray, name: str) -> np.ndarray:
+    """A column of non-negative whole numbers as int64, else a DataError naming the row."""
+    bad = (values < 0) | (values != np.floor(values)) | (values >= 2**62)
+    if bad.any():
+        row = int(np.flatnonzero(bad)[0])
+        raise DataError(
+            table.path,
+            f"not a non-negative whole number: {float(values[row])!r}",
+            line=int(table.lines[row]),
+            field=name,
+        )
+    return values.astype(np.int64)
+
+
+def read_range_run(
+    odometry: str | os.PathLike[str],
+    ranges: str | os.PathLike[str],
+    anchors: str | os.PathLike[str],
+    truth: str | os.PathLike[str] | None = None,
+) -> RangeRun:
+    """Read a run from its CSV files (module docstring).
+
+    Args:
+        odometry, ranges, anchors: the three files. truth: optional reference positions.
+
+    Returns:
+        a :class:`RangeRun`; ``meta`` holds the files, the ranges sorted and dropped, and
+        the truth's coverage.
+
+    Raises:
+        DataError: naming file, line and column (module docstring).
+    """
+    odo_table, odo = _read(odometry, ["t", "x", "y", "heading"])
+    if odo.shape[0] < 2:
+        raise DataError(odo_table.path, f"need at least 2 odometry rows, got {odo.shape[0]}")
+    back = np.flatnonzero(np.diff(odo[:, 0]) <= 0)
+    if back.size:
+        raise DataError(
+            odo_table.path,
+            "odometry times must increase",
+            line=int(odo_table.lines[back[0] + 1]),
+            field="t",
+        )
+    range_table, rng = _read(ranges, ["t", "anchor", "range"])
+    anchor_table, anc = _read(anchors, ["anchor", "x", "y"])
+    anchor_ids = _whole(anchor_table, anc[:, 0], "anchor")
+    order = np.argsort(anchor_ids, kind="stable")
+    repeated = np.flatnonzero(np.diff(anchor_ids[order]) == 0)
+    if repeated.size:
+        row = int(order[repeated[0] + 1])
+        raise DataError(
+            anchor_table.path,
+            f"anchor {anchor_ids[row]} is listed twice",
+            line=int(anchor_table.lines[row]),
+            field="anchor",
+        )
+    range_ids = _whole(range_table, rng[:, 1], "anchor")
+    if (rng[:, 2] < 0).any():
+        row = int(np.flatnonzero(rng[:, 2] < 0)[0])
+        raise DataError(
+            range_table.path,
+            f"negative range {float(rng[row, 2])!r}",
+            line=int(range_table.lines[row]),
+            field="range",
+        )
+    unknown = ~np.isin(range_ids, anchor_ids)
+    if unknown.any():
+        row = int(np.flatnonzero(unknown)[0])
+        raise DataError(
+            range_table.path,
+            f"range to anchor {range_ids[row]}, which {Path(anchor_table.path).name} does not "
+            f"list ({sorted(anchor_ids.tolist())})",
+            line=int(range_table.lines[row]),
+            field="anchor",
+        )
+    time_order = np.argsort(rng[:, 0], kind="stable")
+    reordered = int((time_order != np.arange(time_order.size)).sum())
+    rng, range_ids = rng[time_order], range_ids[time_order]
+    inside = (rng[:, 0] >= odo[0, 0]) & (rng[:, 0] <= odo[-1, 0])
+    meta: dict[str, Any] = {
+        "files": {
+            "odometry": odo_table.path,
+            "ranges": range_table.path,
+            "anchors": anchor_table.path,
+        },
+        "ranges_reordered": reordered,
+        "ranges_outside": int((~inside).sum()),
+    }
+    rng, range_ids = rng[inside], range_ids[inside]
+
+    def f64(x: np.ndarray) -> torch.Tensor:
+        return torch.as_tensor(np.ascontiguousarray(x), dtype=torch.float64)
+
+    poses = f64(odo[:, 1:4])
+    reference = None
+    if truth is not None:
+        truth_table, ref = _read(truth, ["t", "x", "y"])
+        meta["files"]["truth"] = truth_table.path
+        if ref.shape[0] < 2 or (np.diff(ref[:, 0]) <= 0).any():
+            raise DataError(truth_table.path, "need 2 or more rows with increasing times")
+        if odo[0, 0] < ref[0, 0] or odo[-1, 0] > ref[-1, 0]:
+            raise DataError(
+                truth_table.path,
+                f"covers {ref[0, 0]:.3f}..{ref[-1, 0]:.3f} s, not the odometry's "
+                f"{odo[0, 0]:.3f}..{odo[-1, 0]:.3f} s",
+            )
+        xy = np.stack([np.interp(odo[:, 0], ref[:, 0], ref[:, k]) for k in (1, 2)], -1)
+        reference = torch.cat((f64(xy), torch.full((xy.shape[0], 1), float("nan"))), -1)
+    order = np.argsort(anchor_ids)
+    return RangeRun(
+        name=Path(odometry).stem,
+        pose_t=f64(odo[:, 0]),
+        odometry=between(poses[:-1], poses[1:]),
+        range_t=f64(rng[:, 0]),
+        range_anchor=torch.as_tensor(range_ids),
+        ranges=f64(rng[:, 2]),
+        anchor_ids=torch.as_tensor(anchor_ids[order]),
+        anchors=f64(anc[order, 1:3]),
+        truth=reference,
+        meta=meta,
+    )
+
+
+def write_anchors(path: str | os.PathLike[str], ids: torch.Tensor, positions: torch.Tensor) -> Path:
+    """Write anchors as the CSV ``anchor,x,y`` that :func:`read_range_run` reads (atomically).
+
+    Args:
+        path: the file (parent folders created). ids: (L,) int. positions: (L, 2) m.
+
+    Returns:
+        the path written.
+    """
+    target = Path(path)
+    with atomic_write(target, newline="") as handle:
+        handle.write("anchor,x,y\n")
+        for anchor, (x, y) in zip(ids.tolist(), positions.tolist(), strict=True):
+            handle.write(f"{anchor},{x!r},{y!r}\n")
+    return target
