@@ -321,6 +321,80 @@ def check_graph_fields(graph, owner: str, shapes: dict[str, tuple[int, ...]]) ->
     graph.fixed_rows()
 
 
+@dataclass
+class RecordBook:
+    """What a pose-graph reader notes besides its pose records: the ``FIX`` ids and the
+    lines it skipped (shared by the 2-D and 3-D readers).
+
+    Attributes:
+        path: the file, for errors. fixes: fixed id -> line of its first ``FIX``.
+        skipped: tag -> lines skipped. first: tag -> first line skipped.
+    """
+
+    path: str
+    fixes: dict[int, int] = field(default_factory=dict)
+    skipped: dict[str, int] = field(default_factory=dict)
+    first: dict[str, int] = field(default_factory=dict)
+
+    def read_fix(self, tokens: list[str], line: int) -> None:
+        """Note a ``FIX id [id ...]`` record; a DataError when it names no id."""
+        if len(tokens) < 2:
+            raise DataError(self.path, "FIX names no vertex id", line=line, field="id")
+        for token in tokens[1:]:
+            self.fixes.setdefault(parse_id(self.path, token, line, "id"), line)
+
+    def skip(self, tag: str, line: int) -> None:
+        """Count a line whose tag the reader does not read."""
+        self.skipped[tag] = self.skipped.get(tag, 0) + 1
+        self.first.setdefault(tag, line)
+
+    def tally(self) -> str:
+        """Each skipped tag with its count and first line, for messages."""
+        return ", ".join(
+            f"{_tables.shown(tag)} x{count} (first on line {self.first[tag]})"
+            for tag, count in self.skipped.items()
+        )
+
+    def check_fixes(self, vertex_ids: np.ndarray, has_vertices: bool) -> None:
+        """A DataError when a ``FIX`` names an id that is not a vertex of the graph."""
+        unknown = sorted(set(self.fixes) - set(vertex_ids.tolist()), key=self.fixes.__getitem__)
+        if unknown:
+            vid = unknown[0]
+            defined = "vertex line defines" if has_vertices else "edge names"
+            raise DataError(
+                self.path,
+                f"FIX names vertex {vid}, which no {defined}",
+                line=self.fixes[vid],
+                field="id",
+            )
+
+    def warn_skipped(self, tags_read: str) -> None:
+        """One UserWarning with the tally, when lines were skipped."""
+        if self.skipped:
+            warnings.warn(
+                f"{self.path}: skipped {sum(self.skipped.values())} lines with tags this "
+                f"reader does not read: {self.tally()} (tags read: {tags_read})",
+                stacklevel=3,
+            )
+
+
+def edge_rows(path: str, vertex_ids: np.ndarray, pairs: np.ndarray, lines: np.ndarray):
+    """(E, 2) rows of the sorted ``vertex_ids`` (N,) that the edges' id ``pairs`` (E, 2)
+    name; a DataError naming the edge's ``lines`` (E,) entry and field when one is not a
+    vertex."""
+    rows = np.searchsorted(vertex_ids, pairs)
+    known = vertex_ids[np.minimum(rows, vertex_ids.size - 1)] == pairs
+    if not known.all():
+        k, side = (int(x) for x in np.argwhere(~known)[0])
+        raise DataError(
+            path,
+            f"edge names vertex {int(pairs[k, side])}, which no vertex line defines",
+            line=int(lines[k]),
+            field="ij"[side],
+        )
+    return rows
+
+
 # ----------------------------------------------------------------------------- reading
 
 
@@ -492,9 +566,7 @@ def read_pose_graph(
         raise ValueError(f"unknown_tags must be 'skip' or 'error', got {unknown_tags!r}")
     path_str = os.fspath(path)
     records = {tag: _Records() for tag in _SPECS}
-    skipped: dict[str, int] = {}
-    skipped_first: dict[str, int] = {}
-    fixes: dict[int, int] = {}  # FIX'd id -> line of its first FIX record
+    book = RecordBook(path_str)
     vertex_line: dict[int, int] = {}
     for line_no, raw in enumerate(_tables.split_lines(_tables.read_text(path_str)), start=1):
         tokens = raw.split("#", 1)[0].split()
@@ -503,10 +575,7 @@ def read_pose_graph(
         tag = tokens[0]
         spec = _SPECS.get(tag)
         if tag == FIX_TAG:
-            if len(tokens) < 2:
-                raise DataError(path_str, "FIX names no vertex id", line=line_no, field="id")
-            for token in tokens[1:]:
-                fixes.setdefault(parse_id(path_str, token, line_no, "id"), line_no)
+            book.read_fix(tokens, line_no)
             continue
         if spec is None:
             if _is_2d_tag(tag):
@@ -531,8 +600,7 @@ def read_pose_graph(
                     line=line_no,
                     field="tag",
                 )
-            skipped[tag] = skipped.get(tag, 0) + 1
-            skipped_first.setdefault(tag, line_no)
+            book.skip(tag, line_no)
             continue
         _parse_line(path_str, spec, tokens, line_no, records[tag])
         if not spec.edge:
@@ -590,15 +658,11 @@ def read_pose_graph(
         v_rot.append(_rotations(vals, _SPECS[t].quat))
         v_pos.append(vals[:, :3])
     has_vertices = v_ids.size > 0
-    tally = ", ".join(
-        f"{_tables.shown(tag)} x{count} (first on line {skipped_first[tag]})"
-        for tag, count in skipped.items()
-    )
-    if skipped and not e_lines.size:
+    if book.skipped and not e_lines.size:
         raise DataError(
             path_str,
             f"no pose edges ({G2O_EDGE_TAG} or {TORO_EDGE_TAG}), only tags this reader does "
-            f"not read: {tally} (tags read: {_TAGS})",
+            f"not read: {book.tally()} (tags read: {_TAGS})",
         )
     if not has_vertices and not e_lines.size:
         raise DataError(path_str, f"no vertices or edges (tags read: {_TAGS})")
@@ -608,35 +672,15 @@ def read_pose_graph(
         vertex_ids = v_ids[vorder]
         rotations = np.concatenate(v_rot)[vorder]
         positions = np.concatenate(v_pos)[vorder]
-        rows = np.searchsorted(vertex_ids, e_pairs)
-        known = vertex_ids[np.minimum(rows, vertex_ids.size - 1)] == e_pairs
-        if not known.all():
-            k, side = (int(x) for x in np.argwhere(~known)[0])
-            raise DataError(
-                path_str,
-                f"edge names vertex {int(e_pairs[k, side])}, which no vertex line defines",
-                line=int(e_lines[k]),
-                field="ij"[side],
-            )
+        rows = edge_rows(path_str, vertex_ids, e_pairs, e_lines)
     else:
         vertex_ids = np.unique(e_pairs)
         rows = np.searchsorted(vertex_ids, e_pairs)
         rotations, positions = _chain(
             path_str, vertex_ids, e_pairs, edge_rotations, edge_translations, e_lines
         )
-    unknown_fix = sorted(set(fixes) - set(vertex_ids.tolist()), key=fixes.__getitem__)
-    if unknown_fix:
-        vid = unknown_fix[0]
-        defined = "vertex line defines" if has_vertices else "edge names"
-        raise DataError(
-            path_str, f"FIX names vertex {vid}, which no {defined}", line=fixes[vid], field="id"
-        )
-    if skipped:
-        warnings.warn(
-            f"{path_str}: skipped {sum(skipped.values())} lines with tags this reader does not "
-            f"read: {tally} (tags read: {_TAGS})",
-            stacklevel=2,
-        )
+    book.check_fixes(vertex_ids, has_vertices)
+    book.warn_skipped(_TAGS)
 
     def f64(x: np.ndarray) -> torch.Tensor:
         return torch.as_tensor(np.ascontiguousarray(x), dtype=torch.float64)
@@ -654,9 +698,9 @@ def read_pose_graph(
         edge_information=f64(edge_information),
         has_vertices=has_vertices,
         edge_lines=i64(e_lines),
-        skipped=skipped,
+        skipped=book.skipped,
         source=path_str,
-        fixed_ids=tuple(sorted(fixes)),
+        fixed_ids=tuple(sorted(book.fixes)),
     )
     graph.check()
     return graph

@@ -58,7 +58,6 @@ __all__ = [
 
 import math
 import os
-import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
@@ -73,7 +72,9 @@ from msf_torch.io.g2o import (
     FIX_TAG,
     POSE3_TAGS,
     GraphSizes,
+    RecordBook,
     check_graph_fields,
+    edge_rows,
     parse_float_fields,
     parse_id,
 )
@@ -255,19 +256,14 @@ def read_pose_graph_2d(
     edge_values: list[list[float]] = []
     edge_lines: list[int] = []
     edge_tags: list[str] = []
-    skipped: dict[str, int] = {}
-    skipped_first: dict[str, int] = {}
-    fixes: dict[int, int] = {}
+    book = RecordBook(path_str)
     for line_no, raw in enumerate(_tables.split_lines(_tables.read_text(path_str)), start=1):
         tokens = raw.split("#", 1)[0].split()
         if not tokens:
             continue
         tag = tokens[0]
         if tag == FIX_TAG:
-            if len(tokens) < 2:
-                raise DataError(path_str, "FIX names no vertex id", line=line_no, field="id")
-            for token in tokens[1:]:
-                fixes.setdefault(parse_id(path_str, token, line_no, "id"), line_no)
+            book.read_fix(tokens, line_no)
             continue
         if tag not in POSE2_TAGS:
             if tag in POSE3_TAGS:
@@ -292,8 +288,7 @@ def read_pose_graph_2d(
                     line=line_no,
                     field="tag",
                 )
-            skipped[tag] = skipped.get(tag, 0) + 1
-            skipped_first.setdefault(tag, line_no)
+            book.skip(tag, line_no)
             continue
         edge = tag in (G2O_EDGE_TAG, TORO_EDGE_TAG)
         id_names = ("i", "j") if edge else ("id",)
@@ -355,15 +350,11 @@ def read_pose_graph_2d(
                 field="information",
             )
 
-    tally = ", ".join(
-        f"{_tables.shown(tag)} x{count} (first on line {skipped_first[tag]})"
-        for tag, count in skipped.items()
-    )
-    if skipped and not edge_lines:
+    if book.skipped and not edge_lines:
         raise DataError(
             path_str,
             f"no 2-D pose edges ({G2O_EDGE_TAG} or {TORO_EDGE_TAG}), only tags this reader "
-            f"does not read: {tally} (tags read: {_TAGS})",
+            f"does not read: {book.tally()} (tags read: {_TAGS})",
         )
     if not vertices and not edge_lines:
         raise DataError(path_str, f"no vertices or edges (tags read: {_TAGS})")
@@ -375,33 +366,13 @@ def read_pose_graph_2d(
         order = np.argsort(table[:, 0], kind="stable")
         vertex_ids = np.array(sorted(vertex_line), dtype=np.int64)
         positions, headings = table[order, 1:3], table[order, 3]
-        rows = np.searchsorted(vertex_ids, pairs)
-        known = vertex_ids[np.minimum(rows, vertex_ids.size - 1)] == pairs
-        if not known.all():
-            k, side = (int(x) for x in np.argwhere(~known)[0])
-            raise DataError(
-                path_str,
-                f"edge names vertex {int(pairs[k, side])}, which no vertex line defines",
-                line=int(lines[k]),
-                field="ij"[side],
-            )
+        rows = edge_rows(path_str, vertex_ids, pairs, lines)
     else:
         vertex_ids = np.unique(pairs)
         rows = np.searchsorted(vertex_ids, pairs)
         positions, headings = _chain_2d(path_str, vertex_ids, pairs, edges[:, :3], lines)
-    unknown_fix = sorted(set(fixes) - set(vertex_ids.tolist()), key=fixes.__getitem__)
-    if unknown_fix:
-        vid = unknown_fix[0]
-        defined = "vertex line defines" if vertices else "edge names"
-        raise DataError(
-            path_str, f"FIX names vertex {vid}, which no {defined}", line=fixes[vid], field="id"
-        )
-    if skipped:
-        warnings.warn(
-            f"{path_str}: skipped {sum(skipped.values())} lines with tags this reader does not "
-            f"read: {tally} (tags read: {_TAGS})",
-            stacklevel=2,
-        )
+    book.check_fixes(vertex_ids, bool(vertices))
+    book.warn_skipped(_TAGS)
 
     def f64(x: np.ndarray) -> torch.Tensor:
         return torch.as_tensor(np.ascontiguousarray(x), dtype=torch.float64)
@@ -416,9 +387,9 @@ def read_pose_graph_2d(
         edge_information=f64(edges[:, 3:].reshape(-1, 3, 3)),
         has_vertices=bool(vertices),
         edge_lines=torch.as_tensor(lines, dtype=torch.int64),
-        skipped=skipped,
+        skipped=book.skipped,
         source=path_str,
-        fixed_ids=tuple(sorted(fixes)),
+        fixed_ids=tuple(sorted(book.fixes)),
     )
     graph.check()
     return graph
