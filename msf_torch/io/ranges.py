@@ -20,7 +20,9 @@ Rules
     is negative, and a range to an anchor the anchors file does not list are DataErrors
     naming file, line and column. Ranges out of time order are sorted (``meta``
     counts them); ranges before the first or after the last odometry time are dropped
-    (counted in ``meta["ranges_outside"]``); the truth must span the odometry's times.
+    (counted in ``meta["ranges_outside"]``); anchors left with no range are listed in
+    ``meta["anchors_without_ranges"]`` (held, they play no part; solved, they stay at their
+    first guess); the truth must span the odometry's times.
 """
 
 from __future__ import annotations
@@ -186,6 +188,7 @@ def read_range_run(
         "ranges_outside": int((~inside).sum()),
     }
     rng, range_ids = rng[inside], range_ids[inside]
+    meta["anchors_without_ranges"] = sorted(set(anchor_ids.tolist()) - set(range_ids.tolist()))
 
     def f64(x: np.ndarray) -> torch.Tensor:
         return torch.as_tensor(np.ascontiguousarray(x), dtype=torch.float64)

@@ -109,6 +109,14 @@ def test_sorted_ranges_inside_the_span_are_counted_as_such(tmp_path):
     assert run.range_t.tolist() == [0.0, 4.0]
 
 
+def test_anchors_without_ranges_are_listed(tmp_path):
+    """Anchor 4 is never ranged and anchor 7 only after the odometry ends (4.5 s): both
+    listed, sorted by id; every anchor of the default files is ranged."""
+    run = _read(tmp_path, ranges="t,anchor,range\n4.5,7,2.0\n0.0,2,1.0\n")
+    assert run.meta["anchors_without_ranges"] == [4, 7]
+    assert _read(tmp_path).meta["anchors_without_ranges"] == []
+
+
 def test_anchors_sorted_by_id_with_their_positions(tmp_path):
     run = _read(tmp_path)
     assert run.anchor_ids.tolist() == [2, 4, 7] and run.anchor_ids.dtype == torch.int64
