@@ -198,13 +198,22 @@ def estimate_start(
             are used. headings: headings tried over the full turn.
 
     Raises:
-        ValueError: fewer than three ranges in the window.
+        ValueError: fewer than three ranges in the window, or all of them to anchors at one
+            position (the run could be turned about it: the heading is not observable).
     """
     early = _early(run, window_m)
     if int(early.sum()) < 3:
         raise ValueError(
             f"finding the start needs 3 or more ranges in the first {window_m:g} m travelled, "
             f"got {int(early.sum())}; give the start pose"
+        )
+    ranged = run.range_anchor_rows()[early].unique()
+    if torch.unique(run.anchors[ranged], dim=0).shape[0] < 2:
+        x, y = run.anchors[ranged[0]].tolist()
+        raise ValueError(
+            f"finding the start needs ranges to anchors at 2 or more positions in the first "
+            f"{window_m:g} m travelled, got ranges to anchor(s) "
+            f"{run.anchor_ids[ranged].tolist()} at ({x:g}, {y:g}) only; give the start pose"
         )
     offsets = run.odometry_poses(run.odometry.new_zeros(3))[run.range_pose_index()[early]]
     anchors = run.anchors[run.range_anchor_rows()[early]]
@@ -255,7 +264,8 @@ def smooth_ranges(
         :class:`RangeSmootherResult`.
 
     Raises:
-        ValueError: too few ranges to find the start or an anchor.
+        ValueError: too few ranges to find the start or an anchor; a given start heading
+            beyond a full turn (degrees by mistake).
     """
     settings = settings or RangeSmootherSettings()
     begin = time.perf_counter()
@@ -264,6 +274,12 @@ def smooth_ranges(
     searched = settings.start is None and guessed
     if settings.start is not None:
         start = settings.start.to(torch.float64)
+        heading = float(start[-1]) if start.shape == (3,) else 0.0
+        if abs(heading) > 2 * math.pi:
+            raise ValueError(
+                f"start heading {heading:g} rad is more than a full turn; headings are in "
+                f"radians ({heading:g} degrees would be {math.radians(heading):.4f} rad)"
+            )
     elif searched:
         start = estimate_start(
             run, ranges, settings.range_sigma_m, settings.start_window_m, settings.start_headings

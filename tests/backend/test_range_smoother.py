@@ -156,6 +156,39 @@ def test_estimate_start_needs_three_ranges(run):
         estimate_start(few, few.ranges, RANGE_SIGMA_M)
 
 
+@pytest.mark.parametrize("positions", ["one anchor", "coincident guesses"])
+def test_estimate_start_needs_two_anchor_positions(run, positions):
+    """Ranges to one anchor (or to anchors all guessed at one place) fit the run turned
+    about it at any heading: refused, not a heading picked at random."""
+    if positions == "one anchor":
+        kept = run.range_anchor == ANCHOR_IDS[1]
+        case = dataclasses.replace(
+            run,
+            range_t=run.range_t[kept],
+            range_anchor=run.range_anchor[kept],
+            ranges=run.ranges[kept],
+        )
+        named = r"anchor\(s\) \[5\] at \(25, -18\) only; give the start pose"
+    else:
+        case = dataclasses.replace(run, anchors=torch.zeros_like(ANCHORS))
+        named = r"anchor\(s\) \[3, 5, 8, 11\] at \(0, 0\) only; give the start pose"
+    with pytest.raises(ValueError, match="needs ranges to anchors at 2 or more positions"):
+        estimate_start(case, case.ranges, RANGE_SIGMA_M)
+    with pytest.raises(ValueError, match=named):
+        smooth_ranges(case, RangeSmootherSettings())
+
+
+def test_start_heading_in_degrees_is_refused(run, settings):
+    """40 (degrees meant) is refused naming its radians; a heading just past the half turn
+    (3.5 rad, not wrapped) is taken as given."""
+    start = torch.tensor([5.0, -3.0, 40.0], dtype=DT)
+    with pytest.raises(ValueError, match=r"start heading 40 rad .* would be 0\.6981 rad"):
+        smooth_ranges(run, dataclasses.replace(settings, start=start))
+    start[2] = 3.5
+    result = smooth_ranges(run, dataclasses.replace(settings, start=start, max_iterations=1))
+    assert torch.equal(result.start, start)
+
+
 def test_smooth_with_the_start_searched_and_given(run, settings):
     """Both within 0.1 m RMSE of the truth where dead reckoning from the true start is
     0.4 m off; a given start is used as it is."""
