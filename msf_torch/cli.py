@@ -261,7 +261,7 @@ def build_parser() -> argparse.ArgumentParser:
     rg.add_argument(
         "--solve-anchors",
         action="store_true",
-        help="solve for the anchors too (range-only SLAM; the map frame is then the start)",
+        help="solve for the anchors too (range-only SLAM), the anchors file giving first guesses",
     )
 
     lm = sub.add_parser(
@@ -789,6 +789,10 @@ def _cmd_ranges(args) -> dict[str, Any]:
     from msf_torch.types import Trajectory
 
     files = (args.odometry, args.ranges, args.anchors)
+    if args.out is not None and args.out.exists() and not args.out.is_dir():
+        raise ValueError(f"--out {args.out} is a file; give a folder")
+    if args.plot is not None and args.plot.is_dir():
+        raise ValueError(f"--plot {args.plot} is a folder; give a file name")
     if args.run is not None and any(f is not None for f in (*files, args.truth)):
         raise ValueError("give a shipped run or the CSV files, not both")
     settings = RangeSmootherSettings(solve_anchors=args.solve_anchors)

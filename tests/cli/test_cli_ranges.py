@@ -150,3 +150,13 @@ def test_a_range_to_an_unlisted_anchor_names_file_and_line(csv_run, tmp_path, ca
     assert main(args) == 2
     err = capsys.readouterr().err
     assert "ranges.csv:3" in err and "anchor 99" in err
+
+
+def test_output_paths_of_the_wrong_kind_are_refused_before_solving(csv_run, tmp_path, capsys):
+    """Were a FileExistsError / IsADirectoryError traceback after the whole solve."""
+    a_file = tmp_path / "out.txt"
+    a_file.write_text("")
+    assert main(["ranges", *_files(csv_run), "--out", str(a_file)]) == 2
+    assert f"--out {a_file} is a file" in capsys.readouterr().err
+    assert main(["ranges", *_files(csv_run), "--plot", str(tmp_path)]) == 2
+    assert f"--plot {tmp_path} is a folder" in capsys.readouterr().err

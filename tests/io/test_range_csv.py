@@ -137,6 +137,14 @@ def test_truth_interpolated_to_the_pose_times(tmp_path):
     assert torch.equal(run.odometry_poses()[0], torch.zeros(3, dtype=DT))
 
 
+def test_a_slower_truth_may_end_one_of_its_periods_early(tmp_path):
+    """A 5 Hz RTK log ends up to 0.2 s before 10 Hz odometry: kept (was refused), the last
+    pose takes the truth's last position."""
+    truth = "t,x,y\n0,0,0\n1,1,0\n2,2,0\n3,3,0\n3.5,3.5,0\n"  # median period 1 s
+    run = _read(tmp_path, truth=truth)
+    assert run.truth[-1, 0:2].tolist() == [3.5, 0.0]  # odometry ends at 4.0 s
+
+
 def _error(tmp_path: Path, **texts: str) -> DataError:
     with pytest.raises(DataError) as info:
         _read(tmp_path, **texts)
@@ -175,14 +183,14 @@ BAD = [
     ("anchors", "anchor,x,y\n2,0,0\n4,0,0\n7,0,x\n", "not a number", 4, "y"),
     ("truth", "t,x,y\n-1,0,0\n", "need 2 or more rows with increasing times", None, None),
     ("truth", "t,x,y\n-1,0,0\n3,0,0\n3,1,1\n9,0,0\n", "increasing times", None, None),
-    (
+    (  # starts more than one of its periods (0.1 s) after the odometry
         "truth",
-        "t,x,y\n0.5,0,0\n9,0,0\n",
+        "t,x,y\n0.5,0,0\n0.6,0,0\n0.7,0,0\n9,0,0\n",
         r"covers 0\.500\.\.9\.000 s, not the odometry's 0\.000\.\.4\.000",
         None,
         None,
     ),
-    ("truth", "t,x,y\n0,0,0\n3.9,0,0\n", "not the odometry's", None, None),
+    ("truth", "t,x,y\n0,0,0\n0.1,0,0\n0.2,0,0\n3.5,0,0\n", "not the odometry's", None, None),
     ("truth", "t,x\n0,0\n4,0\n", "missing column", 1, "y"),
 ]
 
