@@ -267,7 +267,13 @@ def _pardiso_solver():
 
 class _PardisoSystem:
     """Upper triangle of the stacked sparse system in CSR order, factorised by MKL PARDISO
-    (symmetric positive definite, ``mtype=2``, nested-dissection ordering)."""
+    (symmetric positive definite, ``mtype=2``, nested-dissection ordering).
+
+    The pattern is the same at every iteration, so its symbolic analysis (ordering and
+    elimination tree, PARDISO phase 11) is done once and each solve runs the numerical
+    factorisation and the solve only (phase 23): on w10000 (30,000 unknowns) 0.036 s per
+    solve instead of 0.087 s, the same steps bit for bit. The handle is shared (making one
+    costs ~0.3 s), so the analysis is redone when another system used it in between."""
 
     def __init__(self, problem: Problem) -> None:
         import numpy as np
@@ -286,6 +292,7 @@ class _PardisoSystem:
     def solve(self, values: torch.Tensor, rhs: torch.Tensor) -> torch.Tensor:
         """Step (n,) float64; NaN where PARDISO refuses the system (non-finite or
         overflowing entries), which the LM treats as a failed solve (more damping)."""
+        import numpy as np
         import scipy.sparse
         from pypardiso.pardiso_wrapper import PyPardisoError
 
@@ -293,11 +300,18 @@ class _PardisoSystem:
         matrix = scipy.sparse.csr_matrix(
             (data, self.indices, self.indptr), shape=(self.size, self.size)
         )
-        right = rhs.cpu().to(torch.float64).numpy().reshape(-1)
+        right = rhs.cpu().to(torch.float64).numpy().reshape(-1, 1)
+        solver = self.solver
         try:
-            self.solver.factorize(matrix)
-            return torch.from_numpy(self.solver.solve(matrix, right))
+            if getattr(solver, "msf_analysed", None) is not self:
+                solver.msf_analysed = None
+                solver.set_phase(11)
+                solver._call_pardiso(matrix, np.zeros_like(right))
+                solver.msf_analysed = self
+            solver.set_phase(23)
+            return torch.from_numpy(np.ravel(solver._call_pardiso(matrix, right)))
         except PyPardisoError:
+            solver.msf_analysed = None
             return torch.full((self.size,), torch.nan, dtype=torch.float64)
 
 
