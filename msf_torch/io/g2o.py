@@ -343,8 +343,16 @@ class RecordBook:
         for token in tokens[1:]:
             self.fixes.setdefault(parse_id(self.path, token, line, "id"), line)
 
-    def skip(self, tag: str, line: int) -> None:
-        """Count a line whose tag the reader does not read."""
+    def other_tag(self, tag: str, line: int, mode: str, tags_read: str) -> None:
+        """A line whose tag the reader does not read: counted (``mode`` ``"skip"``) or a
+        DataError (``"error"``)."""
+        if mode == "error":
+            raise DataError(
+                self.path,
+                f"unknown tag {_tables.shown(tag)} (known: {tags_read})",
+                line=line,
+                field="tag",
+            )
         self.skipped[tag] = self.skipped.get(tag, 0) + 1
         self.first.setdefault(tag, line)
 
@@ -593,14 +601,7 @@ def read_pose_graph(
                     line=line_no,
                     field="tag",
                 )
-            if unknown_tags == "error":
-                raise DataError(
-                    path_str,
-                    f"unknown tag {_tables.shown(tag)} (known: {_TAGS})",
-                    line=line_no,
-                    field="tag",
-                )
-            book.skip(tag, line_no)
+            book.other_tag(tag, line_no, unknown_tags, _TAGS)
             continue
         _parse_line(path_str, spec, tokens, line_no, records[tag])
         if not spec.edge:

@@ -281,14 +281,7 @@ def read_pose_graph_2d(
                     line=line_no,
                     field="tag",
                 )
-            if unknown_tags == "error":
-                raise DataError(
-                    path_str,
-                    f"unknown tag {_tables.shown(tag)} (known: {_TAGS})",
-                    line=line_no,
-                    field="tag",
-                )
-            book.skip(tag, line_no)
+            book.other_tag(tag, line_no, unknown_tags, _TAGS)
             continue
         edge = tag in (G2O_EDGE_TAG, TORO_EDGE_TAG)
         id_names = ("i", "j") if edge else ("id",)
