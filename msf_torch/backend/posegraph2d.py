@@ -53,7 +53,7 @@ from msf_torch.backend.factors import _Binary, _Evaluated
 from msf_torch.backend.problem import Problem
 from msf_torch.backend.robust import RobustKernel
 from msf_torch.backend.variables import VariableKind
-from msf_torch.geometry.se2 import compose, rotation, wrap_angle
+from msf_torch.geometry.se2 import between, compose, rotation, wrap_angle
 from msf_torch.io.g2o import PoseGraph
 from msf_torch.io.g2o_2d import PoseGraph2D
 
@@ -126,17 +126,15 @@ def se2_between_residual(
         Jacobians (..., 3, 3) w.r.t. the tangent steps of i and j (module docstring), or
         None, None.
     """
-    rot_i_t = rotation(-pose_i[..., 2])
-    rot_z_t = rotation(-measured_heading)
-    local = (rot_i_t @ (pose_j[..., 0:2] - pose_i[..., 0:2])[..., None]).squeeze(-1)
-    error_t = (rot_z_t @ (local - measured_translation)[..., None]).squeeze(-1)
-    turn = pose_j[..., 2] - pose_i[..., 2] - measured_heading
-    residual, big_a, slope = se2_log(torch.cat((error_t, turn[..., None]), -1))
+    measured = torch.cat((measured_translation, measured_heading[..., None]), -1)
+    relative = between(pose_i, pose_j)  # T_i^-1 T_j
+    error = between(measured, relative)  # Z^-1 T_i^-1 T_j
+    residual, big_a, slope = se2_log(error)
     if not jacobians:
         return residual, None, None
     lead = residual.shape[:-1]
     half = 0.5 * residual[..., 2]
-    t_x, t_y = error_t[..., 0], error_t[..., 1]
+    t_x, t_y = error[..., 0], error[..., 1]
     zero, one = torch.zeros_like(half), torch.ones_like(half)
     log_jac = torch.stack(
         (
@@ -146,13 +144,14 @@ def se2_between_residual(
         ),
         -2,
     )
+    rot_z_t = rotation(-measured_heading)
     moved_i = residual.new_zeros(*lead, 3, 3)
     moved_i[..., 0:2, 0:2] = -rot_z_t
-    swapped = torch.stack((local[..., 1], -local[..., 0]), -1)  # S d
+    swapped = torch.stack((relative[..., 1], -relative[..., 0]), -1)  # S d
     moved_i[..., 0:2, 2] = (rot_z_t @ swapped[..., None]).squeeze(-1)
     moved_i[..., 2, 2] = -1.0
     moved_j = residual.new_zeros(*lead, 3, 3)
-    moved_j[..., 0:2, 0:2] = rotation(turn)
+    moved_j[..., 0:2, 0:2] = rotation(error[..., 2])
     moved_j[..., 2, 2] = 1.0
     return residual, log_jac @ moved_i, log_jac @ moved_j
 
