@@ -42,7 +42,7 @@ from msf_torch.backend.lm import solve
 from msf_torch.backend.posegraph import pose_graph_config
 from msf_torch.backend.range2d import OdometryNoise, multilaterate, odometry_range_problem
 from msf_torch.backend.robust import RobustKernel
-from msf_torch.geometry.se2 import between, compose
+from msf_torch.geometry.se2 import between, chain
 from msf_torch.io.ranges import RangeRun
 
 
@@ -156,9 +156,7 @@ def calibrate_from_truth(
         return out
     forward, sideways, lengths = [], [], []
     for start in starts:
-        chained = run.odometry.new_zeros(3)
-        for step in run.odometry[start : start + stretch_steps]:
-            chained = compose(chained, step)
+        chained = chain(run.odometry.new_zeros(3), run.odometry[start : start + stretch_steps])[-1]
         reference = between(truth[start], truth[start + stretch_steps])
         forward.append(float(chained[0] - reference[0]))
         sideways.append(float(chained[1] - reference[1]))
