@@ -234,7 +234,11 @@ def build_parser() -> argparse.ArgumentParser:
     )
     rg.add_argument("--odometry", type=Path, help="CSV t,x,y,heading (odometry poses)")
     rg.add_argument("--ranges", type=Path, help="CSV t,anchor,range")
-    rg.add_argument("--anchors", type=Path, help="CSV anchor,x,y (map frame)")
+    rg.add_argument(
+        "--anchors",
+        type=Path,
+        help="CSV anchor,x,y (map frame); with --solve-anchors first guesses, or left out",
+    )
     rg.add_argument("--truth", type=Path, help="CSV t,x,y reference positions (errors)")
     rg.add_argument("--out", type=Path, default=None, help="folder: trajectory.tum, anchors.csv")
     rg.add_argument("--plot", type=Path, default=None, metavar="PNG", help="write a figure")
@@ -261,7 +265,8 @@ def build_parser() -> argparse.ArgumentParser:
     rg.add_argument(
         "--solve-anchors",
         action="store_true",
-        help="solve for the anchors too (range-only SLAM), the anchors file giving first guesses",
+        help="solve for the anchors too (range-only SLAM): the anchors file gives first "
+        "guesses; without one the map frame is the odometry's start",
     )
 
     lm = sub.add_parser(
@@ -802,8 +807,15 @@ def _cmd_ranges(args) -> dict[str, Any]:
         run = load_plaza(name)
         settings = calibrate_from_truth(load_plaza(other), settings)
         settings.start = run.truth[0]
-    elif any(f is None for f in files):
-        raise ValueError("give --odometry, --ranges and --anchors (or a shipped run name)")
+    elif (
+        args.odometry is None
+        or args.ranges is None
+        or (args.anchors is None and not args.solve_anchors)
+    ):
+        raise ValueError(
+            "give --odometry, --ranges and --anchors (--anchors may be left out with "
+            "--solve-anchors), or a shipped run name"
+        )
     else:
         run = read_range_run(*files, truth=args.truth)
     if args.range_sigma is not None:

@@ -42,7 +42,7 @@ from msf_torch.backend.lm import solve
 from msf_torch.backend.posegraph import pose_graph_config
 from msf_torch.backend.range2d import OdometryNoise, multilaterate, odometry_range_problem
 from msf_torch.backend.robust import RobustKernel
-from msf_torch.geometry.se2 import between, chain
+from msf_torch.geometry.se2 import align_points, between, chain, transform_points
 from msf_torch.io.ranges import RangeRun
 
 
@@ -88,7 +88,9 @@ class RangeSmootherResult:
         start: (3,) the start pose the solve began from. start_searched: whether it was.
         initial_cost, final_cost: GTSAM-convention cost. iterations: linear solves.
         status: the LM status. seconds: wall time.
-        truth_error: position RMSE / max / final (m) against ``run.truth``, or None.
+        truth_error: position RMSE / max / final (m) against ``run.truth`` (``aligned``:
+            after the best rigid motion, when the map frame is the odometry's start), or
+            None.
     """
 
     poses: torch.Tensor
@@ -231,19 +233,32 @@ def estimate_start(
     return best
 
 
+_MIN_SPREAD_M = 1.0
+"""Sideways spread (m, the smaller principal axis) the poses of an anchor's first ranges
+must have before they place it: from a straight stretch the anchor's mirror image across it
+fits as well, and a robust kernel then keeps the wrong one (its ranges all taken for
+outliers)."""
+
+
 def _initial_anchors(run: RangeRun, start: torch.Tensor, ranges: torch.Tensor, window_m: float):
-    """Anchors multilaterated from the first ``window_m`` metres' ranges at the
-    dead-reckoned poses (all of an anchor's ranges when the window holds fewer than 3)."""
+    """Anchors multilaterated at the dead-reckoned poses from their ranges of the first
+    ``window_m`` metres, or of as much longer as it takes for those poses to spread
+    :data:`_MIN_SPREAD_M` sideways (all of the anchor's ranges at most)."""
     early = _early(run, window_m)
     dead_reckoning = run.odometry_poses(start)[run.range_pose_index(), 0:2]
     rows = run.range_anchor_rows()
     guesses = []
     for j in range(run.anchors.shape[0]):
-        chosen = early & (rows == j)
-        if int(chosen.sum()) < 3:
-            chosen = rows == j
-        if int(chosen.sum()) < 3:
+        mine = torch.nonzero(rows == j).squeeze(-1)
+        if mine.numel() < 3:
             raise ValueError(f"anchor {int(run.anchor_ids[j])} has fewer than 3 ranges")
+        count = max(3, int(early[mine].sum()))
+        while count < mine.numel():
+            spread = torch.linalg.eigvalsh(torch.cov(dead_reckoning[mine[:count]].T))[0]
+            if float(spread) >= _MIN_SPREAD_M**2:
+                break
+            count = min(mine.numel(), 2 * count)
+        chosen = mine[:count]
         guesses.append(multilaterate(dead_reckoning[chosen], ranges[chosen]))
     return torch.stack(guesses)
 
@@ -251,7 +266,7 @@ def _initial_anchors(run: RangeRun, start: torch.Tensor, ranges: torch.Tensor, w
 def smooth_ranges(
     run: RangeRun,
     settings: RangeSmootherSettings | None = None,
-    anchors_known_positions: bool = True,
+    anchors_known_positions: bool | None = None,
 ) -> RangeSmootherResult:
     """Solve a whole run (module docstring).
 
@@ -259,16 +274,26 @@ def smooth_ranges(
         run: odometry, ranges, anchors (:func:`~msf_torch.io.ranges.read_range_run`).
         settings: :class:`RangeSmootherSettings`.
         anchors_known_positions: with ``settings.solve_anchors``, whether ``run.anchors``
-            holds usable first guesses (else they are multilaterated).
+            holds usable first guesses (else they are multilaterated); None: whether they
+            are all finite (:func:`~msf_torch.io.ranges.read_range_run` gives NaN without
+            an anchors file).
 
     Returns:
         :class:`RangeSmootherResult`.
 
     Raises:
         ValueError: too few ranges to find the start or an anchor; a given start heading
-            beyond a full turn (degrees by mistake).
+            beyond a full turn (degrees by mistake); anchors without positions to hold
+            (``solve_anchors`` off).
     """
     settings = settings or RangeSmootherSettings()
+    if anchors_known_positions is None:
+        anchors_known_positions = bool(torch.isfinite(run.anchors).all())
+    if not settings.solve_anchors and not bool(torch.isfinite(run.anchors).all()):
+        raise ValueError(
+            "the anchors' positions are unknown (no anchors file, or NaN): give them, or solve "
+            "for them (solve_anchors, msf ranges --solve-anchors)"
+        )
     begin = time.perf_counter()
     ranges = run.ranges - settings.range_bias_m
     guessed = not settings.solve_anchors or anchors_known_positions
@@ -322,11 +347,16 @@ def smooth_ranges(
     poses = result.values["pose"][0]
     truth_error = None
     if run.truth is not None:
-        distance = (poses[:, 0:2] - run.truth[:, 0:2]).norm(dim=-1)
+        positions = poses[:, 0:2]
+        own_frame = settings.start is None and not anchors_known_positions
+        if own_frame:  # the map frame is the odometry's start: compare up to a rigid motion
+            positions = transform_points(align_points(positions, run.truth[:, 0:2]), positions)
+        distance = (positions - run.truth[:, 0:2]).norm(dim=-1)
         truth_error = {
             "rmse_m": float(distance.pow(2).mean().sqrt()),
             "max_m": float(distance.max()),
             "final_m": float(distance[-1]),
+            "aligned": own_frame,
         }
     return RangeSmootherResult(
         poses=poses,

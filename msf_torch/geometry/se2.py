@@ -22,6 +22,7 @@ __all__ = [
     "between",
     "chain",
     "transform_points",
+    "align_points",
 ]
 
 import math
@@ -76,3 +77,14 @@ def chain(start: torch.Tensor, steps: torch.Tensor) -> torch.Tensor:
 def transform_points(pose: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
     """Points (..., N, 2) of a frame mapped by its pose (..., 3) into the parent frame."""
     return points @ rotation(pose[..., 2]).mT + pose[..., None, :2]
+
+
+def align_points(estimate: torch.Tensor, reference: torch.Tensor) -> torch.Tensor:
+    """The rigid motion (3,) ``[x, y, theta]`` that best maps points ``estimate`` (N, 2) onto
+    ``reference`` (N, 2) in least squares (Umeyama / Kabsch without scale): apply it with
+    :func:`transform_points`."""
+    mean_e, mean_r = estimate.mean(0), reference.mean(0)
+    cross = (estimate - mean_e).T @ (reference - mean_r)  # (2, 2)
+    theta = torch.atan2(cross[0, 1] - cross[1, 0], cross[0, 0] + cross[1, 1])
+    shift = mean_r - rotation(theta) @ mean_e
+    return torch.cat((shift, theta[None]))

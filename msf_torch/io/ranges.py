@@ -10,7 +10,7 @@ skipped; times in s, lengths in m, angles in rad)
       times.
     * ranges: ``t,anchor,range`` -- anchor ids are integers.
     * anchors: ``anchor,x,y`` -- the anchors' positions in the map frame (surveyed, or a
-      first guess when they are solved for).
+      first guess when they are solved for); no file when their positions are unknown.
     * truth (optional): ``t,x,y`` -- reference positions in the map frame (RTK, a motion
       capture), interpolated linearly to the pose times for the error figures.
 
@@ -116,13 +116,15 @@ def _whole(table: Any, values: np.ndarray, name: str) -> np.ndarray:
 def read_range_run(
     odometry: str | os.PathLike[str],
     ranges: str | os.PathLike[str],
-    anchors: str | os.PathLike[str],
+    anchors: str | os.PathLike[str] | None = None,
     truth: str | os.PathLike[str] | None = None,
 ) -> RangeRun:
     """Read a run from its CSV files (module docstring).
 
     Args:
-        odometry, ranges, anchors: the three files. truth: optional reference positions.
+        odometry, ranges: the files. anchors: the anchors file, or None when their positions
+            are unknown (range-only SLAM without guesses): the ids are those the ranges
+            name, the positions NaN. truth: optional reference positions.
 
     Returns:
         a :class:`RangeRun`; ``meta`` holds the files, the ranges sorted and dropped, and
@@ -143,19 +145,25 @@ def read_range_run(
             field="t",
         )
     range_table, rng = _read(ranges, ["t", "anchor", "range"])
-    anchor_table, anc = _read(anchors, ["anchor", "x", "y"])
-    anchor_ids = _whole(anchor_table, anc[:, 0], "anchor")
-    order = np.argsort(anchor_ids, kind="stable")
-    repeated = np.flatnonzero(np.diff(anchor_ids[order]) == 0)
-    if repeated.size:
-        row = int(order[repeated[0] + 1])
-        raise DataError(
-            anchor_table.path,
-            f"anchor {anchor_ids[row]} is listed twice",
-            line=int(anchor_table.lines[row]),
-            field="anchor",
-        )
     range_ids = _whole(range_table, rng[:, 1], "anchor")
+    if anchors is None:
+        anchor_ids = np.unique(range_ids)
+        anc = np.full((anchor_ids.size, 3), np.nan)
+        anchor_path = None
+    else:
+        anchor_table, anc = _read(anchors, ["anchor", "x", "y"])
+        anchor_path = anchor_table.path
+        anchor_ids = _whole(anchor_table, anc[:, 0], "anchor")
+        order = np.argsort(anchor_ids, kind="stable")
+        repeated = np.flatnonzero(np.diff(anchor_ids[order]) == 0)
+        if repeated.size:
+            row = int(order[repeated[0] + 1])
+            raise DataError(
+                anchor_table.path,
+                f"anchor {anchor_ids[row]} is listed twice",
+                line=int(anchor_table.lines[row]),
+                field="anchor",
+            )
     if (rng[:, 2] < 0).any():
         row = int(np.flatnonzero(rng[:, 2] < 0)[0])
         raise DataError(
@@ -169,7 +177,7 @@ def read_range_run(
         row = int(np.flatnonzero(unknown)[0])
         raise DataError(
             range_table.path,
-            f"range to anchor {range_ids[row]}, which {Path(anchor_table.path).name} does not "
+            f"range to anchor {range_ids[row]}, which {Path(str(anchor_path)).name} does not "
             f"list ({sorted(anchor_ids.tolist())})",
             line=int(range_table.lines[row]),
             field="anchor",
@@ -182,7 +190,7 @@ def read_range_run(
         "files": {
             "odometry": odo_table.path,
             "ranges": range_table.path,
-            "anchors": anchor_table.path,
+            "anchors": anchor_path,
         },
         "ranges_reordered": reordered,
         "ranges_outside": int((~inside).sum()),

@@ -268,3 +268,9 @@ def test_plaza2_with_plaza1_calibration(plaza):
     assert result.status == "converged"
     assert result.truth_error["rmse_m"] < 0.6
     assert _position_rmse(plaza2.odometry_poses(), plaza2.truth) > 25.0
+
+
+def test_holding_anchors_without_positions_is_refused(run, settings):
+    unknown = dataclasses.replace(run, anchors=torch.full_like(ANCHORS, math.nan))
+    with pytest.raises(ValueError, match="positions are unknown"):
+        smooth_ranges(unknown, settings)

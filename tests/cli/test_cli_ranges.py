@@ -160,3 +160,23 @@ def test_output_paths_of_the_wrong_kind_are_refused_before_solving(csv_run, tmp_
     assert f"--out {a_file} is a file" in capsys.readouterr().err
     assert main(["ranges", *_files(csv_run), "--plot", str(tmp_path)]) == 2
     assert f"--plot {tmp_path} is a folder" in capsys.readouterr().err
+
+
+def test_slam_without_an_anchors_file(csv_run, tmp_path, capsys):
+    """Range-only SLAM from nothing: anchor ids from the ranges, positions multilaterated,
+    the map in the odometry's start frame; errors reported after a rigid alignment."""
+    args = [a for a in _files(csv_run)]
+    anchors_at = args.index("--anchors")
+    del args[anchors_at : anchors_at + 2]
+    out = tmp_path / "scratch"
+    assert main(["ranges", *args, "--solve-anchors", "--out", str(out)]) == 0
+    summary = _last_json(capsys.readouterr().out)
+    assert summary["start"] == [0.0, 0.0, 0.0] and not summary["start_searched"]
+    assert summary["truth_error"]["aligned"] and summary["truth_error"]["rmse_m"] < 0.15
+    solved = np.loadtxt(out / "anchors.csv", delimiter=",", skiprows=1)
+    assert solved[:, 0].tolist() == sorted(ANCHORS)
+    true = np.array([ANCHORS[a] for a in sorted(ANCHORS)])
+    spacing = np.linalg.norm(solved[:, None, 1:] - solved[None, :, 1:], axis=-1)
+    assert np.abs(spacing - np.linalg.norm(true[:, None] - true[None], axis=-1)).max() < 0.3
+    assert main(["ranges", *args]) == 2  # held anchors need their positions
+    assert "--anchors may be left out with --solve-anchors" in capsys.readouterr().err
