@@ -92,6 +92,7 @@ from msf_torch.backend.range2d import (  # noqa: E402
 from msf_torch.backend.range_smoother import calibrate_from_truth  # noqa: E402
 from msf_torch.backend.robust import RobustKernel  # noqa: E402
 from msf_torch.eval.plots import range_run_figure  # noqa: E402
+from msf_torch.geometry.se2 import align_points, transform_points  # noqa: E402
 from msf_torch.io.plaza import PLAZA_RUNS, load_plaza  # noqa: E402
 from msf_torch.io.ranges import RangeRun  # noqa: E402
 
@@ -116,16 +117,6 @@ def _errors(positions: np.ndarray, truth: np.ndarray) -> dict[str, float]:
         "max_m": float(distance.max()),
         "final_m": float(distance[-1]),
     }
-
-
-def rigid_alignment(estimate: np.ndarray, truth: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Rotation (2, 2) and translation (2,) that best map ``estimate`` (N, 2) onto ``truth``
-    (N, 2) in least squares (Umeyama without scale)."""
-    mean_e, mean_t = estimate.mean(0), truth.mean(0)
-    u, _, vt = np.linalg.svd((estimate - mean_e).T @ (truth - mean_t))
-    flip = np.diag([1.0, np.sign(np.linalg.det(vt.T @ u.T))])
-    rotation = vt.T @ flip @ u.T
-    return rotation, mean_t - rotation @ mean_e
 
 
 def initial_beacons(run: RangeRun, ranges: torch.Tensor, window_s: float) -> torch.Tensor:
@@ -320,20 +311,17 @@ def solve_case(setting: Setting, beacons: torch.Tensor | None) -> dict[str, Any]
         "poses": ours_poses,
     }
     if not known:
-        solved_beacons = ours_result.values["beacon"][0].numpy()
-        rotation, shift = rigid_alignment(ours_poses[:, 0:2], truth)
-        aligned = ours_poses[:, 0:2] @ rotation.T + shift
+        solved_beacons = ours_result.values["beacon"][0]
+        motion = align_points(torch.as_tensor(ours_poses[:, 0:2]), run.truth[:, 0:2])
+        aligned = transform_points(motion, torch.as_tensor(ours_poses[:, 0:2])).numpy()
         case["ours"]["aligned_error"] = _errors(aligned, truth)
-        case["ours"]["alignment_rotation_deg"] = math.degrees(
-            math.atan2(rotation[1, 0], rotation[0, 0])
-        )
+        case["ours"]["alignment_rotation_deg"] = math.degrees(float(motion[2]))
         surveyed = run.anchors.numpy()
+        moved = transform_points(motion, solved_beacons).numpy()
         case["beacons"] = {
             "initial_error_m": np.linalg.norm(beacons.numpy() - surveyed, axis=1).tolist(),
-            "error_m": np.linalg.norm(solved_beacons - surveyed, axis=1).tolist(),
-            "aligned_error_m": np.linalg.norm(
-                solved_beacons @ rotation.T + shift - surveyed, axis=1
-            ).tolist(),
+            "error_m": np.linalg.norm(solved_beacons.numpy() - surveyed, axis=1).tolist(),
+            "aligned_error_m": np.linalg.norm(moved - surveyed, axis=1).tolist(),
         }
     return case
 
