@@ -17,8 +17,9 @@ skipped; times in s, lengths in m, angles in rad)
 Rules
     A missing or unknown column, a value that is not a finite number, odometry times that do
     not increase, a duplicate anchor id, an anchor id or range that is not a whole number or
-    is negative, and a range to an anchor the anchors file does not list are DataErrors
-    naming file, line and column. Ranges out of time order are sorted (``meta``
+    is negative, a range to an anchor the anchors file does not list, and an odometry step or
+    interpolated truth position that overflows the float range are DataErrors naming file,
+    line and column. Ranges out of time order are sorted (``meta``
     counts them); ranges before the first or after the last odometry time are dropped
     (counted in ``meta["ranges_outside"]``); anchors left with no range are listed in
     ``meta["anchors_without_ranges"]`` (held, they play no part; solved, they stay at their
@@ -202,6 +203,16 @@ def read_range_run(
         return torch.as_tensor(np.ascontiguousarray(x), dtype=torch.float64)
 
     poses = f64(odo[:, 1:4])
+    steps = between(poses[:-1], poses[1:])
+    if not bool(torch.isfinite(steps).all()):
+        step, col = (int(x) for x in torch.nonzero(~torch.isfinite(steps))[0])
+        raise DataError(
+            odo_table.path,
+            f"the odometry step from line {int(odo_table.lines[step])} overflows (the "
+            "positions are too large)",
+            line=int(odo_table.lines[step + 1]),
+            field=("x", "y", "heading")[col],
+        )
     reference = None
     if truth is not None:
         truth_table, ref = _read(truth, ["t", "x", "y"])
@@ -216,12 +227,22 @@ def read_range_run(
                 f"{odo[0, 0]:.3f}..{odo[-1, 0]:.3f} s",
             )
         xy = np.stack([np.interp(odo[:, 0], ref[:, 0], ref[:, k]) for k in (1, 2)], -1)
+        if not np.isfinite(xy).all():
+            pose, col = (int(x) for x in np.argwhere(~np.isfinite(xy))[0])
+            row = int(np.clip(np.searchsorted(ref[:, 0], odo[pose, 0]), 1, ref.shape[0] - 1))
+            raise DataError(
+                truth_table.path,
+                f"the truth interpolated to the pose at {odo[pose, 0]!r} s overflows (the "
+                "positions are too large)",
+                line=int(truth_table.lines[row]),
+                field="xy"[col],
+            )
         reference = torch.cat((f64(xy), torch.full((xy.shape[0], 1), float("nan"))), -1)
     order = np.argsort(anchor_ids)
     return RangeRun(
         name=Path(odometry).stem,
         pose_t=f64(odo[:, 0]),
-        odometry=between(poses[:-1], poses[1:]),
+        odometry=steps,
         range_t=f64(rng[:, 0]),
         range_anchor=torch.as_tensor(range_ids),
         ranges=f64(rng[:, 2]),

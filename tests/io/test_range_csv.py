@@ -228,3 +228,24 @@ def test_write_anchors_round_trip(tmp_path):
     order = torch.argsort(ids)
     assert torch.equal(run.anchor_ids, ids[order])
     assert torch.equal(run.anchors, positions[order])
+
+
+@pytest.mark.parametrize(
+    ("name", "text", "line", "column"),
+    [
+        # finite coordinates whose step overflows: x jumps by -2e308, y by -2e308, and a
+        # finite jump of (1.7e308, 1.7e308) seen from a heading of 45 degrees
+        ("odometry", "t,x,y,heading\n0,0,0,0\n1,1e308,0,0\n2,-1e308,0,0\n", 4, "x"),
+        ("odometry", "t,x,y,heading\n0,0,1e308,0\n1,0,-1e308,0\n2,0,0,0\n", 3, "y"),
+        ("odometry", f"t,x,y,heading\n0,0,0,{math.pi / 4!r}\n1,1.7e308,1.7e308,0\n", 3, "x"),
+        # interpolating between y = 1e308 and y = -1e308 overflows (pose at 2.5 s)
+        ("truth", "t,x,y\n-1,0,0\n2,0,1e308\n5,0,-1e308\n", 4, "y"),
+    ],
+)
+def test_steps_and_truth_that_overflow_are_data_errors(tmp_path, name, text, line, column):
+    """Finite but huge coordinates gave inf odometry steps or truth positions (found by hand
+    while adding this reader to the fuzzer: its mutations rarely put two huge values of
+    opposite sign on neighbouring rows)."""
+    error = _error(tmp_path, **{"truth": TRUTH, name: text})
+    assert Path(error.path) == tmp_path / f"{name}.csv"
+    assert (error.line, error.field) == (line, column) and "overflows" in error.problem
