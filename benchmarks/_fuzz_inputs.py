@@ -76,6 +76,7 @@ from msf_torch.io import (
 )
 from msf_torch.io.eqvio import EqvioRun
 from msf_torch.io.kitti_poses import read_kitti_poses
+from msf_torch.io.ranges import RangeRun, read_range_run
 from msf_torch.io.scans import read_scans
 from msf_torch.types import Sequence, Trajectory
 
@@ -514,6 +515,47 @@ def _build_eqvio(rng: np.random.Generator) -> tuple[dict[str, Any], str]:
     return {"eqvio.csv": _csv(_EQVIO_HEADER, rows)}, "eqvio.csv"
 
 
+def _build_range_csv(rng: np.random.Generator) -> tuple[dict[str, Any], str]:
+    """An odometry + anchor-range run (``read_range_run``'s CSV files: odometry and ranges,
+    anchors in four cases of five, truth in half): columns in a drawn order, ranges partly
+    out of time order and partly outside the odometry's span, anchors listed in any order,
+    some never ranged."""
+    n = int(rng.integers(2, 20))
+    t = _times(rng, n, t0=0.0, step=0.1)
+    odo = np.column_stack((t, np.cumsum(rng.normal(size=(n, 2)), 0), rng.uniform(-3, 3, n)))
+    columns = ["t", "x", "y", "heading"]
+    order = rng.permutation(4)
+    files = {"odometry.csv": _csv([columns[k] for k in order], odo[:, order])}
+    ids = rng.choice(50, size=int(rng.integers(1, 6)), replace=False)
+    anchors = [[str(int(i)), *map(_num, rng.normal(size=2) * 10)] for i in ids]
+    if rng.random() < 0.8:  # else positions unknown: no anchors file
+        files["anchors.csv"] = _csv(["anchor", "x", "y"], anchors)
+    k = int(rng.integers(0, 25))
+    range_t = np.sort(rng.uniform(t[0] - 0.05, t[-1] + 0.05, k))
+    range_t[rng.random(k) < 0.2] = t[rng.integers(0, n)]  # some at a pose time, out of order
+    ranges = [[_num(s), str(int(rng.choice(ids))), _num(rng.uniform(0.0, 30.0))] for s in range_t]
+    files["ranges.csv"] = _csv(["t", "anchor", "range"], ranges)
+    if rng.random() < 0.5:
+        m = int(rng.integers(2, 12))
+        ref_t = np.linspace(t[0] - 0.05, t[-1] + 0.05, m)
+        files["truth.csv"] = _csv(
+            ["t", "x", "y"], np.column_stack((ref_t, rng.normal(size=(m, 2)) * 10))
+        )
+    return files, ""
+
+
+def _read_range_csv(folder: Path) -> RangeRun:
+    """``read_range_run`` on a case folder; the anchors and truth files are passed when the
+    case has them."""
+    anchors, truth = folder / "anchors.csv", folder / "truth.csv"
+    return read_range_run(
+        folder / "odometry.csv",
+        folder / "ranges.csv",
+        anchors if anchors.exists() else None,
+        truth if truth.exists() else None,
+    )
+
+
 # ----------------------------------------------------------------------------- result checks
 
 
@@ -642,6 +684,37 @@ def _check_eqvio(run: EqvioRun) -> str | None:
     return None
 
 
+def _check_range_run(run: RangeRun) -> str | None:
+    m, k = run.odometry.shape[0], run.ranges.shape[0]
+    if run.pose_t.shape != (m + 1,) or not (_finite(run.pose_t) and _increasing(run.pose_t)):
+        return "pose_t not (M + 1,) finite and strictly increasing"
+    for name in ("odometry", "ranges"):
+        if not _finite(getattr(run, name)):
+            return f"{name} holds a non-finite value"
+    if run.meta["files"]["anchors"] is None:  # no anchors file: positions unknown (NaN)
+        if not bool(run.anchors.isnan().all()):
+            return "anchors without a file hold a position"
+    elif not _finite(run.anchors):
+        return "anchors holds a non-finite value"
+    if run.range_t.shape != (k,) or run.range_anchor.shape != (k,):
+        return "range_t or range_anchor not (K,)"
+    range_t = run.range_t
+    if not _finite(range_t) or bool((range_t[1:] < range_t[:-1]).any()):
+        return "range_t not finite and non-decreasing"
+    if k and (range_t[0] < run.pose_t[0] or range_t[-1] > run.pose_t[-1]):
+        return "a range outside the odometry's span"
+    if bool((run.ranges < 0).any()):
+        return "a negative range"
+    ids = run.anchor_ids
+    if not _increasing(ids) or run.anchors.shape != (ids.shape[0], 2):
+        return "anchor_ids not strictly increasing or anchors not (L, 2)"
+    if k and not bool(torch.isin(run.range_anchor, ids).all()):
+        return "a range to an unlisted anchor"
+    if run.truth is not None and not (run.truth.shape == (m + 1, 3) and _finite(run.truth[:, :2])):
+        return "truth not (M + 1, 3) with finite x, y"
+    return None
+
+
 READERS: dict[str, Reader] = {
     r.name: r
     for r in (
@@ -691,12 +764,14 @@ READERS: dict[str, Reader] = {
             _check_trajectory,
         ),
         Reader("scans", _build_scans, lambda p, s: read_scans(p), _check_scans, True),
+        Reader("range_csv", _build_range_csv, lambda p, s: _read_range_csv(p), _check_range_run),
     )
 }
 """Reader name -> :class:`Reader`: native ``.npz`` and CSV folder, TUM, EuRoC ASL, the KITTI
 files gtsam ships (``data_dir``), g2o and TORO pose graphs (3-D and 2-D), the EqVIO replay
-CSV, KITTI odometry poses + times, 2D LiDAR scans (``.npz``). Not here: rosbags (binary containers
-written by ``rosbags``; their reader is tested on bags written by its own writers)."""
+CSV, KITTI odometry poses + times, 2D LiDAR scans (``.npz``), odometry + anchor-range CSV
+files (``range_csv``). Not here: rosbags (binary containers written by ``rosbags``; their
+reader is tested on bags written by its own writers)."""
 
 
 # ----------------------------------------------------------------------------- mutations
