@@ -33,6 +33,7 @@ __all__ = [
 import dataclasses
 import math
 import time
+import warnings
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -129,8 +130,8 @@ def calibrate_from_truth(
       against the truth's relative pose, in the truth's frame at the stretch start: the
       forward error's spread^2 per metre gives ``forward`` (and ``lateral``, set equal),
       the sideways error read as a heading random walk (``var_y = heading L^3 / 3`` over
-      ``L`` m) gives ``heading``. Needs truth headings; without them (NaN) the odometry
-      noise is left as ``settings`` has it.
+      ``L`` m) gives ``heading``. Needs truth headings and one whole stretch; without them
+      the odometry noise is left as ``settings`` has it, with a warning.
 
     Args:
         run: a run with ``truth``. settings: the settings to update (default ones).
@@ -155,6 +156,12 @@ def calibrate_from_truth(
     steps = run.odometry.shape[0]
     starts = list(range(0, steps - stretch_steps, stretch_steps))
     if not starts or bool(torch.isnan(truth[:, 2]).any()):
+        reason = "no truth headings" if starts else f"fewer than {stretch_steps + 1} poses"
+        warnings.warn(
+            f"calibrate_from_truth: odometry noise not measured on {run.name!r} ({reason}); "
+            "the range bias and sigma are, the odometry noise is kept",
+            stacklevel=2,
+        )
         return out
     forward, sideways, lengths = [], [], []
     for start in starts:

@@ -21,9 +21,15 @@ Rules
     interpolated truth position that overflows the float range are DataErrors naming file,
     line and column. Ranges out of time order are sorted (``meta``
     counts them); ranges before the first or after the last odometry time are dropped
-    (counted in ``meta["ranges_outside"]``); anchors left with no range are listed in
-    ``meta["anchors_without_ranges"]`` (held, they play no part; solved, they stay at their
-    first guess); the truth must span the odometry's times.
+    (counted in ``meta["ranges_outside"]``), as are ranges inside a gap of the odometry
+    (more than two median odometry periods from the pose before and the pose after; counted
+    in ``meta["ranges_in_gaps"]``): a range is attached to the first pose at or after its
+    time, and across a gap that pose can be far from where the range was taken. Anchors left
+    with no range are listed in ``meta["anchors_without_ranges"]`` (held, they play no part;
+    solved, they stay at their first guess). The truth must span the odometry's times to
+    within one of its own sample periods (a 5 Hz reference may end before 10 Hz odometry).
+    With an anchors file, a median range over 20 times the size of the scene (odometry and
+    anchors) is a DataError: ranges in mm or cm.
 """
 
 from __future__ import annotations
@@ -87,6 +93,11 @@ class RangeRun:
             has_truth = self.truth is not None and bool(torch.isfinite(self.truth[0]).all())
             start = self.truth[0] if has_truth else self.odometry.new_zeros(3)
         return chain(start.to(self.odometry.dtype), self.odometry)
+
+
+_UNITS_RATIO = 20.0
+"""A median range this many times the scene's size (the odometry's and the anchors' extent)
+means the ranges are not in metres: the robot ranges anchors around it."""
 
 
 def _read(path: str | os.PathLike[str], required: list[str]) -> tuple[Any, np.ndarray]:
@@ -187,6 +198,12 @@ def read_range_run(
     reordered = int((time_order != np.arange(time_order.size)).sum())
     rng, range_ids = rng[time_order], range_ids[time_order]
     inside = (rng[:, 0] >= odo[0, 0]) & (rng[:, 0] <= odo[-1, 0])
+    period = float(np.median(np.diff(odo[:, 0])))
+    after = np.clip(np.searchsorted(odo[:, 0], rng[:, 0]), 0, odo.shape[0] - 1)
+    before = np.clip(after - 1, 0, odo.shape[0] - 1)
+    in_gap = inside & (
+        np.minimum(odo[after, 0] - rng[:, 0], rng[:, 0] - odo[before, 0]) > 2.0 * period
+    )
     meta: dict[str, Any] = {
         "files": {
             "odometry": odo_table.path,
@@ -195,8 +212,21 @@ def read_range_run(
         },
         "ranges_reordered": reordered,
         "ranges_outside": int((~inside).sum()),
+        "ranges_in_gaps": int(in_gap.sum()),
     }
-    rng, range_ids = rng[inside], range_ids[inside]
+    kept = inside & ~in_gap
+    rng, range_ids, range_lines = rng[kept], range_ids[kept], range_table.lines[time_order][kept]
+    if anchors is not None and rng.shape[0]:
+        scene = float(np.hypot(*np.ptp(np.concatenate((odo[:, 1:3], anc[:, 1:3])), axis=0)))
+        if np.median(rng[:, 2]) > _UNITS_RATIO * max(scene, 1.0):
+            raise DataError(
+                range_table.path,
+                f"the median range {np.median(rng[:, 2]):.4g} is over {_UNITS_RATIO:g} times "
+                f"the size of the scene ({scene:.4g} m across the odometry and the anchors): "
+                "ranges in mm or cm? ranges are in metres",
+                line=int(range_lines[0]),
+                field="range",
+            )
     meta["anchors_without_ranges"] = sorted(set(anchor_ids.tolist()) - set(range_ids.tolist()))
 
     def f64(x: np.ndarray) -> torch.Tensor:

@@ -119,9 +119,10 @@ def test_calibrate_without_truth_headings_keeps_the_odometry_noise(run):
     truth = run.truth.clone()
     truth[:, 2] = math.nan
     noise = OdometryNoise(forward=1e-3, lateral=2e-3, heading=3e-4)
-    calibrated = calibrate_from_truth(
-        dataclasses.replace(run, truth=truth), RangeSmootherSettings(odometry_noise=noise)
-    )
+    with pytest.warns(UserWarning, match="odometry noise not measured.*no truth headings"):
+        calibrated = calibrate_from_truth(
+            dataclasses.replace(run, truth=truth), RangeSmootherSettings(odometry_noise=noise)
+        )
     assert calibrated.odometry_noise == noise
     assert calibrated.range_bias_m == pytest.approx(RANGE_BIAS_M, abs=0.03)
 

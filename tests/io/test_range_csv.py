@@ -249,3 +249,21 @@ def test_steps_and_truth_that_overflow_are_data_errors(tmp_path, name, text, lin
     error = _error(tmp_path, **{"truth": TRUTH, name: text})
     assert Path(error.path) == tmp_path / f"{name}.csv"
     assert (error.line, error.field) == (line, column) and "overflows" in error.problem
+
+
+def test_ranges_inside_an_odometry_gap_are_dropped_and_counted(tmp_path):
+    """Odometry every 0.1 s with a 3-s gap: a range in the middle of the gap (over two
+    periods from both poses) is dropped, ranges near its edges and elsewhere are kept."""
+    times = [0.1 * k for k in range(11)] + [4.0 + 0.1 * k for k in range(11)]
+    odometry = "t,x,y,heading\n" + "".join(f"{t!r},{t!r},0,0\n" for t in times)
+    ranges = "t,anchor,range\n0.55,2,4.0\n1.05,2,4.0\n2.5,7,3.0\n3.95,4,5.0\n4.35,4,5.0\n"
+    run = _read(tmp_path, odometry=odometry, ranges=ranges)
+    assert run.meta["ranges_in_gaps"] == 1
+    assert run.range_t.tolist() == [0.55, 1.05, 3.95, 4.35]
+
+
+def test_ranges_in_millimetres_are_refused(tmp_path):
+    """A scene a few metres across ranged in thousands: a DataError naming the file."""
+    ranges = "t,anchor,range\n0.0,2,4000.0\n1.5,7,3250.0\n2.5,4,2500.0\n"
+    err = _error(tmp_path, ranges=ranges)
+    assert "ranges in mm or cm" in str(err) and err.path.endswith("ranges.csv")
