@@ -5,6 +5,9 @@
 * ``map.png`` + ``map.yaml``: the occupancy grid in ROS ``map_server`` form
   (:func:`msf_torch.lidar.grid.write_map`);
 * ``lidar_odometry.tum``: the chained scan poses (z = 0, yaw quaternions);
+* ``lidar_graph.g2o``: the same chain as a 2-D pose graph (``VERTEX_SE2`` per scan,
+  ``EDGE_SE2`` per matched pair with the inverse of PLICP's covariance as information), for
+  loop closures added elsewhere and ``msf posegraph`` (:mod:`msf_torch.io.g2o_2d`);
 
 and returns a summary (scan count, PLICP iterations, degenerate and failed pairs, the map's
 size, and with a ``truth`` key in the scans the final and rms position error of the chain
@@ -13,7 +16,7 @@ and of the wheel odometry).
 
 from __future__ import annotations
 
-__all__ = ["map_from_scans"]
+__all__ = ["map_from_scans", "scan_pose_graph"]
 
 import os
 from pathlib import Path
@@ -21,9 +24,10 @@ from typing import Any
 
 import torch
 
+from msf_torch.io.g2o_2d import PoseGraph2D, write_g2o_2d
 from msf_torch.io.tum import write_tum
 from msf_torch.lidar.grid import GridConfig, occupancy_grid, write_map
-from msf_torch.lidar.odometry import pose_source, scan_odometry
+from msf_torch.lidar.odometry import ScanOdometry, pose_source, scan_odometry
 from msf_torch.lidar.plicp import PlicpConfig
 from msf_torch.types import Trajectory
 
@@ -31,6 +35,30 @@ from msf_torch.types import Trajectory
 def _errors(poses: torch.Tensor, truth: torch.Tensor) -> dict[str, float]:
     distance = (poses[:, :2] - truth[:, :2]).norm(dim=-1)
     return {"final_m": float(distance[-1]), "rms_m": float(distance.pow(2).mean().sqrt())}
+
+
+def scan_pose_graph(chain: ScanOdometry) -> PoseGraph2D:
+    """The scan odometry as a planar pose graph: vertex k the chained pose of scan k, edge
+    k -> k + 1 the matched relative pose with information = covariance^-1 (symmetrised).
+
+    Args:
+        chain: :class:`~msf_torch.lidar.odometry.ScanOdometry` of N scans.
+
+    Returns:
+        a float64 :class:`~msf_torch.io.g2o_2d.PoseGraph2D` (N vertices, N - 1 edges).
+    """
+    count = chain.pose.shape[0]
+    information = torch.linalg.inv(chain.relative_covariance.to(torch.float64))
+    index = torch.arange(count - 1)
+    return PoseGraph2D(
+        vertex_ids=torch.arange(count),
+        positions=chain.pose[:, 0:2].to(torch.float64).contiguous(),
+        headings=chain.pose[:, 2].to(torch.float64).contiguous(),
+        edge_index=torch.stack((index, index + 1), -1),
+        edge_translations=chain.relative[:, 0:2].to(torch.float64).contiguous(),
+        edge_headings=chain.relative[:, 2].to(torch.float64).contiguous(),
+        edge_information=0.5 * (information + information.mT),
+    )
 
 
 def map_from_scans(
@@ -67,6 +95,7 @@ def map_from_scans(
         t=source.t, position=source.position, quaternion=source.quaternion, mask=source.mask
     )
     tum = write_tum(trajectory, out / "lidar_odometry.tum")
+    graph = write_g2o_2d(out / "lidar_graph.g2o", scan_pose_graph(chain))
     summary: dict[str, Any] = {
         "scans": int(scans["t"].shape[0]),
         "initial_guess": "odometry" if odometry is not None else "identity",
@@ -77,7 +106,12 @@ def map_from_scans(
         "map_cells": list(grid.log_odds.shape),
         "occupied_cells": int((grid.trinary() == 1).sum()),
         "free_cells": int((grid.trinary() == 0).sum()),
-        "files": {"png": str(png), "yaml": str(yaml_path), "trajectory": str(tum)},
+        "files": {
+            "png": str(png),
+            "yaml": str(yaml_path),
+            "trajectory": str(tum),
+            "graph": str(graph),
+        },
     }
     if "truth" in scans:
         summary["lidar_error"] = _errors(chain.pose, scans["truth"])

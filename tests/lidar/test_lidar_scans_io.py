@@ -8,8 +8,10 @@ import numpy as np
 import pytest
 import torch
 
+from msf_torch.backend.posegraph import optimize_pose_graph
 from msf_torch.cli import main
 from msf_torch.io.errors import DataError
+from msf_torch.io.g2o_2d import read_pose_graph_2d
 from msf_torch.io.scans import read_scans, write_scans
 from msf_torch.lidar.grid import read_map
 from msf_torch.sim.lidar2d import corridor_map, simulate_lidar_run
@@ -112,4 +114,9 @@ def test_cli_lidar_map(tmp_path, capsys):
     grid = read_map(out / "map.yaml")
     assert (grid.trinary == 1).sum() == summary["occupied_cells"]
     assert (out / "lidar_odometry.tum").read_text().count("\n") == 22  # header + 21 poses
+    # the chain as a 2-D pose graph: 21 scans, 20 matched pairs, consistent (zero cost)
+    graph = read_pose_graph_2d(summary["files"]["graph"])
+    assert (graph.num_vertices, graph.num_edges) == (21, 20)
+    assert bool((torch.linalg.eigvalsh(graph.edge_information) > 0).all())
+    assert optimize_pose_graph(graph).initial_cost < 1e-12
     assert main(["lidar-map", "--out", str(out)]) == 2
