@@ -20,6 +20,9 @@ read by :func:`read_pose_graph` into a :class:`PoseGraph` and written by :func:`
 GTSAM's). 2-D (planar) pose graphs (g2o ``VERTEX_SE2`` / ``EDGE_SE2``, TORO ``VERTEX2`` /
 ``EDGE2``) are read by :func:`read_pose_graph_2d` into a :class:`PoseGraph2D` and written by
 :func:`write_g2o_2d` (:mod:`msf_torch.io.g2o_2d`); :func:`is_pose_graph_2d` tells the two apart.
+Odometry + anchor-range runs (UWB, radio beacons) are read from CSV files by
+:func:`read_range_run` and from the gtsam wheel's Plaza runs by :func:`load_plaza` into a
+:class:`RangeRun`.
 """
 
 from __future__ import annotations
@@ -30,6 +33,7 @@ __all__ = [
     "GTSAM_POSE3_FILES",
     "PoseGraph",
     "PoseGraph2D",
+    "RangeRun",
     "BagLayout",
     "SensorTopic",
     "DataError",
@@ -44,11 +48,13 @@ __all__ = [
     "is_rosbag",
     "load_eqvio",
     "load_kitti_gtsam",
+    "load_plaza",
     "load_sequence",
     "read_euroc",
     "read_kitti_poses",
     "read_rosbag",
     "read_native",
+    "read_range_run",
     "read_pose_graph",
     "read_pose_graph_2d",
     "read_tum",
@@ -57,6 +63,7 @@ __all__ = [
     "write_kitti_poses",
     "write_odometry_rosbag2",
     "write_rosbag",
+    "write_anchors",
     "write_native",
     "write_tum",
 ]
@@ -85,6 +92,8 @@ from msf_torch.io.g2o_2d import (
 from msf_torch.io.kitti_gtsam import KITTI_GTSAM_NAME, gtsam_data_path, load_kitti_gtsam
 from msf_torch.io.kitti_poses import read_kitti_poses, write_kitti_poses
 from msf_torch.io.native import _native_path_problem, read_native, write_native
+from msf_torch.io.plaza import load_plaza
+from msf_torch.io.ranges import RangeRun, read_range_run, write_anchors
 from msf_torch.io.rosbag import (
     BagLayout,
     SensorTopic,
