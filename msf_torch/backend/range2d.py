@@ -292,34 +292,41 @@ def odometry_range_problem(
 def multilaterate(
     positions: torch.Tensor, ranges: torch.Tensor, iterations: int = 50
 ) -> torch.Tensor:
-    """Least-squares position (2,) of a beacon from ranges (N,) m taken at known positions
-    (N, 2) m: Gauss-Newton on ``sum (|b - p_n| - r_n)^2`` from nine starts around the
+    """Least-squares position (..., 2) of a beacon from ranges (N,) m taken at known
+    positions (..., N, 2) m (leading dimensions: independent problems, e.g. one per trial
+    heading): Gauss-Newton on ``sum (|b - p_n| - r_n)^2`` from nine starts around the
     positions (their centroid and eight points one spread away), the lowest cost kept (a
     range-only fix has a mirror image across a straight path: the starts find both).
 
     Raises:
         ValueError: fewer than three ranges, mismatched shapes or a value that is not finite.
     """
-    if positions.shape[0] < 3 or ranges.shape != positions.shape[:1]:
+    if positions.ndim < 2 or positions.shape[-2] < 3 or ranges.shape != positions.shape[-2:-1]:
         raise ValueError(
-            f"multilaterate: need N >= 3 positions (N, 2) and ranges (N,), got "
+            f"multilaterate: need N >= 3 positions (..., N, 2) and ranges (N,), got "
             f"{tuple(positions.shape)} and {tuple(ranges.shape)}"
         )
     for name, tensor in (("positions", positions), ("ranges", ranges)):
         bad = torch.nonzero(~torch.isfinite(tensor))
         if bad.numel():
-            raise ValueError(f"multilaterate: {name}[{int(bad[0, 0])}] is not finite")
-    centre = positions.mean(0)
-    spread = float((positions - centre).norm(dim=-1).mean()) + float(ranges.mean())
+            where = ", ".join(str(int(i)) for i in bad[0])
+            raise ValueError(f"multilaterate: {name}[{where}] is not finite")
+    centre = positions.mean(-2)  # (..., 2)
+    spread = (positions - centre[..., None, :]).norm(dim=-1).mean(-1) + ranges.mean()
     angles = torch.arange(8, dtype=positions.dtype, device=positions.device) * (torch.pi / 4)
-    ring = spread * torch.stack((torch.cos(angles), torch.sin(angles)), -1)
-    beacon = torch.cat((centre[None], centre + ring))  # (9, 2) starts, solved together
+    ring = torch.stack((torch.cos(angles), torch.sin(angles)), -1)  # (8, 2)
+    beacon = torch.cat(  # (..., 9, 2) starts, solved together
+        (centre[..., None, :], centre[..., None, :] + spread[..., None, None] * ring), -2
+    )
+    eye = 1e-9 * torch.eye(2, dtype=positions.dtype, device=positions.device)
     for _ in range(iterations):
-        offset = beacon[:, None, :] - positions[None]  # (9, N, 2)
+        offset = beacon[..., :, None, :] - positions[..., None, :, :]  # (..., 9, N, 2)
         distance = offset.norm(dim=-1).clamp_min(1e-9)
         jac = offset / distance[..., None]
         residual = distance - ranges
-        normal = jac.mT @ jac + 1e-9 * torch.eye(2, dtype=positions.dtype, device=positions.device)
+        normal = jac.mT @ jac + eye
         beacon = beacon - torch.linalg.solve(normal, (jac.mT @ residual[..., None]))[..., 0]
-    cost = ((beacon[:, None, :] - positions[None]).norm(dim=-1) - ranges).pow(2).sum(-1)
-    return beacon[int(cost.argmin())]
+    offset = beacon[..., :, None, :] - positions[..., None, :, :]
+    cost = (offset.norm(dim=-1) - ranges).pow(2).sum(-1)  # (..., 9)
+    best = cost.argmin(-1)[..., None, None].expand(*cost.shape[:-1], 1, 2)
+    return beacon.gather(-2, best)[..., 0, :]

@@ -43,7 +43,7 @@ from msf_torch.backend.lm import solve
 from msf_torch.backend.posegraph import pose_graph_config
 from msf_torch.backend.range2d import OdometryNoise, multilaterate, odometry_range_problem
 from msf_torch.backend.robust import RobustKernel
-from msf_torch.geometry.se2 import align_points, between, chain, transform_points
+from msf_torch.geometry.se2 import align_points, between, chain, rotation, transform_points
 from msf_torch.io.ranges import RangeRun
 
 
@@ -227,17 +227,19 @@ def estimate_start(
         )
     offsets = run.odometry_poses(run.odometry.new_zeros(3))[run.range_pose_index()[early]]
     anchors = run.anchors[run.range_anchor_rows()[early]]
-    best, best_cost = None, math.inf
-    for k in range(headings):
-        heading = math.remainder(2 * math.pi * k / headings, 2 * math.pi)
-        c, s = math.cos(heading), math.sin(heading)
-        turned = offsets[:, 0:2] @ torch.tensor([[c, s], [-s, c]], dtype=offsets.dtype)
-        position = multilaterate(anchors - turned, ranges[early])
-        residual = (anchors - turned - position).norm(dim=-1) - ranges[early]
-        cost = float(torch.log1p((residual / range_sigma_m) ** 2).sum())
-        if cost < best_cost:
-            best_cost, best = cost, torch.cat((position, position.new_tensor([heading])))
-    return best
+    angle = (
+        torch.remainder(
+            torch.arange(headings, dtype=offsets.dtype) * (2 * math.pi / headings) + math.pi,
+            2 * math.pi,
+        )
+        - math.pi
+    )
+    turned = offsets[None, :, 0:2] @ rotation(angle).mT  # (H, K', 2): the odometry turned
+    positions = multilaterate(anchors[None] - turned, ranges[early])  # (H, 2), one solve
+    residual = (anchors[None] - turned - positions[:, None]).norm(dim=-1) - ranges[early]
+    cost = torch.log1p((residual / range_sigma_m) ** 2).sum(-1)
+    best = int(cost.argmin())
+    return torch.cat((positions[best], angle[best : best + 1]))
 
 
 _MIN_SPREAD_M = 1.0

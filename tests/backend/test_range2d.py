@@ -396,3 +396,17 @@ def test_multilaterate_recovers_a_beacon_from_exact_ranges(loop):
     ranges[4] = math.inf
     with pytest.raises(ValueError, match=r"ranges\[4\] is not finite"):
         multilaterate(positions, ranges)
+
+
+def test_multilaterate_over_a_batch_equals_one_problem_at_a_time():
+    generator = torch.Generator().manual_seed(11)
+    positions = torch.randn(5, 12, 2, generator=generator, dtype=DT) * 4.0
+    beacons = torch.randn(5, 2, generator=generator, dtype=DT) * 6.0
+    ranges = (beacons[0] - positions[0]).norm(dim=-1)  # one set of ranges, five position sets
+    batched = multilaterate(positions, ranges)
+    assert batched.shape == (5, 2)
+    for k in range(5):
+        torch.testing.assert_close(
+            batched[k], multilaterate(positions[k], ranges), rtol=0, atol=1e-12
+        )
+    torch.testing.assert_close(batched[0], beacons[0], rtol=0, atol=1e-8)
