@@ -51,7 +51,7 @@ import torch
 
 from msf_torch.backend.factors import BetweenFactor
 from msf_torch.backend.lm import LMConfig, solve
-from msf_torch.backend.posegraph2d import held_vertices, pose_graph_2d_problem
+from msf_torch.backend.posegraph2d import LANDMARK_GROUP, held_vertices, pose_graph_2d_problem
 from msf_torch.backend.posegraph4dof import YAW_POSITION, YawBetweenFactor
 from msf_torch.backend.problem import Problem
 from msf_torch.backend.robust import RobustKernel
@@ -220,10 +220,14 @@ def optimize_pose_graph(
         result = solve(problem, config)
     solved_values = result.values[_GROUP][0]
     if planar:
+        landmarks = result.values.get(LANDMARK_GROUP)
         solved = dataclasses.replace(
             graph,
             positions=solved_values[:, 0:2].clone(),
             headings=solved_values[:, 2].clone(),
+            landmark_positions=graph.landmark_positions
+            if landmarks is None
+            else landmarks[0].clone(),
         )
     else:
         position, rotation = unpack_pose(solved_values)

@@ -35,9 +35,13 @@ Example::
 from __future__ import annotations
 
 __all__ = [
+    "POINT2",
+    "Point2Kind",
     "Se2Kind",
     "SE2",
+    "Se2BearingRangeFactor",
     "Se2BetweenFactor",
+    "se2_bearing_range_residual",
     "se2_between_residual",
     "se2_log",
     "held_vertices",
@@ -49,14 +53,16 @@ from dataclasses import dataclass
 
 import torch
 
-from msf_torch.backend.factors import _Binary, _Evaluated
-from msf_torch.backend.problem import Problem
+from msf_torch.backend.factors import _Binary, _Evaluated, sqrt_information
+from msf_torch.backend.problem import Factor, Problem
 from msf_torch.backend.robust import RobustKernel
 from msf_torch.backend.variables import VariableKind
 from msf_torch.geometry.se2 import between, compose, rotation, wrap_angle
 from msf_torch.io.g2o import PoseGraph
 from msf_torch.io.g2o_2d import PoseGraph2D
 
+LANDMARK_GROUP = "landmark"
+"""Variable group of a 2-D graph's landmarks (:data:`POINT2`) in :func:`pose_graph_2d_problem`."""
 _SMALL_ANGLE = 1e-4  # rad: below it the series forms (error ~theta^6)
 
 
@@ -105,6 +111,18 @@ class Se2Kind(VariableKind):
 
 
 SE2 = Se2Kind("se2", 3, 3)
+
+
+@dataclass(frozen=True)
+class Point2Kind(VariableKind):
+    """Planar points ``[x, y]`` (m); steps add."""
+
+    def retract(self, value: torch.Tensor, step: torch.Tensor) -> torch.Tensor:
+        """``value + step`` (..., 2)."""
+        return value + step
+
+
+POINT2 = Point2Kind("point2", 2, 2)
 
 
 def se2_between_residual(
@@ -193,6 +211,106 @@ class Se2BetweenFactor(_Evaluated, _Binary):
         return residual, [jac_i, jac_j] if jacobians else None
 
 
+def se2_bearing_range_residual(
+    pose: torch.Tensor,
+    point: torch.Tensor,
+    measured_bearing: torch.Tensor,
+    measured_range: torch.Tensor,
+    jacobians: bool = True,
+) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor | None]:
+    """Bearing and range of a point seen from a pose, against the measured ones (GTSAM's
+    ``BearingRangeFactor<Pose2, Point2>`` error) and the Jacobians.
+
+    With ``d = R(theta)^T (l - p)`` the point in the pose's frame and ``r = |d|``:
+    ``e = [wrap(atan2(d_y, d_x) - b), r - z]``. A step ``xi = [rho, omega]`` of the pose
+    (``T Exp(xi)``) moves ``d`` by ``-rho - omega [-d_y, d_x]`` to first order, a step of
+    the point by ``R(theta)^T``, so ``de/dxi = [[d_y / r^2, -d_x / r^2, -1], [-d_x / r,
+    -d_y / r, 0]]`` and ``de/dl = [[-d_y, d_x] / r^2; d^T / r] R(theta)^T``.
+
+    Args:
+        pose: (..., 3) ``[x, y, theta]`` (m, m, rad). point: (..., 2) m, world frame.
+        measured_bearing: (...) rad, from the pose's x axis, counter-clockwise.
+        measured_range: (...) m.
+        jacobians: also return the Jacobians.
+
+    Returns:
+        residual (..., 2) ``[rad, m]`` (bearing error in (-pi, pi]) and the Jacobians
+        (..., 2, 3) w.r.t. the pose's tangent step and (..., 2, 2) w.r.t. the point, or
+        None, None.
+    """
+    rot_t = rotation(pose[..., 2]).mT
+    local = (rot_t @ (point - pose[..., 0:2])[..., None]).squeeze(-1)
+    d_x, d_y = local[..., 0], local[..., 1]
+    distance = torch.hypot(d_x, d_y)
+    residual = torch.stack(
+        (
+            wrap_angle(torch.atan2(d_y, d_x) - measured_bearing),
+            distance - measured_range,
+        ),
+        -1,
+    )
+    if not jacobians:
+        return residual, None, None
+    tiny = torch.finfo(pose.dtype).tiny
+    inv_r = 1.0 / distance.clamp_min(tiny)
+    inv_r2 = inv_r * inv_r
+    zero = torch.zeros_like(d_x)
+    jac_pose = torch.stack(
+        (
+            torch.stack((d_y * inv_r2, -d_x * inv_r2, -torch.ones_like(d_x)), -1),
+            torch.stack((-d_x * inv_r, -d_y * inv_r, zero), -1),
+        ),
+        -2,
+    )
+    local_jac = torch.stack(
+        (
+            torch.stack((-d_y * inv_r2, d_x * inv_r2), -1),
+            torch.stack((d_x * inv_r, d_y * inv_r), -1),
+        ),
+        -2,
+    )
+    return residual, jac_pose, local_jac @ rot_t
+
+
+class Se2BearingRangeFactor(_Evaluated, Factor):
+    """Bearing and range from an :data:`SE2` pose to a :data:`POINT2` landmark (a LiDAR
+    tree-trunk or reflector detection): :func:`se2_bearing_range_residual`, GTSAM's
+    ``BearingRangeFactor<Pose2, Point2>`` error.
+
+    Args:
+        pose_group, pose_index: the poses (F,). point_group, point_index: the landmarks (F,).
+        bearings: (B|1, F) rad and ranges: (B|1, F) m, measured.
+        covariance: (B|1, F, 2, 2) in ``[bearing, range]`` (rad^2, m^2).
+        kernel: robust kernel, or None for plain least squares.
+    """
+
+    batched = ("bearings", "ranges")
+
+    def __init__(
+        self,
+        pose_group: str,
+        pose_index: torch.Tensor,
+        point_group: str,
+        point_index: torch.Tensor,
+        bearings: torch.Tensor,
+        ranges: torch.Tensor,
+        covariance: torch.Tensor,
+        kernel: RobustKernel | None = None,
+    ) -> None:
+        self.slots = ((pose_group, pose_index.long()), (point_group, point_index.long()))
+        self.sqrt_information = sqrt_information(covariance)
+        self.kernel = kernel
+        self.bearings, self.ranges = bearings, ranges
+
+    def _evaluate(self, values, jacobians: bool):
+        pose, point = values
+        lead = pose.shape[:-1]
+        residual, jac_pose, jac_point = se2_bearing_range_residual(
+            pose, point, self.bearings.expand(lead), self.ranges.expand(lead), jacobians
+        )
+        return residual, [jac_pose, jac_point] if jacobians else None
+
+
 def held_vertices(
     graph: PoseGraph | PoseGraph2D, fixed: Sequence[int] | torch.Tensor | None
 ) -> torch.Tensor:
@@ -220,18 +338,21 @@ def pose_graph_2d_problem(
     fixed: Sequence[int] | torch.Tensor | None = None,
     group: str = "pose",
 ) -> Problem:
-    """The B = 1 least-squares problem of a planar pose graph.
+    """The B = 1 least-squares problem of a planar pose graph, with its landmarks if any.
 
     Args:
-        graph: N vertices, E edges (any device; float64 recommended).
-        robust: kernel applied to every edge, or None.
+        graph: N vertices, E edges, L landmarks, O sightings (any device; float64
+            recommended).
+        robust: kernel applied to every edge and sighting, or None.
         fixed: row indices of the vertices held constant; None holds the file's ``FIX``
             vertices, else the first vertex.
-        group: name of the variable group.
+        group: name of the pose group.
 
     Returns:
         a :class:`~msf_torch.backend.problem.Problem` with group ``group`` (:data:`SE2`,
-        values (1, N, 3)) and one :class:`Se2BetweenFactor` type (E,).
+        values (1, N, 3)) and one :class:`Se2BetweenFactor` type (E,); with landmarks also
+        group :data:`LANDMARK_GROUP` (:data:`POINT2`, values (1, L, 2)) and one
+        :class:`Se2BearingRangeFactor` type (O,).
 
     Raises:
         ValueError: a malformed graph or a fixed index outside ``[0, N)``.
@@ -251,4 +372,22 @@ def pose_graph_2d_problem(
     )
     headings = wrap_angle(graph.headings.to(dtype))
     values = torch.cat((graph.positions.to(dtype), headings[:, None]), -1)[None]
-    return Problem({group: (SE2, values)}, [factor], fixed={group: held})
+    variables = {group: (SE2, values)}
+    factors: list[Factor] = [factor]
+    if graph.num_landmarks:
+        variables[LANDMARK_GROUP] = (POINT2, graph.landmark_positions.to(dtype)[None])
+    if graph.num_observations:
+        sigmas = graph.observation_sigmas.to(dtype)
+        factors.append(
+            Se2BearingRangeFactor(
+                group,
+                graph.observation_index[:, 0],
+                LANDMARK_GROUP,
+                graph.observation_index[:, 1],
+                graph.observation_bearings.to(dtype)[None],
+                graph.observation_ranges.to(dtype)[None],
+                torch.diag_embed(sigmas * sigmas)[None],
+                kernel=robust,
+            )
+        )
+    return Problem(variables, factors, fixed={group: held})

@@ -38,23 +38,16 @@ from dataclasses import dataclass
 import torch
 
 from msf_torch.backend.factors import _Evaluated, _Unary, sqrt_information
-from msf_torch.backend.posegraph2d import SE2, Se2BetweenFactor, se2_between_residual
+from msf_torch.backend.posegraph2d import (
+    POINT2,
+    SE2,
+    Point2Kind,
+    Se2BetweenFactor,
+    se2_between_residual,
+)
 from msf_torch.backend.problem import Factor, Problem
 from msf_torch.backend.robust import RobustKernel
-from msf_torch.backend.variables import VariableKind
 from msf_torch.geometry.se2 import chain
-
-
-@dataclass(frozen=True)
-class Point2Kind(VariableKind):
-    """Planar points ``[x, y]`` (m); steps add."""
-
-    def retract(self, value: torch.Tensor, step: torch.Tensor) -> torch.Tensor:
-        """``value + step`` (..., 2)."""
-        return value + step
-
-
-POINT2 = Point2Kind("point2", 2, 2)
 
 
 class Se2RangeFactor(_Evaluated, Factor):

@@ -20,6 +20,8 @@ read by :func:`read_pose_graph` into a :class:`PoseGraph` and written by :func:`
 GTSAM's). 2-D (planar) pose graphs (g2o ``VERTEX_SE2`` / ``EDGE_SE2``, TORO ``VERTEX2`` /
 ``EDGE2``) are read by :func:`read_pose_graph_2d` into a :class:`PoseGraph2D` and written by
 :func:`write_g2o_2d` (:mod:`msf_torch.io.g2o_2d`); :func:`is_pose_graph_2d` tells the two apart.
+The 2-D reader also reads landmark SLAM files (``ODOMETRY``, ``VERTEX_XY``, ``BR``,
+``LANDMARK``: GTSAM's ``victoria_park.txt``) into the graph's landmarks and sightings.
 Odometry + anchor-range runs (UWB, radio beacons) are read from CSV files by
 :func:`read_range_run` and from the gtsam wheel's Plaza runs by :func:`load_plaza` into a
 :class:`RangeRun`.
@@ -29,6 +31,7 @@ from __future__ import annotations
 
 __all__ = [
     "FORMATS",
+    "GTSAM_LANDMARK2_FILES",
     "GTSAM_POSE2_FILES",
     "GTSAM_POSE3_FILES",
     "PoseGraph",
@@ -83,6 +86,7 @@ from msf_torch.io.g2o import (
     write_g2o,
 )
 from msf_torch.io.g2o_2d import (
+    GTSAM_LANDMARK2_FILES,
     GTSAM_POSE2_FILES,
     PoseGraph2D,
     is_pose_graph_2d,

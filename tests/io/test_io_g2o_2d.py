@@ -123,7 +123,7 @@ def test_skipped_tags_are_counted_in_one_warning(tmp_path):
     assert str(caught[0].message) == (
         f"{path}: skipped 3 lines with tags this reader does not read: "
         "'EQUIV' x2 (first on line 3), 'LANDMARK2' x1 (first on line 4) "
-        "(tags read: VERTEX_SE2, EDGE_SE2, VERTEX2, EDGE2, FIX)"
+        "(tags read: VERTEX_SE2, EDGE_SE2, VERTEX2, EDGE2, ODOMETRY, VERTEX_XY, LANDMARK, BR, FIX)"
     )
     assert graph.skipped == {"EQUIV": 2, "LANDMARK2": 1} and graph.num_edges == 1
     assert graph.edge_lines.tolist() == [5]
