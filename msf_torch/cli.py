@@ -713,6 +713,7 @@ def _cmd_posegraph(args) -> dict[str, Any]:
         write_g2o,
     )
     from msf_torch.io.g2o_2d import (
+        GTSAM_LANDMARK2_FILES,
         GTSAM_POSE2_FILES,
         POSE2_TAGS,
         pose_graph_kind,
@@ -722,7 +723,7 @@ def _cmd_posegraph(args) -> dict[str, Any]:
 
     source = args.graph
     if not Path(source).exists():
-        shipped = GTSAM_POSE3_FILES + GTSAM_POSE2_FILES
+        shipped = GTSAM_POSE3_FILES + GTSAM_POSE2_FILES + GTSAM_LANDMARK2_FILES
         named = [n for n in shipped if source in (n, Path(n).stem)]
         if named:
             source = str(gtsam_pose_graph_path(named[0]))
@@ -753,6 +754,8 @@ def _cmd_posegraph(args) -> dict[str, Any]:
         "dimension": 2 if planar else 3,
         "poses": graph.num_vertices,
         "edges": graph.num_edges,
+        **({"landmarks": graph.num_landmarks} if planar and graph.num_landmarks else {}),
+        **({"sightings": graph.num_observations} if planar and graph.num_observations else {}),
         "robust": None if args.robust is None else [args.robust.name, args.robust.scale],
         "initial_cost": result.initial_cost,
         "final_cost": result.final_cost,
@@ -774,6 +777,9 @@ def _cmd_posegraph(args) -> dict[str, Any]:
                 result.log,
                 result.initial_cost,
                 title=Path(source).name,
+                landmarks=(graph.landmark_positions, result.graph.landmark_positions)
+                if planar and graph.num_landmarks
+                else None,
             )
         )
     return summary

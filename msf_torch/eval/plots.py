@@ -236,6 +236,7 @@ def pose_graph_figure(
     log: SequenceABC[dict[str, Any]],
     initial_cost: float,
     title: str | None = None,
+    landmarks: tuple[Any, Any] | None = None,
 ) -> Path:
     """Write a PNG of a pose graph before and after optimisation.
 
@@ -253,17 +254,31 @@ def pose_graph_figure(
             (:class:`~msf_torch.backend.posegraph.PoseGraphResult`'s ``log``).
         initial_cost: cost before the first iteration.
         title: figure title.
+        landmarks: a 2-D graph's landmark positions (L, 2) m, initial and optimised, drawn
+            on the top view (initial as grey dots, optimised as orange crosses), or None.
 
     Returns:
         the path written.
 
     Raises:
-        ValueError: the position arrays are not (N, 3) or (N, 2) of one N, or ``edge_index``
-            is not (E, 2) rows into them.
+        ValueError: the position arrays are not (N, 3) or (N, 2) of one N, ``edge_index``
+            is not (E, 2) rows into them, or ``landmarks`` are not two (L, 2) arrays for a
+            2-D graph.
     """
     path = Path(path)
     before = np.asarray(torch.as_tensor(initial_positions).detach().cpu(), dtype=np.float64)
     after = np.asarray(torch.as_tensor(optimised_positions).detach().cpu(), dtype=np.float64)
+    marks = None
+    if landmarks is not None:
+        marks = [
+            np.asarray(torch.as_tensor(m).detach().cpu(), dtype=np.float64).reshape(-1, 2)
+            for m in landmarks
+        ]
+        if before.ndim != 2 or before.shape[-1] != 2 or marks[0].shape != marks[1].shape:
+            raise ValueError(
+                "landmarks are drawn for 2-D graphs only, as two (L, 2) arrays; got "
+                f"{marks[0].shape} and {marks[1].shape} for positions {before.shape}"
+            )
     edges = np.asarray(torch.as_tensor(edge_index).detach().cpu(), dtype=np.int64)
     if before.ndim != 2 or before.shape[1] not in (2, 3) or before.shape != after.shape:
         raise ValueError(
@@ -293,6 +308,9 @@ def pose_graph_figure(
         ax.plot(after[:, u], after[:, v], color=_EST_COLOR, lw=1.0, label="optimised")
         if loops.size:
             ax.plot([], [], color="tab:orange", lw=0.8, label=f"loop edges ({len(loops)})")
+        if marks is not None and marks[0].size:
+            ax.plot(*marks[0].T, ".", color="0.55", ms=3, label="landmarks, initial")
+            ax.plot(*marks[1].T, "x", color="tab:red", ms=4, label=f"landmarks ({len(marks[1])})")
         ax.set_aspect("equal", adjustable="datalim")
         ax.set_xlabel("xyz"[u] + " [m]")
         ax.set_ylabel("xyz"[v] + " [m]")

@@ -119,6 +119,38 @@ def test_posegraph_2d_file_solves_as_gtsam_and_writes_g2o_and_a_top_view(gtsam, 
     assert figure.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and figure.stat().st_size > 20_000
 
 
+def test_posegraph_landmark_file_solves_as_gtsam_and_writes_its_landmarks(gtsam, tmp_path, capsys):
+    """GTSAM's example.graph (TORO poses and edges, BR bearing-range sightings of 24
+    landmarks): the JSON counts them, the optimum and its landmarks are GTSAM's LM's, the
+    written g2o (VERTEX_XY and BR lines) reads back with the solved landmarks and is read by
+    GTSAM's load2D as the same problem, and the figure draws them."""
+    out, figure = tmp_path / "example.g2o", tmp_path / "example.png"
+    args = ["posegraph", "example", "--out", str(out), "--plot", str(figure)]
+    assert main([*args, "--tolerance", "1e-12"]) == 0
+    summary = _last_json(capsys)
+    path = str(gtsam_pose_graph_path("example.graph"))
+    factors, initial = gtsam.load2D(path)
+    held = gtsam.NonlinearFactorGraph(factors)
+    held.add(gtsam.NonlinearEqualityPose2(0, initial.atPose2(0)))
+    params = gtsam.LevenbergMarquardtParams()
+    params.setRelativeErrorTol(1e-12)
+    params.setAbsoluteErrorTol(0.0)
+    solved = gtsam.LevenbergMarquardtOptimizer(held, initial, params).optimize()
+
+    assert (summary["poses"], summary["edges"]) == (95, 94)
+    assert (summary["landmarks"], summary["sightings"]) == (24, 422)
+    assert summary["initial_cost"] == pytest.approx(factors.error(initial), rel=1e-12)
+    assert summary["final_cost"] == pytest.approx(factors.error(solved), rel=1e-9)
+    written = read_pose_graph_2d(out)
+    ids = written.landmark_ids.tolist()
+    expected = np.stack([solved.atPoint2(gtsam.symbol("l", i)) for i in ids])
+    np.testing.assert_allclose(written.landmark_positions.numpy(), expected, atol=1e-6)
+    again, values = gtsam.load2D(str(out))
+    assert again.size() == factors.size() and values.size() == initial.size()
+    assert again.error(values) == pytest.approx(summary["final_cost"], rel=1e-9)
+    assert figure.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and figure.stat().st_size > 20_000
+
+
 @pytest.mark.parametrize(
     "text", ["", "# only a comment\n", "vertex_se2 0 0 0 0\nedge_se2 0 1 1 0 0 1 0 0 1 0 1\n"]
 )
