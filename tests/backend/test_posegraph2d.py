@@ -1,6 +1,6 @@
 """Planar (SE(2)) pose graphs: the logarithm and retraction against closed forms and GTSAM,
-the edge Jacobians against finite differences and autodiff, and the solved graphs against
-GTSAM's LM and a simulated ground truth."""
+the edge and bearing-range Jacobians against finite differences and autodiff, and the solved
+graphs (with landmarks too) against GTSAM's LM and a simulated ground truth."""
 
 from __future__ import annotations
 
@@ -14,9 +14,12 @@ import torch
 
 from msf_torch.backend.posegraph import optimize_pose_graph, pose_graph_config
 from msf_torch.backend.posegraph2d import (
+    POINT2,
     SE2,
+    Se2BearingRangeFactor,
     Se2BetweenFactor,
     pose_graph_2d_problem,
+    se2_bearing_range_residual,
     se2_between_residual,
     se2_log,
 )
@@ -142,6 +145,106 @@ def test_edge_error_equals_gtsam_between_factor(gtsam):
         np.testing.assert_allclose(
             residual[k].numpy(), factor.unwhitenedError(values), rtol=0, atol=1e-12
         )
+
+
+def _sightings(count: int, generator: torch.Generator) -> tuple[torch.Tensor, ...]:
+    """Poses (count, 3), points (count, 2) 0.5-5 m from them, and a measured bearing and
+    range near the true ones (errors up to ~0.3 rad and 0.3 m, away from the wrap)."""
+    poses = _poses(count, generator)
+    angle = (torch.rand(count, generator=generator, dtype=DT) * 2 - 1) * math.pi
+    distance = 0.5 + 4.5 * torch.rand(count, generator=generator, dtype=DT)
+    points = poses[:, 0:2] + distance[:, None] * torch.stack((angle.cos(), angle.sin()), -1)
+    noise = 0.1 * torch.randn(count, 2, generator=generator, dtype=DT)
+    bearing = torch.remainder(angle - poses[:, 2] + noise[:, 0] + math.pi, 2 * math.pi) - math.pi
+    return poses, points, bearing, distance + noise[:, 1]
+
+
+def test_bearing_range_jacobians_match_finite_differences_and_autodiff():
+    """Central differences through ``SE2.retract`` (pose) and ``point + step`` (landmark)."""
+    generator = torch.Generator().manual_seed(8)
+    count = 16
+    poses, points, bearing, distance = _sightings(count, generator)
+    residual, jac_pose, jac_point = se2_bearing_range_residual(poses, points, bearing, distance)
+    assert residual.shape == (count, 2) and jac_pose.shape == (count, 2, 3)
+    assert jac_point.shape == (count, 2, 2)
+    step = 1e-6
+    for jacobian, kind, slot in ((jac_pose, SE2, 0), (jac_point, POINT2, 1)):
+        numeric = torch.zeros_like(jacobian)
+        for k in range(kind.tangent_dim):
+            delta = torch.zeros(count, kind.tangent_dim, dtype=DT)
+            delta[:, k] = step
+            moved = [[poses, points], [poses, points]]
+            moved[0][slot] = kind.retract(moved[0][slot], delta)
+            moved[1][slot] = kind.retract(moved[1][slot], -delta)
+            plus, _, _ = se2_bearing_range_residual(*moved[0], bearing, distance, False)
+            minus, _, _ = se2_bearing_range_residual(*moved[1], bearing, distance, False)
+            numeric[..., k] = (plus - minus) / (2 * step)
+        torch.testing.assert_close(jacobian, numeric, rtol=0, atol=1e-7)
+    covariance = torch.diag(torch.tensor([0.01, 0.04], dtype=DT)).expand(1, count, 2, 2)
+    factor = Se2BearingRangeFactor(
+        "pose",
+        torch.arange(count),
+        "landmark",
+        torch.arange(count),
+        bearing[None],
+        distance[None],
+        covariance,
+    )
+    kinds = [SE2, POINT2]
+    values = [poses[None], points[None]]
+    ours_residual, ours = factor.residual_and_jacobians(values, kinds)
+    torch.testing.assert_close(ours_residual[0], residual, rtol=0, atol=0)
+    _, autodiff = Factor.residual_and_jacobians(factor, values, kinds)
+    for mine, reference in zip(ours, autodiff, strict=True):
+        torch.testing.assert_close(mine, reference, rtol=1e-12, atol=1e-12)
+
+
+def test_bearing_range_error_equals_gtsam_factor(gtsam):
+    """Random poses, points and measurements (bearing errors anywhere in (-pi, pi])."""
+    generator = torch.Generator().manual_seed(9)
+    count = 20
+    poses = _poses(count, generator)
+    points = torch.randn(count, 2, generator=generator, dtype=DT) * 4
+    bearing = (torch.rand(count, generator=generator, dtype=DT) * 2 - 1) * math.pi
+    distance = torch.rand(count, generator=generator, dtype=DT) * 6
+    residual, _, _ = se2_bearing_range_residual(poses, points, bearing, distance, False)
+    unit = gtsam.noiseModel.Unit.Create(2)
+    landmark = gtsam.symbol("l", 0)
+    for k in range(count):
+        values = gtsam.Values()
+        values.insert(0, gtsam.Pose2(*poses[k].tolist()))
+        values.insert(landmark, points[k].numpy())
+        factor = gtsam.BearingRangeFactor2D(
+            0, landmark, gtsam.Rot2(float(bearing[k])), float(distance[k]), unit
+        )
+        np.testing.assert_allclose(
+            residual[k].numpy(), factor.unwhitenedError(values), rtol=0, atol=1e-12
+        )
+
+
+def test_landmark_graph_solves_to_gtsams_optimum(gtsam):
+    """example.graph (24 landmarks, 422 sightings): default planar settings reach GTSAM's
+    LM optimum with the first pose held (``NonlinearEqualityPose2``), 279.524163060 both."""
+    path = str(gtsam_pose_graph_path("example.graph"))
+    factors, initial = gtsam.load2D(path)
+    held = gtsam.NonlinearFactorGraph(factors)
+    held.add(gtsam.NonlinearEqualityPose2(0, initial.atPose2(0)))
+    solved = gtsam.LevenbergMarquardtOptimizer(
+        held, initial, gtsam.LevenbergMarquardtParams()
+    ).optimize()
+    graph = read_pose_graph_2d(path)
+
+    result = optimize_pose_graph(graph)
+
+    assert result.converged
+    assert result.final_cost == pytest.approx(factors.error(solved), rel=1e-9)
+    assert result.final_cost == pytest.approx(279.524163060, rel=1e-9)
+    ids = graph.landmark_ids.tolist()
+    reference = np.array([solved.atPoint2(gtsam.symbol("l", k)) for k in ids])
+    np.testing.assert_allclose(
+        result.graph.landmark_positions.numpy(), reference, rtol=0, atol=1e-6
+    )
+    assert not torch.equal(result.graph.landmark_positions, graph.landmark_positions)
 
 
 def _gtsam_solve(gtsam, path: str):

@@ -1,16 +1,22 @@
-"""2-D pose graphs (g2o VERTEX_SE2 / EDGE_SE2, TORO VERTEX2 / EDGE2): bad input, format
-details, round trips and GTSAM's edge-only initial poses. The solver is tested in
+"""2-D pose graphs (g2o VERTEX_SE2 / EDGE_SE2, TORO VERTEX2 / EDGE2, ODOMETRY, and the
+landmark records VERTEX_XY / BR / LANDMARK): bad input, format details, landmark placement,
+round trips and GTSAM's ``load2D`` initial values. The solver is tested in
 ``tests/backend/test_posegraph2d.py``."""
 
 from __future__ import annotations
 
+import dataclasses
+import math
+import warnings
 from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
 
+from msf_torch.backend.posegraph2d import pose_graph_2d_problem
 from msf_torch.io import (
+    GTSAM_LANDMARK2_FILES,
     DataError,
     PoseGraph2D,
     gtsam_pose_graph_path,
@@ -29,6 +35,30 @@ EDGE = "EDGE_SE2 {} {} 1 0 0" + G2O_INFO + "\n"
 VERTEX2 = "VERTEX2 {} 0 0 0\n"
 EDGE2 = "EDGE2 {} {} 1 0 0" + TORO_INFO + "\n"
 TWO = VERTEX.format(0) + VERTEX.format(1)
+COV = " 0.01 0 0 0.01 0 0.0025"
+"""A diagonal ODOMETRY covariance (m^2, m^2, rad^2): information diag(100, 100, 400)."""
+
+PLACED_BY_SIGHTINGS = (
+    "VERTEX2 0 1 2 0.5\n"
+    "VERTEX2 1 3 1 -0.5\n"
+    f"EDGE2 0 1 1 0 0{TORO_INFO}\n"
+    "BR 1 4 0.3 2 0.1 0.1\n"  # landmark 4: its first sighting places it
+    "BR 0 4 0.3 2 0.1 0.1\n"
+    "BR 0 6 0.3 2 0.1 0.1\n"
+    "VERTEX_XY 6 -1 -2\n"  # landmark 6: VERTEX_XY wins, even after a sighting
+    "BR 1 8 -2 1.5 0.1 0.1\n"
+    "BR 0 8 1 2 0.1 0.1\n"
+    "VERTEX_XY 2 5 5\n"  # landmark 2: never seen
+)
+"""Vertices and landmarks placed from VERTEX_XY lines and first sightings."""
+SIGHTING_BEFORE_EDGE = (
+    f"ODOMETRY 0 1 1 0 0.5{COV}\n"
+    "BR 2 5 0.25 3 0.1 0.2\n"  # vertex 2 not placed yet: it goes to the origin
+    f"ODOMETRY 1 2 1 0 0.5{COV}\n"  # and stays there
+    "BR 1 5 -0.5 2 0.1 0.2\n"
+    "LANDMARK 2 7 1 2 0.2 0 0.2\n"
+)
+"""An edge-only file where a sighting comes before the edge that would place its vertex."""
 
 
 def _write(tmp_path: Path, text: str, name: str = "graph.g2o") -> Path:
@@ -77,6 +107,39 @@ def _write(tmp_path: Path, text: str, name: str = "graph.g2o") -> Path:
         ("# only a comment\n\n", None, None, "no vertices or edges"),
         ("", None, None, "no vertices or edges"),
         ("".join(f"EDGE2 {i} {i + 1} 1e308 0 0{TORO_INFO}\n" for i in range(2)), 2, "x", "overf"),
+        # landmark records
+        (TWO + "VERTEX_XY 0 1\n", 3, "y", "expected 3, got 2"),
+        (TWO + "BR 0 1 0.5 2 0.1\n", 3, "range_sigma", "expected 6, got 5"),
+        (TWO + "LANDMARK 0 1 1 1 0.1 0 0.1 9\n", 3, None, "expected 7, got 8"),
+        (TWO + "ODOMETRY 0 1 1 0 0 1 0 0 1 0\n", 3, "cov[2,2]", "expected 11, got 10"),
+        (TWO + "VERTEX_XY 0 abc 1\n", 3, "x", "not a number: 'abc'"),
+        (TWO + "BR 0 1 nan 2 0.1 0.1\n", 3, "bearing", "not finite: 'nan'"),
+        (TWO + "LANDMARK 0 1 1 inf 0.1 0 0.1\n", 3, "y", "not finite: 'inf'"),
+        (TWO + "BR 0 -1 0.5 2 0.1 0.1\n", 3, "l", "non-negative integer id: '-1'"),
+        (TWO + "LANDMARK 0 1 0 -0 0.1 0 0.1\n", 3, "x", "has no bearing and range"),
+        (TWO + "LANDMARK 0 1 1.5e308 1.5e308 1 0 1\n", 3, "x", "overflowing distance"),
+        (TWO + "BR 0 1 0.5 0 0.1 0.1\n", 3, "range", "range must be positive, got 0.0"),
+        (TWO + "BR 0 1 0.5 -2 0.1 0.1\n", 3, "range", "range must be positive, got -2.0"),
+        (TWO + "BR 0 1 0.5 2 0 0.1\n", 3, "bearing_sigma", "standard deviation 0.0 this"),
+        (TWO + "BR 0 1 0.5 2 0.1 -0.1\n", 3, "range_sigma", "standard deviation -0.1 this"),
+        (TWO + "BR 0 1 0.5 2 1e-200 0.1\n", 3, "bearing_sigma", "1/sigma^2 is not finite"),
+        (TWO + "LANDMARK 0 1 1 1 0 0 0\n", 3, "cov[0,0]", "standard deviation 0.0 this"),
+        (TWO + "LANDMARK 0 1 1 1 -0.5 0 -0.5\n", 3, "cov[0,0]", "is not positive"),
+        (
+            TWO + "VERTEX_XY 3 0 0\n# c\nVERTEX_XY 3 1 1\n",
+            5,
+            "id",
+            "duplicate landmark id 3 (first defined on line 3)",
+        ),
+        (TWO + EDGE.format(0, 1) + "BR 5 1 0.5 2 0.1 0.1\n", 4, "i", "vertex 5, which no vertex"),
+        (
+            VERTEX.format(0) + VERTEX.format(2) + "LANDMARK 1 4 1 1 0.1 0 0.1\n",
+            3,
+            "i",
+            "sighting names vertex 1, which no vertex line defines",
+        ),
+        (TWO + "ODOMETRY 0 1 1 0 0 1 0 0 1 0 -1\n", 3, "covariance", "covariance matrix is not"),
+        (TWO + "ODOMETRY 0 1 1 0 0 1 0 0 1 0 1e-320\n", 3, "covariance", "singular to invert"),
     ],
 )
 def test_bad_input_names_file_line_and_field(tmp_path, text, line, field, fragment):
@@ -197,6 +260,70 @@ def test_edge_only_file_chains_from_the_first_vertex(tmp_path):
     np.testing.assert_allclose(graph.headings.numpy(), [0, half, np.pi, 3, 0], atol=1e-15)
 
 
+def test_landmark_lines_read_as_gtsam_load2d_reads_them(tmp_path):
+    """LANDMARK x y: bearing atan2(y, x), range |(x, y)|; equal variances (within 1e-4) give
+    sigmas sqrt(v / 10) rad and sqrt(v) m, unequal ones 1 and 1 with one warning."""
+    text = (
+        TWO
+        + EDGE.format(0, 1)
+        + "LANDMARK 0 3 3 4 0.4 0 0.4\n"
+        + "LANDMARK 1 3 0 -2 0.4 0 0.5\n"  # unequal: sigmas 1, 1
+        + "LANDMARK 0 9 1 0 0.4 0.3 0.40005\n"  # equal within 1e-4
+        + "LANDMARK 1 9 -1 0 1 0 2\n"
+    )
+    path = _write(tmp_path, text)
+    with pytest.warns(UserWarning) as caught:
+        graph = read_pose_graph_2d(path)
+    assert [str(w.message) for w in caught] == [
+        f"{path}: 2 LANDMARK lines (first on line 5) give unequal x and y variances; read "
+        "with bearing and range sigma 1, as GTSAM's load2D reads them"
+    ]
+    assert graph.landmark_ids.tolist() == [3, 9]
+    assert graph.observation_index.tolist() == [[0, 0], [1, 0], [0, 1], [1, 1]]
+    assert graph.observation_lines.tolist() == [4, 5, 6, 7]
+    assert graph.observation_bearings.tolist() == [math.atan2(4, 3), -math.pi / 2, 0.0, math.pi]
+    assert graph.observation_ranges.tolist() == [5.0, 2.0, 1.0, 1.0]
+    equal = [math.sqrt(0.4 / 10.0), math.sqrt(0.4)]
+    assert graph.observation_sigmas.tolist() == [equal, [1.0, 1.0], equal, [1.0, 1.0]]
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # equal variances only: no warning
+        read_pose_graph_2d(_write(tmp_path, TWO + "LANDMARK 0 3 3 4 0.4 0 0.4\n", "eq.g2o"))
+
+
+def test_landmarks_are_placed_by_vertex_xy_else_their_first_sighting(tmp_path):
+    graph = read_pose_graph_2d(_write(tmp_path, PLACED_BY_SIGHTINGS, "lm.graph"))
+    assert graph.landmark_ids.tolist() == [2, 4, 6, 8]
+    assert graph.observation_index.tolist() == [[1, 1], [0, 1], [0, 2], [1, 3], [0, 3]]
+    assert graph.observation_lines.tolist() == [4, 5, 6, 8, 9]
+
+    def seen(x: float, y: float, heading: float, bearing: float, distance: float) -> list[float]:
+        angle = heading + bearing
+        return [x + distance * math.cos(angle), y + distance * math.sin(angle)]
+
+    expected = [[5.0, 5.0], seen(3, 1, -0.5, 0.3, 2), [-1.0, -2.0], seen(3, 1, -0.5, -2, 1.5)]
+    np.testing.assert_allclose(graph.landmark_positions.numpy(), expected, rtol=0, atol=1e-15)
+
+
+def test_edge_only_sighting_before_the_placing_edge_puts_its_vertex_at_the_origin(tmp_path):
+    """load2D's rule: a sighting's vertex not yet placed goes to the origin, and a later edge
+    into it does not move it."""
+    graph = read_pose_graph_2d(_write(tmp_path, SIGHTING_BEFORE_EDGE, "odo.txt"))
+    assert not graph.has_vertices and graph.vertex_ids.tolist() == [0, 1, 2]
+    assert graph.positions.tolist() == [[0.0, 0.0], [1.0, 0.0], [0.0, 0.0]]
+    assert graph.headings.tolist() == [0.0, 0.5, 0.0]
+    assert graph.landmark_ids.tolist() == [5, 7]
+    np.testing.assert_allclose(
+        graph.landmark_positions.numpy(),
+        [[3 * math.cos(0.25), 3 * math.sin(0.25)], [1.0, 2.0]],
+        rtol=0,
+        atol=1e-15,
+    )
+    # ODOMETRY gives the covariance: stored as its inverse
+    np.testing.assert_allclose(
+        graph.edge_information.numpy(), [np.diag([100.0, 100.0, 400.0])] * 2, rtol=1e-13
+    )
+
+
 # ------------------------------------------------------------------ round trip
 
 
@@ -226,6 +353,12 @@ def _assert_same_graph(a: PoseGraph2D, b: PoseGraph2D) -> None:
         "edge_translations",
         "edge_headings",
         "edge_information",
+        "landmark_ids",
+        "landmark_positions",
+        "observation_index",
+        "observation_bearings",
+        "observation_ranges",
+        "observation_sigmas",
     ):
         assert torch.equal(getattr(a, name), getattr(b, name)), name
     assert a.fixed_ids == b.fixed_ids
@@ -239,6 +372,44 @@ def test_write_read_round_trip_is_exact(tmp_path):
     _assert_same_graph(back, graph)
     assert back.fixed_ids == graph.fixed_ids and len(back.fixed_ids) == 2
     assert write_g2o_2d(tmp_path / "again.g2o", back).read_text() == out.read_text()
+
+
+def _with_landmarks(graph: PoseGraph2D, seed: int, m: int = 6, o: int = 20) -> PoseGraph2D:
+    """``graph`` with m landmarks (one never seen) and o sightings of the others."""
+    g = torch.Generator().manual_seed(seed)
+    rows = torch.randint(graph.num_vertices, (o,), generator=g)
+    return dataclasses.replace(
+        graph,
+        landmark_ids=torch.randperm(4 * m, generator=g)[:m].sort().values,
+        landmark_positions=torch.randn(m, 2, generator=g, dtype=torch.float64) * 50,
+        observation_index=torch.stack((rows, torch.randint(m - 1, (o,), generator=g)), 1),
+        observation_bearings=(torch.rand(o, generator=g, dtype=torch.float64) - 0.5) * 6.28,
+        observation_ranges=torch.rand(o, generator=g, dtype=torch.float64) * 30 + 1e-3,
+        observation_sigmas=torch.rand(o, 2, generator=g, dtype=torch.float64) + 1e-3,
+    )
+
+
+def test_round_trip_with_landmarks_is_exact(tmp_path):
+    graph = _with_landmarks(_random_graph(1), seed=1)
+    out = write_g2o_2d(tmp_path / "lm.g2o", graph)
+    text = out.read_text()
+    assert text.count("VERTEX_XY ") == 6 and text.count("BR ") == 20
+    back = read_pose_graph_2d(out)
+    _assert_same_graph(back, graph)
+    assert back.observation_lines.tolist() == list(range(44, 64))  # after 10 + 2 + 25 + 6
+    assert write_g2o_2d(tmp_path / "again.g2o", back).read_bytes() == out.read_bytes()
+
+
+@pytest.mark.parametrize("text", [SIGHTING_BEFORE_EDGE, PLACED_BY_SIGHTINGS])
+def test_round_trip_of_landmark_records(tmp_path, text):
+    """ODOMETRY, LANDMARK and TORO lines come back as EDGE_SE2 and BR lines: the same graph,
+    and the same file when written again."""
+    graph = read_pose_graph_2d(_write(tmp_path, text, "in.txt"))
+    out = write_g2o_2d(tmp_path / "first.g2o", graph)
+    back = read_pose_graph_2d(out)
+    assert back.has_vertices
+    _assert_same_graph(back, graph)
+    assert write_g2o_2d(tmp_path / "second.g2o", back).read_bytes() == out.read_bytes()
 
 
 def test_round_trip_of_an_edge_only_file(tmp_path):
@@ -281,3 +452,58 @@ def test_edge_only_initial_poses_equal_gtsam_load2d():
     # 999 compositions over ~90 m: rounding differences stay below 1e-11 m and rad
     np.testing.assert_allclose(graph.positions.numpy(), expected, rtol=0, atol=1e-11)
     np.testing.assert_allclose(graph.headings.numpy(), headings, rtol=0, atol=1e-11)
+
+
+def _gtsam_initial(gtsam, graph: PoseGraph2D, initial) -> tuple[np.ndarray, np.ndarray]:
+    """GTSAM's initial Values as our arrays: poses (N, 3) by vertex id, landmarks (L, 2) by
+    ``L(id)``; also checks that Values holds nothing else."""
+    poses = gtsam.utilities.allPose2s(initial)
+    assert sorted(poses.keys()) == graph.vertex_ids.tolist()
+    assert initial.size() == graph.num_vertices + graph.num_landmarks
+    pose = [poses.atPose2(k) for k in graph.vertex_ids.tolist()]
+    points = [initial.atPoint2(gtsam.symbol("l", k)) for k in graph.landmark_ids.tolist()]
+    return (
+        np.array([[p.x(), p.y(), p.theta()] for p in pose]),
+        np.array(points, dtype=np.float64).reshape(-1, 2),
+    )
+
+
+def _assert_same_initial(graph: PoseGraph2D, poses: np.ndarray, points: np.ndarray, atol: float):
+    np.testing.assert_allclose(graph.positions.numpy(), poses[:, 0:2], rtol=0, atol=atol)
+    turn = np.angle(np.exp(1j * (graph.headings.numpy() - poses[:, 2])))
+    assert np.abs(turn).max(initial=0.0) <= atol
+    np.testing.assert_allclose(graph.landmark_positions.numpy(), points, rtol=0, atol=atol)
+
+
+@pytest.mark.parametrize("name", GTSAM_LANDMARK2_FILES)
+def test_landmark_files_equal_gtsam_load2d(name):
+    """example.graph (VERTEX2, EDGE2, BR) and victoria_park.txt (ODOMETRY, LANDMARK, no
+    vertices): the same poses, landmark initial values, factor count and initial cost as
+    GTSAM's ``load2D`` with its default noise format."""
+    gtsam = pytest.importorskip("gtsam")
+    path = gtsam_pose_graph_path(name)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # both files are read without skipping or warning
+        graph = read_pose_graph_2d(path)
+    factors, initial = gtsam.load2D(str(path))
+    assert graph.num_landmarks > 0 and graph.num_observations > 0
+    assert factors.size() == graph.num_edges + graph.num_observations
+    poses, points = _gtsam_initial(gtsam, graph, initial)
+    _assert_same_initial(graph, poses, points, atol=1e-9)
+    problem = pose_graph_2d_problem(graph)
+    ours = float(problem.cost(problem.values)[0])
+    assert ours == pytest.approx(factors.error(initial), rel=1e-12)
+
+
+@pytest.mark.parametrize("text", [SIGHTING_BEFORE_EDGE, PLACED_BY_SIGHTINGS])
+def test_landmark_placement_equals_gtsam_load2d(tmp_path, text):
+    gtsam = pytest.importorskip("gtsam")
+    path = _write(tmp_path, text, "small.txt")
+    graph = read_pose_graph_2d(path)
+    factors, initial = gtsam.load2D(str(path))
+    assert factors.size() == graph.num_edges + graph.num_observations
+    _assert_same_initial(graph, *_gtsam_initial(gtsam, graph, initial), atol=1e-15)
+    problem = pose_graph_2d_problem(graph)
+    assert float(problem.cost(problem.values)[0]) == pytest.approx(
+        factors.error(initial), rel=1e-12
+    )
