@@ -50,8 +50,19 @@ What it measures
     relative of GTSAM's (``tight``), our wall time at most 1.5x GTSAM's. ``ratio`` = ours /
     GTSAM wall time, ``tight`` setting. Floats in the JSON line carry 12 significant digits.
 
+    Landmark SLAM (``--graph victoria_park.txt``, :data:`msf_torch.io.GTSAM_LANDMARK2_FILES`):
+    the Victoria Park drive, odometry between 6,969 poses and 3,640 laser sightings of 151
+    tree trunks, read by both as GTSAM's ``load2D`` reads it (``BearingRangeFactor2D`` with
+    load2D's sigmas; landmarks placed at their first sighting). Its valley is long and flat:
+    at rel 1e-5 both stop early, at different costs (GTSAM 105,330, ours 105,126, 0.2 %
+    apart); run it with ``--tight-tolerance 1e-10 --max-iterations 1000`` (both then stop by
+    the tolerance after ~190 GTSAM iterations / ~300 of our solves). ``example.graph`` (95
+    poses, 24 landmarks) runs with the small graphs.
+
 How to run
     .venv/bin/python benchmarks/posegraph2d.py               # ~1-2 min on a 2-core CPU
+    .venv/bin/python benchmarks/posegraph2d.py --graph victoria_park.txt \
+        --tight-tolerance 1e-10 --max-iterations 1000      # ~3 min
     .venv/bin/python benchmarks/posegraph2d.py --quick       # 1 repeat
     .venv/bin/python benchmarks/posegraph2d.py --graph w100.graph --quick   # seconds
 
@@ -62,6 +73,8 @@ Options
     --repeats N            timed repeats of each run on the main graph (median; default 3)
     --threads N            torch intra-op threads (default: torch's default)
     --tight-tolerance T    rel of the ``tight`` setting (default 1e-12)
+    --max-iterations N     most iterations of the ``tight`` setting and the small graphs
+                           (default 200)
     --quick                1 repeat
 """
 
@@ -89,6 +102,7 @@ from msf_torch.backend.posegraph import (  # noqa: E402
     pose_graph_config,
 )
 from msf_torch.io import (  # noqa: E402
+    GTSAM_LANDMARK2_FILES,
     GTSAM_POSE2_FILES,
     PoseGraph2D,
     gtsam_pose_graph_path,
@@ -96,6 +110,12 @@ from msf_torch.io import (  # noqa: E402
 )
 
 GRAPH = "w10000.graph"
+LANDMARK_FILES = GTSAM_LANDMARK2_FILES
+"""2-D graphs with landmark sightings: ``example.graph`` joins the small graphs;
+``victoria_park.txt`` (a real drive: 6,969 poses, 151 landmarks) is a main graph
+(``--graph victoria_park.txt``)."""
+LARGE = ("w10000.graph", "victoria_park.txt")
+"""Graphs that are only run as the main graph."""
 ZERO_COST = 1e-12
 """Costs below this are rounding noise (whitened residual norm ~1e-6): relative differences
 are taken against ``max(|cost|, ZERO_COST)``."""
@@ -119,9 +139,12 @@ def relative(a: float, b: float) -> float:
 
 def gtsam_load(path: Path) -> tuple[Any, Any]:
     """GTSAM's own reading of a 2-D graph: ``(NonlinearFactorGraph, Values)`` of
-    ``gtsam.load2D`` with TORO information order for ``.graph`` files, g2o's otherwise."""
+    ``gtsam.load2D`` with TORO information order for ``.graph`` files, g2o's otherwise, and
+    its default (``NoiseFormatAUTO``) for the landmark files."""
     import gtsam
 
+    if path.name in GTSAM_LANDMARK2_FILES:
+        return gtsam.load2D(str(path))
     noise = (
         gtsam.NoiseFormat.NoiseFormatTORO
         if path.suffix == ".graph"
@@ -135,7 +158,7 @@ def gtsam_problem(factors: Any, initial: Any) -> Any:
     the first (smallest) key at its initial pose."""
     import gtsam
 
-    first = int(min(initial.keys()))
+    first = int(min(gtsam.utilities.allPose2s(initial).keys()))
     held = gtsam.NonlinearFactorGraph(factors)
     held.add(
         gtsam.PriorFactorPose2(first, initial.atPose2(first), gtsam.noiseModel.Constrained.All(3))
@@ -156,24 +179,38 @@ def gtsam_params(rel: float, absolute: float | None, max_iterations: int) -> Any
     return params
 
 
-def gtsam_solution(values: Any) -> tuple[np.ndarray, np.ndarray]:
-    """Positions (N, 2) m and headings (N,) rad of GTSAM Values, keys in increasing order
-    (our vertex order: ``PoseGraph2D.vertex_ids`` is strictly increasing)."""
-    poses = [values.atPose2(k) for k in sorted(values.keys())]
-    positions = np.array([[p.x(), p.y()] for p in poses]).reshape(-1, 2)
-    return positions, np.array([p.theta() for p in poses])
+def gtsam_solution(values: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Positions (N, 2) m and headings (N,) rad of GTSAM Values' poses, keys in increasing
+    order (our vertex order: ``PoseGraph2D.vertex_ids`` is strictly increasing), and its
+    landmark positions (L, 2) m in increasing landmark id (``L(id)`` keys, our order)."""
+    import gtsam
+
+    poses = gtsam.utilities.allPose2s(values)
+    pose_list = [poses.atPose2(k) for k in sorted(poses.keys())]
+    positions = np.array([[p.x(), p.y()] for p in pose_list]).reshape(-1, 2)
+    marks = sorted(
+        (gtsam.Symbol(k).index(), k) for k in values.keys() if gtsam.Symbol(k).chr() == ord("l")
+    )
+    points = np.array([values.atPoint2(k) for _, k in marks]).reshape(-1, 2)
+    return positions, np.array([p.theta() for p in pose_list]), points
 
 
-def difference(ours: PoseGraph2D, positions: np.ndarray, headings: np.ndarray) -> dict[str, float]:
+def difference(
+    ours: PoseGraph2D, positions: np.ndarray, headings: np.ndarray, points: np.ndarray
+) -> dict[str, float]:
     """Largest position (m) and wrapped heading (rad) difference of our solution graph and
-    GTSAM's (N, 2) positions and (N,) headings."""
+    GTSAM's (N, 2) positions and (N,) headings, and of the (L, 2) landmarks when any."""
     p = ours.positions.detach().cpu().numpy()
     h = ours.headings.detach().cpu().numpy()
     dh = np.angle(np.exp(1j * (h - headings)))
-    return {
+    out = {
         "max_position_diff_m": float(np.linalg.norm(p - positions, axis=-1).max()),
         "max_heading_diff_rad": float(np.abs(dh).max()),
     }
+    if ours.num_landmarks:
+        mine = ours.landmark_positions.detach().cpu().numpy()
+        out["max_landmark_diff_m"] = float(np.linalg.norm(mine - points, axis=-1).max())
+    return out
 
 
 def timed(fn: Callable[[], Any]) -> tuple[float, float, Any]:
@@ -240,7 +277,7 @@ def compare(
     ours_wall = statistics.median(walls["ours"])
     gtsam_wall = statistics.median(walls["gtsam"])
     gtsam_initial, gtsam_final = factors.error(initial), factors.error(solution)
-    positions, headings = gtsam_solution(solution)
+    positions, headings, points = gtsam_solution(solution)
     log(
         f"{path.name} {label}: ours {ours.final_cost:.10g} after {ours.iterations} solves "
         f"({ours.status}), {ours_wall:.3f} s; gtsam {gtsam_final:.10g} after "
@@ -273,7 +310,7 @@ def compare(
         "final_cost_rel_diff": relative(ours.final_cost, gtsam_final),
         "ours_cost_not_above_gtsam": ours.final_cost
         <= gtsam_final + 1e-12 * max(abs(gtsam_final), ZERO_COST),
-        "solution_diff": difference(ours.graph, positions, headings),
+        "solution_diff": difference(ours.graph, positions, headings, points),
     }
 
 
@@ -285,29 +322,31 @@ def reader_check(
     ``error`` of load2D's factors at load2D's Values."""
     peer = factors.error(initial)
     rel = relative(ours_initial_cost, peer)
+    variables = graph.num_vertices + graph.num_landmarks
+    terms = graph.num_edges + graph.num_observations
     return {
-        "poses": [graph.num_vertices, int(initial.size())],
-        "edges": [graph.num_edges, int(factors.size())],
+        "variables": [variables, int(initial.size())],
+        "factors": [terms, int(factors.size())],
         "initial_cost": [ours_initial_cost, peer],
         "rel_diff": rel,
         "met": bool(
-            rel <= READER_TOLERANCE
-            and graph.num_vertices == initial.size()
-            and graph.num_edges == factors.size()
+            rel <= READER_TOLERANCE and variables == initial.size() and terms == factors.size()
         ),
     }
 
 
-def small_graph(name: str, rel: float) -> dict[str, Any]:
+def small_graph(name: str, rel: float, max_iterations: int) -> dict[str, Any]:
     """One ``tight`` run of each solver on a small graph, with the reader check."""
     path = gtsam_pose_graph_path(name)
     graph = read_ours(path)
     factors, initial = gtsam_load(path)
-    run = compare(path, graph, factors, initial, rel, 200, 0.0, 1, "tight")
+    run = compare(path, graph, factors, initial, rel, max_iterations, 0.0, 1, "tight")
     return {
         "graph": name,
         "poses": graph.num_vertices,
         "edges": graph.num_edges,
+        "landmarks": graph.num_landmarks,
+        "sightings": graph.num_observations,
         "skipped_lines": graph.skipped,
         "initial_cost_check": reader_check(graph, factors, initial, run["ours"]["initial_cost"]),
         "ours": {k: v for k, v in run["ours"].items() if k != "timing"},
@@ -320,10 +359,11 @@ def small_graph(name: str, rel: float) -> dict[str, Any]:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--graph", default=GRAPH, choices=GTSAM_POSE2_FILES)
+    parser.add_argument("--graph", default=GRAPH, choices=GTSAM_POSE2_FILES + LANDMARK_FILES)
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--threads", type=int, default=None)
     parser.add_argument("--tight-tolerance", type=float, default=1e-12)
+    parser.add_argument("--max-iterations", type=int, default=200)
     parser.add_argument("--quick", action="store_true")
     args = parser.parse_args(argv)
     if args.quick:
@@ -333,21 +373,22 @@ def main(argv: list[str] | None = None) -> int:
     machine = machine_info()
 
     small = [
-        small_graph(name, args.tight_tolerance)
-        for name in GTSAM_POSE2_FILES
-        if name not in (GRAPH, args.graph)
+        small_graph(name, args.tight_tolerance, args.max_iterations)
+        for name in (*GTSAM_POSE2_FILES, *LANDMARK_FILES)
+        if name not in (*LARGE, args.graph)
     ]
 
     path = gtsam_pose_graph_path(args.graph)
     graph = read_ours(path)
     factors, initial = gtsam_load(path)
     log(
-        f"{args.graph}: {graph.num_vertices} poses, {graph.num_edges} edges; torch threads "
+        f"{args.graph}: {graph.num_vertices} poses, {graph.num_edges} edges, "
+        f"{graph.num_landmarks} landmarks, {graph.num_observations} sightings; torch threads "
         f"{torch.get_num_threads()}"
     )
     settings = {
         "default": (1e-5, 100, None),
-        "tight": (args.tight_tolerance, 200, 0.0),
+        "tight": (args.tight_tolerance, args.max_iterations, 0.0),
     }
     runs = {
         name: compare(path, graph, factors, initial, rel, iters, absolute, args.repeats, name)
@@ -365,9 +406,11 @@ def main(argv: list[str] | None = None) -> int:
             "graph": f"gtsam/Data/{args.graph}",
             "poses": graph.num_vertices,
             "edges": graph.num_edges,
+            "landmarks": graph.num_landmarks,
+            "sightings": graph.num_observations,
             "skipped_lines": graph.skipped,
             "reading": "ours: read_pose_graph_2d; GTSAM: load2D (NoiseFormatTORO for .graph, "
-            "NoiseFormatG2O otherwise)",
+            "NoiseFormatG2O otherwise; its default NoiseFormatAUTO for the landmark files)",
             "fixed": "first vertex (ours held; GTSAM PriorFactorPose2, Constrained.All(3))",
             "initial_cost_check": check,
             "repeats": args.repeats,

@@ -20,6 +20,10 @@ def test_small_graphs_match_gtsam(capsys, one_torch_thread):
     assert record["readers_agree"]
     names = {s["graph"] for s in record["small_graphs"]}
     assert "w10000.graph" not in names and "pose2example.txt" in names
+    assert "victoria_park.txt" not in names  # a main graph only (seconds per solve)
+    example = next(s for s in record["small_graphs"] if s["graph"] == "example.graph")
+    assert (example["landmarks"], example["sightings"]) == (24, 422)
+    assert example["solution_diff"]["max_landmark_diff_m"] <= 1e-6
     assert record["targets"]["cost"]["met"]
     for run in [record["accuracy"]["tight"], *record["small_graphs"]]:
         assert run["final_cost_rel_diff"] <= 1e-6
