@@ -454,6 +454,38 @@ def _build_graph_2d(rng: np.random.Generator, toro: bool) -> tuple[dict[str, Any
     return {name: "\n".join(lines) + "\n"}, name
 
 
+def _build_landmark_2d(rng: np.random.Generator) -> tuple[dict[str, Any], str]:
+    """A planar graph with landmarks like the gtsam wheel's ``victoria_park.txt`` (ODOMETRY
+    with covariances, LANDMARK sightings as x, y and variances, no vertices) or
+    ``example.graph`` (vertices, BR sightings); VERTEX_XY lines place some landmarks."""
+    n = int(rng.integers(2, 8))
+    lines = ["# a 2-D graph with landmarks"]
+    if rng.random() < 0.5:
+        for i in range(n):
+            pose = [*rng.normal(size=2), rng.uniform(-math.pi, math.pi)]
+            lines.append(" ".join(["VERTEX_SE2", str(i), *map(_num, pose)]))
+    for i in range(n - 1):
+        pose = [*rng.normal(size=2), rng.uniform(-math.pi, math.pi)]
+        a = rng.normal(size=(3, 3)) * 0.1
+        cov = (a @ a.T + 0.01 * np.eye(3))[np.triu_indices(3)].tolist()
+        lines.append(" ".join(["ODOMETRY", str(i), str(i + 1), *map(_num, pose + cov)]))
+    landmarks = int(rng.integers(1, 4))
+    for _ in range(int(rng.integers(1, 7))):
+        i, lid = str(int(rng.integers(0, n))), str(int(rng.integers(0, landmarks)))
+        if rng.random() < 0.5:
+            var = float(rng.uniform(0.01, 1.0))
+            var_yy = var if rng.random() < 0.8 else var * 2  # unequal: sigmas 1, with a warning
+            values = [*rng.normal(size=2) * 5, var, 0.0, var_yy]
+            lines.append(" ".join(["LANDMARK", i, lid, *map(_num, values)]))
+        else:
+            values = [rng.uniform(-math.pi, math.pi), rng.uniform(0.5, 10), 0.05, 0.1]
+            lines.append(" ".join(["BR", i, lid, *map(_num, values)]))
+    for lid in range(landmarks):
+        if rng.random() < 0.3:
+            lines.append(" ".join(["VERTEX_XY", str(lid), *map(_num, rng.normal(size=2) * 5)]))
+    return {"graph.txt": "\n".join(lines) + "\n"}, "graph.txt"
+
+
 _EQVIO_HEADER = (
     "row_type,t_abs,t_rel,seq,frame_idx,landmark_id,gx,gy,gz,ax,ay,az,"
     "bgx,bgy,bgz,bax,bay,baz,u_norm,v_norm,key,value"
@@ -660,6 +692,16 @@ def _check_graph_2d(graph: PoseGraph2D) -> str | None:
         or bool(torch.linalg.cholesky_ex(info).info.ne(0).any())
     ):
         return "an information matrix is not finite symmetric positive definite"
+    if not _finite(graph.landmark_positions):
+        return "landmark_positions holds a non-finite value"
+    bearings, ranges = graph.observation_bearings, graph.observation_ranges
+    if not (_finite(bearings) and bool((bearings.abs() <= math.pi).all())):
+        return "a sighting's bearing is not finite in [-pi, pi]"
+    if not (_finite(ranges) and bool((ranges > 0).all())):
+        return "a sighting's range is not finite and positive"
+    sigmas = graph.observation_sigmas
+    if not (_finite(sigmas) and bool((sigmas > 0).all()) and _finite(sigmas**-2)):
+        return "a sighting's sigma is not finite and positive with finite information"
     return None
 
 
@@ -756,6 +798,9 @@ READERS: dict[str, Reader] = {
             lambda p, s: read_pose_graph_2d(p),
             _check_graph_2d,
         ),
+        Reader(
+            "landmark_2d", _build_landmark_2d, lambda p, s: read_pose_graph_2d(p), _check_graph_2d
+        ),
         Reader("eqvio", _build_eqvio, lambda p, s: load_eqvio(p), _check_eqvio),
         Reader(
             "kitti_poses",
@@ -768,9 +813,10 @@ READERS: dict[str, Reader] = {
     )
 }
 """Reader name -> :class:`Reader`: native ``.npz`` and CSV folder, TUM, EuRoC ASL, the KITTI
-files gtsam ships (``data_dir``), g2o and TORO pose graphs (3-D and 2-D), the EqVIO replay
-CSV, KITTI odometry poses + times, 2D LiDAR scans (``.npz``), odometry + anchor-range CSV
-files (``range_csv``). Not here: rosbags (binary containers written by ``rosbags``; their
+files gtsam ships (``data_dir``), g2o and TORO pose graphs (3-D and 2-D), 2-D graphs with
+landmarks (``landmark_2d``: ODOMETRY, LANDMARK, BR, VERTEX_XY), the EqVIO replay CSV, KITTI
+odometry poses + times, 2D LiDAR scans (``.npz``), odometry + anchor-range CSV files
+(``range_csv``). Not here: rosbags (binary containers written by ``rosbags``; their
 reader is tested on bags written by its own writers)."""
 
 
