@@ -214,6 +214,16 @@ def build_parser() -> argparse.ArgumentParser:
     )
     pg.add_argument("--max-iterations", type=_positive_int, default=100, help="most linear solves")
     pg.add_argument(
+        "--start",
+        choices=("file", "incremental"),
+        default="file",
+        help="LM from the file's poses (default, GTSAM's start) or, for 2-D graphs, from an "
+        "estimate grown --chunk vertices at a time (long loops, landmark runs)",
+    )
+    pg.add_argument(
+        "--chunk", type=_positive_int, default=200, help="vertices per step of --start incremental"
+    )
+    pg.add_argument(
         "--tolerance",
         type=_tolerance,
         default=1e-5,
@@ -442,14 +452,14 @@ def _config_overrides(path: Path | None) -> dict[str, Any]:
     return values
 
 
-def _progress_factory(mode: str):
+def _progress_factory(mode: str, unit: str = "epoch"):
     if mode == "off" or (mode == "auto" and not sys.stderr.isatty()):
         return None
 
     def factory():
         from tqdm import tqdm
 
-        bar = tqdm(total=None, unit="epoch", file=sys.stderr, leave=False, mininterval=0.2)
+        bar = tqdm(total=None, unit=unit, file=sys.stderr, leave=False, mininterval=0.2)
 
         def update(done: int, total: int) -> None:
             bar.total = total
@@ -738,11 +748,26 @@ def _cmd_posegraph(args) -> dict[str, Any]:
             f"({', '.join(sorted(POSE3_TAGS))}) tags (tags are case-sensitive)",
         )
     planar = kind == 2
+    if args.start == "incremental" and not planar:
+        raise ValueError("--start incremental is for 2-D graphs; this file holds a 3-D graph")
     graph = read_pose_graph_2d(source) if planar else read_pose_graph(source)
     config = pose_graph_config(
         max_iterations=args.max_iterations, relative_tolerance=args.tolerance, planar=planar
     )
-    result = optimize_pose_graph(graph, robust=args.robust, config=config)
+    factory = _progress_factory("auto", unit="vertex") if args.start == "incremental" else None
+    update, close = factory() if factory is not None else (None, None)
+    try:
+        result = optimize_pose_graph(
+            graph,
+            robust=args.robust,
+            config=config,
+            start=args.start,
+            chunk=args.chunk,
+            progress=update,
+        )
+    finally:
+        if close is not None:
+            close()
     if not math.isfinite(result.initial_cost):
         raise DataError(
             source,
@@ -758,6 +783,11 @@ def _cmd_posegraph(args) -> dict[str, Any]:
         **({"sightings": graph.num_observations} if planar and graph.num_observations else {}),
         "robust": None if args.robust is None else [args.robust.name, args.robust.scale],
         "initial_cost": result.initial_cost,
+        **(
+            {"start": "incremental", "chunk": args.chunk, "start_cost": result.start_cost}
+            if args.start == "incremental"
+            else {}
+        ),
         "final_cost": result.final_cost,
         "iterations": result.iterations,
         "seconds": result.seconds,

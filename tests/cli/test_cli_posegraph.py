@@ -190,3 +190,20 @@ def test_posegraph_overflowing_values_are_an_error_not_infinity(tmp_path, capsys
         assert main(["posegraph", str(path)]) == 2
         captured = capsys.readouterr()
         assert "is not finite" in captured.err and captured.out == ""
+
+
+def test_posegraph_incremental_start(gtsam, capsys):
+    """--start incremental on a 2-D landmark file reports the file's cost, the grown start's
+    and the same optimum as LM from the file (example.graph has one); a 3-D file refuses it."""
+    assert main(["posegraph", "example", "--tolerance", "1e-12"]) == 0
+    plain = _last_json(capsys)
+    args = ["posegraph", "example", "--tolerance", "1e-12", "--start", "incremental"]
+    assert main([*args, "--chunk", "40"]) == 0
+    grown = _last_json(capsys)
+    assert (grown["start"], grown["chunk"]) == ("incremental", 40)
+    assert grown["initial_cost"] == pytest.approx(plain["initial_cost"], rel=1e-12)
+    assert grown["final_cost"] <= grown["start_cost"] < grown["initial_cost"]
+    assert grown["final_cost"] == pytest.approx(plain["final_cost"], rel=1e-9)
+    assert "start" not in plain
+    assert main(["posegraph", "sphere2500", "--start", "incremental"]) == 2
+    assert "--start incremental is for 2-D graphs" in capsys.readouterr().err
