@@ -805,8 +805,14 @@ def _cmd_posegraph(args) -> dict[str, Any]:
                 result.graph.positions,
                 graph.edge_index,
                 result.log,
-                result.initial_cost,
-                title=Path(source).name,
+                result.start_cost,
+                title=Path(source).name
+                + (
+                    f" (final LM from the incremental start, chunk {args.chunk}; file's start "
+                    f"cost {result.initial_cost:.4g})"
+                    if args.start == "incremental"
+                    else ""
+                ),
                 landmarks=(graph.landmark_positions, result.graph.landmark_positions)
                 if planar and graph.num_landmarks
                 else None,
