@@ -279,6 +279,34 @@ def build_parser() -> argparse.ArgumentParser:
         "guesses; without one the map frame is the odometry's start",
     )
 
+    nm = sub.add_parser(
+        "nmea", help="convert an NMEA 0183 GNSS log (GGA, GST, RMC, ZDA) to a native gnss.csv"
+    )
+    nm.add_argument("log", type=Path, help="NMEA log: one sentence per line, optional stamps")
+    nm.add_argument(
+        "--out", type=Path, required=True, help="CSV to write, normally FOLDER/gnss.csv"
+    )
+    nm.add_argument(
+        "--origin",
+        type=_triple,
+        default=None,
+        metavar="LAT,LON,ALT",
+        help="ENU origin: degrees, degrees, m above the WGS-84 ellipsoid (default: first fix)",
+    )
+    nm.add_argument(
+        "--time",
+        choices=("auto", "utc", "receive"),
+        default="auto",
+        help="fix times: UTC from the sentences (UNIX s), the lines' receive stamps, or "
+        "receive stamps when every GGA has one (default)",
+    )
+    nm.add_argument(
+        "--t0", type=_finite_float, default=0.0, help="seconds subtracted from the fix times"
+    )
+    nm.add_argument(
+        "--min-quality", type=_positive_int, default=1, help="lowest GGA quality code kept"
+    )
+
     lm = sub.add_parser(
         "lidar-map", help="2D LiDAR scan odometry (PLICP) and an occupancy map (PNG + YAML)"
     )
@@ -915,6 +943,38 @@ def _cmd_ranges(args) -> dict[str, Any]:
     return summary
 
 
+def _cmd_nmea(args) -> dict[str, Any]:
+    import numpy as np
+
+    from msf_torch.io.errors import DataError
+    from msf_torch.io.nmea import read_nmea, write_gnss_csv
+
+    if args.out.is_dir():
+        raise ValueError(f"--out {args.out} is a folder; give a file name (FOLDER/gnss.csv)")
+    log = read_nmea(args.log, min_quality=args.min_quality, time=args.time)
+    if len(log) == 0:
+        raise DataError(args.log, f"no fix kept (counts: {log.counts})")
+    gnss, origin = log.to_gnss(origin=args.origin, t0=args.t0)
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    out = write_gnss_csv(args.out, gnss)
+    t = gnss.t[0].numpy()
+    given = np.isfinite(log.sigma_enu).all(axis=1)
+    return {
+        "log": str(args.log),
+        "out": str(out),
+        "fixes": len(log),
+        "fixes_with_sigma": int(given.sum()),
+        "counts": log.counts,
+        "origin": list(origin),
+        "time_source": log.time_source,
+        "t_range_s": [float(t[0]), float(t[-1])],
+        "median_sigma_enu_m": np.median(log.sigma_enu[given], axis=0).tolist()
+        if given.any()
+        else None,
+        "geoid_separation_missing": log.geoid_separation_missing,
+    }
+
+
 def _cmd_lidar_map(args) -> dict[str, Any]:
     from msf_torch.io.scans import read_scans, write_scans
     from msf_torch.lidar.grid import GridConfig
@@ -952,6 +1012,7 @@ def main(argv: list[str] | None = None) -> int:
         "posegraph": _cmd_posegraph,
         "lidar-map": _cmd_lidar_map,
         "ranges": _cmd_ranges,
+        "nmea": _cmd_nmea,
         "config": _cmd_config,
     }
     try:

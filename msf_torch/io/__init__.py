@@ -24,7 +24,9 @@ The 2-D reader also reads landmark SLAM files (``ODOMETRY``, ``VERTEX_XY``, ``BR
 ``LANDMARK``: GTSAM's ``victoria_park.txt``) into the graph's landmarks and sightings.
 Odometry + anchor-range runs (UWB, radio beacons) are read from CSV files by
 :func:`read_range_run` and from the gtsam wheel's Plaza runs by :func:`load_plaza` into a
-:class:`RangeRun`.
+:class:`RangeRun`. NMEA 0183 GNSS logs (GGA fixes with GST sigmas, RMC/ZDA dates) are read
+by :func:`read_nmea` into an :class:`NmeaLog`, whose fixes go to local ENU metres and a native
+``gnss.csv`` (:func:`write_gnss_csv`; ``msf nmea``).
 """
 
 from __future__ import annotations
@@ -42,6 +44,7 @@ __all__ = [
     "DataError",
     "EqvioRun",
     "MissingExtraError",
+    "NmeaLog",
     "atomic_write",
     "atomic_save_npz",
     "detect_format",
@@ -57,6 +60,7 @@ __all__ = [
     "read_kitti_poses",
     "read_rosbag",
     "read_native",
+    "read_nmea",
     "read_range_run",
     "read_pose_graph",
     "read_pose_graph_2d",
@@ -67,6 +71,7 @@ __all__ = [
     "write_odometry_rosbag2",
     "write_rosbag",
     "write_anchors",
+    "write_gnss_csv",
     "write_native",
     "write_tum",
 ]
@@ -96,6 +101,7 @@ from msf_torch.io.g2o_2d import (
 from msf_torch.io.kitti_gtsam import KITTI_GTSAM_NAME, gtsam_data_path, load_kitti_gtsam
 from msf_torch.io.kitti_poses import read_kitti_poses, write_kitti_poses
 from msf_torch.io.native import _native_path_problem, read_native, write_native
+from msf_torch.io.nmea import NmeaLog, read_nmea, write_gnss_csv
 from msf_torch.io.plaza import load_plaza
 from msf_torch.io.ranges import RangeRun, read_range_run, write_anchors
 from msf_torch.io.rosbag import (

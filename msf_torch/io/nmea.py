@@ -1,0 +1,617 @@
+"""NMEA 0183 GNSS logs (u-blox, Septentrio, NovAtel serial logs; ``nmea_msgs/Sentence``
+dumps) -> GNSS fixes in local ENU metres (:class:`~msf_torch.types.GnssFixes`).
+
+Lines
+    One sentence per line, ``$<address>,<field>,...[*hh]``, optionally after a receive
+    timestamp of the logging host (seconds, e.g. UNIX time), separated by a comma or
+    whitespace: ``1634567890.123,$GNGGA,...`` or ``1634567890.123 $GNGGA,...``. The
+    sentence starts at the last ``$`` of the line; blank lines are ignored; lines without a
+    ``$`` are counted (``not_nmea``); a prefix that is not a plain decimal number is counted
+    (``unreadable_prefix``) and the sentence is read without a receive time. Any talker id
+    (``GP``, ``GN``, ``GL``, ``GA``, ``GB``, ``BD``, ``QZ``, ...) is accepted.
+
+Sentences read
+    * GGA (fix): UTC ``hhmmss.ss``, latitude ``ddmm.mmmm`` + ``N``/``S``, longitude
+      ``dddmm.mmmm`` + ``E``/``W``, quality, satellites, HDOP, altitude above mean sea level
+      + ``M``, geoid separation + ``M``, ... Heights go to the WGS-84 ellipsoid: altitude +
+      separation; a fix with an empty separation keeps its MSL altitude and sets
+      :attr:`NmeaLog.geoid_separation_missing` (warned: its height is off by the geoid
+      undulation, tens of metres).
+    * GST (error statistics): UTC, RMS, semi-major, semi-minor, orientation, sigma latitude,
+      sigma longitude, sigma altitude (m). The sigmas attach to the kept GGA fix of the same
+      UTC time of day (to the millisecond; the nearest such GGA in the file) as
+      ``sigma_enu = [sigma lon, sigma lat, sigma alt]`` (east, north, up). A fix without a
+      GST, or a GST field left empty, has NaN there: the estimator's configured
+      ``gnss_sigma_m`` applies, as for a ``NavSatFix`` without covariance.
+    * RMC (``ddmmyy``; years 80-99 are 19xx, the others 20xx) and ZDA (day, month, year)
+      give the UTC date.
+    * Any other sentence (GSV, VTG, GSA, proprietary ``$P...``) is counted by its type and
+      skipped.
+
+Rules
+    * A checksum ``*hh`` is verified when present. A mismatch (or an unreadable ``*hh``)
+      skips the line, counted in ``bad_checksum``: one corrupted serial byte does not make
+      the log unreadable.
+    * A sentence whose checksum is right (or absent) but whose fields are malformed raises
+      :class:`~msf_torch.io.errors.DataError` naming the file, line and field
+      (``utc_time``, ``latitude``, ``latitude_hemisphere``, ``longitude``,
+      ``longitude_hemisphere``, ``quality``, ``satellites``, ``hdop``, ``altitude``,
+      ``altitude_unit``, ``geoid_separation``, ``separation_unit``, ``sigma_latitude``,
+      ``sigma_longitude``, ``sigma_altitude``, ``date``, ``receive_time``).
+    * The receiver's "no fix" forms -- quality 0, or empty latitude and longitude -- are
+      skipped and counted (``no_fix``); so are fixes with a quality code below
+      ``min_quality`` (``below_min_quality``). The quality is the GGA code (1 GPS, 2 DGPS,
+      4 RTK fixed, 5 RTK float, 6 dead reckoning, ...): an ordinal code, not a ranking.
+    * Times: ``time="utc"`` gives UNIX seconds from the UTC time of day and the date of the
+      latest RMC/ZDA; fixes before the first date get that date back-filled, and a time of
+      day more than 12 h below the previous one rolls to the next day. Without any date the
+      times are seconds since 00:00 UTC of the first day (still rolling over; warned).
+      ``time="receive"`` uses the receive timestamps (DataError at a kept GGA without one).
+      ``time="auto"`` (default) uses them when every kept GGA has one, else UTC.
+    * Fixes must not go back in time (DataError naming the line); a fix at exactly the time of
+      the previous one (a second talker's GGA of the same epoch) is dropped
+      (``duplicate_time``).
+    * One warning lists whatever was skipped.
+
+Units: degrees (WGS-84), metres, seconds.
+
+Example:
+    >>> log = read_nmea("drive.nmea")  # doctest: +SKIP
+    >>> gnss, origin = log.to_gnss(t0=log.t[0])  # doctest: +SKIP
+    >>> write_gnss_csv("run/gnss.csv", gnss)  # doctest: +SKIP
+
+On the command line: ``msf nmea drive.nmea --out run/gnss.csv``.
+"""
+
+from __future__ import annotations
+
+__all__ = ["TIME_SOURCES", "NmeaLog", "read_nmea", "write_gnss_csv"]
+
+import datetime
+import math
+import os
+import re
+import warnings
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from msf_torch.io import _tables
+from msf_torch.io.errors import DataError
+from msf_torch.io.geodesy import geodetic_to_enu
+from msf_torch.io.native import _table_for, _write_table
+from msf_torch.types import GnssFixes
+
+TIME_SOURCES = ("auto", "utc", "receive")
+"""Accepted values of ``read_nmea(time=...)`` (module docstring, Rules)."""
+
+_NUMBER = re.compile(r"[+-]?(?:\d+\.?\d*|\.\d+)")
+_STAMP = re.compile(r"[+-]?(?:\d+\.?\d*|\.\d+)(?:[eE][+-]?\d+)?")
+_UNSIGNED = re.compile(r"\d+")
+_HEX2 = re.compile(r"[0-9A-Fa-f]{2}")
+_ADDRESS = re.compile(r"[A-Z][A-Z0-9]{1,9}")
+_TIME = re.compile(r"(\d\d)(\d\d)(\d\d)(\.\d*)?")
+_ANGLE = re.compile(r"(\d+)(\d\d(?:\.\d*)?)")
+_DDMMYY = re.compile(r"(\d\d)(\d\d)(\d\d)")
+_GGA_FIELDS = (
+    "utc_time",
+    "latitude",
+    "latitude_hemisphere",
+    "longitude",
+    "longitude_hemisphere",
+    "quality",
+    "satellites",
+    "hdop",
+    "altitude",
+    "altitude_unit",
+)
+_GST_SIGMAS = ("sigma_latitude", "sigma_longitude", "sigma_altitude")
+_OUTCOMES = (
+    "kept",
+    "no_fix",
+    "below_min_quality",
+    "duplicate_time",
+    "bad_checksum",
+    "not_nmea",
+    "unreadable_prefix",
+    "gst_unmatched",
+)
+_SENTENCES_READ = ("GGA", "GST", "RMC", "ZDA")
+_HALF_DAY_S = 43200.0
+_DAY_S = 86400
+_EPOCH_ORDINAL = datetime.date(1970, 1, 1).toordinal()
+
+
+@dataclass
+class NmeaLog:
+    """The kept GGA fixes of an NMEA log, in file order (module docstring for the rules).
+
+    Attributes:
+        t: (N,) s float64, from ``time_source``.
+        latitude_deg, longitude_deg: (N,) WGS-84 degrees (south, west negative).
+        altitude_m: (N,) height above the WGS-84 ellipsoid (MSL altitude + geoid
+            separation), m.
+        quality: (N,) int64 GGA fix quality code.
+        satellites: (N,) int64 satellites used; -1 where the field is empty.
+        hdop: (N,) float64 horizontal dilution of precision; NaN where empty.
+        sigma_enu: (N, 3) m ``[east, north, up]`` standard deviations from GST; NaN where
+            none was given.
+        lines: (N,) int64 1-based line of each fix's GGA.
+        time_source: ``"utc"`` or ``"receive"``.
+        counts: ``kept``, ``no_fix``, ``below_min_quality``, ``duplicate_time``,
+            ``bad_checksum``, ``not_nmea``, ``unreadable_prefix``, ``gst_unmatched`` (GSTs
+            with no kept GGA of their time), and per sentence type read (upper case:
+            ``GGA``, ``GST``, ``GSV``, ``PUBX``, ...).
+        source: the path read.
+        geoid_separation_missing: True when some kept fix had an empty geoid separation
+            (its height is the MSL altitude).
+    """
+
+    t: np.ndarray
+    latitude_deg: np.ndarray
+    longitude_deg: np.ndarray
+    altitude_m: np.ndarray
+    quality: np.ndarray
+    satellites: np.ndarray
+    hdop: np.ndarray
+    sigma_enu: np.ndarray
+    lines: np.ndarray
+    time_source: str
+    counts: dict[str, int]
+    source: str
+    geoid_separation_missing: bool
+
+    def __len__(self) -> int:
+        """Number of kept fixes N."""
+        return int(self.t.shape[0])
+
+    def to_gnss(
+        self, origin: Sequence[float] | None = None, t0: float = 0.0
+    ) -> tuple[GnssFixes, tuple[float, float, float]]:
+        """The fixes as a B = 1 GNSS stream in local ENU metres.
+
+        Args:
+            origin: ``(lat_deg, lon_deg, alt_m)`` of the ENU origin (ellipsoidal height);
+                None: the first kept fix.
+            t0: subtracted from :attr:`t`, s.
+
+        Returns:
+            ``(gnss, origin)``: :class:`~msf_torch.types.GnssFixes` with ``t`` (1, N) s,
+            ``position`` (1, N, 3) m (:func:`~msf_torch.io.geodesy.geodetic_to_enu`),
+            ``sigma`` (1, N, 3) m = :attr:`sigma_enu`, float64, all-True mask; and the
+            origin used as three floats.
+
+        Raises:
+            ValueError: no origin given and no fix kept; a bad origin.
+        """
+        if origin is None:
+            if len(self) == 0:
+                raise ValueError(f"{self.source}: no fix kept, so no origin; give one")
+            origin = (
+                float(self.latitude_deg[0]),
+                float(self.longitude_deg[0]),
+                float(self.altitude_m[0]),
+            )
+        enu = geodetic_to_enu(self.latitude_deg, self.longitude_deg, self.altitude_m, origin)
+        used = (float(origin[0]), float(origin[1]), float(origin[2]))
+        n = len(self)
+        gnss = GnssFixes(
+            t=torch.as_tensor(self.t - float(t0), dtype=torch.float64).reshape(1, n),
+            position=torch.as_tensor(enu, dtype=torch.float64).reshape(1, n, 3),
+            sigma=torch.tensor(self.sigma_enu, dtype=torch.float64).reshape(1, n, 3),
+            mask=torch.ones((1, n), dtype=torch.bool),
+        )
+        return gnss, used
+
+
+def write_gnss_csv(path: str | os.PathLike[str], gnss: GnssFixes) -> Path:
+    """Write a B = 1 GNSS stream as a native ``gnss.csv`` table, atomically.
+
+    Columns ``t,x,y,z`` (s, ENU m), plus ``sigma_x,sigma_y,sigma_z`` (m; ``nan`` where
+    unknown) unless every sigma is NaN -- the layout :func:`msf_torch.io.read_native` reads
+    in a CSV folder. Only real samples (mask True) are written, numbers as shortest exact
+    ``repr``.
+
+    Args:
+        path: the file to write (normally ``FOLDER/gnss.csv``); its folder must exist.
+        gnss: the stream, B = 1.
+
+    Returns:
+        the path written.
+
+    Raises:
+        ValueError: B != 1.
+    """
+    if gnss.batch_size != 1:
+        raise ValueError(f"write_gnss_csv writes one stream, got B = {gnss.batch_size}")
+    compact = gnss.compact()
+    arrays = {
+        key: value[0].detach().to(device="cpu", dtype=torch.float64).numpy()
+        for key, value in compact.tensors().items()
+        if key != "mask"
+    }
+    target = Path(path)
+    _write_table(target, *_table_for("gnss", arrays))
+    return target
+
+
+@dataclass
+class _Fix:
+    """One GGA fix as read (before timing)."""
+
+    line: int
+    tod: tuple[int, float]  # whole seconds of the day, fraction
+    latitude: float
+    longitude: float
+    altitude: float
+    separation_missing: bool
+    quality: int
+    satellites: int
+    hdop: float
+    stamp: float | None
+
+
+class _Reader:
+    """Line-by-line state of :func:`read_nmea`."""
+
+    def __init__(self, path: str, min_quality: int) -> None:
+        self.path = path
+        self.min_quality = min_quality
+        self.counts: dict[str, int] = dict.fromkeys(_OUTCOMES, 0)
+        self.bad_lines: list[int] = []
+        self.fixes: list[_Fix] = []
+        self.fix_rolls: list[int] = []
+        # GST sigmas by time of day (ms): [(line, [east, north, up])]
+        self.gst_sigmas: dict[int, list[tuple[int, list[float]]]] = {}
+        # (roll count, day number) of each date sentence, in order
+        self.dates: list[tuple[int, int]] = []
+        self.fix_date_index: list[int] = []  # index into dates of the latest before the fix
+        self.rolls = 0
+        self.last_tod: float | None = None
+
+    # ---------------------------------------------------------------- fields
+    def error(self, line: int, field: str, problem: str) -> DataError:
+        return DataError(self.path, problem, line=line, field=field)
+
+    def number(self, line: int, field: str, text: str) -> float:
+        if not _NUMBER.fullmatch(text):
+            raise self.error(line, field, f"not a number: {_tables.shown(text)}")
+        return float(text)
+
+    def time_of_day(self, line: int, text: str) -> tuple[int, float]:
+        match = _TIME.fullmatch(text)
+        if match is None:
+            raise self.error(line, "utc_time", f"expected hhmmss.ss, got {_tables.shown(text)}")
+        hours, minutes, seconds = (int(g) for g in match.groups()[:3])
+        if hours > 23 or minutes > 59 or seconds > 60:
+            raise self.error(line, "utc_time", f"not a time of day: {_tables.shown(text)}")
+        fraction = float("0" + match.group(4)) if match.group(4) else 0.0
+        return 3600 * hours + 60 * minutes + seconds, fraction
+
+    def angle(self, line: int, field: str, text: str, hemi: str, signs: str, top: int) -> float:
+        """Degrees from ``[d]ddmm.mmmm`` and its hemisphere letter (``signs`` = "NS"/"EW")."""
+        match = _ANGLE.fullmatch(text)
+        if match is None:
+            raise self.error(
+                line, field, f"expected degrees and minutes, got {_tables.shown(text)}"
+            )
+        degrees, minutes = float(match.group(1)), float(match.group(2))
+        value = degrees + minutes / 60.0
+        if minutes >= 60.0 or value > top:
+            raise self.error(line, field, f"out of range: {_tables.shown(text)}")
+        if hemi not in signs:
+            raise self.error(
+                line,
+                f"{field}_hemisphere",
+                f"expected {signs[0]} or {signs[1]}, got {_tables.shown(hemi)}",
+            )
+        return -value if hemi == signs[1] else value
+
+    @staticmethod
+    def missing(names: Sequence[str], fields: list[str]) -> str | None:
+        return names[len(fields)] if len(fields) < len(names) else None
+
+    # ---------------------------------------------------------------- time of day
+    def see_time(self, tod: tuple[int, float]) -> None:
+        """Count a UTC day rollover when the time of day drops by more than 12 h."""
+        value = tod[0] + tod[1]
+        if self.last_tod is not None and value < self.last_tod - _HALF_DAY_S:
+            self.rolls += 1
+        self.last_tod = value
+
+    # ---------------------------------------------------------------- sentences
+    def gga(self, line: int, f: list[str], stamp: float | None) -> None:
+        no_quality = len(f) > 5 and _UNSIGNED.fullmatch(f[5]) and int(f[5]) == 0
+        if no_quality or (len(f) > 3 and f[1] == "" and f[3] == ""):
+            self.counts["no_fix"] += 1
+            return
+        absent = self.missing(_GGA_FIELDS, f)
+        if absent is not None:
+            raise self.error(line, absent, f"missing: the GGA sentence has {len(f)} fields")
+        if not _UNSIGNED.fullmatch(f[5]):
+            raise self.error(line, "quality", f"expected a fix quality code, got {f[5]!r}")
+        quality = int(f[5])
+        tod = self.time_of_day(line, f[0])
+        latitude = self.angle(line, "latitude", f[1], f[2], "NS", 90)
+        longitude = self.angle(line, "longitude", f[3], f[4], "EW", 180)
+        satellites = -1
+        if f[6]:
+            if not _UNSIGNED.fullmatch(f[6]):
+                raise self.error(line, "satellites", f"not a count: {_tables.shown(f[6])}")
+            satellites = int(f[6])
+        hdop = self.number(line, "hdop", f[7]) if f[7] else math.nan
+        if hdop < 0:
+            raise self.error(line, "hdop", f"must not be negative, got {f[7]}")
+        if not f[8]:
+            raise self.error(line, "altitude", "empty in a fix")
+        altitude = self.number(line, "altitude", f[8])
+        if f[9] not in ("M", ""):
+            raise self.error(line, "altitude_unit", f"expected M, got {_tables.shown(f[9])}")
+        separation_missing = len(f) < 11 or f[10] == ""
+        if not separation_missing:
+            altitude += self.number(line, "geoid_separation", f[10])
+            if len(f) > 11 and f[11] not in ("M", ""):
+                raise self.error(line, "separation_unit", f"expected M, got {_tables.shown(f[11])}")
+        if quality < self.min_quality:
+            self.counts["below_min_quality"] += 1
+            return
+        self.see_time(tod)
+        self.fixes.append(
+            _Fix(
+                line=line,
+                tod=tod,
+                latitude=latitude,
+                longitude=longitude,
+                altitude=altitude,
+                separation_missing=separation_missing,
+                quality=quality,
+                satellites=satellites,
+                hdop=hdop,
+                stamp=stamp,
+            )
+        )
+        self.fix_rolls.append(self.rolls)
+        self.fix_date_index.append(len(self.dates) - 1)
+
+    def gst(self, line: int, f: list[str]) -> None:
+        names = ("utc_time", "rms", "semi_major", "semi_minor", "orientation", *_GST_SIGMAS)
+        absent = self.missing(names, f)
+        if absent is not None:
+            raise self.error(line, absent, f"missing: the GST sentence has {len(f)} fields")
+        if not f[0]:
+            return
+        seconds, fraction = self.time_of_day(line, f[0])
+        sigmas = []
+        for name, text in zip(_GST_SIGMAS, f[5:8], strict=True):
+            value = self.number(line, name, text) if text else math.nan
+            if value < 0:
+                raise self.error(line, name, f"a standard deviation must not be negative: {text}")
+            sigmas.append(value)
+        north, east, up = sigmas
+        key = round(1000 * (seconds + fraction))
+        self.gst_sigmas.setdefault(key, []).append((line, [east, north, up]))
+
+    def date(self, line: int, tod_text: str, day: int, month: int, year: int) -> None:
+        try:
+            ordinal = datetime.date(year, month, day).toordinal()
+        except ValueError as err:
+            raise self.error(line, "date", f"not a date: {err}") from None
+        if tod_text:
+            self.see_time(self.time_of_day(line, tod_text))
+        self.dates.append((self.rolls, ordinal - _EPOCH_ORDINAL))
+
+    def rmc(self, line: int, f: list[str]) -> None:
+        if len(f) < 9 or not f[8]:
+            return
+        match = _DDMMYY.fullmatch(f[8])
+        if match is None:
+            raise self.error(line, "date", f"expected ddmmyy, got {_tables.shown(f[8])}")
+        day, month, year = (int(g) for g in match.groups())
+        self.date(line, f[0], day, month, year + (1900 if year >= 80 else 2000))
+
+    def zda(self, line: int, f: list[str]) -> None:
+        if len(f) < 4 or not (f[1] and f[2] and f[3]):
+            return
+        if not all(_UNSIGNED.fullmatch(x) for x in f[1:4]):
+            raise self.error(line, "date", f"expected day, month, year, got {','.join(f[1:4])!r}")
+        self.date(line, f[0], int(f[1]), int(f[2]), int(f[3]))
+
+    # ---------------------------------------------------------------- one line
+    def read_line(self, number: int, text: str) -> None:
+        text = text.strip()
+        if not text:
+            return
+        start = text.rfind("$")
+        if start < 0:
+            self.counts["not_nmea"] += 1
+            return
+        prefix, sentence = text[:start].strip().rstrip(",;").strip(), text[start + 1 :]
+        stamp = None
+        if prefix:
+            if _STAMP.fullmatch(prefix) and math.isfinite(float(prefix)):
+                stamp = float(prefix)
+            else:
+                self.counts["unreadable_prefix"] += 1
+        star = sentence.rfind("*")
+        if star >= 0:
+            given, sentence = sentence[star + 1 :], sentence[:star]
+            checksum = 0
+            for byte in sentence.encode("utf-8", errors="replace"):
+                checksum ^= byte
+            if not _HEX2.fullmatch(given) or int(given, 16) != checksum:
+                self.counts["bad_checksum"] += 1
+                self.bad_lines.append(number)
+                return
+        fields = sentence.split(",")
+        address = fields[0]
+        if not _ADDRESS.fullmatch(address):
+            self.counts["not_nmea"] += 1
+            return
+        kind = address if address.startswith("P") or len(address) != 5 else address[2:]
+        self.counts[kind] = self.counts.get(kind, 0) + 1
+        if kind == "GGA":
+            self.gga(number, fields[1:], stamp)
+        elif kind == "GST":
+            self.gst(number, fields[1:])
+        elif kind == "RMC":
+            self.rmc(number, fields[1:])
+        elif kind == "ZDA":
+            self.zda(number, fields[1:])
+
+
+def _read_text(path: str) -> str:
+    """The log as text; bytes that are not UTF-8 (serial noise) become U+FFFD, so only
+    their lines are affected (their checksums fail)."""
+    try:
+        data = Path(path).read_bytes()
+    except FileNotFoundError:
+        raise DataError(path, "no such file") from None
+    except IsADirectoryError:
+        raise DataError(path, "is a folder, expected an NMEA log file") from None
+    return data.decode("utf-8-sig", errors="replace")
+
+
+def _utc_times(reader: _Reader) -> tuple[np.ndarray, bool]:
+    """UNIX seconds (N,) of the kept fixes, and whether a date was found."""
+    fixes, dates = reader.fixes, reader.dates
+    seconds = np.empty(len(fixes))
+    for i, fix in enumerate(fixes):
+        k = reader.fix_date_index[i]
+        if not dates:
+            day = reader.fix_rolls[i]
+        else:
+            rolls, anchor = dates[max(k, 0)]
+            day = anchor + reader.fix_rolls[i] - rolls
+        seconds[i] = float(day * _DAY_S + fix.tod[0]) + fix.tod[1]
+    return seconds, bool(dates)
+
+
+def _attach_sigmas(reader: _Reader) -> np.ndarray:
+    """(N, 3) ENU sigmas from the GST of each fix's time of day (nearest line), NaN if none."""
+    sigma = np.full((len(reader.fixes), 3), np.nan)
+    used: set[int] = set()
+    for i, fix in enumerate(reader.fixes):
+        candidates = reader.gst_sigmas.get(round(1000 * (fix.tod[0] + fix.tod[1])))
+        if candidates:
+            line, values = min(candidates, key=lambda c: abs(c[0] - fix.line))
+            sigma[i] = values
+            used.add(line)
+    total = sum(len(v) for v in reader.gst_sigmas.values())
+    reader.counts["gst_unmatched"] = total - len(used)
+    return sigma
+
+
+def read_nmea(path: str | os.PathLike[str], *, min_quality: int = 1, time: str = "auto") -> NmeaLog:
+    """Read the GGA fixes of an NMEA 0183 log, with GST sigmas and RMC/ZDA dates.
+
+    Args:
+        path: the log file (text, one sentence per line, module docstring).
+        min_quality: lowest GGA quality code kept (>= 1; quality 0 is never a fix).
+        time: ``"auto"``, ``"utc"`` or ``"receive"`` (module docstring, Rules).
+
+    Returns:
+        an :class:`NmeaLog` of the kept fixes (N may be 0 when every GGA was skipped).
+
+    Raises:
+        DataError: no such file; a malformed sentence with a valid or absent checksum
+            (naming line and field); no GGA sentence at all; ``time="receive"`` and a kept
+            GGA without a receive timestamp; fixes going back in time.
+        ValueError: a bad ``min_quality`` or ``time``.
+    """
+    if time not in TIME_SOURCES:
+        raise ValueError(f"time must be one of {', '.join(TIME_SOURCES)}, got {time!r}")
+    if isinstance(min_quality, bool) or not isinstance(min_quality, int) or min_quality < 1:
+        raise ValueError(f"min_quality must be an integer >= 1, got {min_quality!r}")
+    spath = os.fspath(path)
+    reader = _Reader(spath, min_quality)
+    for number, text in enumerate(_tables.split_lines(_read_text(spath)), start=1):
+        reader.read_line(number, text)
+    counts = reader.counts
+    if counts.get("GGA", 0) == 0:
+        found = ", ".join(f"{k} {v}" for k, v in counts.items() if v) or "nothing"
+        raise DataError(spath, f"no GGA sentence in this file (found: {found})")
+    fixes = reader.fixes
+    stamps = [fix.stamp for fix in fixes]
+    if time == "receive" or (time == "auto" and fixes and None not in stamps):
+        for fix in fixes:
+            if fix.stamp is None:
+                raise DataError(
+                    spath,
+                    "time='receive' needs a receive timestamp before every GGA sentence",
+                    line=fix.line,
+                    field="receive_time",
+                )
+        source, t = "receive", np.array(stamps, dtype=np.float64)
+        time_field = "receive_time"
+    else:
+        source, time_field = "utc", "utc_time"
+        t, dated = _utc_times(reader)
+        if fixes and not dated:
+            warnings.warn(
+                f"{spath}: no RMC or ZDA date; times are seconds since 00:00 UTC of the first day",
+                stacklevel=2,
+            )
+    sigma = _attach_sigmas(reader)
+    keep = np.ones(len(fixes), dtype=bool)
+    for i in range(1, len(fixes)):
+        previous = t[i - 1]
+        if t[i] < previous:
+            raise DataError(
+                spath,
+                f"time goes back: {t[i]!r} s after {previous!r} s (line {fixes[i - 1].line})",
+                line=fixes[i].line,
+                field=time_field,
+            )
+        keep[i] = t[i] > previous
+    counts["duplicate_time"] = int((~keep).sum())
+    kept = [fix for fix, k in zip(fixes, keep, strict=True) if k]
+    counts["kept"] = len(kept)
+    separation_missing = any(fix.separation_missing for fix in kept)
+    _warn_skipped(spath, counts, reader.bad_lines)
+    if separation_missing:
+        n_missing = sum(fix.separation_missing for fix in kept)
+        warnings.warn(
+            f"{spath}: {n_missing} of {len(kept)} fixes have no geoid separation; their "
+            "height is the altitude above mean sea level, not the WGS-84 ellipsoid",
+            stacklevel=2,
+        )
+
+    def column(name: str, dtype: type) -> np.ndarray:
+        return np.array([getattr(fix, name) for fix in kept], dtype=dtype)
+
+    return NmeaLog(
+        t=t[keep],
+        latitude_deg=column("latitude", np.float64),
+        longitude_deg=column("longitude", np.float64),
+        altitude_m=column("altitude", np.float64),
+        quality=column("quality", np.int64),
+        satellites=column("satellites", np.int64),
+        hdop=column("hdop", np.float64),
+        sigma_enu=sigma[keep].reshape(-1, 3),
+        lines=column("line", np.int64),
+        time_source=source,
+        counts=counts,
+        source=spath,
+        geoid_separation_missing=separation_missing,
+    )
+
+
+def _warn_skipped(path: str, counts: dict[str, int], bad_lines: list[int]) -> None:
+    """One warning listing what was skipped (nothing when nothing was)."""
+    parts = []
+    for name in _OUTCOMES[1:]:
+        if counts[name]:
+            parts.append(f"{name} {counts[name]}")
+        if name == "bad_checksum" and bad_lines:
+            more = ", ..." if len(bad_lines) > 5 else ""
+            parts[-1] += f" (lines {', '.join(map(str, bad_lines[:5]))}{more})"
+    others = [
+        f"{name} {n}" for name, n in counts.items() if name not in (*_OUTCOMES, *_SENTENCES_READ)
+    ]
+    if others:
+        parts.append("other sentences: " + ", ".join(others))
+    if parts:
+        warnings.warn(f"{path}: skipped " + "; ".join(parts), stacklevel=3)

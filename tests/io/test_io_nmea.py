@@ -1,0 +1,444 @@
+"""NMEA 0183 logs (msf_torch.io.nmea, ``msf nmea``): a generated log with known geodetic
+points, times across midnight, GST sigmas, a corrupted line, a no-fix GGA and sentences that
+are skipped; pynmea2 as the independent reference for every GGA; bad input."""
+
+from __future__ import annotations
+
+import calendar
+import json
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from msf_torch.cli import main
+from msf_torch.io import DataError, read_native
+from msf_torch.io.geodesy import geodetic_to_enu
+from msf_torch.io.nmea import NmeaLog, read_nmea, write_gnss_csv
+
+N_EPOCHS = 40
+START_UNIX = calendar.timegm((2021, 10, 18, 23, 59, 40))  # + 0.5 s: midnight at epoch 20
+CORRUPT_EPOCH = 7
+NO_GST_EPOCHS = (4, 11, 25)
+DATE_EPOCHS = (3, 13, 23, 33)  # an RMC after these GGAs: fixes 0-2 get the date back-filled
+SEPARATION_M = 47.5
+
+
+def _checksum(body: str) -> str:
+    value = 0
+    for char in body.encode("ascii"):
+        value ^= char
+    return f"{value:02X}"
+
+
+def _sentence(body: str) -> str:
+    return f"${body}*{_checksum(body)}"
+
+
+def _with_field(sentence: str, index: int, value: str) -> str:
+    """``sentence`` with field ``index`` (0: the address) set to ``value``, checksum redone."""
+    fields = sentence[1:].split("*")[0].split(",")
+    fields[index] = value
+    return _sentence(",".join(fields))
+
+
+def _dm(value: float, width: int) -> str:
+    """``[d]ddmm.mmmmmmmm`` of |value| degrees."""
+    degrees = int(abs(value))
+    return f"{degrees:0{width}d}{(abs(value) - degrees) * 60.0:011.8f}"
+
+
+def _utc(k: int) -> str:
+    seconds = (START_UNIX + k) % 86400
+    return f"{seconds // 3600:02d}{seconds // 60 % 60:02d}{seconds % 60:02d}.50"
+
+
+def _truth() -> dict[str, np.ndarray]:
+    """A ~200 m loop about 49 N 8.4 E: N_EPOCHS points, 1 Hz from 23:59:40.5 UTC."""
+    angle = np.linspace(0.0, 2.0 * np.pi, N_EPOCHS, endpoint=False)
+    return {
+        "t": START_UNIX + np.arange(N_EPOCHS) + 0.5,
+        "latitude": 49.0 + 0.00028 * np.sin(angle),
+        "longitude": 8.4 + 0.000425 * np.cos(angle),
+        "msl": 110.0 + 0.5 * np.sin(2.0 * angle),
+        "sigma_enu": np.stack(
+            (
+                0.02 + 0.001 * np.arange(N_EPOCHS),
+                0.01 + 0.001 * np.arange(N_EPOCHS),
+                0.05 + 0 * angle,
+            ),
+            -1,
+        ),
+    }
+
+
+def _gga(k: int, truth: dict[str, np.ndarray], talker: str = "GN") -> str:
+    lat, lon = truth["latitude"][k], truth["longitude"][k]
+    fields = [
+        f"{talker}GGA",
+        _utc(k),
+        _dm(lat, 2),
+        "N" if lat >= 0 else "S",
+        _dm(lon, 3),
+        "E" if lon >= 0 else "W",
+        "4" if k % 3 else "5",
+        f"{10 + k % 5:02d}",
+        f"{0.6 + 0.01 * k:.2f}",
+        f"{truth['msl'][k]:.4f}",
+        "M",
+        f"{SEPARATION_M:.3f}",
+        "M",
+        "1.0",
+        "0000",
+    ]
+    return _sentence(",".join(fields))
+
+
+def _gst(k: int, truth: dict[str, np.ndarray]) -> str:
+    east, north, up = truth["sigma_enu"][k]
+    return _sentence(f"GPGST,{_utc(k)},0.8,0.05,0.03,12.5,{north:.3f},{east:.3f},{up:.3f}")
+
+
+def _rmc(k: int) -> str:
+    day = (START_UNIX + k) // 86400
+    date = np.datetime64(int(day), "D").astype(object)
+    return _sentence(f"GNRMC,{_utc(k)},A,4900.000,N,00824.000,E,0.5,10.0,{date:%d%m%y},,,D")
+
+
+def _log_lines(truth: dict[str, np.ndarray]) -> tuple[list[str], int]:
+    """The log's lines and the 1-based line number of the corrupted GGA."""
+    lines = [
+        _sentence("GPGGA,235939.50,,,,,0,00,99.99,,,,,,"),  # the receiver's no-fix form
+        _sentence("GLGSV,1,1,02,65,30,120,40,66,45,200,42"),
+        "",
+    ]
+    corrupt_line = 0
+    for k in range(N_EPOCHS):
+        gga = _gga(k, truth)
+        if k == CORRUPT_EPOCH:  # one serial byte flipped in the latitude
+            gga = gga.replace(",4900.", ",4901.", 1)
+            corrupt_line = len(lines) + 1
+        lines.append(gga)
+        if k not in NO_GST_EPOCHS:
+            lines.append(_gst(k, truth))
+        if k in DATE_EPOCHS:
+            lines.append(_rmc(k))
+        if k % 15 == 0:
+            lines.append(_sentence("GPVTG,10.0,T,,M,0.5,N,0.9,K,D"))
+            lines.append(_sentence("GPGSV,1,1,01,05,30,120,40"))
+    return lines, corrupt_line
+
+
+@pytest.fixture(scope="module")
+def generated(tmp_path_factory):
+    """(path, truth, corrupted line) of the generated log."""
+    truth = _truth()
+    lines, corrupt_line = _log_lines(truth)
+    path = tmp_path_factory.mktemp("nmea") / "drive.nmea"
+    path.write_text("\r\n".join(lines) + "\r\n")
+    return path, truth, corrupt_line
+
+
+@pytest.fixture(scope="module")
+def log(generated) -> NmeaLog:
+    with pytest.warns(UserWarning, match="skipped"):
+        return read_nmea(generated[0])
+
+
+def test_generated_log_parses_to_the_points(generated, log):
+    path, truth, corrupt_line = generated
+    keep = np.arange(N_EPOCHS) != CORRUPT_EPOCH
+    assert len(log) == N_EPOCHS - 1
+    assert log.time_source == "utc"
+    np.testing.assert_allclose(log.latitude_deg, truth["latitude"][keep], rtol=0, atol=1e-9)
+    np.testing.assert_allclose(log.longitude_deg, truth["longitude"][keep], rtol=0, atol=1e-9)
+    np.testing.assert_allclose(log.altitude_m, truth["msl"][keep] + SEPARATION_M, rtol=0, atol=1e-4)
+    # UNIX times across midnight: dates back-filled, rolled over, then taken from the RMC
+    np.testing.assert_array_equal(log.t, truth["t"][keep])
+    assert log.t[20 - 1] - log.t[19 - 1] == 1.0  # 23:59:59.5 -> 00:00:00.5 (one fix dropped)
+    expected_sigma = truth["sigma_enu"][keep].copy()
+    no_gst = np.isin(np.arange(N_EPOCHS)[keep], NO_GST_EPOCHS)
+    expected_sigma[no_gst] = np.nan
+    np.testing.assert_allclose(log.sigma_enu, expected_sigma, rtol=0, atol=5e-4)
+    assert np.isnan(log.sigma_enu[no_gst]).all() and np.isfinite(log.sigma_enu[~no_gst]).all()
+    np.testing.assert_array_equal(log.quality, np.where(np.arange(N_EPOCHS) % 3, 4, 5)[keep])
+    assert log.counts["kept"] == N_EPOCHS - 1
+    assert log.counts["no_fix"] == 1
+    assert log.counts["bad_checksum"] == 1
+    assert log.counts["gst_unmatched"] == 1  # the corrupted epoch's GST
+    assert log.counts["GGA"] == N_EPOCHS  # the no-fix one, not the corrupted one
+    assert log.counts["GSV"] == 4 and log.counts["VTG"] == 3 and log.counts["RMC"] == 4
+    assert log.counts["duplicate_time"] == 0 and log.counts["below_min_quality"] == 0
+    assert not log.geoid_separation_missing
+    assert corrupt_line not in log.lines.tolist()
+
+
+def test_warning_lists_what_was_skipped(generated):
+    path, _, corrupt_line = generated
+    with pytest.warns(UserWarning) as record:
+        read_nmea(path, min_quality=5)
+    messages = [str(w.message) for w in record]
+    assert len(messages) == 1
+    text = messages[0]
+    assert f"bad_checksum 1 (lines {corrupt_line})" in text
+    assert "no_fix 1" in text and "GSV 4" in text and "VTG 3" in text
+    below = sum(1 for k in range(N_EPOCHS) if k % 3 and k != CORRUPT_EPOCH)  # quality 4
+    assert f"below_min_quality {below}" in text
+
+
+def test_every_gga_equals_pynmea2(generated, log):
+    pynmea2 = pytest.importorskip("pynmea2")
+    lines = generated[0].read_text().splitlines()
+    for i, number in enumerate(log.lines.tolist()):
+        msg = pynmea2.parse(lines[number - 1], check=True)
+        assert log.latitude_deg[i] == pytest.approx(msg.latitude, abs=1e-12)
+        assert log.longitude_deg[i] == pytest.approx(msg.longitude, abs=1e-12)
+        assert log.altitude_m[i] == float(msg.altitude) + float(msg.geo_sep)
+        assert log.quality[i] == int(msg.gps_qual)
+        assert log.satellites[i] == int(msg.num_sats)
+        assert log.hdop[i] == float(msg.horizontal_dil)
+    # and pynmea2 rejects the corrupted line too
+    with pytest.raises(pynmea2.ChecksumError):
+        pynmea2.parse(lines[generated[2] - 1], check=True)
+
+
+def test_to_gnss_is_geodetic_to_enu(generated, log):
+    gnss, origin = log.to_gnss()
+    first = (log.latitude_deg[0], log.longitude_deg[0], log.altitude_m[0])
+    assert origin == first
+    enu = geodetic_to_enu(log.latitude_deg, log.longitude_deg, log.altitude_m, first)
+    assert gnss.position.dtype == torch.float64 and gnss.position.shape == (1, len(log), 3)
+    np.testing.assert_array_equal(gnss.position[0].numpy(), enu)
+    np.testing.assert_array_equal(gnss.position[0, 0].numpy(), np.zeros(3))
+    np.testing.assert_array_equal(gnss.sigma[0].numpy(), log.sigma_enu)
+    assert gnss.mask.all()
+
+    truth = generated[1]
+    keep = np.arange(N_EPOCHS) != CORRUPT_EPOCH
+    given = (49.0, 8.4, 150.0)
+    moved, used = log.to_gnss(origin=given, t0=START_UNIX)
+    assert used == given
+    expected = geodetic_to_enu(
+        truth["latitude"][keep], truth["longitude"][keep], truth["msl"][keep] + SEPARATION_M, given
+    )
+    np.testing.assert_allclose(moved.position[0].numpy(), expected, rtol=0, atol=2e-4)
+    np.testing.assert_array_equal(moved.t[0].numpy(), truth["t"][keep] - START_UNIX)
+    loop = np.linalg.norm(np.diff(expected[:, :2], axis=0), axis=1).sum()
+    assert 180.0 < loop < 220.0  # the ~200 m loop
+
+
+def _write(tmp_path, lines: list[str], name: str = "log.nmea"):
+    path = tmp_path / name
+    path.write_text("\n".join(lines) + "\n")
+    return path
+
+
+def test_receive_stamps_and_missing_date(tmp_path):
+    truth = _truth()
+    stamps = 1634601580.25 + np.arange(5) * 1.001
+    lines = [f"{float(stamps[k])!r}{',' if k % 2 else '  '}{_gga(k, truth)}" for k in range(5)]
+    path = _write(tmp_path, lines)
+    log = read_nmea(path)
+    assert log.time_source == "receive"
+    np.testing.assert_array_equal(log.t, stamps)
+    with pytest.warns(UserWarning, match="no RMC or ZDA date"):
+        utc = read_nmea(path, time="utc")
+    assert utc.time_source == "utc"
+    np.testing.assert_array_equal(utc.t, (START_UNIX % 86400) + 0.5 + np.arange(5))
+
+    # one GGA without a stamp: auto falls back to UTC, receive is an error naming the line
+    lines[3] = _gga(3, truth)
+    path = _write(tmp_path, lines + [_sentence("GPZDA,235945.50,18,10,2021,00,00")])
+    assert read_nmea(path).time_source == "utc"
+    with pytest.raises(DataError) as err:
+        read_nmea(path, time="receive")
+    assert err.value.line == 4 and err.value.field == "receive_time"
+
+
+def test_midnight_rollover_without_a_date(tmp_path):
+    truth = _truth()
+    path = _write(tmp_path, [_gga(k, truth) for k in range(17, 23)])
+    with pytest.warns(UserWarning, match="no RMC or ZDA date"):
+        log = read_nmea(path)
+    np.testing.assert_array_equal(log.t, 86380.5 + np.arange(17, 23))
+
+
+def test_missing_geoid_separation_and_duplicates(tmp_path):
+    truth = _truth()
+    lines = [
+        _gga(0, truth),
+        _gga(0, truth, talker="GP"),  # the same epoch from a second talker
+        _with_field(_gga(1, truth), 11, ""),
+    ]
+    with pytest.warns(UserWarning) as record:
+        log = read_nmea(_write(tmp_path, lines), time="utc")
+    text = " ".join(str(w.message) for w in record)
+    assert "duplicate_time 1" in text and "1 of 2 fixes have no geoid separation" in text
+    assert log.geoid_separation_missing and log.counts["duplicate_time"] == 1
+    np.testing.assert_allclose(
+        log.altitude_m, [truth["msl"][0] + SEPARATION_M, truth["msl"][1]], atol=1e-4
+    )
+    with pytest.raises(DataError, match="time goes back") as err, pytest.warns(UserWarning):
+        read_nmea(_write(tmp_path, [_gga(2, truth), _gga(1, truth)]))
+    assert err.value.line == 2 and err.value.field == "utc_time"
+
+
+def test_date_sentence_before_the_gga_at_midnight(tmp_path):
+    """An RMC of 00:00:00.5 with the new date before that epoch's GGA: the RMC's own time
+    rolls the day, so the GGA is not moved a second day on."""
+    truth = _truth()
+    lines = [line for k in range(17, 23) for line in (_rmc(k), _gga(k, truth))]
+    log = read_nmea(_write(tmp_path, lines))
+    np.testing.assert_array_equal(log.t, truth["t"][17:23])
+
+
+def test_gst_attaches_to_the_nearest_fix_of_its_time(tmp_path):
+    """A log over a day: 12:00:00 UTC occurs twice; each GST goes to its own day's fix."""
+    truth = _truth()
+
+    def at(hhmmss: str, k: int) -> str:
+        return _with_field(_gga(k, truth), 1, hhmmss)
+
+    lines = [
+        at("120000.50", 0),
+        _sentence("GPGST,120000.50,0.8,0.05,0.03,12.5,0.011,0.012,0.013"),
+        at("200000.50", 1),
+        at("040000.50", 2),
+        at("120000.50", 3),
+        _sentence("GPGST,120000.50,0.8,0.05,0.03,12.5,0.021,0.022,0.023"),
+        _rmc(0),
+    ]
+    log = read_nmea(_write(tmp_path, lines))
+    assert log.counts["gst_unmatched"] == 0
+    np.testing.assert_array_equal(log.sigma_enu[0], [0.012, 0.011, 0.013])
+    np.testing.assert_array_equal(log.sigma_enu[3], [0.022, 0.021, 0.023])
+    assert np.isnan(log.sigma_enu[1:3]).all()
+    # the RMC (18 Oct, 23:59:40.5) dates the last fix's day, so the first is on 17 Oct
+    assert log.t[3] - log.t[0] == 86400.0
+    assert log.t[0] == calendar.timegm((2021, 10, 17, 12, 0, 0)) + 0.5
+
+
+@pytest.mark.parametrize(
+    ("latitude", "longitude"), [(-33.8568, 151.2153), (64.1466, -21.9426), (-0.0001, -0.0002)]
+)
+def test_hemispheres_equal_pynmea2(tmp_path, latitude, longitude):
+    pynmea2 = pytest.importorskip("pynmea2")
+    truth = _truth()
+    truth["latitude"] = np.full(N_EPOCHS, latitude)
+    truth["longitude"] = np.full(N_EPOCHS, longitude)
+    line = _gga(0, truth)
+    with pytest.warns(UserWarning, match="no RMC"):
+        log = read_nmea(_write(tmp_path, [line]))
+    msg = pynmea2.parse(line, check=True)
+    assert log.latitude_deg[0] == pytest.approx(latitude, abs=1e-9)
+    assert log.longitude_deg[0] == pytest.approx(longitude, abs=1e-9)
+    assert log.latitude_deg[0] == pytest.approx(msg.latitude, abs=1e-12)
+    assert log.longitude_deg[0] == pytest.approx(msg.longitude, abs=1e-12)
+
+
+@pytest.mark.parametrize(
+    ("index", "value", "field"),
+    [
+        (1, "2359x0.50", "utc_time"),
+        (1, "256161.00", "utc_time"),
+        (2, "49O0.1234", "latitude"),
+        (2, "4960.0000", "latitude"),
+        (3, "Q", "latitude_hemisphere"),
+        (4, "", "longitude"),
+        (5, "X", "longitude_hemisphere"),
+        (6, "A", "quality"),
+        (7, "1.5", "satellites"),
+        (8, "-1", "hdop"),
+        (9, "", "altitude"),
+        (10, "F", "altitude_unit"),
+        (11, "47,5", "separation_unit"),
+    ],
+)
+def test_malformed_gga_names_line_and_field(tmp_path, index, value, field):
+    truth = _truth()
+    lines = [_gga(0, truth), _with_field(_gga(1, truth), index, value)]
+    with pytest.raises(DataError) as err:
+        read_nmea(_write(tmp_path, lines))
+    assert err.value.line == 2 and err.value.field == field
+    # without its checksum the malformed sentence is read (and rejected) too
+    lines[1] = lines[1].split("*")[0]
+    with pytest.raises(DataError):
+        read_nmea(_write(tmp_path, lines))
+
+
+@pytest.mark.parametrize(
+    ("line", "field"),
+    [
+        ("GPGST,235940.50,0.8,0.05,0.03,12.5,-0.01,0.02,0.05", "sigma_latitude"),
+        ("GPGST,235940.50,0.8,0.05,0.03,12.5,0.01,abc,0.05", "sigma_longitude"),
+        ("GPGST,235940.50,0.8,0.05,0.03,12.5,0.01,0.02", "sigma_altitude"),
+        ("GNRMC,235940.50,A,4900.000,N,00824.000,E,0.5,10.0,311321,,,D", "date"),
+        ("GNZDA,235940.50,31,02,2021,00,00", "date"),
+    ],
+)
+def test_malformed_gst_and_dates(tmp_path, line, field):
+    lines = [_gga(0, _truth()), _sentence(line)]
+    with pytest.raises(DataError) as err:
+        read_nmea(_write(tmp_path, lines))
+    assert err.value.line == 2 and err.value.field == field
+
+
+def test_missing_file_and_no_gga(tmp_path):
+    with pytest.raises(DataError, match="no such file"):
+        read_nmea(tmp_path / "absent.nmea")
+    path = _write(tmp_path, ["t,x,y,z", _sentence("GPGSV,1,1,01,05,30,120,40")])
+    with pytest.raises(DataError, match="no GGA sentence.*GSV 1"):
+        read_nmea(path)
+    with pytest.raises(ValueError, match="time must be"):
+        read_nmea(path, time="gps")
+
+
+def test_cli_writes_a_gnss_csv_that_read_native_reads(generated, tmp_path, capsys):
+    path = generated[0]
+    out = tmp_path / "run" / "gnss.csv"
+    assert main(["nmea", str(path), "--out", str(out), "--t0", str(START_UNIX)]) == 0
+    captured = capsys.readouterr()
+    summary = json.loads(captured.out.strip().splitlines()[-1])
+    assert "msf nmea: warning:" in captured.err and "bad_checksum 1" in captured.err
+    assert summary["fixes"] == N_EPOCHS - 1
+    assert summary["fixes_with_sigma"] == N_EPOCHS - 1 - len(NO_GST_EPOCHS)
+    assert summary["counts"]["bad_checksum"] == 1
+    assert summary["time_source"] == "utc"
+    assert summary["t_range_s"] == [0.5, N_EPOCHS - 0.5]
+    with pytest.warns(UserWarning):
+        log = read_nmea(path)
+    assert summary["origin"] == [log.latitude_deg[0], log.longitude_deg[0], log.altitude_m[0]]
+    assert math.isclose(summary["median_sigma_enu_m"][2], 0.05)
+
+    (out.parent / "imu.csv").write_text(
+        "t,gyro_x,gyro_y,gyro_z,accel_x,accel_y,accel_z\n0,0,0,0,0,0,9.81\n1,0,0,0,0,0,9.81\n"
+    )
+    seq = read_native(out.parent)
+    gnss, _ = log.to_gnss(t0=START_UNIX)
+    np.testing.assert_array_equal(seq.gnss.t.numpy(), gnss.t.numpy())
+    np.testing.assert_array_equal(seq.gnss.position.numpy(), gnss.position.numpy())
+    np.testing.assert_array_equal(seq.gnss.sigma.numpy(), gnss.sigma.numpy())
+
+    origin = "49.0,8.4,150.0"
+    assert main(["nmea", str(path), "--out", str(out), "--origin", origin, "--time", "utc"]) == 0
+    summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert summary["origin"] == [49.0, 8.4, 150.0]
+    assert summary["t_range_s"][0] == START_UNIX + 0.5
+
+
+def test_cli_errors(generated, tmp_path, capsys):
+    assert main(["nmea", str(tmp_path / "absent.nmea"), "--out", str(tmp_path / "g.csv")]) == 2
+    assert "no such file" in capsys.readouterr().err
+    assert main(["nmea", str(generated[0]), "--out", str(tmp_path)]) == 2
+    assert "is a folder" in capsys.readouterr().err
+    path = _write(tmp_path, [_sentence("GPGGA,235939.50,,,,,0,00,99.99,,,,,,")])
+    assert main(["nmea", str(path), "--out", str(tmp_path / "g.csv")]) == 2
+    assert "no fix kept" in capsys.readouterr().err
+
+
+def test_write_gnss_csv_without_sigmas(tmp_path, log):
+    gnss, _ = log.to_gnss()
+    gnss.sigma[:] = torch.nan
+    path = write_gnss_csv(tmp_path / "gnss.csv", gnss)
+    assert path.read_text().splitlines()[0] == "t,x,y,z"
