@@ -1,4 +1,4 @@
-"""Command line: ``msf run | eval | simulate | config check | posegraph | ranges | lidar-map``.
+"""Command line: ``msf run | eval | simulate | config | posegraph | ranges | nmea | lidar-map``.
 
 Each command parses its arguments, calls the library and prints its result as one JSON
 line last. Errors in the input (a bad file, a bad config key) end with a one-line message
@@ -304,7 +304,12 @@ def build_parser() -> argparse.ArgumentParser:
         "--t0", type=_finite_float, default=0.0, help="seconds subtracted from the fix times"
     )
     nm.add_argument(
-        "--min-quality", type=_positive_int, default=1, help="lowest GGA quality code kept"
+        "--quality",
+        type=_quality_codes,
+        default=(1, 2, 3, 4, 5),
+        metavar="Q[,Q...]",
+        help="GGA quality codes kept (default 1,2,3,4,5: GPS, DGPS, PPS, RTK fixed, RTK float; "
+        "e.g. 4 for RTK-fixed only)",
     )
 
     lm = sub.add_parser(
@@ -478,6 +483,19 @@ def _config_overrides(path: Path | None) -> dict[str, Any]:
     values = read_config_keys(path)
     values.pop("smoother", None)
     return values
+
+
+def _quality_codes(text: str) -> tuple[int, ...]:
+    """``--quality 4,5``: GGA quality codes 1-9."""
+    try:
+        codes = tuple(int(part) for part in text.split(","))
+    except ValueError:
+        codes = ()
+    if not codes or not all(1 <= q <= 9 for q in codes):
+        raise argparse.ArgumentTypeError(
+            f"expected GGA quality codes 1-9 separated by commas, got {text!r}"
+        )
+    return codes
 
 
 def _progress_factory(mode: str, unit: str = "epoch"):
@@ -951,7 +969,7 @@ def _cmd_nmea(args) -> dict[str, Any]:
 
     if args.out.is_dir():
         raise ValueError(f"--out {args.out} is a folder; give a file name (FOLDER/gnss.csv)")
-    log = read_nmea(args.log, min_quality=args.min_quality, time=args.time)
+    log = read_nmea(args.log, qualities=args.quality, time=args.time)
     if len(log) == 0:
         raise DataError(args.log, f"no fix kept (counts: {log.counts})")
     gnss, origin = log.to_gnss(origin=args.origin, t0=args.t0)

@@ -39,9 +39,11 @@ Rules
       ``altitude_unit``, ``geoid_separation``, ``separation_unit``, ``sigma_latitude``,
       ``sigma_longitude``, ``sigma_altitude``, ``date``, ``receive_time``).
     * The receiver's "no fix" forms -- quality 0, or empty latitude and longitude -- are
-      skipped and counted (``no_fix``); so are fixes with a quality code below
-      ``min_quality`` (``below_min_quality``). The quality is the GGA code (1 GPS, 2 DGPS,
-      4 RTK fixed, 5 RTK float, 6 dead reckoning, ...): an ordinal code, not a ranking.
+      skipped and counted (``no_fix``); so are fixes whose quality code is not in
+      ``qualities`` (``quality_not_kept``). The quality is the GGA code (1 GPS, 2 DGPS,
+      3 PPS, 4 RTK fixed, 5 RTK float, 6 dead reckoning, 7 manual input, 8 simulator): a
+      code, not a ranking; by default (:data:`DEFAULT_QUALITIES`) 1-5 are kept, the
+      measured fixes.
     * Times: ``time="utc"`` gives UNIX seconds from the UTC time of day and the date of the
       latest RMC/ZDA; fixes before the first date get that date back-filled, and a time of
       day more than 12 h below the previous one rolls to the next day. Without any date the
@@ -65,14 +67,14 @@ On the command line: ``msf nmea drive.nmea --out run/gnss.csv``.
 
 from __future__ import annotations
 
-__all__ = ["TIME_SOURCES", "NmeaLog", "read_nmea", "write_gnss_csv"]
+__all__ = ["DEFAULT_QUALITIES", "TIME_SOURCES", "NmeaLog", "read_nmea", "write_gnss_csv"]
 
 import datetime
 import math
 import os
 import re
 import warnings
-from collections.abc import Sequence
+from collections.abc import Collection, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -85,6 +87,9 @@ from msf_torch.io.geodesy import geodetic_to_enu
 from msf_torch.io.native import _table_for, _write_table
 from msf_torch.types import GnssFixes
 
+DEFAULT_QUALITIES = (1, 2, 3, 4, 5)
+"""GGA quality codes kept by default: the measured fixes (GPS, DGPS, PPS, RTK fixed, RTK
+float), not dead reckoning (6), manual input (7) or a simulator (8)."""
 TIME_SOURCES = ("auto", "utc", "receive")
 """Accepted values of ``read_nmea(time=...)`` (module docstring, Rules)."""
 
@@ -112,7 +117,7 @@ _GST_SIGMAS = ("sigma_latitude", "sigma_longitude", "sigma_altitude")
 _OUTCOMES = (
     "kept",
     "no_fix",
-    "below_min_quality",
+    "quality_not_kept",
     "duplicate_time",
     "bad_checksum",
     "not_nmea",
@@ -141,7 +146,7 @@ class NmeaLog:
             none was given.
         lines: (N,) int64 1-based line of each fix's GGA.
         time_source: ``"utc"`` or ``"receive"``.
-        counts: ``kept``, ``no_fix``, ``below_min_quality``, ``duplicate_time``,
+        counts: ``kept``, ``no_fix``, ``quality_not_kept``, ``duplicate_time``,
             ``bad_checksum``, ``not_nmea``, ``unreadable_prefix``, ``gst_unmatched`` (GSTs
             with no kept GGA of their time), and per sentence type read (upper case:
             ``GGA``, ``GST``, ``GSV``, ``PUBX``, ...).
@@ -257,9 +262,9 @@ class _Fix:
 class _Reader:
     """Line-by-line state of :func:`read_nmea`."""
 
-    def __init__(self, path: str, min_quality: int) -> None:
+    def __init__(self, path: str, qualities: frozenset[int]) -> None:
         self.path = path
-        self.min_quality = min_quality
+        self.qualities = qualities
         self.counts: dict[str, int] = dict.fromkeys(_OUTCOMES, 0)
         self.bad_lines: list[int] = []
         self.fixes: list[_Fix] = []
@@ -355,8 +360,8 @@ class _Reader:
             altitude += self.number(line, "geoid_separation", f[10])
             if len(f) > 11 and f[11] not in ("M", ""):
                 raise self.error(line, "separation_unit", f"expected M, got {_tables.shown(f[11])}")
-        if quality < self.min_quality:
-            self.counts["below_min_quality"] += 1
+        if quality not in self.qualities:
+            self.counts["quality_not_kept"] += 1
             return
         self.see_time(tod)
         self.fixes.append(
@@ -504,12 +509,18 @@ def _attach_sigmas(reader: _Reader) -> np.ndarray:
     return sigma
 
 
-def read_nmea(path: str | os.PathLike[str], *, min_quality: int = 1, time: str = "auto") -> NmeaLog:
+def read_nmea(
+    path: str | os.PathLike[str],
+    *,
+    qualities: Collection[int] = DEFAULT_QUALITIES,
+    time: str = "auto",
+) -> NmeaLog:
     """Read the GGA fixes of an NMEA 0183 log, with GST sigmas and RMC/ZDA dates.
 
     Args:
         path: the log file (text, one sentence per line, module docstring).
-        min_quality: lowest GGA quality code kept (>= 1; quality 0 is never a fix).
+        qualities: the GGA quality codes kept (1-9; quality 0 is never a fix); default
+            :data:`DEFAULT_QUALITIES`, e.g. ``(4,)`` for RTK-fixed fixes only.
         time: ``"auto"``, ``"utc"`` or ``"receive"`` (module docstring, Rules).
 
     Returns:
@@ -519,14 +530,17 @@ def read_nmea(path: str | os.PathLike[str], *, min_quality: int = 1, time: str =
         DataError: no such file; a malformed sentence with a valid or absent checksum
             (naming line and field); no GGA sentence at all; ``time="receive"`` and a kept
             GGA without a receive timestamp; fixes going back in time.
-        ValueError: a bad ``min_quality`` or ``time``.
+        ValueError: bad ``qualities`` or ``time``.
     """
     if time not in TIME_SOURCES:
         raise ValueError(f"time must be one of {', '.join(TIME_SOURCES)}, got {time!r}")
-    if isinstance(min_quality, bool) or not isinstance(min_quality, int) or min_quality < 1:
-        raise ValueError(f"min_quality must be an integer >= 1, got {min_quality!r}")
+    codes = list(qualities)
+    if not codes or any(
+        isinstance(q, bool) or not isinstance(q, int) or not 1 <= q <= 9 for q in codes
+    ):
+        raise ValueError(f"qualities must be GGA quality codes 1-9, got {qualities!r}")
     spath = os.fspath(path)
-    reader = _Reader(spath, min_quality)
+    reader = _Reader(spath, frozenset(codes))
     for number, text in enumerate(_tables.split_lines(_read_text(spath)), start=1):
         reader.read_line(number, text)
     counts = reader.counts

@@ -169,7 +169,7 @@ def test_generated_log_parses_to_the_points(generated, log):
     assert log.counts["gst_unmatched"] == 1  # the corrupted epoch's GST
     assert log.counts["GGA"] == N_EPOCHS  # the no-fix one, not the corrupted one
     assert log.counts["GSV"] == 4 and log.counts["VTG"] == 3 and log.counts["RMC"] == 4
-    assert log.counts["duplicate_time"] == 0 and log.counts["below_min_quality"] == 0
+    assert log.counts["duplicate_time"] == 0 and log.counts["quality_not_kept"] == 0
     assert not log.geoid_separation_missing
     assert corrupt_line not in log.lines.tolist()
 
@@ -177,14 +177,14 @@ def test_generated_log_parses_to_the_points(generated, log):
 def test_warning_lists_what_was_skipped(generated):
     path, _, corrupt_line = generated
     with pytest.warns(UserWarning) as record:
-        read_nmea(path, min_quality=5)
+        read_nmea(path, qualities=(5,))
     messages = [str(w.message) for w in record]
     assert len(messages) == 1
     text = messages[0]
     assert f"bad_checksum 1 (lines {corrupt_line})" in text
     assert "no_fix 1" in text and "GSV 4" in text and "VTG 3" in text
     below = sum(1 for k in range(N_EPOCHS) if k % 3 and k != CORRUPT_EPOCH)  # quality 4
-    assert f"below_min_quality {below}" in text
+    assert f"quality_not_kept {below}" in text
 
 
 def test_every_gga_equals_pynmea2(generated, log):
@@ -442,3 +442,28 @@ def test_write_gnss_csv_without_sigmas(tmp_path, log):
     gnss.sigma[:] = torch.nan
     path = write_gnss_csv(tmp_path / "gnss.csv", gnss)
     assert path.read_text().splitlines()[0] == "t,x,y,z"
+
+
+def test_quality_codes_are_a_set_not_a_ranking(tmp_path, capsys):
+    """Dead-reckoning (6), manual (7) and simulated (8) fixes are not measurements: the
+    default keeps 1-5 only; ``qualities`` picks codes (RTK fixed alone: 4), and so does the
+    CLI's ``--quality``."""
+    truth = _truth()
+    codes = [1, 4, 5, 6, 7, 8, 2, 4]
+    lines = [_with_field(_gga(k, truth), 6, str(q)) for k, q in enumerate(codes)]
+    path = _write(tmp_path, lines)
+    with pytest.warns(UserWarning, match="quality_not_kept 3"):
+        log = read_nmea(path)
+    assert log.quality.tolist() == [1, 4, 5, 2, 4]
+    with pytest.warns(UserWarning, match="quality_not_kept 6"):
+        rtk = read_nmea(path, qualities=(4,))
+    assert rtk.lines.tolist() == [2, 8]
+    for bad in ((), (0,), (10,), (True,)):
+        with pytest.raises(ValueError, match="quality codes"):
+            read_nmea(path, qualities=bad)
+    out = tmp_path / "gnss.csv"
+    assert main(["nmea", str(path), "--out", str(out), "--quality", "4,5"]) == 0
+    assert json.loads(capsys.readouterr().out.strip().splitlines()[-1])["fixes"] == 3
+    with pytest.raises(SystemExit):
+        main(["nmea", str(path), "--out", str(out), "--quality", "4,x"])
+    assert "GGA quality codes 1-9" in capsys.readouterr().err
