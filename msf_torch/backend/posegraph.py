@@ -201,14 +201,13 @@ def _subgraph_2d(
 ) -> PoseGraph2D:
     """The first ``count`` vertices of a planar graph with the edges among them, their
     sightings and the landmarks ``entered`` (L,) bool, at ``poses`` (count, 3) and
-    ``landmarks`` (L, 2); FIX ids outside the prefix are dropped."""
+    ``landmarks`` (L, 2); without FIX ids (the caller names the held rows)."""
     keep_edge = (graph.edge_index < count).all(-1)
     keep_seen = graph.observation_index[:, 0] < count
     rows = torch.nonzero(entered).squeeze(-1)
     renumber = torch.full_like(entered, -1, dtype=torch.int64)
     renumber[rows] = torch.arange(rows.numel(), device=rows.device)
     seen = graph.observation_index[keep_seen]
-    ids = set(graph.vertex_ids[:count].tolist())
     return dataclasses.replace(
         graph,
         vertex_ids=graph.vertex_ids[:count],
@@ -219,7 +218,7 @@ def _subgraph_2d(
         edge_headings=graph.edge_headings[keep_edge],
         edge_information=graph.edge_information[keep_edge],
         edge_lines=None,
-        fixed_ids=tuple(v for v in graph.fixed_ids if v in ids),
+        fixed_ids=(),
         landmark_ids=graph.landmark_ids[rows],
         landmark_positions=landmarks[rows].clone(),
         observation_index=torch.stack((seen[:, 0], renumber[seen[:, 1]]), -1),
@@ -237,6 +236,7 @@ def incremental_start(
     max_solves: int = 10,
     relative_tolerance: float = 1e-3,
     progress: Callable[[int, int], None] | None = None,
+    fixed: Sequence[int] | torch.Tensor | None = None,
 ) -> tuple[PoseGraph2D, int]:
     """A start for a planar graph whose own start (odometry chained from the first pose) is
     too far from the optimum for LM to find it: the graph grown ``chunk`` vertices at a time
@@ -246,8 +246,10 @@ def incremental_start(
     New vertices keep their pose relative to the last solved vertex as the graph's own
     start has it (for an odometry chain: the odometry); a landmark enters with the vertex
     of its first sighting and keeps its position relative to it (for a landmark placed by
-    that sighting: the measured bearing and range). Each prefix holds the ``FIX`` vertices
-    it contains, else its first vertex; edges enter once both ends have. On
+    that sighting: the measured bearing and range). The held vertices (``fixed``, as in
+    :func:`optimize_pose_graph`: default the file's ``FIX`` vertices, else the first) enter
+    at their own poses and stay there; a prefix without one holds its first vertex. Edges
+    enter once both ends have. On
     ``victoria_park.txt`` LM from the file's start stops at cost 105,099 (GTSAM's LM too:
     a local minimum whose repeated passes do not overlap), LM from this start at 2,339.2,
     the minimum GTSAM's ISAM2 followed by LM reaches.
@@ -259,18 +261,20 @@ def incremental_start(
         robust: kernel on every edge and sighting of the prefix solves, or None.
         max_solves, relative_tolerance: the short LM per prefix (GTSAM's damping rule).
         progress: called with (vertices placed, N) after each step, or None.
+        fixed: row indices of the held vertices, or None (the file's ``FIX``, else row 0).
 
     Returns:
         a copy of ``graph`` with the grown poses and landmarks (landmarks never sighted
         keep theirs), and the number of linear solves spent.
 
     Raises:
-        ValueError: ``chunk`` or ``max_solves`` below 1.
+        ValueError: ``chunk`` or ``max_solves`` below 1, or a fixed row outside ``[0, N)``.
     """
     if chunk < 1 or max_solves < 1:
         raise ValueError(f"chunk and max_solves must be >= 1, got {chunk} and {max_solves}")
     graph.check()
     n = graph.num_vertices
+    held = held_vertices(graph, fixed)
     start = torch.cat((graph.positions, graph.headings[:, None]), -1)
     poses = start.clone()
     landmarks = graph.landmark_positions.clone()
@@ -288,11 +292,15 @@ def incremental_start(
         upto = min(n, done + chunk)
         if done:
             relative = between(start[done - 1].expand(upto - done, 3), start[done:upto])
-            poses[done:upto] = compose(poses[done - 1].expand(upto - done, 3), relative)
+            carried = compose(poses[done - 1].expand(upto - done, 3), relative)
+            poses[done:upto] = torch.where(held[done:upto, None], start[done:upto], carried)
         new = sighted & (first >= done) & (first < upto)
         landmarks[new] = transform_points(poses[first[new]], local[new][:, None, :])[:, 0]
         prefix = _subgraph_2d(graph, upto, poses[:upto], landmarks, sighted & (first < upto))
-        result = optimize_pose_graph(prefix, robust=robust, config=config)
+        rows = torch.nonzero(held[:upto]).squeeze(-1)
+        result = optimize_pose_graph(
+            prefix, robust=robust, config=config, fixed=rows if rows.numel() else (0,)
+        )
         solves += result.iterations
         poses[:upto, 0:2] = result.graph.positions
         poses[:upto, 2] = result.graph.headings
@@ -360,7 +368,7 @@ def optimize_pose_graph(
         with torch.no_grad():
             problem = pose_graph_2d_problem(graph, robust, fixed, _GROUP)
             file_cost = float(problem.cost(problem.values)[0])
-            grown, _ = incremental_start(graph, chunk, robust, progress=progress)
+            grown, _ = incremental_start(graph, chunk, robust, progress=progress, fixed=fixed)
         problem = pose_graph_2d_problem(grown, robust, fixed, _GROUP)
     elif planar:
         problem = pose_graph_2d_problem(graph, robust, fixed, _GROUP)

@@ -497,3 +497,26 @@ def test_incremental_start_is_refused_for_3d_graphs():
     graph = read_pose_graph(gtsam_pose_graph_path("pose3example.txt"))
     with pytest.raises(ValueError, match="incremental"):
         optimize_pose_graph(graph, start="incremental")
+
+
+@pytest.mark.parametrize("how", ["rows", "fix_record"])
+def test_incremental_start_keeps_held_vertices_where_the_file_puts_them(how):
+    """A held vertex (``fixed`` rows, or a FIX record) enters the grown estimate at its own
+    pose and stays there, also when the rest of the graph disagrees with it; the solution
+    then equals LM from the file's start holding the same vertex."""
+    graph, _ = _square_grid(loops=True, seed=5)
+    graph.positions[20] += torch.tensor([0.7, -0.4], dtype=DT)  # off the chained start
+    graph.headings[20] += 0.2
+    if how == "rows":
+        fixed, held_graph = [20], graph
+    else:
+        fixed, held_graph = None, dataclasses.replace(graph, fixed_ids=(20,))
+    config = pose_graph_config(relative_tolerance=1e-12, max_iterations=200, planar=True)
+    grown = optimize_pose_graph(
+        held_graph, config=config, fixed=fixed, start="incremental", chunk=8
+    )
+    plain = optimize_pose_graph(held_graph, config=config, fixed=fixed)
+    assert grown.converged and plain.converged
+    torch.testing.assert_close(grown.graph.positions[20], graph.positions[20], rtol=0, atol=0)
+    torch.testing.assert_close(grown.graph.headings[20], graph.headings[20], rtol=0, atol=0)
+    torch.testing.assert_close(grown.graph.positions, plain.graph.positions, rtol=0, atol=1e-8)
