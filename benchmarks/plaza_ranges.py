@@ -46,7 +46,17 @@ What it measures
 
     Time (both cases): medians of ``--repeats`` solves after one warm-up each, ours and
     GTSAM alternating (graph building apart); ``ratio`` = ours / GTSAM wall time. No issue
-    names a target; the figures are reported as measured.
+    names a target; the figures are reported as measured. Both cases attach each range to
+    the first pose at or after its time (GTSAM's graph; the calibration measures the bias
+    and sigma the same way).
+
+    Third case, ``odometry_rate`` (ours only): where a range counts. The odometry (10 Hz)
+    is thinned to every ``n``-th pose (``--rates``, composed steps; truth and ranges kept),
+    calibration and test alike, and :func:`~msf_torch.backend.range_smoother.smooth_ranges`
+    (beacons known, start at the truth's first pose, 0.1 m / 0.05 rad) runs with
+    ``range_timing="next_pose"`` (GTSAM's graph) and ``"interpolate"`` (the range at the
+    position interpolated between the poses around its time, the library's default):
+    position RMSE and max error against RTK for each.
 
 How to run
     .venv/bin/python benchmarks/plaza_ranges.py                       # Plaza2, ~30 s
@@ -65,11 +75,13 @@ Options
     --slam-window S    seconds of ranges that place the SLAM case's beacons (default 60)
     --threads N        torch intra-op threads (default: torch's default)
     --plot PNG         write a figure of the test run
+    --rates N [N ...]  odometry thinning factors of the odometry_rate case (default 1 5 10 20)
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import math
 import sys
 import time
@@ -89,10 +101,18 @@ from msf_torch.backend.range2d import (  # noqa: E402
     multilaterate,
     odometry_range_problem,
 )
-from msf_torch.backend.range_smoother import calibrate_from_truth  # noqa: E402
+from msf_torch.backend.range_smoother import (  # noqa: E402
+    RangeSmootherSettings,
+    calibrate_from_truth,
+    smooth_ranges,
+)
 from msf_torch.backend.robust import RobustKernel  # noqa: E402
 from msf_torch.eval.plots import range_run_figure  # noqa: E402
-from msf_torch.geometry.se2 import align_points, transform_points  # noqa: E402
+from msf_torch.geometry.se2 import (  # noqa: E402
+    align_points,
+    between,
+    transform_points,
+)
 from msf_torch.io.plaza import PLAZA_RUNS, load_plaza  # noqa: E402
 from msf_torch.io.ranges import RangeRun  # noqa: E402
 
@@ -326,6 +346,54 @@ def solve_case(setting: Setting, beacons: torch.Tensor | None) -> dict[str, Any]
     return case
 
 
+def thinned(run: RangeRun, every: int) -> RangeRun:
+    """``run`` with every ``every``-th odometry pose (the steps between composed), its truth
+    at those poses, and the ranges up to the last kept pose."""
+    poses = run.odometry_poses(run.odometry.new_zeros(3))
+    keep = torch.arange(0, poses.shape[0], every)
+    inside = run.range_t <= run.pose_t[keep[-1]]
+    return dataclasses.replace(
+        run,
+        pose_t=run.pose_t[keep],
+        odometry=between(poses[keep[:-1]], poses[keep[1:]]),
+        truth=None if run.truth is None else run.truth[keep],
+        range_t=run.range_t[inside],
+        range_anchor=run.range_anchor[inside],
+        ranges=run.ranges[inside],
+    )
+
+
+def odometry_rate(run: RangeRun, calibration_run: RangeRun, rates: list[int]) -> list[dict]:
+    """The ``odometry_rate`` case (module docstring): per thinning factor and range timing,
+    the calibration and the position error against the truth."""
+    rows = []
+    for every in rates:
+        test, calibration = thinned(run, every), thinned(calibration_run, every)
+        row: dict[str, Any] = {
+            "every": every,
+            "odometry_hz": float(1.0 / torch.diff(test.pose_t).median()),
+        }
+        for timing in ("next_pose", "interpolate"):
+            settings = calibrate_from_truth(
+                calibration,
+                RangeSmootherSettings(range_timing=timing),
+                stretch_steps=max(5, 100 // every),
+            )
+            settings = dataclasses.replace(settings, start=test.truth[0], start_sigma=START_SIGMA)
+            result = smooth_ranges(test, settings)
+            row[timing] = {
+                "range_bias_m": settings.range_bias_m,
+                "range_sigma_m": settings.range_sigma_m,
+                **result.truth_error,
+            }
+        log(
+            f"odometry every {every} ({row['odometry_hz']:.2f} Hz): RMSE next pose "
+            f"{row['next_pose']['rmse_m']:.3f} m, interpolated {row['interpolate']['rmse_m']:.3f} m"
+        )
+        rows.append(row)
+    return rows
+
+
 def main(argv: list[str] | None = None) -> int:
     """Run the benchmark (options in the module docstring); returns the exit status."""
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
@@ -337,6 +405,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--slam-window", type=float, default=60.0)
     parser.add_argument("--threads", type=int, default=None)
     parser.add_argument("--plot", type=Path, default=None)
+    parser.add_argument("--rates", type=int, nargs="+", default=[1, 5, 10, 20])
     args = parser.parse_args(argv)
     if args.threads:
         torch.set_num_threads(args.threads)
@@ -345,7 +414,9 @@ def main(argv: list[str] | None = None) -> int:
         raise SystemExit("--calibrate must name the other run (settings never come from the test)")
     kernel = parse_kernel(args.kernel)
     run, calibration_run = load_plaza(args.test), load_plaza(calibration_name)
-    calibrated = calibrate_from_truth(calibration_run)
+    calibrated = calibrate_from_truth(
+        calibration_run, RangeSmootherSettings(range_timing="next_pose")
+    )
     settings = {
         "range_bias_m": calibrated.range_bias_m,
         "range_sigma_m": calibrated.range_sigma_m,
@@ -394,6 +465,7 @@ def main(argv: list[str] | None = None) -> int:
             "error": _errors(dead_reckoning[:, 0:2].numpy(), run.truth[:, 0:2].numpy())
         },
         "slam": slam,
+        "odometry_rate": odometry_rate(run, calibration_run, args.rates),
         "machine": machine_info(),
     }
     if args.plot is not None:

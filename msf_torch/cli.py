@@ -278,6 +278,13 @@ def build_parser() -> argparse.ArgumentParser:
         help="solve for the anchors too (range-only SLAM): the anchors file gives first "
         "guesses; without one the map frame is the odometry's start",
     )
+    rg.add_argument(
+        "--range-timing",
+        choices=("interpolate", "next_pose"),
+        default="interpolate",
+        help="where a range counts: between the odometry poses around its time (default) or "
+        "at the next pose (GTSAM's graph)",
+    )
 
     nm = sub.add_parser(
         "nmea", help="convert an NMEA 0183 GNSS log (GGA, GST, RMC, ZDA) to a native gnss.csv"
@@ -888,7 +895,9 @@ def _cmd_ranges(args) -> dict[str, Any]:
         raise ValueError(f"--plot {args.plot} is a folder; give a file name")
     if args.run is not None and any(f is not None for f in (*files, args.truth)):
         raise ValueError("give a shipped run or the CSV files, not both")
-    settings = RangeSmootherSettings(solve_anchors=args.solve_anchors)
+    settings = RangeSmootherSettings(
+        solve_anchors=args.solve_anchors, range_timing=args.range_timing
+    )
     if args.run is not None:
         name = {"plaza1": "Plaza1", "plaza2": "Plaza2"}[args.run]
         other = "Plaza2" if name == "Plaza1" else "Plaza1"
@@ -934,6 +943,7 @@ def _cmd_ranges(args) -> dict[str, Any]:
                 settings.odometry_noise.heading,
             ],
             "solve_anchors": settings.solve_anchors,
+            "range_timing": settings.range_timing,
         },
         **result.summary(),
         "meta": run.meta,

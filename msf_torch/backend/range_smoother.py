@@ -64,6 +64,12 @@ class RangeSmootherSettings:
             anchors).
         start_headings: headings tried when searching the start.
         relative_tolerance, max_iterations: LM stopping rule.
+        range_timing: ``"interpolate"`` (default): a range counts at the position
+            interpolated between the odometry poses around its time
+            (:class:`~msf_torch.backend.range2d.Se2InterpolatedRangeFactor`);
+            ``"next_pose"``: at the first pose at or after it (GTSAM's graph, what
+            ``benchmarks/plaza_ranges.py`` compares with GTSAM). :func:`calibrate_from_truth`
+            measures the range bias and sigma the same way.
     """
 
     range_sigma_m: float = 0.3
@@ -77,6 +83,7 @@ class RangeSmootherSettings:
     start_headings: int = 72
     relative_tolerance: float = 1e-10
     max_iterations: int = 200
+    range_timing: str = "interpolate"
 
 
 @dataclass
@@ -148,7 +155,7 @@ def calibrate_from_truth(
         raise ValueError(f"run {run.name!r} has no truth to calibrate against")
     settings = settings or RangeSmootherSettings()
     truth = run.truth
-    true_distance = run.anchors[run.range_anchor_rows()] - truth[run.range_pose_index(), 0:2]
+    true_distance = run.anchors[run.range_anchor_rows()] - _range_positions(run, truth, settings)
     errors = run.ranges - true_distance.norm(dim=-1)
     bias = float(errors.median())
     sigma = float(1.4826 * (errors - bias).abs().median())
@@ -184,6 +191,25 @@ def calibrate_from_truth(
         heading=3.0 * spread(sideways) ** 2 / length**3,
     )
     return dataclasses.replace(out, odometry_noise=noise)
+
+
+def _interpolated(settings: RangeSmootherSettings) -> bool:
+    """Whether ranges count at interpolated positions; a ValueError for an unknown timing."""
+    if settings.range_timing not in ("interpolate", "next_pose"):
+        raise ValueError(
+            f"range_timing must be 'interpolate' or 'next_pose', got {settings.range_timing!r}"
+        )
+    return settings.range_timing == "interpolate"
+
+
+def _range_positions(
+    run: RangeRun, poses: torch.Tensor, settings: RangeSmootherSettings
+) -> torch.Tensor:
+    """(K, 2) positions of ``poses`` (M + 1, >= 2) where the ranges count (settings'
+    ``range_timing``)."""
+    if _interpolated(settings):
+        return run.range_positions(poses)
+    return poses[run.range_pose_index(), 0:2]
 
 
 def _early(run: RangeRun, window_m: float) -> torch.Tensor:
@@ -345,6 +371,7 @@ def smooth_ranges(
         range_kernel=settings.kernel,
         beacons_known=not settings.solve_anchors,
         initial_poses=run.odometry_poses(start),
+        range_fraction=run.range_pose_fraction() if _interpolated(settings) else None,
     )
     config = pose_graph_config(
         planar=True,

@@ -82,6 +82,24 @@ class RangeRun:
         index = torch.searchsorted(self.pose_t, self.range_t)
         return index.clamp(max=self.pose_t.shape[0] - 1)
 
+    def range_pose_fraction(self) -> torch.Tensor:
+        """(K,) where each range's time lies between the pose before it (0) and the pose
+        :meth:`range_pose_index` attaches it to (1): ``(t - t_{j-1}) / (t_j - t_{j-1})``;
+        1 for a range at or before the first pose or after the last."""
+        after = self.range_pose_index()
+        before = (after - 1).clamp(min=0)
+        span = self.pose_t[after] - self.pose_t[before]
+        fraction = (self.range_t - self.pose_t[before]) / torch.where(span > 0, span, 1.0)
+        return torch.where(span > 0, fraction.clamp(0.0, 1.0), torch.ones_like(fraction))
+
+    def range_positions(self, poses: torch.Tensor) -> torch.Tensor:
+        """(K, 2) positions at the range times, linearly interpolated between the poses
+        (M + 1, >= 2) around each range (:meth:`range_pose_fraction`)."""
+        after = self.range_pose_index()
+        before = (after - 1).clamp(min=0)
+        fraction = self.range_pose_fraction().to(poses.dtype)[:, None]
+        return (1.0 - fraction) * poses[before, 0:2] + fraction * poses[after, 0:2]
+
     def range_anchor_rows(self) -> torch.Tensor:
         """(K,) int64 row of ``anchors`` each range is to."""
         return torch.searchsorted(self.anchor_ids, self.range_anchor)

@@ -17,6 +17,7 @@ from msf_torch.backend.problem import Factor
 from msf_torch.backend.range2d import (
     POINT2,
     OdometryNoise,
+    Se2InterpolatedRangeFactor,
     Se2PriorFactor,
     Se2RangeFactor,
     multilaterate,
@@ -95,6 +96,52 @@ def test_range_jacobians_match_finite_differences_and_autodiff():
     # a range does not depend on the heading
     assert (jacobians[0][..., 2] == 0).all()
     _check_jacobians(factor, values)
+
+
+def _interpolated_factor(count: int, generator: torch.Generator, fraction: torch.Tensor):
+    """An interpolated range factor between random pose pairs and beacons, and its values."""
+    before, after = _poses(count, generator), _poses(count, generator)
+    beacons = torch.randn(count, 2, generator=generator, dtype=DT) * 5.0
+    ranges = 3.0 + torch.rand(count, generator=generator, dtype=DT)
+    factor = Se2InterpolatedRangeFactor(
+        "pose",
+        torch.arange(count),
+        torch.arange(count, 2 * count),
+        fraction[None],
+        "beacon",
+        torch.arange(count),
+        ranges[None],
+        torch.full((1, count, 1, 1), 0.3**2, dtype=DT),
+    )
+    factor.kinds = [SE2, SE2, POINT2]
+    return factor, [before[None], after[None], beacons[None]], ranges
+
+
+def test_interpolated_range_jacobians_and_its_ends():
+    """Jacobians against central differences and autodiff; a fraction of 1 (0) is the plain
+    range factor on the later (earlier) pose; 1/2 ranges from the midpoint."""
+    generator = torch.Generator().manual_seed(3)
+    fraction = torch.rand(16, generator=generator, dtype=DT)
+    factor, values, _ = _interpolated_factor(16, generator, fraction)
+    _check_jacobians(factor, values)
+    before, after, beacons = (v[0] for v in values)
+    for ends, pose in ((1.0, after), (0.0, before)):
+        factor.fraction = torch.full((1, 16), ends, dtype=DT)
+        plain = Se2RangeFactor(
+            "pose",
+            torch.arange(16),
+            "beacon",
+            torch.arange(16),
+            factor.ranges,
+            torch.full((1, 16, 1, 1), 0.3**2, dtype=DT),
+        )
+        torch.testing.assert_close(
+            factor.residual(values), plain.residual([pose[None], beacons[None]]), rtol=0, atol=0
+        )
+    factor.fraction = torch.full((1, 16), 0.5, dtype=DT)
+    midpoint = 0.5 * (before[:, 0:2] + after[:, 0:2])
+    expected = (beacons - midpoint).norm(dim=-1) - factor.ranges[0]
+    torch.testing.assert_close(factor.residual(values)[0, :, 0], expected, rtol=0, atol=1e-14)
 
 
 def test_prior_jacobian_matches_finite_differences_and_autodiff():
