@@ -93,9 +93,10 @@ float), not dead reckoning (6), manual input (7) or a simulator (8)."""
 TIME_SOURCES = ("auto", "utc", "receive")
 """Accepted values of ``read_nmea(time=...)`` (module docstring, Rules)."""
 
-_NUMBER = re.compile(r"[+-]?(?:\d+\.?\d*|\.\d+)")
-_STAMP = re.compile(r"[+-]?(?:\d+\.?\d*|\.\d+)(?:[eE][+-]?\d+)?")
-_UNSIGNED = re.compile(r"\d+")
+# one way to match each digit run: ``\d+\.?\d*`` backtracks quadratically on a long run
+_NUMBER = re.compile(r"[+-]?(?:\d+(?:\.\d*)?|\.\d+)")
+_STAMP = re.compile(r"[+-]?(?:\d+(?:\.\d*)?|\.\d+)(?:[eE][+-]?\d+)?")
+_UNSIGNED = re.compile(r"\d{1,9}")  # fits int64, a date's year check and int()'s digit limit
 _HEX2 = re.compile(r"[0-9A-Fa-f]{2}")
 _ADDRESS = re.compile(r"[A-Z][A-Z0-9]{1,9}")
 _TIME = re.compile(r"(\d\d)(\d\d)(\d\d)(\.\d*)?")
@@ -284,7 +285,10 @@ class _Reader:
     def number(self, line: int, field: str, text: str) -> float:
         if not _NUMBER.fullmatch(text):
             raise self.error(line, field, f"not a number: {_tables.shown(text)}")
-        return float(text)
+        value = float(text)
+        if not math.isfinite(value):
+            raise self.error(line, field, f"beyond the float range: {_tables.shown(text)}")
+        return value
 
     def time_of_day(self, line: int, text: str) -> tuple[int, float]:
         match = _TIME.fullmatch(text)

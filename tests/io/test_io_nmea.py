@@ -7,6 +7,7 @@ from __future__ import annotations
 import calendar
 import json
 import math
+import signal
 
 import numpy as np
 import pytest
@@ -392,6 +393,64 @@ def test_missing_file_and_no_gga(tmp_path):
         read_nmea(path)
     with pytest.raises(ValueError, match="time must be"):
         read_nmea(path, time="gps")
+
+
+@pytest.mark.parametrize(
+    ("index", "value", "field"),
+    [(6, "1" * 5000, "quality"), (7, "18446744073709551616", "satellites")],
+)
+def test_fuzzer_digit_runs_in_count_fields(tmp_path, index, value, field):
+    """Fuzzer finds: a quality of 5000 digits passed int()'s digit limit (ValueError), a
+    satellite count over int64 broke the column (OverflowError), a 20-digit ZDA year broke
+    datetime.date (OverflowError)."""
+    truth = _truth()
+    lines = [_gga(0, truth), _with_field(_gga(1, truth), index, value)]
+    with pytest.raises(DataError) as err:
+        read_nmea(_write(tmp_path, lines))
+    assert (err.value.line, err.value.field) == (2, field)
+    lines[1] = _sentence("GNZDA,235940.50,18,10," + "1" * 20 + ",00,00")
+    with pytest.raises(DataError, match="expected day, month, year") as err:
+        read_nmea(_write(tmp_path, lines))
+    assert (err.value.line, err.value.field) == (2, "date")
+
+
+@pytest.mark.parametrize(
+    ("index", "field"), [(8, "hdop"), (9, "altitude"), (11, "geoid_separation")]
+)
+def test_fuzzer_numbers_beyond_the_float_range(tmp_path, index, field):
+    """Fuzzer finds: 400 nines in a GGA or GST number were read as inf and kept."""
+    truth = _truth()
+    lines = [_gga(0, truth), _with_field(_gga(1, truth), index, "9" * 400)]
+    with pytest.raises(DataError, match="beyond the float range") as err:
+        read_nmea(_write(tmp_path, lines))
+    assert (err.value.line, err.value.field) == (2, field)
+    gst = _sentence(f"GPGST,{_utc(0)},0.8,0.05,0.03,12.5,0.01,0.02,{'9' * 400}")
+    with pytest.raises(DataError, match="beyond the float range") as err:
+        read_nmea(_write(tmp_path, [_gga(0, truth), gst]))
+    assert (err.value.line, err.value.field) == (2, "sigma_altitude")
+
+
+def test_fuzzer_long_digit_run_is_rejected_at_once(tmp_path):
+    """Fuzzer finds: a 200,000-digit cell that is not a number (or a receive stamp that is
+    not one) made the number patterns backtrack quadratically: minutes per line."""
+
+    def too_slow(signum: int, frame: object) -> None:
+        raise TimeoutError("read_nmea took over 30 s")
+
+    truth = _truth()
+    digits = "1" * 200_000 + "x"
+    previous = signal.signal(signal.SIGALRM, too_slow)
+    signal.alarm(30)
+    try:
+        with pytest.raises(DataError, match="not a number") as err:
+            read_nmea(_write(tmp_path, [_gga(0, truth), _with_field(_gga(1, truth), 9, digits)]))
+        assert (err.value.line, err.value.field) == (2, "altitude")
+        with pytest.warns(UserWarning, match="unreadable_prefix 1"):
+            log = read_nmea(_write(tmp_path, [f"{digits} {_gga(0, truth)}"]), time="utc")
+    finally:
+        signal.alarm(0)
+        signal.signal(signal.SIGALRM, previous)
+    assert len(log) == 1
 
 
 def test_cli_writes_a_gnss_csv_that_read_native_reads(generated, tmp_path, capsys):
