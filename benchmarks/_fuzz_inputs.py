@@ -44,12 +44,14 @@ __all__ = [
     "write_case",
 ]
 
+import datetime
 import io
 import json
 import math
 import os
 import re
 import traceback
+import warnings
 import zipfile
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -76,6 +78,7 @@ from msf_torch.io import (
 )
 from msf_torch.io.eqvio import EqvioRun
 from msf_torch.io.kitti_poses import read_kitti_poses
+from msf_torch.io.nmea import DEFAULT_QUALITIES, NmeaLog, read_nmea
 from msf_torch.io.ranges import RangeRun, read_range_run
 from msf_torch.io.scans import read_scans
 from msf_torch.types import Sequence, Trajectory
@@ -588,6 +591,101 @@ def _read_range_csv(folder: Path) -> RangeRun:
     )
 
 
+_NMEA_NOISE = (
+    "GPGSV,3,1,11,03,03,111,00,04,15,270,00,06,01,010,00,13,06,292,00",
+    "GLGSV,1,1,02,65,35,101,41,72,12,330,",
+    "GPVTG,054.7,T,034.4,M,005.5,N,010.2,K,A",
+    "GNGSA,A,3,04,05,,09,12,,,24,,,,,2.5,1.3,2.1",
+    "PUBX,00,081350.00,4717.113210,N,00833.915187,E,546.589,G3,2.1,2.0,0.007,77.52,0.007,,0.92,1.19,0.77,9,0,0",
+)
+
+
+def _nmea_line(body: str, checksum: bool) -> str:
+    """``$body[*hh]`` (the XOR of the body's bytes as two upper-case hex digits)."""
+    if not checksum:
+        return f"${body}"
+    value = 0
+    for byte in body.encode("ascii"):
+        value ^= byte
+    return f"${body}*{value:02X}"
+
+
+def _build_nmea(rng: np.random.Generator) -> tuple[dict[str, Any], str]:
+    """An NMEA 0183 log like a u-blox or NovAtel serial capture: GGA fixes at 1 or 5 Hz
+    anywhere on the globe, GSTs for some, RMC or ZDA dates (or none), GSV/VTG/GSA/PUBX noise,
+    no-fix GGAs, a second talker's GGA of the same epoch, checksums on all, none or some
+    lines, receive stamps before a comma or a space (or none), a midnight rollover in one
+    log of three."""
+    n = int(rng.integers(1, 16))
+    step = int(rng.choice((100, 20)))  # centiseconds
+    day = 18000 + int(rng.integers(0, 2000))  # days since 1970
+    if rng.random() < 1 / 3:
+        tod0 = 8_640_000 - step * int(rng.integers(1, n + 1))  # crosses 00:00 UTC
+    else:
+        tod0 = 100 * int(rng.integers(0, 86400 - 4 * n)) + int(rng.choice((0, 50)))
+    unix_cs = [day * 8_640_000 + tod0 + step * k for k in range(n)]
+    talker = str(rng.choice(("GP", "GN", "GL")))
+    date_kind = str(rng.choice(("RMC", "ZDA", "none"), p=(0.5, 0.3, 0.2)))
+    checksum_kind = str(rng.choice(("all", "none", "some")))
+    stamp_sep = str(rng.choice(("", ",", " ")))
+    lat0, lon0 = rng.uniform(-89.0, 89.0), rng.uniform(-179.0, 179.0)
+    lines: list[tuple[float, str]] = []  # (receive time, sentence body)
+    for k, cs in enumerate(unix_cs):
+        t = cs / 100
+        clock = datetime.datetime.fromtimestamp(cs // 100, datetime.timezone.utc)
+        hms = f"{clock:%H%M%S}.{cs % 100:02d}"
+        lat, lon = lat0 + 1e-5 * k, lon0 + 1e-5 * k
+        lat_text = f"{int(abs(lat)):02d}{abs(lat) % 1 * 60:010.7f},{'NS'[lat < 0]}"
+        lon_text = f"{int(abs(lon)):03d}{abs(lon) % 1 * 60:010.7f},{'EW'[lon < 0]}"
+        if rng.random() < 0.15:
+            lines.append((t, f"{talker}GGA,{hms},,,,,0,00,99.99,,,,,,"))
+            continue
+        quality = int(rng.choice((1, 2, 4, 5, 6), p=(0.3, 0.2, 0.3, 0.15, 0.05)))
+        separation = "" if rng.random() < 0.1 else f"{rng.uniform(-100, 80):.1f}"
+        gga = (
+            f"{talker}GGA,{hms},{lat_text},{lon_text},{quality},{int(rng.integers(4, 30)):02d},"
+            f"{rng.uniform(0.5, 3):.1f},{rng.uniform(-50, 3000):.3f},M,{separation},M,,"
+        )
+        lines.append((t, gga))
+        if rng.random() < 0.1:  # the same epoch from a second talker: a duplicate time
+            lines.append((t, "GP" + gga[2:]))
+        if rng.random() < 0.6:
+            sigmas = ",".join(f"{s:.3f}" for s in rng.uniform(0.005, 3.0, 3))
+            lines.append((t, f"{talker}GST,{hms},1.2,0.9,0.5,34.5,{sigmas}"))
+        if date_kind == "RMC" and rng.random() < 0.5:
+            lines.append(
+                (t, f"{talker}RMC,{hms},A,{lat_text},{lon_text},0.02,31.66,{clock:%d%m%y},,,D")
+            )
+        elif date_kind == "ZDA" and rng.random() < 0.5:
+            lines.append((t, f"{talker}ZDA,{hms},{clock:%d,%m,%Y},00,00"))
+        if rng.random() < 0.5:
+            lines.append((t, str(rng.choice(_NMEA_NOISE))))
+    text = []
+    for i, (t, body) in enumerate(lines):
+        checksum = checksum_kind == "all" or (checksum_kind == "some" and rng.random() < 0.5)
+        sentence = _nmea_line(body, checksum)
+        stamp = f"{t + 0.05 + 1e-3 * i:.3f}"
+        text.append(sentence if not stamp_sep else f"{stamp}{stamp_sep}{sentence}")
+    return {"log.nmea": "\n".join(text) + "\n"}, "log.nmea"
+
+
+def _read_nmea(path: Path) -> NmeaLog:
+    """``read_nmea`` on a case file; a warning that is not a UserWarning is a crash, and so
+    is a DataError that names a field but no line."""
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        try:
+            log = read_nmea(path)
+        except DataError as err:
+            if err.field is not None and err.line is None:
+                raise AssertionError(f"DataError names field {err.field!r} but no line") from err
+            raise
+    for w in caught:
+        if not issubclass(w.category, UserWarning):
+            raise AssertionError(f"{w.category.__name__}: {w.message}")
+    return log
+
+
 # ----------------------------------------------------------------------------- result checks
 
 
@@ -757,6 +855,43 @@ def _check_range_run(run: RangeRun) -> str | None:
     return None
 
 
+def _check_nmea(log: NmeaLog) -> str | None:
+    n = len(log)
+    columns = ("t", "latitude_deg", "longitude_deg", "altitude_m", "quality", "satellites")
+    if any(getattr(log, c).shape != (n,) for c in (*columns, "hdop", "lines")):
+        return "a column is not (N,)"
+    if log.sigma_enu.shape != (n, 3):
+        return "sigma_enu not (N, 3)"
+    if not (np.isfinite(log.t).all() and (np.diff(log.t) > 0).all()):
+        return "t not finite and strictly increasing"
+    if not (np.abs(log.latitude_deg) <= 90).all() or not (np.abs(log.longitude_deg) <= 180).all():
+        return "a latitude outside [-90, 90] or a longitude outside [-180, 180]"
+    if not np.isfinite(log.altitude_m).all():
+        return "altitude_m holds a non-finite value"
+    if not np.isin(log.quality, DEFAULT_QUALITIES).all():
+        return "a quality code that is not kept"
+    if not (log.satellites >= -1).all():
+        return "satellites below -1"
+    hdop, sigma = log.hdop[~np.isnan(log.hdop)], log.sigma_enu[~np.isnan(log.sigma_enu)]
+    if not (np.isfinite(hdop).all() and (hdop >= 0).all()):
+        return "hdop not finite non-negative or NaN"
+    if not (np.isfinite(sigma).all() and (sigma >= 0).all()):  # GST sigmas of 0 are read
+        return "sigma_enu not finite non-negative or NaN"
+    if not (log.lines >= 1).all() or not (np.diff(log.lines) > 0).all():
+        return "lines not positive and increasing"
+    if any(v < 0 for v in log.counts.values()) or log.counts["kept"] != n:
+        return "a negative count or counts['kept'] != N"
+    if n:
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            gnss, _ = log.to_gnss()
+        if caught:
+            return f"to_gnss warned: {caught[0].message}"
+        if not _finite(gnss.position) or gnss.t.shape != (1, n):
+            return "to_gnss gave a non-finite ENU position"
+    return None
+
+
 READERS: dict[str, Reader] = {
     r.name: r
     for r in (
@@ -810,14 +945,15 @@ READERS: dict[str, Reader] = {
         ),
         Reader("scans", _build_scans, lambda p, s: read_scans(p), _check_scans, True),
         Reader("range_csv", _build_range_csv, lambda p, s: _read_range_csv(p), _check_range_run),
+        Reader("nmea", _build_nmea, lambda p, s: _read_nmea(p), _check_nmea),
     )
 }
 """Reader name -> :class:`Reader`: native ``.npz`` and CSV folder, TUM, EuRoC ASL, the KITTI
 files gtsam ships (``data_dir``), g2o and TORO pose graphs (3-D and 2-D), 2-D graphs with
 landmarks (``landmark_2d``: ODOMETRY, LANDMARK, BR, VERTEX_XY), the EqVIO replay CSV, KITTI
 odometry poses + times, 2D LiDAR scans (``.npz``), odometry + anchor-range CSV files
-(``range_csv``). Not here: rosbags (binary containers written by ``rosbags``; their
-reader is tested on bags written by its own writers)."""
+(``range_csv``), NMEA 0183 GNSS logs (``nmea``). Not here: rosbags (binary containers
+written by ``rosbags``; their reader is tested on bags written by its own writers)."""
 
 
 # ----------------------------------------------------------------------------- mutations

@@ -5,7 +5,7 @@ What it measures
     folder, TUM, EuRoC ASL, the KITTI files gtsam ships, 3-D g2o and TORO, 2-D g2o and TORO,
     2-D graphs with landmarks (ODOMETRY, LANDMARK, BR, VERTEX_XY), the EqVIO replay CSV,
     KITTI odometry poses with their times file, 2D LiDAR scan .npz, the odometry +
-    anchor-range CSV files),
+    anchor-range CSV files, NMEA 0183 GNSS logs),
     hypothesis generates ``--examples`` malformed inputs (a valid input of the format with 1-3
     mutations: truncated lines, wrong field counts, non-numeric tokens, NaN/inf, huge numbers,
     empty files, binary junk, bad headers, backwards or repeated stamps, missing files, ...;
@@ -23,7 +23,7 @@ What it measures
     reported: zero ``bad_output`` and zero ``bad_error``.
 
 How to run
-    .venv/bin/python benchmarks/fuzz.py                    # 14 readers x 1300 = 18,200 inputs
+    .venv/bin/python benchmarks/fuzz.py                    # 15 readers x 1300 = 19,500 inputs
     .venv/bin/python benchmarks/fuzz.py --examples 200 --seed 3
 
     Progress and one line per reader go to stderr; crashes and other failures are listed (the
