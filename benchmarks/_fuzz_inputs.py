@@ -875,8 +875,8 @@ def _check_nmea(log: NmeaLog) -> str | None:
     hdop, sigma = log.hdop[~np.isnan(log.hdop)], log.sigma_enu[~np.isnan(log.sigma_enu)]
     if not (np.isfinite(hdop).all() and (hdop >= 0).all()):
         return "hdop not finite non-negative or NaN"
-    if not (np.isfinite(sigma).all() and (sigma >= 0).all()):  # GST sigmas of 0 are read
-        return "sigma_enu not finite non-negative or NaN"
+    if not (np.isfinite(sigma).all() and (sigma > 0).all()):  # a GST 0 reads as NaN
+        return "sigma_enu not finite positive or NaN"
     if not (log.lines >= 1).all() or not (np.diff(log.lines) > 0).all():
         return "lines not positive and increasing"
     if any(v < 0 for v in log.counts.values()) or log.counts["kept"] != n:

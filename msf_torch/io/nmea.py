@@ -21,7 +21,8 @@ Sentences read
       sigma longitude, sigma altitude (m). The sigmas attach to the kept GGA fix of the same
       UTC time of day (to the millisecond; the nearest such GGA in the file) as
       ``sigma_enu = [sigma lon, sigma lat, sigma alt]`` (east, north, up). A fix without a
-      GST, or a GST field left empty, has NaN there: the estimator's configured
+      GST, or a GST field left empty or zero (receivers write 0 where they computed
+      nothing; a zero sigma would claim an exact fix), has NaN there: the estimator's configured
       ``gnss_sigma_m`` applies, as for a ``NavSatFix`` without covariance.
     * RMC (``ddmmyy``; years 80-99 are 19xx, the others 20xx) and ZDA (day, month, year)
       give the UTC date.
@@ -362,6 +363,12 @@ class _Reader:
         separation_missing = len(f) < 11 or f[10] == ""
         if not separation_missing:
             altitude += self.number(line, "geoid_separation", f[10])
+            if not math.isfinite(altitude):
+                raise self.error(
+                    line,
+                    "geoid_separation",
+                    "altitude + geoid separation is beyond the float range",
+                )
             if len(f) > 11 and f[11] not in ("M", ""):
                 raise self.error(line, "separation_unit", f"expected M, got {_tables.shown(f[11])}")
         if quality not in self.qualities:
@@ -398,7 +405,9 @@ class _Reader:
             value = self.number(line, name, text) if text else math.nan
             if value < 0:
                 raise self.error(line, name, f"a standard deviation must not be negative: {text}")
-            sigmas.append(value)
+            # a zero sigma is no claim of a perfect fix but a field the receiver did not
+            # compute: read it as not given (NaN: the configured sigma applies)
+            sigmas.append(value if value > 0 else math.nan)
         north, east, up = sigmas
         key = round(1000 * (seconds + fraction))
         self.gst_sigmas.setdefault(key, []).append((line, [east, north, up]))

@@ -526,3 +526,19 @@ def test_quality_codes_are_a_set_not_a_ranking(tmp_path, capsys):
     with pytest.raises(SystemExit):
         main(["nmea", str(path), "--out", str(out), "--quality", "4,x"])
     assert "GGA quality codes 1-9" in capsys.readouterr().err
+
+
+def test_zero_gst_sigma_is_not_given_and_overflowing_height_is_refused(tmp_path):
+    """A GST sigma of 0 (a field the receiver did not compute) reads as NaN, not as an exact
+    fix; an altitude plus geoid separation beyond the float range is a DataError on the
+    separation (each number alone is finite)."""
+    truth = _truth()
+    gst = _sentence(f"GPGST,{_utc(0)},0.8,0.05,0.03,12.5,0.0,0.020,-0.0")
+    log = read_nmea(_write(tmp_path, [_gga(0, truth), gst], "zero.nmea"))
+    assert np.isnan(log.sigma_enu[0, 1]) and np.isnan(log.sigma_enu[0, 2])
+    assert log.sigma_enu[0, 0] == pytest.approx(0.02)
+    huge = "1" * 309
+    gga = _with_field(_with_field(_gga(0, truth), 9, huge), 11, huge)
+    with pytest.raises(DataError) as info:
+        read_nmea(_write(tmp_path, [gga], "sum.nmea"))
+    assert (info.value.line, info.value.field) == (1, "geoid_separation")
