@@ -51,7 +51,8 @@ What it measures
     and sigma the same way).
 
     Third case, ``odometry_rate`` (ours only): where a range counts. The odometry (10 Hz)
-    is thinned to every ``n``-th pose (``--rates``, composed steps; truth and ranges kept),
+    is thinned to every ``n``-th pose (``--rates``; ``RangeRun.thinned``: composed steps,
+    truth and ranges kept),
     calibration and test alike, and :func:`~msf_torch.backend.range_smoother.smooth_ranges`
     (beacons known, start at the truth's first pose, 0.1 m / 0.05 rad) runs with
     ``range_timing="next_pose"`` (GTSAM's graph) and ``"interpolate"`` (the range at the
@@ -110,7 +111,6 @@ from msf_torch.backend.robust import RobustKernel  # noqa: E402
 from msf_torch.eval.plots import range_run_figure  # noqa: E402
 from msf_torch.geometry.se2 import (  # noqa: E402
     align_points,
-    between,
     transform_points,
 )
 from msf_torch.io.plaza import PLAZA_RUNS, load_plaza  # noqa: E402
@@ -346,29 +346,12 @@ def solve_case(setting: Setting, beacons: torch.Tensor | None) -> dict[str, Any]
     return case
 
 
-def thinned(run: RangeRun, every: int) -> RangeRun:
-    """``run`` with every ``every``-th odometry pose (the steps between composed), its truth
-    at those poses, and the ranges up to the last kept pose."""
-    poses = run.odometry_poses(run.odometry.new_zeros(3))
-    keep = torch.arange(0, poses.shape[0], every)
-    inside = run.range_t <= run.pose_t[keep[-1]]
-    return dataclasses.replace(
-        run,
-        pose_t=run.pose_t[keep],
-        odometry=between(poses[keep[:-1]], poses[keep[1:]]),
-        truth=None if run.truth is None else run.truth[keep],
-        range_t=run.range_t[inside],
-        range_anchor=run.range_anchor[inside],
-        ranges=run.ranges[inside],
-    )
-
-
 def odometry_rate(run: RangeRun, calibration_run: RangeRun, rates: list[int]) -> list[dict]:
     """The ``odometry_rate`` case (module docstring): per thinning factor and range timing,
     the calibration and the position error against the truth."""
     rows = []
     for every in rates:
-        test, calibration = thinned(run, every), thinned(calibration_run, every)
+        test, calibration = run.thinned(every), calibration_run.thinned(every)
         row: dict[str, Any] = {
             "every": every,
             "odometry_hz": float(1.0 / torch.diff(test.pose_t).median()),

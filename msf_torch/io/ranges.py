@@ -36,6 +36,7 @@ from __future__ import annotations
 
 __all__ = ["RangeRun", "read_range_run", "write_anchors"]
 
+import dataclasses
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -99,6 +100,29 @@ class RangeRun:
         before = (after - 1).clamp(min=0)
         fraction = self.range_pose_fraction().to(poses.dtype)[:, None]
         return (1.0 - fraction) * poses[before, 0:2] + fraction * poses[after, 0:2]
+
+    def thinned(self, every: int) -> RangeRun:
+        """The run with every ``every``-th odometry pose (the steps between composed into
+        one), the truth at those poses and the ranges up to the last pose kept: the same run
+        as a slower odometry would have logged it.
+
+        Raises:
+            ValueError: ``every`` below 1.
+        """
+        if every < 1:
+            raise ValueError(f"every must be >= 1, got {every}")
+        poses = self.odometry_poses(self.odometry.new_zeros(3))
+        keep = torch.arange(0, poses.shape[0], every, device=poses.device)
+        inside = self.range_t <= self.pose_t[keep[-1]]
+        return dataclasses.replace(
+            self,
+            pose_t=self.pose_t[keep],
+            odometry=between(poses[keep[:-1]], poses[keep[1:]]),
+            truth=None if self.truth is None else self.truth[keep],
+            range_t=self.range_t[inside],
+            range_anchor=self.range_anchor[inside],
+            ranges=self.ranges[inside],
+        )
 
     def range_anchor_rows(self) -> torch.Tensor:
         """(K,) int64 row of ``anchors`` each range is to."""

@@ -19,7 +19,7 @@ from msf_torch.backend.range_smoother import (
     estimate_start,
     smooth_ranges,
 )
-from msf_torch.geometry.se2 import between, chain, compose
+from msf_torch.geometry.se2 import chain, compose
 from msf_torch.io.ranges import RangeRun
 
 DT = torch.float64
@@ -264,22 +264,6 @@ def test_plaza1_calibration_reads_the_documented_bias(plaza):
     assert calibrated.range_sigma_m == pytest.approx(1.217, abs=0.001)
 
 
-def _thinned(run: RangeRun, every: int) -> RangeRun:
-    """Every ``every``-th pose of a run (steps composed), its truth there, ranges inside."""
-    poses = run.odometry_poses(run.odometry.new_zeros(3))
-    keep = torch.arange(0, poses.shape[0], every)
-    inside = run.range_t <= run.pose_t[keep[-1]]
-    return dataclasses.replace(
-        run,
-        pose_t=run.pose_t[keep],
-        odometry=between(poses[keep[:-1]], poses[keep[1:]]),
-        truth=run.truth[keep],
-        range_t=run.range_t[inside],
-        range_anchor=run.range_anchor[inside],
-        ranges=run.ranges[inside],
-    )
-
-
 def test_interpolated_ranges_keep_accuracy_when_the_odometry_is_slow(plaza):
     """Plaza2 (3.6 m/s) with its 10 Hz odometry thinned to 1 Hz, settings from Plaza1 thinned
     alike: a range attached to the next pose is up to 3.6 m off where it was taken (RMSE
@@ -287,7 +271,7 @@ def test_interpolated_ranges_keep_accuracy_when_the_odometry_is_slow(plaza):
     with the full-rate odometry (0.41-0.44 m)."""
     errors = {}
     for timing in ("next_pose", "interpolate"):
-        calibration, test = (_thinned(run, 10) for run in plaza)
+        calibration, test = (run.thinned(10) for run in plaza)
         settings = calibrate_from_truth(
             calibration, RangeSmootherSettings(range_timing=timing), stretch_steps=10
         )
@@ -332,3 +316,33 @@ def test_holding_anchors_without_positions_is_refused(run, settings):
     unknown = dataclasses.replace(run, anchors=torch.full_like(ANCHORS, math.nan))
     with pytest.raises(ValueError, match="positions are unknown"):
         smooth_ranges(unknown, settings)
+
+
+def test_thinned_run_keeps_the_poses_it_keeps():
+    """Composed steps give the original dead-reckoned poses at the kept times; ranges after
+    the last kept pose leave; ``every`` below 1 is refused."""
+    generator = torch.Generator().manual_seed(2)
+    odometry = torch.cat(
+        (torch.rand(10, 2, generator=generator, dtype=torch.float64), torch.randn(10, 1).double()),
+        -1,
+    )
+    run = RangeRun(
+        name="t",
+        pose_t=torch.arange(11, dtype=torch.float64),
+        odometry=odometry,
+        range_t=torch.tensor([0.5, 6.5, 9.5], dtype=torch.float64),
+        range_anchor=torch.zeros(3, dtype=torch.int64),
+        ranges=torch.ones(3, dtype=torch.float64),
+        anchor_ids=torch.zeros(1, dtype=torch.int64),
+        anchors=torch.zeros(1, 2, dtype=torch.float64),
+        truth=torch.randn(11, 3, generator=generator, dtype=torch.float64),
+    )
+    thin = run.thinned(3)  # poses 0, 3, 6, 9
+    zero = torch.zeros(3, dtype=torch.float64)
+    torch.testing.assert_close(
+        thin.odometry_poses(zero), run.odometry_poses(zero)[::3], rtol=0, atol=1e-12
+    )
+    assert thin.pose_t.tolist() == [0.0, 3.0, 6.0, 9.0] and thin.range_t.tolist() == [0.5, 6.5]
+    torch.testing.assert_close(thin.truth, run.truth[::3])
+    with pytest.raises(ValueError, match="every"):
+        run.thinned(0)
