@@ -487,22 +487,23 @@ class _LandmarkRecords:
         for k, lid in enumerate(landmark_ids.tolist()):
             if given[k]:
                 placed[k] = self.points[lid]
-        first = np.full(landmark_ids.size, -1)
-        for k in range(pairs.shape[0] - 1, -1, -1):
-            first[columns[k]] = k
-        for col in np.flatnonzero(~given).tolist():
-            k = int(first[col])
-            row = int(rows[k])
-            angle = headings[row] + measured[k, 0]
+        # each landmark's first sighting in file order (np.unique returns first indices)
+        seen_cols, first = np.unique(columns, return_index=True)
+        todo = np.isin(seen_cols, np.flatnonzero(~given))
+        cols, first = seen_cols[todo], first[todo]
+        if cols.size:
+            angle = headings[rows[first]] + measured[first, 0]
             with np.errstate(over="ignore", invalid="ignore"):
-                placed[col] = positions[row] + measured[k, 1] * np.array(
-                    (math.cos(angle), math.sin(angle))
+                placed[cols] = positions[rows[first]] + measured[first, 1:2] * np.stack(
+                    (np.cos(angle), np.sin(angle)), 1
                 )
-            if not np.isfinite(placed[col]).all():
+            bad = np.flatnonzero(~np.isfinite(placed[cols]).all(axis=1))
+            if bad.size:
+                k = int(first[bad[0]])
                 raise DataError(
                     path,
-                    f"the initial position of landmark {landmark_ids[col]} from its first "
-                    "sighting overflows",
+                    f"the initial position of landmark {landmark_ids[cols[bad[0]]]} from its "
+                    "first sighting overflows",
                     line=int(lines[k]),
                     field="range",
                 )
