@@ -7,8 +7,8 @@ What it measures
     6,969 poses (``ODOMETRY``) and 3,640 laser sightings of 151 tree trunks (``LANDMARK``),
     read by both as GTSAM's ``load2D`` reads it (``BetweenFactor<Pose2>`` with the file's
     covariance; ``BearingRangeFactor2D`` with load2D's sigmas). The first pose is held (ours)
-    / constrained (GTSAM: ``NonlinearEqualityPose2``); costs are GTSAM's ``0.5 sum |W r|^2``
-    of load2D's factors.
+    / constrained (GTSAM: a ``Constrained.All(3)`` prior, as in ``posegraph2d.py``; ISAM2:
+    ``NonlinearEqualityPose2``); costs are GTSAM's ``0.5 sum |W r|^2`` of load2D's factors.
 
     Four pipelines, each ending in LM to the same tolerance (``--tolerance``, relative cost
     decrease; at most ``--max-iterations``):
@@ -60,46 +60,30 @@ from typing import Any
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
 from benchmarks._common import emit_json, log, machine_info  # noqa: E402
+from benchmarks.posegraph2d import (  # noqa: E402
+    difference,
+    gtsam_params,
+    gtsam_problem,
+    gtsam_solution,
+)
 from msf_torch.backend.posegraph import optimize_pose_graph, pose_graph_config  # noqa: E402
 from msf_torch.io import (  # noqa: E402
     GTSAM_LANDMARK2_FILES,
-    PoseGraph2D,
     gtsam_pose_graph_path,
     read_pose_graph_2d,
 )
 
 
-def lm_params(tolerance: float, max_iterations: int) -> Any:
-    """GTSAM ``LevenbergMarquardtParams`` with the relative tolerance alone deciding."""
-    import gtsam
-
-    params = gtsam.LevenbergMarquardtParams()
-    params.setRelativeErrorTol(tolerance)
-    params.setAbsoluteErrorTol(0.0)
-    params.setMaxIterations(max_iterations)
-    return params
-
-
-def held(factors: Any, initial: Any) -> Any:
-    """load2D's factors plus ``NonlinearEqualityPose2`` on the first pose."""
-    import gtsam
-
-    first = int(min(gtsam.utilities.allPose2s(initial).keys()))
-    graph = gtsam.NonlinearFactorGraph(factors)
-    graph.add(gtsam.NonlinearEqualityPose2(first, initial.atPose2(first)))
-    return graph
-
-
 def gtsam_lm(factors: Any, initial: Any, tolerance: float, max_iterations: int) -> Any:
-    """``(Values, iterations)`` of GTSAM's LM from ``initial``."""
+    """``(Values, iterations)`` of GTSAM's LM from ``initial``, the first pose held (the same
+    graph and settings as ``benchmarks/posegraph2d.py``'s ``tight`` runs)."""
     import gtsam
 
     optimizer = gtsam.LevenbergMarquardtOptimizer(
-        held(factors, initial), initial, lm_params(tolerance, max_iterations)
+        gtsam_problem(factors, initial), initial, gtsam_params(tolerance, 0.0, max_iterations)
     )
     return optimizer.optimize(), optimizer.iterations()
 
@@ -142,39 +126,6 @@ def gtsam_isam2(factors: Any, initial: Any) -> Any:
         isam.update(new_factors, new_values)
         estimate = isam.calculateEstimate()
     return estimate
-
-
-def gtsam_arrays(values: Any) -> tuple[np.ndarray, np.ndarray]:
-    """Poses (N, 3) ``[x, y, theta]`` in id order and landmarks (L, 2) in id order."""
-    import gtsam
-
-    poses = gtsam.utilities.allPose2s(values)
-    pose_rows = [poses.atPose2(k) for k in sorted(poses.keys())]
-    marks = sorted(
-        (gtsam.Symbol(k).index(), k) for k in values.keys() if gtsam.Symbol(k).chr() == ord("l")
-    )
-    return (
-        np.array([[p.x(), p.y(), p.theta()] for p in pose_rows]).reshape(-1, 3),
-        np.array([values.atPoint2(k) for _, k in marks]).reshape(-1, 2),
-    )
-
-
-def ours_arrays(graph: PoseGraph2D) -> tuple[np.ndarray, np.ndarray]:
-    """Poses (N, 3) and landmarks (L, 2) of a solved graph."""
-    poses = torch.cat((graph.positions, graph.headings[:, None]), -1)
-    return poses.numpy(), graph.landmark_positions.numpy()
-
-
-def differences(a: tuple[np.ndarray, np.ndarray], b: tuple[np.ndarray, np.ndarray]) -> dict:
-    """Largest position (m), heading (rad, wrapped) and landmark (m) difference."""
-    heading = np.angle(np.exp(1j * (a[0][:, 2] - b[0][:, 2])))
-    return {
-        "max_position_diff_m": float(np.linalg.norm(a[0][:, :2] - b[0][:, :2], axis=1).max()),
-        "max_heading_diff_rad": float(np.abs(heading).max()),
-        "max_landmark_diff_m": float(np.linalg.norm(a[1] - b[1], axis=1).max())
-        if a[1].size
-        else 0.0,
-    }
 
 
 def timed(fn: Any) -> tuple[float, Any]:
@@ -298,9 +249,7 @@ def main(argv: list[str] | None = None) -> int:
             "incremental_final_cost_rel_diff": rel,
             "file_start_final_cost_rel_diff": abs(costs["ours_file"] - costs["gtsam_file"])
             / costs["gtsam_file"],
-            "incremental_solution_diff": differences(
-                ours_arrays(ours_grown.graph), gtsam_arrays(isam_lm)
-            ),
+            "incremental_solution_diff": difference(ours_grown.graph, *gtsam_solution(isam_lm)),
         },
         "reported": {
             "incremental_reaches_isam2_lm_cost": bool(rel <= 1e-6),

@@ -51,6 +51,27 @@ from msf_torch.backend.robust import RobustKernel
 from msf_torch.geometry.se2 import chain
 
 
+def _range_error(
+    position: torch.Tensor, beacon: torch.Tensor, ranges: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Range residual ``|b - p| - z`` (..., 1) m of positions and beacons (..., 2) against
+    ``ranges`` (broadcast to (...)), and the unit direction ``u = (b - p) / |b - p|`` (..., 2)."""
+    offset = beacon - position
+    distance = offset.norm(dim=-1)
+    residual = (distance - ranges.expand_as(distance))[..., None]
+    unit = offset / distance.clamp_min(torch.finfo(offset.dtype).tiny)[..., None]
+    return residual, unit
+
+
+def _range_pose_row(unit: torch.Tensor, pose: torch.Tensor) -> torch.Tensor:
+    """``dr/dxi = [-u^T R(theta), 0]`` (..., 1, 3): a range's Jacobian w.r.t. the tangent
+    step of the :data:`SE2` pose (..., 3) whose position it is measured from."""
+    c, s = torch.cos(pose[..., 2]), torch.sin(pose[..., 2])
+    along = -(unit[..., 0] * c + unit[..., 1] * s)  # -u^T R(theta) e_x
+    across = -(-unit[..., 0] * s + unit[..., 1] * c)  # -u^T R(theta) e_y
+    return torch.stack((along, across, torch.zeros_like(along)), -1)[..., None, :]
+
+
 class Se2RangeFactor(_Evaluated, Factor):
     """Range from an :data:`~msf_torch.backend.posegraph2d.SE2` pose's origin to a
     :data:`POINT2` beacon: ``r = |b - p| - z`` (m) (GTSAM's ``RangeFactor2D``).
@@ -80,17 +101,10 @@ class Se2RangeFactor(_Evaluated, Factor):
 
     def _evaluate(self, values, jacobians: bool):
         pose, beacon = values
-        offset = beacon - pose[..., 0:2]
-        distance = offset.norm(dim=-1)
-        residual = (distance - self.ranges.expand_as(distance))[..., None]
+        residual, unit = _range_error(pose[..., 0:2], beacon, self.ranges)
         if not jacobians:
             return residual, None
-        unit = offset / distance.clamp_min(torch.finfo(offset.dtype).tiny)[..., None]
-        c, s = torch.cos(pose[..., 2]), torch.sin(pose[..., 2])
-        along = -(unit[..., 0] * c + unit[..., 1] * s)  # -u^T R(theta) e_x
-        across = -(-unit[..., 0] * s + unit[..., 1] * c)  # -u^T R(theta) e_y
-        jac_pose = torch.stack((along, across, torch.zeros_like(along)), -1)[..., None, :]
-        return residual, [jac_pose, unit[..., None, :]]
+        return residual, [_range_pose_row(unit, pose), unit[..., None, :]]
 
 
 class Se2InterpolatedRangeFactor(_Evaluated, Factor):
@@ -137,23 +151,13 @@ class Se2InterpolatedRangeFactor(_Evaluated, Factor):
         pose_i, pose_j, beacon = values
         fraction = self.fraction.expand(pose_i.shape[:-1])[..., None]
         position = (1.0 - fraction) * pose_i[..., 0:2] + fraction * pose_j[..., 0:2]
-        offset = beacon - position
-        distance = offset.norm(dim=-1)
-        residual = (distance - self.ranges.expand_as(distance))[..., None]
+        residual, unit = _range_error(position, beacon, self.ranges)
         if not jacobians:
             return residual, None
-        unit = offset / distance.clamp_min(torch.finfo(offset.dtype).tiny)[..., None]
-
-        def pose_jacobian(pose: torch.Tensor, weight: torch.Tensor) -> torch.Tensor:
-            c, s = torch.cos(pose[..., 2]), torch.sin(pose[..., 2])
-            along = -(unit[..., 0] * c + unit[..., 1] * s)  # -u^T R(theta) e_x
-            across = -(-unit[..., 0] * s + unit[..., 1] * c)  # -u^T R(theta) e_y
-            rows = torch.stack((along, across, torch.zeros_like(along)), -1)
-            return (weight * rows)[..., None, :]
-
+        weight = fraction[..., None]
         return residual, [
-            pose_jacobian(pose_i, 1.0 - fraction),
-            pose_jacobian(pose_j, fraction),
+            (1.0 - weight) * _range_pose_row(unit, pose_i),
+            weight * _range_pose_row(unit, pose_j),
             unit[..., None, :],
         ]
 
