@@ -75,8 +75,10 @@ def build_parser() -> argparse.ArgumentParser:
         type=_exports,
         default=(),
         metavar="FORMATS",
-        help="also write the trajectory as kitti (trajectory.kitti + trajectory_times.txt) "
-        "and / or rosbag2 (nav_msgs/Odometry in trajectory_rosbag2/), comma separated",
+        help="also write the trajectory as kitti (trajectory.kitti + trajectory_times.txt), "
+        "rosbag2 (nav_msgs/Odometry in trajectory_rosbag2/), geojson and / or kml (on the "
+        "map, with the GNSS fixes: needs the run's geodetic origin, meta.json gnss_origin), "
+        "comma separated",
     )
     run.add_argument(
         "--format",
@@ -298,7 +300,8 @@ def build_parser() -> argparse.ArgumentParser:
         type=_triple,
         default=None,
         metavar="LAT,LON,ALT",
-        help="ENU origin: degrees, degrees, m above the WGS-84 ellipsoid (default: first fix)",
+        help="ENU origin: degrees, degrees, m above the WGS-84 ellipsoid (default: the "
+        "gnss_origin of the folder's meta.json, else the first fix); stored in that meta.json",
     )
     nm.add_argument(
         "--time",
@@ -341,7 +344,7 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-EXPORTS = ("kitti", "rosbag2")
+EXPORTS = ("kitti", "rosbag2", "geojson", "kml")
 """Extra trajectory formats ``msf run --export`` writes."""
 
 
@@ -975,16 +978,29 @@ def _cmd_nmea(args) -> dict[str, Any]:
     import numpy as np
 
     from msf_torch.io.errors import DataError
+    from msf_torch.io.native import store_gnss_origin, stored_gnss_origin
     from msf_torch.io.nmea import read_nmea, write_gnss_csv
 
     if args.out.is_dir():
         raise ValueError(f"--out {args.out} is a folder; give a file name (FOLDER/gnss.csv)")
+    folder = args.out.parent
+    stored = stored_gnss_origin(folder)
     log = read_nmea(args.log, qualities=args.quality, time=args.time)
     if len(log) == 0:
         raise DataError(args.log, f"no fix kept (counts: {log.counts})")
-    gnss, origin = log.to_gnss(origin=args.origin, t0=args.t0)
-    args.out.parent.mkdir(parents=True, exist_ok=True)
+    wanted = args.origin if args.origin is not None else stored
+    origin_from = "--origin" if args.origin is not None else "meta.json" if stored else "first fix"
+    gnss, origin = log.to_gnss(origin=wanted, t0=args.t0)
+    if stored is not None and list(origin) != stored:
+        warnings.warn(
+            f"{folder / 'meta.json'}: gnss_origin changed from {stored} to {list(origin)}; "
+            "other tables of this folder in the old ENU frame (ground_truth.csv) no longer "
+            "match gnss.csv",
+            stacklevel=2,
+        )
+    folder.mkdir(parents=True, exist_ok=True)
     out = write_gnss_csv(args.out, gnss)
+    meta = store_gnss_origin(folder, origin)
     t = gnss.t[0].numpy()
     given = np.isfinite(log.sigma_enu).all(axis=1)
     return {
@@ -994,6 +1010,8 @@ def _cmd_nmea(args) -> dict[str, Any]:
         "fixes_with_sigma": int(given.sum()),
         "counts": log.counts,
         "origin": list(origin),
+        "origin_from": origin_from,
+        "meta": str(meta),
         "time_source": log.time_source,
         "t_range_s": [float(t[0]), float(t[-1])],
         "median_sigma_enu_m": np.median(log.sigma_enu[given], axis=0).tolist()

@@ -44,6 +44,11 @@ Used by ``msf run``. Outputs in ``out_dir`` (each written atomically: temp file 
   velocities and gyro biases, :func:`msf_torch.backend.window.interpolate_imu`; both
   covariances all zeros, the twist still written, when the smoother's ``covariance`` is
   off).
+- with ``exports`` ``geojson`` / ``kml``: ``trajectory.geojson`` and ``trajectory.kml``, the
+  estimate, the ground truth (when the sequence has one) and the GNSS fixes (fused and
+  withheld) in WGS-84 longitude / latitude (:mod:`msf_torch.io.geo_export`), from the
+  sequence's ENU origin ``meta["gnss_origin"]``; a sequence without one is refused before
+  the run starts.
 
 Ctrl-C (SIGINT) during the front end or the smoother writes ``trajectory.tum`` (the epochs
 completed), ``diagnostics.csv`` and ``summary.json`` (with an ``interrupted`` entry saying
@@ -134,7 +139,8 @@ class RunOptions:
         smooth: ``"full"`` or ``"window"`` to smooth after the front end, or None.
         smoother: the smoother's settings (default :class:`SmootherConfig()`).
         learned: a trained CovNet that sets the filter's noise, or None (the config's).
-        exports: extra trajectory formats, any of ``"kitti"``, ``"rosbag2"``.
+        exports: extra trajectory formats, any of ``"kitti"``, ``"rosbag2"``, ``"geojson"``,
+            ``"kml"`` (the last two need ``seq.meta["gnss_origin"]``).
     """
 
     out_dir: Path
@@ -205,11 +211,16 @@ OUTPUT_NAMES = (
     "trajectory.kitti",
     "trajectory_times.txt",
     "trajectory_rosbag2",
+    "trajectory.geojson",
+    "trajectory.kml",
     "diagnostics.csv",
     "overview.png",
     "summary.json",
 )
 """The files and folders a run writes to its output folder (module docstring)."""
+
+GEO_EXPORTS = ("geojson", "kml")
+"""Exports that put the trajectory on the Earth: they need the sequence's geodetic origin."""
 
 
 def _output_folder(path: str | Path) -> Path:
@@ -230,7 +241,22 @@ def _written(options: RunOptions) -> set[str]:
         names |= {"trajectory.kitti", "trajectory_times.txt"}
     if "rosbag2" in options.exports:
         names.add("trajectory_rosbag2")
+    names |= {f"trajectory.{fmt}" for fmt in GEO_EXPORTS if fmt in options.exports}
     return names
+
+
+def _check_geo_exports(seqs: list[Sequence], names: list[str], exports: tuple[str, ...]) -> None:
+    """Refuse, before any work, a map export for a sequence without ``meta["gnss_origin"]``."""
+    wanted = [fmt for fmt in GEO_EXPORTS if fmt in exports]
+    if not wanted:
+        return
+    for seq, name in zip(seqs, names, strict=True):
+        if seq.meta.get("gnss_origin") is None:
+            raise ValueError(
+                f"--export {','.join(wanted)}: sequence {name} has no geodetic origin for its "
+                'ENU frame; a native folder keeps it in meta.json as "gnss_origin": '
+                "[lat_deg, lon_deg, alt_m] (msf nmea writes it), a ROS bag's GNSS sets it"
+            )
 
 
 def _duration(seq: Sequence) -> float:
@@ -248,6 +274,7 @@ def run_sequence(seq: Sequence, cfg: EskfConfig, options: RunOptions) -> dict[st
     Returns:
         The summary dict (also written to ``summary.json``).
     """
+    _check_geo_exports([seq], seq.names[:1], options.exports)
     out_dir = _output_folder(options.out_dir)
     withheld = None
     if options.gnss_outage_s is not None:
@@ -368,8 +395,9 @@ def run_batch(seqs: list[Sequence], cfg: EskfConfig, options: RunOptions) -> dic
         raise ValueError(
             "learned noise runs one sequence at a time (give one SEQUENCE, or --no-learned)"
         )
-    out_dir = _output_folder(options.out_dir)
     names = _unique_names([seq.names[0] for seq in seqs])
+    _check_geo_exports(seqs, names, options.exports)
+    out_dir = _output_folder(options.out_dir)
     withheld: list[GnssFixes | None] = [None] * len(seqs)
     if options.gnss_outage_s is not None:
         split = []
@@ -545,7 +573,7 @@ def _score_and_write(
         motion = OutputMotion(
             result.velocity[:1, keep], result.gyro_bias[:1, keep], result.covariance[:1, keep]
         )
-    _export(options.exports, out_dir, seq, estimate, motion, cfg)
+    _export(options.exports, out_dir, seq, estimate, motion, cfg, withheld)
     write_diagnostics(result, out_dir / "diagnostics.csv")
     if options.plot:
         _plot(out_dir / "overview.png", seq, estimate, result, withheld, options, summary)
@@ -598,9 +626,25 @@ def _export(
     estimate: Trajectory,
     motion: OutputMotion,
     cfg: EskfConfig,
+    withheld: GnssFixes | None = None,
 ) -> None:
     """Write ``estimate`` in the extra formats (see the module docstring); ``motion`` at
-    its epochs gives the rosbag2 twist and covariances."""
+    its epochs gives the rosbag2 twist and covariances; the map exports show ``withheld``
+    GNSS fixes beside the fused ones."""
+    if any(fmt in formats for fmt in GEO_EXPORTS):
+        from msf_torch.io.geo_export import write_geojson, write_kml
+
+        tracks = {"estimate": estimate}
+        truth = seq.ground_truth
+        if truth is not None and bool(truth.mask.any()):
+            tracks["ground truth"] = truth
+        fixes = {"GNSS fixes": seq.gnss, "withheld GNSS fixes": withheld}
+        fixes = {k: v for k, v in fixes.items() if v is not None}
+        origin = seq.meta["gnss_origin"]
+        if "geojson" in formats:
+            write_geojson(out_dir / "trajectory.geojson", origin, tracks, fixes)
+        if "kml" in formats:
+            write_kml(out_dir / "trajectory.kml", origin, tracks, fixes, name=seq.names[0])
     if "kitti" in formats:
         from msf_torch.io.kitti_poses import write_kitti_poses
 

@@ -26,7 +26,9 @@ Odometry + anchor-range runs (UWB, radio beacons) are read from CSV files by
 :func:`read_range_run` and from the gtsam wheel's Plaza runs by :func:`load_plaza` into a
 :class:`RangeRun`. NMEA 0183 GNSS logs (GGA fixes with GST sigmas, RMC/ZDA dates) are read
 by :func:`read_nmea` into an :class:`NmeaLog`, whose fixes go to local ENU metres and a native
-``gnss.csv`` (:func:`write_gnss_csv`; ``msf nmea``).
+``gnss.csv`` (:func:`write_gnss_csv`; ``msf nmea``), whose folder keeps the ENU origin in
+``meta.json``; with it, trajectories go on the map as GeoJSON and KML (:func:`write_geojson`,
+:func:`write_kml`; ``msf run --export geojson,kml``).
 """
 
 from __future__ import annotations
@@ -67,6 +69,8 @@ __all__ = [
     "read_tum",
     "write_g2o",
     "write_g2o_2d",
+    "write_geojson",
+    "write_kml",
     "write_kitti_poses",
     "write_odometry_rosbag2",
     "write_rosbag",
@@ -98,6 +102,7 @@ from msf_torch.io.g2o_2d import (
     read_pose_graph_2d,
     write_g2o_2d,
 )
+from msf_torch.io.geo_export import write_geojson, write_kml
 from msf_torch.io.kitti_gtsam import KITTI_GTSAM_NAME, gtsam_data_path, load_kitti_gtsam
 from msf_torch.io.kitti_poses import read_kitti_poses, write_kitti_poses
 from msf_torch.io.native import _native_path_problem, read_native, write_native

@@ -35,7 +35,11 @@ file                 columns
                      interval (e.g. a weather condition that never occurs) has no row, so
                      it is absent after a CSV round trip (the npz keeps it as (0, 2))
 ``meta.json``        optional JSON object describing the sensors, e.g.
-                     ``{"wheel_track_m": 0.5, "imu_noise": {...}}``
+                     ``{"wheel_track_m": 0.5, "imu_noise": {...}}``; ``"gnss_origin":
+                     [lat_deg, lon_deg, alt_m]`` (WGS-84, ellipsoidal height) is the
+                     geodetic point the ENU frame of ``gnss.csv`` starts from (``msf
+                     nmea`` writes it), which maps the trajectory onto the Earth
+                     (``msf run --export geojson,kml``)
 ==================== =================================================================
 
 NPZ file
@@ -71,7 +75,9 @@ Rules on read (every format in ``msf_torch.io`` follows them)
   ``meta`` counts. A source stream with no samples left is kept (N = 0).
 * ``meta["source"]`` is the path read, ``meta["format"]`` is ``"native-csv"`` or
   ``"native-npz"``, ``meta["sensor"]`` is the ``meta.json`` object, and its ``"imu_noise"``
-  entry (if any) is also put at ``meta["imu_noise"]``, where every reader puts IMU noise.
+  entry (if any) is also put at ``meta["imu_noise"]``, where every reader puts IMU noise;
+  likewise ``"gnss_origin"`` at ``meta["gnss_origin"]`` (three finite numbers, latitude in
+  [-90, 90], else a DataError naming the field), where the ROS bag reader puts it.
 """
 
 from __future__ import annotations
@@ -89,12 +95,15 @@ __all__ = [
     "SOURCE_NAME_PATTERN",
     "pose_source_file",
     "read_native",
+    "stored_gnss_origin",
+    "store_gnss_origin",
     "write_native",
 ]
 
 import contextlib
 import csv
 import json
+import math
 import os
 import re
 import warnings
@@ -404,10 +413,66 @@ def _parse_meta_json(path: str, text: str) -> dict[str, Any]:
     return value
 
 
+def _gnss_origin(where: str, value: Any) -> list[float]:
+    """``meta.json``'s ``gnss_origin`` checked: [lat_deg, lon_deg, alt_m], finite, latitude
+    in [-90, 90]; else a DataError naming the field."""
+    origin: list[float] = []
+    if isinstance(value, list) and len(value) == 3:
+        for x in value:
+            if isinstance(x, bool) or not isinstance(x, int | float):
+                break
+            try:
+                origin.append(float(x))
+            except OverflowError:  # a JSON integer beyond the float range
+                break
+    if len(origin) != 3 or not all(math.isfinite(x) for x in origin):
+        shown = repr(value)[:80]
+        raise DataError(
+            where, f"expected [lat_deg, lon_deg, alt_m], got {shown}", field="gnss_origin"
+        )
+    if abs(origin[0]) > 90.0:
+        raise DataError(where, f"latitude {origin[0]!r} outside [-90, 90]", field="gnss_origin")
+    return origin
+
+
 def _read_meta_json(file: Path) -> dict[str, Any]:
     if not file.exists():
         return {}
     return _parse_meta_json(str(file), _tables.read_text(file))
+
+
+def stored_gnss_origin(folder: str | os.PathLike[str]) -> list[float] | None:
+    """The ``gnss_origin`` ``[lat_deg, lon_deg, alt_m]`` a native folder's ``meta.json``
+    holds, or None (no file, or no such entry). DataError for a malformed file or entry."""
+    file = Path(folder) / _META_FILE
+    sensor = _read_meta_json(file)
+    if "gnss_origin" not in sensor:
+        return None
+    return _gnss_origin(str(file), sensor["gnss_origin"])
+
+
+def store_gnss_origin(
+    folder: str | os.PathLike[str], origin: tuple[float, ...] | list[float]
+) -> Path:
+    """Set ``gnss_origin`` in a native folder's ``meta.json`` (created if absent; its other
+    entries kept), atomically.
+
+    Args:
+        folder: the native folder (created if needed).
+        origin: ``[lat_deg, lon_deg, alt_m]`` (WGS-84, ellipsoidal height) of the ENU frame.
+
+    Returns:
+        the ``meta.json`` path.
+
+    Raises:
+        DataError: an existing ``meta.json`` is not a JSON object. ValueError: a bad origin.
+    """
+    file = Path(folder) / _META_FILE
+    sensor = _read_meta_json(file)
+    sensor["gnss_origin"] = _gnss_origin("origin", [float(x) for x in origin])
+    with atomic_write(file) as handle:
+        handle.write(json.dumps(sensor, indent=2, sort_keys=True, allow_nan=True) + "\n")
+    return file
 
 
 def _read_npz(path: Path, sort: bool) -> Sequence:
@@ -558,6 +623,9 @@ def _assemble(
         meta["sensor"] = sensor
         if "imu_noise" in sensor:
             meta["imu_noise"] = sensor["imu_noise"]
+        if "gnss_origin" in sensor:
+            where_meta = path / _META_FILE if fmt == "native-csv" else f"{path}[meta_json]"
+            meta["gnss_origin"] = _gnss_origin(str(where_meta), sensor["gnss_origin"])
     label_tensors = {
         name: torch.tensor(spans, dtype=torch.float64).reshape(1, -1, 2)
         for name, spans in labels.items()
@@ -605,8 +673,9 @@ def _label_arrays(seq: Sequence) -> dict[str, np.ndarray]:
 
 def _sensor_json(seq: Sequence) -> str | None:
     sensor = dict(seq.meta.get("sensor") or {})
-    if "imu_noise" in seq.meta and "imu_noise" not in sensor:
-        sensor["imu_noise"] = seq.meta["imu_noise"]
+    for key in ("imu_noise", "gnss_origin"):
+        if key in seq.meta and key not in sensor:
+            sensor[key] = seq.meta[key]
     if not sensor:
         return None
     try:
@@ -627,9 +696,9 @@ def write_native(seq: Sequence, path: str | os.PathLike[str]) -> Path:
 
     Only real samples (mask True) are written. Numbers are written with ``repr`` (the
     shortest string that reads back to the same float64), so a round trip is exact up to
-    quaternion re-normalisation. ``meta["sensor"]`` (plus ``meta["imu_noise"]``) is stored
-    as the JSON sensor description; the other meta entries are derived on read and not
-    stored.
+    quaternion re-normalisation. ``meta["sensor"]`` (plus ``meta["imu_noise"]`` and
+    ``meta["gnss_origin"]``) is stored as the JSON sensor description; the other meta
+    entries are derived on read and not stored.
 
     Args:
         seq: the sequence, B = 1, any device / floating dtype.

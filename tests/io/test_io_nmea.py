@@ -486,6 +486,31 @@ def test_cli_writes_a_gnss_csv_that_read_native_reads(generated, tmp_path, capsy
     assert summary["t_range_s"][0] == START_UNIX + 0.5
 
 
+def test_cli_keeps_the_folders_origin_in_meta_json(generated, tmp_path, capsys):
+    path = generated[0]
+    out = tmp_path / "run" / "gnss.csv"
+    out.parent.mkdir()
+    (out.parent / "meta.json").write_text('{"wheel_track_m": 0.5}')
+    assert main(["nmea", str(path), "--out", str(out)]) == 0
+    first = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert first["origin_from"] == "first fix"
+    meta = json.loads((out.parent / "meta.json").read_text())
+    assert meta == {"gnss_origin": first["origin"], "wheel_track_m": 0.5}
+    before = out.read_text()
+    # a second conversion (another quality set, say) stays in the same ENU frame
+    assert main(["nmea", str(path), "--out", str(out)]) == 0
+    again = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert again["origin_from"] == "meta.json" and again["origin"] == first["origin"]
+    assert out.read_text() == before
+    assert main(["nmea", str(path), "--out", str(out), "--origin", "49.0,8.4,150.0"]) == 0
+    captured = capsys.readouterr()
+    assert "gnss_origin changed" in captured.err
+    assert json.loads((out.parent / "meta.json").read_text())["gnss_origin"] == [49.0, 8.4, 150.0]
+    (out.parent / "meta.json").write_text('{"gnss_origin": [49.0, 8.4]}')
+    assert main(["nmea", str(path), "--out", str(out)]) == 2
+    assert "gnss_origin" in capsys.readouterr().err
+
+
 def test_cli_errors(generated, tmp_path, capsys):
     assert main(["nmea", str(tmp_path / "absent.nmea"), "--out", str(tmp_path / "g.csv")]) == 2
     assert "no such file" in capsys.readouterr().err
