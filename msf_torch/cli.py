@@ -135,14 +135,36 @@ def build_parser() -> argparse.ArgumentParser:
         help="use the config's noise, not the shipped covariance network",
     )
 
-    ev = sub.add_parser("eval", help="ATE and RPE of an estimate against a reference (TUM)")
+    ev = sub.add_parser(
+        "eval", help="ATE and RPE of an estimate against a reference (TUM, ground truth, GNSS)"
+    )
     ev.add_argument("estimate", type=Path, help="estimated trajectory (TUM)")
-    ev.add_argument("reference", type=Path, help="reference trajectory (TUM)")
+    ev.add_argument(
+        "reference",
+        type=Path,
+        help="reference: a TUM trajectory, or a recorded sequence (native folder / .npz, EuRoC "
+        "folder, kitti-gtsam) whose ground truth or GNSS fixes are the reference",
+    )
+    ev.add_argument(
+        "--reference-stream",
+        choices=("auto", "ground_truth", "gnss"),
+        default="auto",
+        help="a sequence's stream to score against (default: the ground truth if it has one, "
+        "else the GNSS fixes: positions only, so ATE without RPE)",
+    )
+    ev.add_argument(
+        "--lever-arm",
+        type=_triple,
+        default=None,
+        metavar="X,Y,Z",
+        help="score the estimate at this point of the body frame, m (e.g. the GNSS antenna)",
+    )
     ev.add_argument(
         "--align",
         choices=("se3", "sim3", "none"),
-        default="se3",
-        help="align the estimate to the reference first: rigid (default), with scale, or not",
+        default=None,
+        help="align the estimate to the reference first: rigid, with scale, or not (default: "
+        "none against GNSS fixes, which are the estimator's own world frame, else se3)",
     )
     ev.add_argument("--max-dt", type=_tolerance, default=0.01, help="association tolerance, s")
     ev.add_argument(
@@ -690,6 +712,8 @@ def _cmd_eval(args) -> dict[str, Any]:
         delta_unit=args.delta_unit,
         plot=args.plot,
         sort=args.sort,
+        reference_stream=args.reference_stream,
+        lever_arm=args.lever_arm,
     )
 
 

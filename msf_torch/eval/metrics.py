@@ -32,6 +32,9 @@ __all__ = [
     "aligned_estimate",
     "ate",
     "rpe",
+    "REFERENCE_STREAMS",
+    "load_reference",
+    "at_lever_arm",
     "evaluate_files",
 ]
 
@@ -54,6 +57,10 @@ DELTA_UNITS = ("frames", "m", "s")
 """RPE delta units: matched poses, travelled metres, elapsed seconds."""
 
 _STAT_KEYS = ("rmse", "mean", "median", "std", "min", "max")
+
+REFERENCE_STREAMS = ("auto", "ground_truth", "gnss")
+"""Which stream of a recorded sequence :func:`load_reference` takes: ``"auto"`` (the ground
+truth when the sequence has one, else its GNSS fixes), or that one."""
 
 
 def _check_align(align: str) -> None:
@@ -358,50 +365,133 @@ def rpe(
     return out
 
 
+def load_reference(
+    path: str | os.PathLike, stream: str = "auto", sort: bool = False
+) -> tuple[Trajectory, str]:
+    """A reference trajectory from a TUM file or from a recorded sequence.
+
+    A ``.tum`` / ``.txt`` file is read with :func:`msf_torch.io.tum.read_tum`; anything
+    else :func:`msf_torch.io.load_sequence` reads (a native folder or ``.npz``, a EuRoC
+    folder, ``kitti-gtsam``) gives its ground truth or its GNSS fixes (``stream``, see
+    :data:`REFERENCE_STREAMS`). GNSS fixes are positions only: the returned trajectory's
+    quaternions are identity and mean nothing (the kind says so).
+
+    Args:
+        path: the file, folder or dataset name.
+        stream: ``"auto"``, ``"ground_truth"`` or ``"gnss"`` (a sequence only).
+        sort: sort poses / samples by time (else time going backwards is an error).
+
+    Returns:
+        ``(trajectory (1, N), kind)``, kind ``"tum"``, ``"ground_truth"`` or ``"gnss"``.
+
+    Raises:
+        ValueError: an unknown ``stream``, a stream the sequence lacks, or ``stream`` other
+            than ``"auto"`` for a TUM file. DataError: unreadable input.
+    """
+    from msf_torch.io import detect_format, load_sequence
+    from msf_torch.io.tum import read_tum
+
+    if stream not in REFERENCE_STREAMS:
+        raise ValueError(f"reference stream must be one of {REFERENCE_STREAMS}, got {stream!r}")
+    if detect_format(path) == "tum":
+        if stream != "auto":
+            raise ValueError(f"{path} is a TUM trajectory; it has no {stream} stream to pick")
+        return read_tum(path, sort=sort), "tum"
+    seq = load_sequence(path, sort=sort)
+    truth = seq.ground_truth
+    has_truth = truth is not None and bool(truth.mask.any())
+    has_gnss = seq.gnss is not None and bool(seq.gnss.mask.any())
+    if stream == "ground_truth" or (stream == "auto" and has_truth):
+        if not has_truth:
+            raise ValueError(f"{path} has no ground truth (try --reference-stream gnss)")
+        return truth.compact().to(dtype=torch.float64), "ground_truth"
+    if not has_gnss:
+        raise ValueError(f"{path} has no {'ground truth or ' * (stream == 'auto')}GNSS fixes")
+    fixes = seq.gnss.compact().to(dtype=torch.float64)
+    identity = torch.zeros(*fixes.position.shape[:-1], 4, dtype=torch.float64)
+    identity[..., 0] = 1.0
+    return Trajectory(fixes.t, fixes.position, identity, fixes.mask), "gnss"
+
+
+def at_lever_arm(trajectory: Trajectory, lever_arm: torch.Tensor) -> Trajectory:
+    """The trajectory of a point fixed to the body: ``p + R l`` (orientation unchanged).
+
+    Args:
+        trajectory: (B, N) poses (body in world).
+        lever_arm: (3,) the point in the body frame, m (e.g. a GNSS antenna).
+    """
+    rotation = quat_to_matrix(trajectory.quaternion)
+    arm = torch.as_tensor(lever_arm, dtype=rotation.dtype, device=rotation.device)
+    return dataclasses.replace(
+        trajectory, position=trajectory.position + (rotation @ arm[:, None])[..., 0]
+    )
+
+
 def evaluate_files(
     estimate_path: str | os.PathLike,
     reference_path: str | os.PathLike,
-    align: str = "se3",
+    align: str | None = None,
     max_dt: float = 0.01,
     delta: float = 1,
     delta_unit: str = "frames",
     plot: str | os.PathLike | None = None,
     sort: bool = False,
+    reference_stream: str = "auto",
+    lever_arm: tuple[float, float, float] | None = None,
 ) -> dict[str, Any]:
-    """ATE and RPE of a TUM estimate file against a TUM reference file.
+    """ATE and RPE of a TUM estimate file against a reference (:func:`load_reference`).
 
-    Reads both with :func:`msf_torch.io.tum.read_tum` (imported here, lazily, so that
-    ``msf_torch.eval`` otherwise needs only types and geometry).
+    Reads the estimate with :func:`msf_torch.io.tum.read_tum` (imported here, lazily, so
+    that ``msf_torch.eval`` otherwise needs only types and geometry). Against GNSS fixes
+    (positions only) there is no RPE (``"rpe"`` is None, ``"rpe_skipped"`` says why), and
+    the default alignment is ``"none"``: the fixes are the world frame the estimator kept.
 
     Args:
         estimate_path: TUM file ``t x y z qx qy qz qw`` of the estimate.
-        reference_path: TUM file of the reference.
-        align: ``"se3"``, ``"sim3"`` or ``"none"``.
+        reference_path: TUM file of the reference, or a recorded sequence.
+        align: ``"se3"``, ``"sim3"`` or ``"none"``; None: ``"none"`` against GNSS fixes,
+            else ``"se3"``.
         max_dt: association tolerance, s.
         delta, delta_unit: RPE pair spacing (see :func:`rpe`).
         plot: optional PNG path: the estimate moved by the ATE's alignment against the
             reference (top-down) and the position error over time
             (:func:`msf_torch.eval.plots.overview_figure`, no slip panel).
         sort: sort each file's poses by time (else time going backwards is an error).
+        reference_stream: a sequence's stream to score against (:data:`REFERENCE_STREAMS`).
+        lever_arm: ``(x, y, z)`` m in the body frame: score the estimate at this point
+            (``p + R l``, e.g. the GNSS antenna the fixes locate), not at the body origin.
 
     Returns:
-        ``{"ate": ate(...), "rpe": rpe(...), "matched": n, "align": align,
-        "estimate": str, "reference": str}``, and ``"plot": str`` with ``plot``.
+        ``{"ate": ate(...), "rpe": rpe(...) or None, "matched": n, "align": align,
+        "estimate": str, "reference": str, "reference_kind": kind}``, ``"rpe_skipped"``
+        against GNSS, ``"lever_arm_m"`` with ``lever_arm``, and ``"plot": str`` with
+        ``plot``.
     """
     from msf_torch.io.tum import read_tum
 
     est = read_tum(estimate_path, sort=sort)
-    ref = read_tum(reference_path, sort=sort)
+    ref, kind = load_reference(reference_path, reference_stream, sort=sort)
+    if lever_arm is not None:
+        est = at_lever_arm(est, torch.tensor(lever_arm, dtype=torch.float64))
+    if align is None:
+        align = "none" if kind == "gnss" else "se3"
     ate_out = ate(est, ref, align=align, max_dt=max_dt)
-    rpe_out = rpe(est, ref, delta=delta, delta_unit=delta_unit, align=align, max_dt=max_dt)
-    out = {
-        "ate": ate_out,
-        "rpe": rpe_out,
-        "matched": ate_out["matched"],
-        "align": align,
-        "estimate": os.fspath(estimate_path),
-        "reference": os.fspath(reference_path),
-    }
+    out: dict[str, Any] = {"ate": ate_out, "rpe": None}
+    if kind == "gnss":
+        out["rpe_skipped"] = "GNSS fixes are positions only: no relative rotation to compare"
+    else:
+        out["rpe"] = rpe(est, ref, delta=delta, delta_unit=delta_unit, align=align, max_dt=max_dt)
+    out.update(
+        {
+            "matched": ate_out["matched"],
+            "align": align,
+            "estimate": os.fspath(estimate_path),
+            "reference": os.fspath(reference_path),
+            "reference_kind": kind,
+        }
+    )
+    if lever_arm is not None:
+        out["lever_arm_m"] = [float(x) for x in lever_arm]
     if plot is not None:
         from msf_torch.eval.plots import overview_figure
 
@@ -416,6 +506,9 @@ def evaluate_files(
                 title=f"{Path(estimate_path).name} vs {Path(reference_path).name} "
                 f"(align {align}, ATE RMSE {ate_out['rmse']:.3f} m)",
                 slip_panel=False,
+                reference_label={"gnss": "GNSS fixes", "ground_truth": "ground truth"}.get(
+                    kind, "reference"
+                ),
             )
         )
     return out
