@@ -35,7 +35,7 @@ roll of the IMU-to-vehicle rotation on level ground) keep their prior and are fl
 
 from __future__ import annotations
 
-__all__ = ["CalibrationLayout", "WHEEL_STATES", "observability"]
+__all__ = ["CalibrationLayout", "CalibrationMemory", "WHEEL_STATES", "observability"]
 
 from dataclasses import dataclass, field
 
@@ -47,6 +47,23 @@ from msf_torch.geometry import so3
 WHEEL_STATES = ("wheel_radius_ratio_left", "wheel_radius_ratio_right", "wheel_track_m")
 _TIME_PREFIX = "time_offset_s:"
 _AXES = ("x", "y", "z")
+
+
+@dataclass
+class CalibrationMemory:
+    """The calibration states at the last epoch of a chunk, for the next chunk's ``run_eskf``
+    (``EskfResult.calibration_memory``), so a run filtered in chunks calibrates as one run.
+
+    Attributes:
+        names: the n state names (the next chunk's layout must have the same).
+        value: (B, n) estimates (units in the names).
+        covariance: (B, 15 + n, 15 + n) joint covariance of the conventional navigation
+            error and the calibration errors (drifting source frames left out).
+    """
+
+    names: tuple[str, ...]
+    value: torch.Tensor
+    covariance: torch.Tensor
 
 
 @dataclass

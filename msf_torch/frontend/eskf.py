@@ -98,7 +98,7 @@ from dataclasses import dataclass, field
 import torch
 
 from msf_torch.frontend.adaptive import BlockAdaptation
-from msf_torch.frontend.calibration import CalibrationLayout, observability
+from msf_torch.frontend.calibration import CalibrationLayout, CalibrationMemory, observability
 from msf_torch.frontend.config import EskfConfig
 from msf_torch.frontend.gating import SourceFaultParams, chi2_threshold, detect_source_faults
 from msf_torch.frontend.guard import (
@@ -252,6 +252,8 @@ class EskfResult:
             the (conventional) position error and the offset error ``[dt, dphi]``.
         frame_memory: the source frames after each sequence's last real epoch, for a next
             chunk (``frontend.source_frames.FrameMemory``; None without drifting frames).
+        calibration_memory: the calibration states after each sequence's last real epoch,
+            for a next chunk (``frontend.calibration.CalibrationMemory``; None when off).
     """
 
     names: list[str]
@@ -283,6 +285,7 @@ class EskfResult:
     source_frame: dict[str, torch.Tensor] = field(default_factory=dict)
     source_frame_covariance: dict[str, torch.Tensor] = field(default_factory=dict)
     frame_memory: FrameMemory | None = None
+    calibration_memory: CalibrationMemory | None = None
 
     def select(self, index: int) -> EskfResult:
         """Sequence ``index`` of the batch as a result with B = 1 (views, not copies): every
@@ -298,7 +301,7 @@ class EskfResult:
                 return value[index : index + 1]
             if isinstance(value, dict):
                 return {key: cut(item) for key, item in value.items()}
-            if isinstance(value, (GateMemory, FrameMemory)):
+            if isinstance(value, (GateMemory, FrameMemory, CalibrationMemory)):
                 return dataclasses.replace(
                     value,
                     **{
@@ -744,6 +747,39 @@ def _frame_memory(
     return FrameMemory(frames.names, frame_out[rows, last], covariance, stamps)
 
 
+def _check_calibration_memory(memory: CalibrationMemory, calib: CalibrationLayout) -> None:
+    if tuple(memory.names) != tuple(calib.names):
+        raise ValueError(
+            f"calibration_memory holds {list(memory.names)}, but this run calibrates "
+            f"{list(calib.names)}"
+        )
+
+
+def _calibration_memory(
+    calib: CalibrationLayout, result: EskfResult, full_cov: torch.Tensor, frame_col: int
+) -> CalibrationMemory:
+    """The calibration states after each sequence's last real epoch (``result.mask``), with
+    the joint conventional covariance of the navigation state and those states there."""
+    batch = full_cov.shape[0]
+    epochs = torch.arange(result.mask.shape[1], device=full_cov.device)
+    last = torch.where(result.mask, epochs, 0).argmax(1)
+    rows = torch.arange(batch, device=full_cov.device)
+    full = full_cov[rows, last]
+    to_conv, _ = _maps_at_estimate(
+        result.position[rows, last], result.velocity[rows, last], result.rotation[rows, last]
+    )
+    block = slice(ERROR_STATE_DIM, frame_col)
+    cross = to_conv @ full[:, :ERROR_STATE_DIM, block]
+    covariance = torch.cat(
+        (
+            torch.cat((result.covariance[rows, last], cross), -1),
+            torch.cat((cross.mT, full[:, block, block]), -1),
+        ),
+        -2,
+    )
+    return CalibrationMemory(calib.names, result.calibration[rows, last], covariance)
+
+
 def _position_frame_covariance(
     position_cov: torch.Tensor, full_cov: torch.Tensor, block: slice
 ) -> torch.Tensor:
@@ -833,6 +869,7 @@ def run_eskf(
     initial: tuple[NavState, torch.Tensor] | None = None,
     gate_memory: GateMemory | None = None,
     frame_memory: FrameMemory | None = None,
+    calibration_memory: CalibrationMemory | None = None,
 ) -> EskfResult:
     """Run the ESKF over a batch of sequences.
 
@@ -845,9 +882,13 @@ def run_eskf(
         initial: optional initial state (B, ...) and covariance (B, 15, 15) at each
             sequence's first IMU sample; default: ``frontend.init.initial_state``.
         gate_memory: the previous chunk's ``result.gate_memory`` when a run is filtered in
-            chunks (``initial`` its last state): rejection streaks carry over.
+            chunks (``initial`` its last state): rejection streaks and the wheel slip factor
+            carry over.
         frame_memory: the previous chunk's ``result.frame_memory`` (drifting source frames):
             the offsets and their covariance with the state carry over.
+        calibration_memory: the previous chunk's ``result.calibration_memory`` (online
+            calibration): the estimates and their covariance with the state carry over
+            (their correlation with drifting source frames does not).
     Returns:
         :class:`EskfResult` with (B, E + 1) per-epoch fields.
         Samples with non-finite values or repeated / backwards stamps are skipped and
@@ -872,7 +913,16 @@ def run_eskf(
         # comes back as ordinary tensors, usable anywhere
         try:
             with torch.inference_mode():
-                result = run_eskf(seq, cfg, noise, progress, initial, gate_memory, frame_memory)
+                result = run_eskf(
+                    seq,
+                    cfg,
+                    noise,
+                    progress,
+                    initial,
+                    gate_memory,
+                    frame_memory,
+                    calibration_memory,
+                )
         except EstimationInterrupted as stop:
             raise EstimationInterrupted(
                 _ordinary_tensors(stop.result), stop.epochs_done, stop.epochs_total
@@ -988,17 +1038,23 @@ def run_eskf(
     eye15 = torch.eye(ERROR_STATE_DIM, dtype=dtype, device=device)
     # online calibration (frontend.calibration): states appended after the 15 nav entries
     calib = CalibrationLayout.from_config(cfg, sensors, dtype, device)
+    if calibration_memory is not None and calib is None:
+        raise ValueError("calibration_memory given, but this run calibrates no state")
     n_calib = 0 if calib is None else calib.size
     calib_value = torch.zeros(batch, n_calib, dtype=dtype, device=device)
     eye_state = eye15
     if calib is not None:
         calib_value = calib.initial.expand(batch, n_calib).clone()
         cross = torch.zeros(batch, ERROR_STATE_DIM, n_calib, dtype=dtype, device=device)
+        calib_cov = calib.prior_covariance(batch)
+        if calibration_memory is not None:  # the previous chunk's estimates and covariance
+            _check_calibration_memory(calibration_memory, calib)
+            calib_value = calibration_memory.value.to(dtype).clone()
+            carried = calibration_memory.covariance.to(dtype)
+            cross = to_inv0 @ carried[:, :ERROR_STATE_DIM, ERROR_STATE_DIM:]
+            calib_cov = carried[:, ERROR_STATE_DIM:, ERROR_STATE_DIM:]
         cov = torch.cat(
-            (
-                torch.cat((cov, cross), -1),
-                torch.cat((cross.mT, calib.prior_covariance(batch)), -1),
-            ),
+            (torch.cat((cov, cross), -1), torch.cat((cross.mT, calib_cov), -1)),
             -2,
         )
         gyro_change = _source_gyro_change(sched)
@@ -1031,6 +1087,9 @@ def run_eskf(
 
     slip = torch.ones(batch, dtype=dtype, device=device)
     last_wheel_t = sched.t_start.clone()
+    if gate_memory is not None and gate_memory.slip_factor is not None:
+        slip = gate_memory.slip_factor.to(dtype).clone()
+        last_wheel_t = gate_memory.last_wheel_time.to(dtype).clone()
     guard = DivergenceGuard(
         state, cov, cfg, active, segment, reopen, _maps_at_estimate, gate_memory
     )  # also counts each block's gate rejections in a row (guard.streak)
@@ -1583,7 +1642,11 @@ def run_eskf(
             result.source_frame_covariance[key] = _position_frame_covariance(
                 covariances[..., 0:3, 0:3], full_covariances, block
             )
-    result.gate_memory = guard.memory()
+    result.gate_memory = dataclasses.replace(
+        guard.memory(), slip_factor=slip, last_wheel_time=last_wheel_t
+    )
+    if calib is not None:
+        result.calibration_memory = _calibration_memory(calib, result, full_covariances, frame_col)
     if interrupt.caught:
         raise EstimationInterrupted(result, done, n_epochs)
     return result

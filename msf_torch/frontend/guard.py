@@ -198,9 +198,10 @@ passes for an offset with probability 0.001."""
 
 @dataclasses.dataclass
 class GateMemory:
-    """What the chi-square gate and the divergence guard remember between ``run_eskf`` calls
-    (``EskfResult.gate_memory`` in, ``run_eskf(..., gate_memory=...)`` out), so that a run
-    filtered in chunks gates and resets as the same run in one piece.
+    """What the chi-square gate, the divergence guard and the wheel slip detector remember
+    between ``run_eskf`` calls (``EskfResult.gate_memory`` in, ``run_eskf(...,
+    gate_memory=...)`` out), so that a run filtered in chunks gates, resets and distrusts
+    slipping wheels as the same run in one piece.
 
     Attributes:
         streak: block key (``EskfResult.accepted``'s) -> (B,) its rejections in a row.
@@ -209,6 +210,10 @@ class GateMemory:
         vouched: block key -> (B,) bool, another reopenable block passed its gate during
             that streak (the state agrees with it: the streak is that sensor's fault).
         episode: (B,) bool, a divergence episode is open (its one inflation is spent).
+        slip_factor: (B,) the wheel slip factor at the last epoch (``frontend.slip``; it
+            recovers at most ``slip_recovery_per_s`` from there), or None (1: no slip).
+        last_wheel_time: (B,) s, the last wheel epoch's time (the start of the recovery), or
+            None.
     """
 
     streak: dict[str, torch.Tensor]
@@ -216,6 +221,8 @@ class GateMemory:
     nis_sum: dict[str, torch.Tensor]
     vouched: dict[str, torch.Tensor]
     episode: torch.Tensor
+    slip_factor: torch.Tensor | None = None
+    last_wheel_time: torch.Tensor | None = None
 
 
 def reset_sigma_cap(

@@ -420,9 +420,12 @@ def run_piecewise(
     over the chunk's IMU samples (the last chunk to the end of the IMU stream), each
     chunk with ``scaled_noise`` of its scales and ``seq.poses`` covariances times
     ``exp(log_scale)`` of ``pose_source`` (``"vo"`` when None), starting from the previous
-    chunk's last state and covariance and carrying the gate's rejection streaks and the
-    divergence guard's episode (``EskfResult.gate_memory``), so the chunks gate as one run,
-    and the drifting source frames (``EskfResult.frame_memory``).
+    chunk's last state and covariance and carrying the gate's rejection streaks, the
+    divergence guard's episode and the wheel slip factor (``EskfResult.gate_memory``), so
+    the chunks gate as one run, the drifting source frames (``EskfResult.frame_memory``) and
+    the online-calibration states (``EskfResult.calibration_memory``). What does not carry
+    over: a pose source's sample pair that straddles a chunk boundary is not fused (its
+    relative motion needs the previous chunk's IMU), one pair per source per boundary.
     The input rule of ``frontend.guard`` is applied to the whole run once (skipped samples
     counted in ``dropped_samples`` as by ``run_eskf``).
 
@@ -456,6 +459,7 @@ def run_piecewise(
     initial = initial_state(seq, cfg)  # from the whole run, as run_eskf(seq) starts
     memory = None  # the gate's rejection streaks and the guard's episode, chunk to chunk
     frames = None  # drifting source frames (pose_source_fusion: drifting_frame), the same
+    calibration = None  # online calibration states, the same
     pose_column = LOG_SCALE_SENSORS.index(pose_source or "vo")
 
     def chunk_of(w0: int, w1: int | None) -> Sequence:
@@ -492,6 +496,7 @@ def run_piecewise(
                 initial=initial,
                 gate_memory=memory,
                 frame_memory=frames,
+                calibration_memory=calibration,
             )
         except EstimationInterrupted as stop:
             results.append(stop.result)
@@ -505,6 +510,7 @@ def run_piecewise(
             ) from None
         done += int(result.mask[0].sum()) - 1
         initial, memory, frames = _last(result), result.gate_memory, result.frame_memory
+        calibration = result.calibration_memory
         results.append(result)
     return _concat(results, dropped_samples)
 
