@@ -78,6 +78,7 @@ from msf_torch.io import (
 )
 from msf_torch.io.eqvio import EqvioRun
 from msf_torch.io.kitti_poses import read_kitti_poses
+from msf_torch.io.kitti_raw import OXTS_FIELDS, read_kitti_raw
 from msf_torch.io.nmea import DEFAULT_QUALITIES, NmeaLog, read_nmea
 from msf_torch.io.ranges import RangeRun, read_range_run
 from msf_torch.io.scans import read_scans
@@ -366,6 +367,21 @@ def _build_euroc(rng: np.random.Generator) -> tuple[dict[str, Any], str]:
         "mav0/state_groundtruth_estimate0": None,
         "mav0/state_groundtruth_estimate0/data.csv": gt,
     }, ""
+
+
+def _build_kitti_raw(rng: np.random.Generator) -> tuple[dict[str, Any], str]:
+    n = int(rng.integers(1, 15))
+    ns = 1_317_386_400_000_000_000 + np.cumsum(rng.integers(9_000_000, 11_000_000, n))
+    files: dict[str, Any] = {"oxts": None, "oxts/data": None}
+    stamps = []
+    for k, stamp in enumerate(ns.tolist()):
+        when = datetime.datetime.fromtimestamp(stamp // 1_000_000_000, datetime.UTC)
+        stamps.append(f"{when:%Y-%m-%d %H:%M:%S}.{stamp % 1_000_000_000:09d}")
+        values = rng.normal(size=len(OXTS_FIELDS))
+        values[:3] = [49.0 + 1e-4 * values[0], 8.4 + 1e-4 * values[1], 110.0 + values[2]]
+        files[f"oxts/data/{k:010d}.txt"] = " ".join(_num(x) for x in values) + "\n"
+    files["oxts/timestamps.txt"] = "\n".join(stamps) + "\n"
+    return files, ""
 
 
 def _build_kitti(rng: np.random.Generator) -> tuple[dict[str, Any], str]:
@@ -689,6 +705,14 @@ def _read_nmea(path: Path) -> NmeaLog:
 # ----------------------------------------------------------------------------- result checks
 
 
+def _read_kitti_raw(folder: Path, sort: bool) -> Sequence:
+    """``read_kitti_raw`` with its warnings (a synced-rate drive, extra data files) kept
+    quiet: they are not failures."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        return read_kitti_raw(folder, sort=sort)
+
+
 def _finite(x: torch.Tensor, allow_nan: bool = False) -> bool:
     x = x.detach()
     return bool((~torch.isinf(x)).all()) if allow_nan else bool(torch.isfinite(x).all())
@@ -946,14 +970,16 @@ READERS: dict[str, Reader] = {
         Reader("scans", _build_scans, lambda p, s: read_scans(p), _check_scans, True),
         Reader("range_csv", _build_range_csv, lambda p, s: _read_range_csv(p), _check_range_run),
         Reader("nmea", _build_nmea, lambda p, s: _read_nmea(p), _check_nmea),
+        Reader("kitti_raw", _build_kitti_raw, lambda p, s: _read_kitti_raw(p, s), _check_sequence),
     )
 }
 """Reader name -> :class:`Reader`: native ``.npz`` and CSV folder, TUM, EuRoC ASL, the KITTI
 files gtsam ships (``data_dir``), g2o and TORO pose graphs (3-D and 2-D), 2-D graphs with
 landmarks (``landmark_2d``: ODOMETRY, LANDMARK, BR, VERTEX_XY), the EqVIO replay CSV, KITTI
 odometry poses + times, 2D LiDAR scans (``.npz``), odometry + anchor-range CSV files
-(``range_csv``), NMEA 0183 GNSS logs (``nmea``). Not here: rosbags (binary containers
-written by ``rosbags``; their reader is tested on bags written by its own writers)."""
+(``range_csv``), NMEA 0183 GNSS logs (``nmea``), KITTI raw OXTS drives (``kitti_raw``). Not
+here: rosbags (binary containers written by ``rosbags``; their reader is tested on bags
+written by its own writers)."""
 
 
 # ----------------------------------------------------------------------------- mutations

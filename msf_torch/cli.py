@@ -57,7 +57,8 @@ def build_parser() -> argparse.ArgumentParser:
         "sequence",
         nargs="*",
         default=[],
-        help="path (native .npz / CSV folder, EuRoC folder, ROS bag with --topics) or a named "
+        help="path (native .npz / CSV folder, EuRoC folder, KITTI raw drive, ROS bag with "
+        "--topics) or a named "
         f"dataset ({', '.join(NAMED_DATASETS)}); default: the bundled sample. Two or more "
         "run as one batch (one config for all) with outputs in OUT/<name>/, runs.csv and a "
         "batch summary",
@@ -84,7 +85,7 @@ def build_parser() -> argparse.ArgumentParser:
         "--format",
         dest="fmt",
         default=None,
-        help="native | npz | csv | euroc | kitti-gtsam (default: detect)",
+        help="native | npz | csv | euroc | kitti-raw | kitti-gtsam (default: detect)",
     )
     run.add_argument("--config", type=Path, default=None, help="YAML front-end config")
     run.add_argument(

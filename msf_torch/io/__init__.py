@@ -1,6 +1,7 @@
-"""Readers and writers: native .npz/.csv sequences, TUM trajectories, EuRoC ASL folders, the
-KITTI drive shipped with gtsam and gtsam's EuRoC EqVIO replay file (:func:`load_eqvio`, IMU +
-feature tracks; not a :class:`~msf_torch.types.Sequence`).
+"""Readers and writers: native .npz/.csv sequences, TUM trajectories, EuRoC ASL folders,
+KITTI raw drives' OXTS GPS/IMU (:func:`read_kitti_raw`), the KITTI drive shipped with gtsam
+and gtsam's EuRoC EqVIO replay file (:func:`load_eqvio`, IMU + feature tracks; not a
+:class:`~msf_torch.types.Sequence`).
 
 :func:`load_sequence` is the one entry point for sequences; it dispatches on ``fmt`` or
 detects the format. Every reader returns a B = 1 :class:`~msf_torch.types.Sequence` in
@@ -60,6 +61,7 @@ __all__ = [
     "load_sequence",
     "read_euroc",
     "read_kitti_poses",
+    "read_kitti_raw",
     "read_rosbag",
     "read_native",
     "read_nmea",
@@ -105,6 +107,7 @@ from msf_torch.io.g2o_2d import (
 from msf_torch.io.geo_export import write_geojson, write_kml
 from msf_torch.io.kitti_gtsam import KITTI_GTSAM_NAME, gtsam_data_path, load_kitti_gtsam
 from msf_torch.io.kitti_poses import read_kitti_poses, write_kitti_poses
+from msf_torch.io.kitti_raw import find_kitti_raw_root, read_kitti_raw
 from msf_torch.io.native import _native_path_problem, read_native, write_native
 from msf_torch.io.nmea import NmeaLog, read_nmea, write_gnss_csv
 from msf_torch.io.plaza import load_plaza
@@ -120,13 +123,14 @@ from msf_torch.io.rosbag import (
 from msf_torch.io.tum import read_tum, write_tum
 from msf_torch.types import Sequence
 
-FORMATS = ("native", "npz", "csv", "euroc", "tum", "kitti-gtsam")
+FORMATS = ("native", "npz", "csv", "euroc", "kitti-raw", "tum", "kitti-gtsam")
 """Accepted values of ``load_sequence(fmt=...)``."""
 
 _TRAJECTORY_SUFFIXES = (".tum", ".txt")
 _ACCEPTED = (
     "'kitti-gtsam' (the KITTI drive shipped with gtsam), a native .npz file, a native "
-    "folder with imu.csv, or a EuRoC ASL folder with mav0/ or imu0/"
+    "folder with imu.csv, a EuRoC ASL folder with mav0/ or imu0/, or a KITTI raw drive "
+    "folder with oxts/"
 )
 
 
@@ -140,11 +144,12 @@ def _tum_is_not_a_sequence(path: Path) -> DataError:
 
 def detect_format(source: str | os.PathLike[str]) -> str:
     """Guess the format of ``source``; one of ``"kitti-gtsam"``, ``"npz"``, ``"csv"``,
-    ``"euroc"``, ``"tum"``.
+    ``"euroc"``, ``"kitti-raw"``, ``"tum"``.
 
     Rules, in order: the name ``"kitti-gtsam"`` (when no such file exists); a file ending in
-    ``.npz``; a folder holding ``imu.csv``; a folder holding ``mav0/`` or ``imu0/``; a
-    ``.tum``/``.txt`` file (a trajectory).
+    ``.npz``; a folder holding ``imu.csv``; a folder holding ``mav0/`` or ``imu0/``; a KITTI
+    raw drive (a folder holding ``oxts/timestamps.txt`` and ``oxts/data/``, or that ``oxts``
+    folder); a ``.tum``/``.txt`` file (a trajectory).
 
     Raises:
         DataError: the path does not exist or matches no format (the message lists them);
@@ -164,6 +169,8 @@ def detect_format(source: str | os.PathLike[str]) -> str:
             return "csv"
         if find_euroc_root(path) is not None:
             return "euroc"
+        if find_kitti_raw_root(path) is not None:
+            return "kitti-raw"
     if path.is_file() and path.suffix.lower() in _TRAJECTORY_SUFFIXES:
         return "tum"
     near_native = _native_path_problem(path)
@@ -186,7 +193,8 @@ def load_sequence(
     Args:
         source: a path, or ``"kitti-gtsam"`` for the KITTI IMU + GPS drive shipped with gtsam.
         fmt: one of :data:`FORMATS` (``"native"`` = ``.npz`` or CSV folder, ``"npz"``,
-            ``"csv"``, ``"euroc"``, ``"tum"``, ``"kitti-gtsam"``), or None to detect it
+            ``"csv"``, ``"euroc"``, ``"kitti-raw"``, ``"tum"``, ``"kitti-gtsam"``), or None
+            to detect it
             (:func:`detect_format`).
         sort: stably sort streams whose timestamps go backwards instead of raising.
 
@@ -210,6 +218,8 @@ def load_sequence(
         raise _tum_is_not_a_sequence(path)
     if fmt == "euroc":
         return read_euroc(path, sort=sort)
+    if fmt == "kitti-raw":
+        return read_kitti_raw(path, sort=sort)
     if fmt == "npz" and (path.is_dir() or path.suffix.lower() != ".npz"):
         raise DataError(path, "format 'npz' needs a file ending in .npz")
     if fmt == "csv" and path.exists() and not path.is_dir():
