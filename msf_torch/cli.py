@@ -1,4 +1,5 @@
-"""Command line: ``msf run | eval | simulate | config | posegraph | ranges | nmea | lidar-map``.
+"""Command line: ``msf run | eval | simulate | config | posegraph | ranges | nmea | encoders |
+lidar-map``.
 
 Each command parses its arguments, calls the library and prints its result as one JSON
 line last. Errors in the input (a bad file, a bad config key) end with a one-line message
@@ -345,6 +346,42 @@ def build_parser() -> argparse.ArgumentParser:
         "e.g. 4 for RTK-fixed only)",
     )
 
+    en = sub.add_parser(
+        "encoders", help="convert wheel-encoder counts (ticks) to a native wheel.csv of speeds"
+    )
+    en.add_argument("log", type=Path, help="CSV with a header: time (s) and each side's count")
+    en.add_argument(
+        "--out", type=Path, required=True, help="CSV to write, normally FOLDER/wheel.csv"
+    )
+    en.add_argument(
+        "--ticks-per-rev",
+        type=_one_or_two,
+        required=True,
+        metavar="N[,N]",
+        help="counts per wheel revolution (one for both sides, or left,right)",
+    )
+    en.add_argument(
+        "--radius",
+        type=_one_or_two,
+        required=True,
+        metavar="R[,R]",
+        help="wheel radius, m (one for both sides, or left,right)",
+    )
+    en.add_argument(
+        "--rollover",
+        type=_finite_float,
+        default=None,
+        help="the count at which the counters wrap (e.g. 65536 for 16 bits); default: none",
+    )
+    en.add_argument(
+        "--columns",
+        default="t,left_ticks,right_ticks",
+        metavar="T,LEFT,RIGHT",
+        help="names of the time, left-count and right-count columns (default "
+        "t,left_ticks,right_ticks)",
+    )
+    en.add_argument("--sort", action="store_true", help="sort rows by time instead of failing")
+
     lm = sub.add_parser(
         "lidar-map", help="2D LiDAR scan odometry (PLICP) and an occupancy map (PNG + YAML)"
     )
@@ -516,6 +553,14 @@ def _config_overrides(path: Path | None) -> dict[str, Any]:
     values = read_config_keys(path)
     values.pop("smoother", None)
     return values
+
+
+def _one_or_two(text: str) -> tuple[float, float]:
+    """``X`` (both sides) or ``LEFT,RIGHT``: positive finite numbers."""
+    parts = [_finite_float(part) for part in text.split(",")]
+    if len(parts) not in (1, 2) or not all(x > 0 for x in parts):
+        raise argparse.ArgumentTypeError(f"expected X or LEFT,RIGHT (positive), got {text!r}")
+    return (parts[0], parts[-1])
 
 
 def _quality_codes(text: str) -> tuple[int, ...]:
@@ -1046,6 +1091,39 @@ def _cmd_nmea(args) -> dict[str, Any]:
     }
 
 
+def _cmd_encoders(args) -> dict[str, Any]:
+    import numpy as np
+
+    from msf_torch.io.encoders import read_encoder_counts, write_wheel_csv
+
+    if args.out.is_dir():
+        raise ValueError(f"--out {args.out} is a folder; give a file name (FOLDER/wheel.csv)")
+    columns = [name.strip() for name in args.columns.split(",")]
+    log = read_encoder_counts(args.log, columns, rollover=args.rollover, sort=args.sort)
+    wheel = log.wheel_speeds(args.ticks_per_rev, args.radius)
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    out = write_wheel_csv(args.out, wheel)
+    step = float(np.median(np.diff(log.t)))
+    resolution = [
+        2 * math.pi * radius / (count * step)
+        for radius, count in zip(args.radius, args.ticks_per_rev, strict=True)
+    ]
+    return {
+        "log": str(args.log),
+        "out": str(out),
+        "readings": int(log.t.size),
+        "samples": int(wheel.t.shape[1]),
+        "counts": log.counts,
+        "t_range_s": [float(wheel.t[0, 0]), float(wheel.t[0, -1])],
+        "median_step_s": step,
+        "speed_resolution_mps": resolution,
+        "max_abs_speed_mps": [
+            float(wheel.left_speed.abs().max()),
+            float(wheel.right_speed.abs().max()),
+        ],
+    }
+
+
 def _cmd_lidar_map(args) -> dict[str, Any]:
     from msf_torch.io.scans import read_scans, write_scans
     from msf_torch.lidar.grid import GridConfig
@@ -1084,6 +1162,7 @@ def main(argv: list[str] | None = None) -> int:
         "lidar-map": _cmd_lidar_map,
         "ranges": _cmd_ranges,
         "nmea": _cmd_nmea,
+        "encoders": _cmd_encoders,
         "config": _cmd_config,
     }
     try:

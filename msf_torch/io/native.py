@@ -97,6 +97,7 @@ __all__ = [
     "read_native",
     "stored_gnss_origin",
     "store_gnss_origin",
+    "write_stream_csv",
     "write_native",
 ]
 
@@ -788,6 +789,38 @@ def _table_for(stream: str, a: dict[str, np.ndarray]) -> tuple[list[str], np.nda
             (base, a["covariance"][:, rows, cols])
         )
     return POSE_COLUMNS, base
+
+
+def write_stream_csv(path: str | os.PathLike[str], name: str, stream: Any) -> Path:
+    """Write one B = 1 stream as its native CSV table (``imu``, ``wheel``, ``gnss``,
+    ``poses``, ``ground_truth``; the columns of :data:`TABLE_FILES`'s table), atomically.
+
+    Only real samples (mask True) are written, numbers as shortest exact ``repr``; GNSS
+    sigma and pose covariance columns only when some value is given (not NaN).
+
+    Args:
+        path: the file to write (normally ``FOLDER/<table name>``); its folder must exist.
+        name: the stream's name.
+        stream: the samples (``ImuSamples``, ``WheelSamples``, ...), B = 1.
+
+    Returns:
+        the path written.
+
+    Raises:
+        ValueError: B != 1, an unknown ``name``.
+    """
+    if name not in TABLE_FILES:
+        raise ValueError(f"unknown stream {name!r}; native tables: {', '.join(TABLE_FILES)}")
+    if stream.batch_size != 1:
+        raise ValueError(f"write_stream_csv writes one stream, got B = {stream.batch_size}")
+    arrays = {
+        key: value[0].detach().to(device="cpu", dtype=torch.float64).numpy()
+        for key, value in stream.compact().tensors().items()
+        if key != "mask"
+    }
+    target = Path(path)
+    _write_table(target, *_table_for(name, arrays))
+    return target
 
 
 def _write_table(file: Path, header: list[str], matrix: np.ndarray) -> None:

@@ -85,7 +85,7 @@ import torch
 from msf_torch.io import _tables
 from msf_torch.io.errors import DataError
 from msf_torch.io.geodesy import geodetic_to_enu
-from msf_torch.io.native import _table_for, _write_table
+from msf_torch.io.native import write_stream_csv
 from msf_torch.types import GnssFixes
 
 DEFAULT_QUALITIES = (1, 2, 3, 4, 5)
@@ -232,17 +232,7 @@ def write_gnss_csv(path: str | os.PathLike[str], gnss: GnssFixes) -> Path:
     Raises:
         ValueError: B != 1.
     """
-    if gnss.batch_size != 1:
-        raise ValueError(f"write_gnss_csv writes one stream, got B = {gnss.batch_size}")
-    compact = gnss.compact()
-    arrays = {
-        key: value[0].detach().to(device="cpu", dtype=torch.float64).numpy()
-        for key, value in compact.tensors().items()
-        if key != "mask"
-    }
-    target = Path(path)
-    _write_table(target, *_table_for("gnss", arrays))
-    return target
+    return write_stream_csv(path, "gnss", gnss)
 
 
 @dataclass

@@ -13,7 +13,8 @@ kind         message types                                         becomes
 ============ ===================================================== ==========================
 ``imu``      ``sensor_msgs/Imu``                                   ``Sequence.imu``
 ``gnss``     ``sensor_msgs/NavSatFix``                             ``Sequence.gnss`` (ENU)
-``wheels``   ``sensor_msgs/JointState`` (wheel joint velocities),  ``Sequence.wheel``
+``wheels``   ``sensor_msgs/JointState`` (wheel joint velocities    ``Sequence.wheel``
+             or positions),
              ``geometry_msgs/TwistStamped``,
              ``TwistWithCovarianceStamped``, ``nav_msgs/Odometry``
              (forward speed and yaw rate of the axle centre)
@@ -74,9 +75,12 @@ Fused components
 Wheels
     From ``JointState``: the rim speed of a side is the mean joint velocity (rad/s) of its
     joints times its radius; messages lacking those joints' velocities are skipped and
-    counted in ``meta["skipped_messages"]``. From a twist (``v_x``, ``w_z`` of the axle
-    centre): ``v_left = v_x - w_z D / 2``, ``v_right = v_x + w_z D / 2`` with the track
-    ``D = wheel_track_m``.
+    counted in ``meta["skipped_messages"]``. A driver that publishes positions only (no
+    message carries the velocities) gives wheel angles instead: the speed is then the mean
+    rate between consecutive messages, times the radius, stamped at their midpoint
+    (:func:`msf_torch.io.encoders.wheel_speeds_from_angles`). From a twist (``v_x``,
+    ``w_z`` of the axle centre): ``v_left = v_x - w_z D / 2``, ``v_right = v_x + w_z D / 2``
+    with the track ``D = wheel_track_m``.
 References
     Image and LaserScan topics are not read into streams: ``meta["references"][name]``
     lists their times ``t`` and ``stamp_ns`` (header) and ``bag_ns`` (recording time, the
@@ -122,6 +126,7 @@ from msf_torch.geometry.quaternion import (
     xyzw_to_wxyz,
 )
 from msf_torch.io import _tables
+from msf_torch.io.encoders import wheel_speeds_from_angles
 from msf_torch.io.errors import DataError
 from msf_torch.io.geodesy import enu_to_geodetic, geodetic_to_enu
 from msf_torch.robot.frames import FrameTree, inverse_transform
@@ -409,17 +414,7 @@ def _extract(
         }, keep
     if spec.kind == "wheels":
         if msgtype == "sensor_msgs/msg/JointState":
-            left, right, keep = [], [], []
-            for i, m in enumerate(messages):
-                names = list(m.name)
-                velocity = np.asarray(m.velocity, dtype=np.float64)
-                wanted = spec.left_joints + spec.right_joints
-                if velocity.shape[0] != len(names) or not all(j in names for j in wanted):
-                    continue
-                left.append(np.mean([velocity[names.index(j)] for j in spec.left_joints]))
-                right.append(np.mean([velocity[names.index(j)] for j in spec.right_joints]))
-                keep.append(i)
-            return {"left_rate": np.array(left), "right_rate": np.array(right)}, keep
+            return _joint_wheels(messages, spec)
         twist_of = {
             "geometry_msgs/msg/TwistStamped": lambda m: m.twist,
             "geometry_msgs/msg/TwistWithCovarianceStamped": lambda m: m.twist.twist,
@@ -766,6 +761,33 @@ def _gnss_stream(r: _Raw, t: np.ndarray, layout: BagLayout, clean, meta) -> tupl
     return _tables.stream_from_arrays(GnssFixes, arrays), origin
 
 
+def _side_means(messages: list, spec: SensorTopic, field: str) -> tuple[list, list, list]:
+    """Per message holding every wheel joint in ``field`` (``"velocity"`` or ``"position"``):
+    the mean over each side's joints, and the message's index."""
+    wanted = spec.left_joints + spec.right_joints
+    left, right, keep = [], [], []
+    for i, m in enumerate(messages):
+        names = list(m.name)
+        values = np.asarray(getattr(m, field), dtype=np.float64)
+        if values.shape[0] != len(names) or not all(j in names for j in wanted):
+            continue
+        left.append(np.mean([values[names.index(j)] for j in spec.left_joints]))
+        right.append(np.mean([values[names.index(j)] for j in spec.right_joints]))
+        keep.append(i)
+    return left, right, keep
+
+
+def _joint_wheels(messages: list, spec: SensorTopic) -> tuple[dict[str, np.ndarray], list[int]]:
+    """Wheel rates from JointState: the joint velocities when messages carry them; from a
+    driver that publishes positions only, the wheel angles (differentiated later)."""
+    left, right, keep = _side_means(messages, spec, "velocity")
+    if not keep:
+        left, right, keep = _side_means(messages, spec, "position")
+        if keep:
+            return {"left_angle": np.array(left), "right_angle": np.array(right)}, keep
+    return {"left_rate": np.array(left), "right_rate": np.array(right)}, keep
+
+
 def _wheel_stream(r: _Raw, t: np.ndarray, layout: BagLayout, clean, bag: Path) -> WheelSamples:
     spec = r.spec
     if r.msgtype == "sensor_msgs/msg/JointState":
@@ -774,6 +796,20 @@ def _wheel_stream(r: _Raw, t: np.ndarray, layout: BagLayout, clean, bag: Path) -
                 bag,
                 "wheels from JointState need left_joints, right_joints and wheel_radius_m",
                 field=f"sensors.{spec.name}",
+            )
+        if "left_angle" in r.fields:  # positions only: mean rates between messages
+            angles = clean(
+                "wheel", {"t": t, "left": r.fields["left_angle"], "right": r.fields["right_angle"]}
+            )
+            if angles["t"].size < 2:
+                raise DataError(
+                    bag,
+                    f"{angles['t'].size} JointState message(s) with wheel positions and no "
+                    "velocities: wheel speeds need at least 2",
+                    field=f"sensors.{spec.name}",
+                )
+            return wheel_speeds_from_angles(
+                angles["t"], angles["left"], angles["right"], spec.wheel_radius_m
             )
         left = r.fields["left_rate"] * spec.wheel_radius_m[0]
         right = r.fields["right_rate"] * spec.wheel_radius_m[1]

@@ -760,3 +760,65 @@ def test_odometry_without_child_frame_needs_the_sensor_frame(tmp_path: Path) -> 
     )
     seq = read_rosbag(bag, named)
     assert seq.pose_sources["vo"].t.shape[-1] == 3
+
+
+@pytest.mark.parametrize("version", [1, 2])
+def test_wheel_joint_positions_only(tmp_path: Path, version: int) -> None:
+    """A driver publishing wheel joint positions without velocities: the speeds are the mean
+    rates between messages (midpoint stamps), times each side's radius."""
+    store = _store(version)
+    t0 = 1_600_000_000_000_000_000
+    state = store.types["sensor_msgs/msg/JointState"]
+    stamps = t0 + np.cumsum([0, 40, 45, 38, 41, 40]) * 1_000_000
+    t = (stamps - t0) / 1e9
+    angles = {"fl": 3.0 * t + 0.5 * t**2, "rl": 3.2 * t + 0.5 * t**2, "fr": 4.0 * t - t**2}
+    angles["rr"] = angles["fr"] + 0.1
+    wheels = [
+        (
+            int(stamp),
+            state(
+                header=_header(store, int(stamp), "base_link"),
+                name=list(angles),
+                position=np.array([angles[j][k] for j in angles]),
+                velocity=np.zeros(0),
+                effort=np.zeros(0),
+            ),
+        )
+        for k, stamp in enumerate(stamps)
+    ]
+    imu = [(int(s), _imu_msg(store, int(s), "imu_link", np.zeros(3), [0, 0, 9.81])) for s in stamps]
+    bag = _write_bag(
+        tmp_path / ("w.bag" if version == 1 else "w"),
+        version,
+        {
+            "/imu": ("sensor_msgs/msg/Imu", imu),
+            "/joint_states": ("sensor_msgs/msg/JointState", wheels),
+        },
+    )
+    layout = BagLayout(
+        sensors=(
+            SensorTopic("imu", "imu", "/imu"),
+            SensorTopic(
+                "wheels",
+                "wheels",
+                "/joint_states",
+                left_joints=("fl", "rl"),
+                right_joints=("fr", "rr"),
+                wheel_radius_m=(0.1, 0.11),
+            ),
+        ),
+    )
+    seq = read_rosbag(bag, layout)
+    np.testing.assert_allclose(seq.wheel.t[0].numpy(), 0.5 * (t[1:] + t[:-1]), atol=1e-12)
+    left = 0.5 * (angles["fl"] + angles["rl"])
+    right = 0.5 * (angles["fr"] + angles["rr"])
+    np.testing.assert_allclose(
+        seq.wheel.left_speed[0].numpy(), 0.1 * np.diff(left) / np.diff(t), rtol=1e-12
+    )
+    np.testing.assert_allclose(
+        seq.wheel.right_speed[0].numpy(), 0.11 * np.diff(right) / np.diff(t), rtol=1e-12
+    )
+    # a mean rate of a quadratic angle is its rate at the midpoint, exactly
+    np.testing.assert_allclose(
+        seq.wheel.left_speed[0].numpy(), 0.1 * (3.1 + seq.wheel.t[0].numpy()), rtol=1e-12
+    )
