@@ -76,13 +76,14 @@ from msf_torch.io import (
     read_pose_graph_2d,
     read_tum,
 )
+from msf_torch.io.encoders import read_encoder_counts
 from msf_torch.io.eqvio import EqvioRun
 from msf_torch.io.kitti_poses import read_kitti_poses
 from msf_torch.io.kitti_raw import OXTS_FIELDS, read_kitti_raw
 from msf_torch.io.nmea import DEFAULT_QUALITIES, NmeaLog, read_nmea
 from msf_torch.io.ranges import RangeRun, read_range_run
 from msf_torch.io.scans import read_scans
-from msf_torch.types import Sequence, Trajectory
+from msf_torch.types import Sequence, Trajectory, WheelSamples
 
 OUTCOMES = ("ok", "data_error", "bad_output", "bad_error", "crash")
 ACCEPTED = ("ok", "data_error")
@@ -595,6 +596,32 @@ def _build_range_csv(rng: np.random.Generator) -> tuple[dict[str, Any], str]:
     return files, ""
 
 
+def _build_encoders(rng: np.random.Generator) -> tuple[dict[str, Any], str]:
+    """Running 16-bit encoder counts (``read_encoder_counts``), an extra column in a drawn
+    place."""
+    n = int(rng.integers(1, 30))
+    t = _times(rng, n, t0=0.0, step=0.02)
+    counts = np.cumsum(rng.integers(-50, 400, size=(n, 2)), 0) % 65536
+    rows = [[_num(a), str(int(b)), str(int(c)), "3.7"] for a, (b, c) in zip(t, counts, strict=True)]
+    order = rng.permutation(4)
+    header = ["t", "left_ticks", "right_ticks", "battery"]
+    table = _csv([header[k] for k in order], [[row[k] for k in order] for row in rows])
+    return {"ticks.csv": table}, "ticks.csv"
+
+
+def _read_encoders(path: Path, sort: bool) -> WheelSamples:
+    """``read_encoder_counts`` (16-bit rollover) and the speeds of a 1024-count, 0.1 m wheel;
+    fewer than 2 readings is the documented ValueError, passed on as a DataError."""
+    log = read_encoder_counts(path, rollover=65536, sort=sort)
+    if log.t.size < 2:
+        raise DataError(path, "fewer than 2 readings")
+    return log.wheel_speeds((1024.0, 1024.0), (0.1, 0.1))
+
+
+def _check_wheel(wheel: WheelSamples) -> str | None:
+    return _check_stream("wheel", wheel)
+
+
 def _read_range_csv(folder: Path) -> RangeRun:
     """``read_range_run`` on a case folder; the anchors and truth files are passed when the
     case has them."""
@@ -971,13 +998,15 @@ READERS: dict[str, Reader] = {
         Reader("range_csv", _build_range_csv, lambda p, s: _read_range_csv(p), _check_range_run),
         Reader("nmea", _build_nmea, lambda p, s: _read_nmea(p), _check_nmea),
         Reader("kitti_raw", _build_kitti_raw, lambda p, s: _read_kitti_raw(p, s), _check_sequence),
+        Reader("encoders", _build_encoders, _read_encoders, _check_wheel),
     )
 }
 """Reader name -> :class:`Reader`: native ``.npz`` and CSV folder, TUM, EuRoC ASL, the KITTI
 files gtsam ships (``data_dir``), g2o and TORO pose graphs (3-D and 2-D), 2-D graphs with
 landmarks (``landmark_2d``: ODOMETRY, LANDMARK, BR, VERTEX_XY), the EqVIO replay CSV, KITTI
 odometry poses + times, 2D LiDAR scans (``.npz``), odometry + anchor-range CSV files
-(``range_csv``), NMEA 0183 GNSS logs (``nmea``), KITTI raw OXTS drives (``kitti_raw``). Not
+(``range_csv``), NMEA 0183 GNSS logs (``nmea``), KITTI raw OXTS drives (``kitti_raw``),
+encoder counts (``encoders``). Not
 here: rosbags (binary containers written by ``rosbags``; their reader is tested on bags
 written by its own writers)."""
 

@@ -121,6 +121,7 @@ class EncoderLog:
 
         Raises:
             ValueError: a non-positive or non-finite count or radius; fewer than 2 readings.
+            DataError: a speed that is not finite (readings too close in time).
         """
         for name, pair in (("counts_per_rev", counts_per_rev), ("radius_m", radius_m)):
             if len(pair) != 2 or not all(math.isfinite(x) and x > 0 for x in pair):
@@ -128,9 +129,18 @@ class EncoderLog:
         if self.t.size < 2:
             raise ValueError(f"{self.source}: {self.t.size} reading(s); speeds need at least 2")
         to_rad = [2.0 * math.pi / c for c in counts_per_rev]
-        return wheel_speeds_from_angles(
+        wheel = wheel_speeds_from_angles(
             self.t, self.left * to_rad[0], self.right * to_rad[1], radius_m
         )
+        finite = torch.isfinite(wheel.left_speed[0]) & torch.isfinite(wheel.right_speed[0])
+        if not bool(finite.all()):
+            k = int((~finite).nonzero()[0])
+            raise DataError(
+                self.source,
+                f"the speed between the readings at {self.t[k]!r} s and {self.t[k + 1]!r} s "
+                "is not finite (counts too large, or readings too close in time)",
+            )
+        return wheel
 
 
 def read_encoder_counts(

@@ -130,6 +130,9 @@ def test_bad_logs_name_line_and_column(tmp_path, capsys) -> None:
     assert log.counts["sorted"] == 1
     with pytest.raises(ValueError, match="counts_per_rev"):
         log.wheel_speeds((0.0, 1.0), RADIUS)
+    path.write_text("t,left_ticks,right_ticks\n0.2,1,2\n0.2000000000000001,1e300,2\n")
+    with pytest.raises(DataError, match="not finite"):
+        read_encoder_counts(path).wheel_speeds((1e-300, 1.0), RADIUS)
     path.write_text("t,left_ticks,right_ticks\n0.2,1,2\n")
     with pytest.raises(ValueError, match="at least 2"):
         read_encoder_counts(path).wheel_speeds((1.0, 1.0), RADIUS)
