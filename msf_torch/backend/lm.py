@@ -151,8 +151,9 @@ def _solve_blocks(
     substitutions. O(K d^3) instead of O(K^3 d^3)."""
     batch, count, block = diagonal.shape[0], diagonal.shape[1], diagonal.shape[-1]
     # each diagonal block carries its right-hand side as an extra column, so one triangular
-    # solve gives both C_i^T = L_{i-1}^-1 A_{i,i-1}^T and y_{i-1}, and one product updates
-    # [A_ii | b_i] by C_i [C_i^T | y_{i-1}]
+    # solve gives both C_i = A_{i,i-1} L_{i-1}^-T and y_{i-1}^T = b_{i-1}^T L_{i-1}^-T (solved
+    # from the right: the blocks are taken row-major as they are, faster than C_i^T from the
+    # left), and one product updates [A_ii | b_i] by C_i [C_i^T | y_{i-1}]
     augmented = torch.cat((diagonal, rhs.reshape(batch, count, block, 1)), -1)
     if added_diagonal is not None:
         augmented[..., :block].diagonal(dim1=-2, dim2=-1).add_(added_diagonal)
@@ -163,15 +164,18 @@ def _solve_blocks(
     for i in range(count):
         if i > 0:
             solved = torch.linalg.solve_triangular(
-                factors[-1], torch.cat((lower[:, i - 1].mT, current[..., block:]), -1), upper=False
-            )
-            coupling = solved[..., :block].mT
+                factors[-1].mT,
+                torch.cat((lower[:, i - 1], current[..., block:].mT), -2),
+                upper=True,
+                left=False,
+            )  # (B, d + 1, d): [C_i; y_{i-1}^T]
+            coupling = solved[..., :block, :]
             couplings.append(coupling)
-            forward.append(solved[..., block:])
-            current = augmented[:, i] - coupling @ solved
+            forward.append(solved[..., block:, :].mT)
+            current = augmented[:, i] - coupling @ solved.mT
         chol, info = torch.linalg.cholesky_ex(current[..., :block])
-        failed = info != 0
-        if bool(failed.any()):
+        if bool(info.any()):
+            failed = info != 0
             ok = ok & ~failed
             chol = torch.where(failed[:, None, None], eye, chol)
         factors.append(chol)
@@ -496,9 +500,10 @@ def _quadratic(
     """``step^T H step`` (B,) for the undamped Gauss-Newton Hessian."""
     if lin.diagonal is not None:
         count, block = lin.diagonal.shape[1], lin.diagonal.shape[-1]
-        pieces = step.reshape(step.shape[0], count, block, 1)
-        on_diagonal = (pieces.mT @ lin.diagonal @ pieces).sum((1, 2, 3))
-        coupled = (pieces[:, 1:].mT @ lin.lower @ pieces[:, :-1]).sum((1, 2, 3))
+        pieces = step.reshape(step.shape[0], count, block)
+        # one matrix-vector product per block, then dot products
+        on_diagonal = ((lin.diagonal @ pieces[..., None]).squeeze(-1) * pieces).sum((1, 2))
+        coupled = ((lin.lower @ pieces[:, :-1, :, None]).squeeze(-1) * pieces[:, 1:]).sum((1, 2))
         return on_diagonal + 2.0 * coupled
     if not sparse:
         return (step[:, None, :] @ lin.hessian @ step[..., None]).reshape(-1)
@@ -528,14 +533,19 @@ def _select(lin: Linearization, index: torch.Tensor) -> Linearization:
 
 
 def _merge(accept: torch.Tensor, new: Linearization, old: Linearization) -> Linearization:
-    """Per problem, the new linearisation where the step was accepted, else the old one."""
+    """Per problem, the new linearisation where the step was accepted, else the old one: the
+    rejected problems' rows of ``old`` are copied into ``new`` in place (usually a few)."""
     if bool(accept.all()):
         return new
     if not bool(accept.any()):
         return old
-    hessian = None if new.hessian is None else _where_batch(accept, new.hessian, old.hessian)
-    diagonal = None if new.diagonal is None else _where_batch(accept, new.diagonal, old.diagonal)
-    lower = None if new.lower is None else _where_batch(accept, new.lower, old.lower)
+    reject = torch.nonzero(~accept).squeeze(-1)
+
+    def keep_old(part: torch.Tensor | None, previous: torch.Tensor | None) -> torch.Tensor | None:
+        if part is not None:
+            part[reject] = previous[reject]
+        return part
+
     sparse_values = None
     if new.sparse_values is not None:
         batch = accept.shape[0]
@@ -543,9 +553,9 @@ def _merge(accept: torch.Tensor, new: Linearization, old: Linearization) -> Line
         sparse_values = torch.where(mask, new.sparse_values, old.sparse_values)
     return Linearization(
         cost=torch.where(accept, new.cost, old.cost),
-        gradient=_where_batch(accept, new.gradient, old.gradient),
-        hessian=hessian,
+        gradient=keep_old(new.gradient, old.gradient),
+        hessian=keep_old(new.hessian, old.hessian),
         sparse_values=sparse_values,
-        diagonal=diagonal,
-        lower=lower,
+        diagonal=keep_old(new.diagonal, old.diagonal),
+        lower=keep_old(new.lower, old.lower),
     )
