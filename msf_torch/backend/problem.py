@@ -128,13 +128,18 @@ class Factor:
             known zero structure may override with smaller pieces).
         """
         residual, jacobians = self.residual_and_jacobians(values, kinds)
-        white, jacs, loss = whiten(self, residual, jacobians)
-        grads = [(jac.mT @ white[..., None]).squeeze(-1) for jac in jacs]
-        spans = [_nonzero_columns(jac) for jac in jacs]
-        pieces = [
-            [(spans[a], spans[b], jacs[a][..., spans[a]].mT @ jacs[b][..., spans[b]])]
-            for a, b in pairs
+        # whitening mixes rows only: columns zero before it stay zero, so only the span of
+        # nonzero columns is whitened and multiplied
+        spans = [_nonzero_columns(jac) for jac in jacobians]
+        used = [jac[..., span] for jac, span in zip(jacobians, spans, strict=True)]
+        white, jacs, loss = whiten(self, residual, used)
+        grads = [
+            torch.nn.functional.pad(
+                (jac.mT @ white[..., None]).squeeze(-1), (span.start, full.shape[-1] - span.stop)
+            )
+            for jac, span, full in zip(jacs, spans, jacobians, strict=True)
         ]
+        pieces = [[(spans[a], spans[b], jacs[a].mT @ jacs[b])] for a, b in pairs]
         return loss, grads, pieces
 
 
@@ -162,7 +167,8 @@ def _select_batch(data: Any, index: torch.Tensor, batch: int, size: int) -> Any:
 def _nonzero_columns(jacobian: torch.Tensor) -> slice:
     """The span of columns (..., R, D) -> slice of D where any entry is nonzero (columns
     outside it contribute exact zeros to ``J^T J``)."""
-    used = torch.nonzero((jacobian != 0).reshape(-1, jacobian.shape[-1]).any(0)).squeeze(-1)
+    counts = torch.count_nonzero(jacobian, tuple(range(jacobian.dim() - 1)))  # (D,)
+    used = torch.nonzero(counts).squeeze(-1)
     if used.numel() == 0:
         return slice(0, 0)
     return slice(int(used[0]), int(used[-1]) + 1)
@@ -262,6 +268,7 @@ class Problem:
     def _build_layout(self) -> None:
         """Column of every free variable in the stacked tangent vector; -1 for fixed."""
         self.group_columns: dict[str, torch.Tensor] = {}
+        self._group_spans: dict[str, slice] = {}  # groups with every variable free
         start = 0
         for name, value in self.values.items():
             count = value.shape[1]
@@ -272,6 +279,8 @@ class Problem:
             rank = torch.cumsum(free.long(), 0) - 1
             cols = torch.where(free, start + rank * dim, torch.full_like(rank, -1))
             self.group_columns[name] = cols
+            if count > 0 and bool(free.all()):
+                self._group_spans[name] = slice(start, start + count * dim)
             start += int(free.sum()) * dim
         self.dim = start
         self.slot_layouts = [
@@ -339,8 +348,13 @@ class Problem:
         """Move every free variable by its part of ``step`` (B, n); fixed ones stay."""
         moved = {}
         for name, value in values.items():
-            cols = self.group_columns[name]
             dim = self.kinds[name].tangent_dim
+            span = self._group_spans.get(name)
+            if span is not None:  # all free: the group's columns follow one another
+                local = step[:, span].reshape(step.shape[0], -1, dim)
+                moved[name] = self.kinds[name].retract(value, local)
+                continue
+            cols = self.group_columns[name]
             free = cols >= 0
             if not bool(free.any()):
                 moved[name] = value
