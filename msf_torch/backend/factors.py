@@ -177,8 +177,8 @@ class NavStatePriorFactor(_Unary):
     ) -> tuple[torch.Tensor, list[torch.Tensor]]:
         """Residuals (B, F, 15) and the Jacobian (B, F, 15, 15) w.r.t. the nav-state tangent;
         ``kinds`` is not read."""
-        prior = self.prior.expand_as(values[0])
-        return nav_state_local(prior, values[0]), [nav_state_local_jacobian(prior, values[0])]
+        local = nav_state_local(self.prior.expand_as(values[0]), values[0])
+        return local, [nav_state_local_jacobian(local)]
 
 
 def nav_state_local(origin: torch.Tensor, value: torch.Tensor) -> torch.Tensor:
@@ -188,13 +188,12 @@ def nav_state_local(origin: torch.Tensor, value: torch.Tensor) -> torch.Tensor:
     return torch.cat((p - p0, v - v0, so3.log(r0.mT @ r), bg - bg0, ba - ba0), -1)
 
 
-def nav_state_local_jacobian(origin: torch.Tensor, value: torch.Tensor) -> torch.Tensor:
-    """Jacobian (..., 15, 15) of :func:`nav_state_local` w.r.t. the tangent step of ``value``:
-    identity except ``J_r^-1(Log(R0^T R))`` on the rotation block."""
-    _, _, r0, _, _ = unpack_nav_state(origin)
-    _, _, r, _, _ = unpack_nav_state(value)
-    jac = torch.eye(15, dtype=value.dtype, device=value.device).repeat(*value.shape[:-1], 1, 1)
-    jac[..., 6:9, 6:9] = torch.linalg.inv(so3.right_jacobian(so3.log(r0.mT @ r)))
+def nav_state_local_jacobian(local: torch.Tensor) -> torch.Tensor:
+    """Jacobian (..., 15, 15) of :func:`nav_state_local` w.r.t. the tangent step of its
+    ``value``, from the coordinates ``local`` (..., 15) it returned: identity except
+    ``J_r^-1(Log(R0^T R))`` on the rotation block (``Log(R0^T R) = local[..., 6:9]``)."""
+    jac = torch.eye(15, dtype=local.dtype, device=local.device).repeat(*local.shape[:-1], 1, 1)
+    jac[..., 6:9, 6:9] = torch.linalg.inv(so3.right_jacobian(local[..., 6:9]))
     return jac
 
 
@@ -221,6 +220,7 @@ class GnssFactor(_Unary):
         super().__init__(group, index, covariance, kernel)
         self.measured = measured
         self.lever_arm = _lever_arm_or_zero(lever_arm, measured)
+        self._no_arm = bool((self.lever_arm == 0).all())  # stays true for any subset
 
     def residual(self, values: list[torch.Tensor]) -> torch.Tensor:
         """Residuals (B, F, 3), m."""
@@ -236,6 +236,26 @@ class GnssFactor(_Unary):
         arm = self.lever_arm.expand_as(position)
         r, jac = gnss_residual(position, rotation, arm, self.measured.expand_as(position))
         return r, [_for_kind(jac, kind)]
+
+    def normal_blocks(
+        self, values: list[torch.Tensor], kinds: list[VariableKind], pairs: list[tuple[int, int]]
+    ) -> tuple[torch.Tensor, list[torch.Tensor], list[list[tuple[slice, slice, torch.Tensor]]]]:
+        """Without a lever arm (zero and not learned) or robust kernel the Jacobian is I on
+        the position columns and zero elsewhere, so the block is ``W^T W`` on them, no
+        Jacobian formed (see :meth:`Factor.normal_blocks`); else the generic form."""
+        kind = self.kinds[0]
+        arm_free = self._no_arm and not self.lever_arm.requires_grad
+        if not arm_free or self.kernel is not None or kind.name not in ("nav_state", "pose"):
+            return super().normal_blocks(values, kinds, pairs)
+        position, _ = pose_of(kind, values[0])
+        white = (self.sqrt_information @ (position - self.measured)[..., None]).squeeze(-1)
+        loss = 0.5 * (white * white).sum(-1)
+        grad = (self.sqrt_information.mT @ white[..., None]).squeeze(-1)  # (B, F, 3)
+        grad = torch.nn.functional.pad(grad, (0, kind.tangent_dim - 3))
+        block = self.sqrt_information.mT @ self.sqrt_information
+        block = block.expand(*white.shape[:-1], 3, 3)
+        columns = slice(0, 3)
+        return loss, [grad], [[(columns, columns, block)] for _ in pairs]
 
 
 class ZeroVelocityFactor(_Unary):
@@ -469,10 +489,10 @@ class GtsamImuFactor(_Evaluated, _Binary):
         self.preintegrated, self.gravity = preintegrated, gravity
 
     def _evaluate(self, values, jacobians: bool):
-        residual, compact = self._compact(values, jacobians)
+        residual, rows = self._compact(values, jacobians)
         if not jacobians:
             return residual, None
-        jac_i9, jac_j9 = compact
+        jac_i9, jac_j9 = rows[..., 0:15], rows[..., 15:24]
         lead = residual.shape[:-1]
         bias_i = torch.cat(
             (
@@ -492,16 +512,22 @@ class GtsamImuFactor(_Evaluated, _Binary):
         return residual, [jac_i, jac_j]
 
     def _compact(self, values, jacobians: bool):
-        """Residual (..., 15) and, when asked, the nonzero Jacobian rows: d[rho_p, rho_v,
-        phi] / d(state i) (..., 9, 15) and / d(state j)[dp, dv, dtheta] (..., 9, 9) (the
-        bias rows are -I / +I on the bias columns)."""
+        """Residual (..., 15) and, when asked, its increment rows ``[rho_p; rho_v; phi]`` as
+        one (..., 9, 25) matrix: their Jacobians w.r.t. state i (15 columns) and state j's
+        [dp, dv, dtheta] (9; the rest of the Jacobians: the bias rows are -I / +I on the bias
+        columns), and the rows' values (last column)."""
         pre = self.preintegrated
         p_i, v_i, r_i, bg_i, ba_i = unpack_nav_state(values[0])
         p_j, v_j, r_j, bg_j, ba_j = unpack_nav_state(values[1])
         d_t = pre.delta_t[..., None]
         z = pre.corrected(bg_i, ba_i)
         z_p, z_v, z_theta = z[..., 0:3], z[..., 3:6], z[..., 6:9]
-        exp_z = so3.exp(z_theta)
+        eye = so3.identity(z.dtype, z.device)
+        # the series coefficients of z_theta and of phi are each computed once, for Exp(z_theta)
+        # and J_r(z_theta), for Jl(phi) and its derivatives (same values as so3.exp, ...)
+        coef_z = so3.coefficients(z_theta, "012" if jacobians else "01")
+        hat_z = so3.hat(z_theta)
+        exp_z = eye + coef_z["c0"] * hat_z + coef_z["c1"] * coef_z["skew2"]
         pred_p = p_i + v_i * d_t + 0.5 * self.gravity * d_t**2 + (r_i @ z_p[..., None]).squeeze(-1)
         pred_v = v_i + self.gravity * d_t + (r_i @ z_v[..., None]).squeeze(-1)
         r_j_t = r_j.mT
@@ -509,7 +535,8 @@ class GtsamImuFactor(_Evaluated, _Binary):
         d_rot = rel @ exp_z
         phi = so3.log(d_rot)
         d_pv = r_j_t @ torch.stack((pred_p - p_j, pred_v - v_j), -1)  # (..., 3, 2)
-        jl_inv = torch.linalg.inv(so3.gamma1(phi))
+        coef = so3.coefficients(phi, "123" if jacobians else "12", derivatives=jacobians)
+        jl_inv = torch.linalg.inv(eye + coef["c1"] * so3.hat(phi) + coef["c2"] * coef["skew2"])
         rho = jl_inv @ d_pv
         rho_p, rho_v = rho[..., 0], rho[..., 1]
         residual = torch.cat((rho_p, rho_v, phi, bg_j - bg_i, ba_j - ba_i), -1)
@@ -519,12 +546,11 @@ class GtsamImuFactor(_Evaluated, _Binary):
         lead = residual.shape[:-1]
         jr_inv = jl_inv.mT  # J_r(phi) = J_l(phi)^T
         bias_jac = pre.bias_jacobian.expand(*lead, 9, 6)
-        # phi rows: d phi / d(theta_i, bias_i) = [P, Q]; d phi / d theta_j = S
-        rot_bias = so3.right_jacobian(z_theta) @ bias_jac[..., 6:9, :]
-        pq = jr_inv @ torch.cat((exp_z.mT, rot_bias), -1)  # (..., 3, 9)
-        s_j = -jr_inv @ d_rot.mT
+        # phi rows: d phi / d(theta_i, bias_i) = P (3, 9); d phi / d theta_j = S (3, 3)
+        jr_z = eye - coef_z["c1"] * hat_z + coef_z["c2"] * coef_z["skew2"]  # J_r(z_theta)
+        rot_bias = jr_z @ bias_jac[..., 6:9, :]
+        ps = _matmul3(jr_inv, torch.cat((exp_z.mT, rot_bias, -d_rot.mT), -1))  # [P, S]
         # d(Jl(phi)^-1 x)/dphi = -Jl^-1 d(Jl(phi) y)/dphi at y = Jl^-1 x, for x = dp, dv
-        coef = so3.coefficients(phi, "123", derivatives=True)
         turn = -jl_inv @ torch.cat(
             (
                 so3.gamma_vector_jacobians(phi, rho_p, coef)[0],
@@ -533,39 +559,38 @@ class GtsamImuFactor(_Evaluated, _Binary):
             -1,
         )
         turn = torch.cat((turn[..., 0:3], turn[..., 3:6]), -2)  # (..., 6, 3): p rows, v rows
+        turn_ps = _matmul3(turn, ps)  # (..., 6, 12): turn [P, S]
         jl_rj = jl_inv @ r_j_t
         zero = torch.zeros_like(jl_rj)
-        # state i: rows [rho_p; rho_v] = Jl^-1 [d dp; d dv] + turn [P, Q] on [dtheta, db]
+        # state i: rows [rho_p; rho_v] = Jl^-1 [d dp; d dv] + turn P on [dtheta, db]
         own = torch.cat(
             (-so3.hat(z_p), bias_jac[..., 0:3, :], -so3.hat(z_v), bias_jac[..., 3:6, :]), -1
         )
-        moved = (jl_inv @ rel) @ own  # (..., 3, 18): p columns, v columns
-        rot_cols = torch.cat((moved[..., 0:9], moved[..., 9:18]), -2) + turn @ pq
+        moved = _matmul3(jl_inv @ rel, own)  # (..., 3, 18): p columns, v columns
+        rot_cols = torch.cat((moved[..., 0:9], moved[..., 9:18]), -2) + turn_ps[..., 0:9]
         translation = torch.cat(
             (torch.cat((jl_rj, jl_rj * d_t[..., None]), -1), torch.cat((zero, jl_rj), -1)), -2
-        )
-        jac_i9 = torch.cat(
-            (
-                torch.cat((translation, rot_cols), -1),
-                torch.cat((zero, zero, pq), -1),
-            ),
-            -2,
         )
         # state j: [dp, dv, dtheta] columns of the same rows
         hats = so3.hat(d_pv.mT)  # (..., 2, 3, 3): [d_p]x, [d_v]x
         turned = jl_inv @ torch.cat((hats[..., 0, :, :], hats[..., 1, :, :]), -1)
-        turn_j = torch.cat((turned[..., 0:3], turned[..., 3:6]), -2) + turn @ s_j
+        turn_j = torch.cat((turned[..., 0:3], turned[..., 3:6]), -2) + turn_ps[..., 9:12]
         translation_j = torch.cat(
             (torch.cat((-jl_rj, zero), -1), torch.cat((zero, -jl_rj), -1)), -2
         )
-        jac_j9 = torch.cat(
+        rows = torch.cat(
             (
-                torch.cat((translation_j, turn_j), -1),
-                torch.cat((zero, zero, s_j), -1),
+                torch.cat(
+                    (translation, rot_cols, translation_j, turn_j, rho.mT.reshape(*lead, 6, 1)),
+                    -1,
+                ),
+                torch.cat(
+                    (zero, zero, ps[..., 0:9], zero, zero, ps[..., 9:12], phi[..., None]), -1
+                ),
             ),
             -2,
         )
-        return residual, (jac_i9, jac_j9)
+        return residual, rows
 
     def _split_whitening(self) -> torch.Tensor | None:
         """(B|1, F, 9, 9) whitening of the increment rows when the whitening is
@@ -589,21 +614,21 @@ class GtsamImuFactor(_Evaluated, _Binary):
         self, values: list[torch.Tensor], kinds: list[VariableKind], pairs: list[tuple[int, int]]
     ) -> tuple[torch.Tensor, list[torch.Tensor], list[list[tuple[slice, slice, torch.Tensor]]]]:
         """Gauss-Newton share from the compact Jacobian rows when the whitening is
-        block-diagonal (see :meth:`Factor.normal_blocks`); else the generic form."""
+        block-diagonal (see :meth:`Factor.normal_blocks`; the rows' Jacobians and values are
+        whitened by one product); else the generic form."""
         white_nav = self._split_whitening()
         if white_nav is None or not all(k.name == "nav_state" for k in kinds):
             return super().normal_blocks(values, kinds, pairs)
-        residual, (jac_i9, jac_j9) = self._compact(values, True)
+        residual, rows = self._compact(values, True)
+        whitened = white_nav @ rows  # (B, F, 9, 25): whitened Jacobians and residual
+        a, c, white9 = whitened[..., 0:15], whitened[..., 15:24], whitened[..., 24]
         walk = torch.diagonal(self.sqrt_information[..., 9:15, 9:15], dim1=-2, dim2=-1)
-        white9 = (white_nav @ residual[..., 0:9, None]).squeeze(-1)
         white6 = walk * residual[..., 9:15]
         loss = 0.5 * ((white9 * white9).sum(-1) + (white6 * white6).sum(-1))
-        a = white_nav @ jac_i9  # (B, F, 9, 15)
-        c = white_nav @ jac_j9  # (B, F, 9, 9)
         walk_grad = walk * white6
-        grad_i = (a.mT @ white9[..., None]).squeeze(-1)
-        grad_i = torch.cat((grad_i[..., 0:9], grad_i[..., 9:15] - walk_grad), -1)
-        grad_j = torch.cat(((c.mT @ white9[..., None]).squeeze(-1), walk_grad), -1)
+        grad = (whitened[..., 0:24].mT @ white9[..., None]).squeeze(-1)  # (B, F, 24): i, j
+        grad_i = torch.cat((grad[..., 0:9], grad[..., 9:15] - walk_grad), -1)
+        grad_j = torch.cat((grad[..., 15:24], walk_grad), -1)
         walk_info = walk * walk  # (B|1, F, 6) diagonal of the random-walk information
         whole, nav, bias = slice(None), slice(0, 9), slice(9, 15)
         products = {
@@ -889,13 +914,15 @@ class MarginalPriorFactor(Factor):
         self, values: list[torch.Tensor], kinds: list[VariableKind] | None
     ) -> tuple[torch.Tensor, list[torch.Tensor]]:
         """Residuals (B, 1, R) and the Jacobians (B, 1, R, 15) per slot; ``kinds`` is not read."""
-        origins = [o.expand_as(v) for o, v in zip(self.origin, values, strict=True)]
-        local = torch.cat([nav_state_local(o, v) for o, v in zip(origins, values, strict=True)], -1)
+        parts = [
+            nav_state_local(o.expand_as(v), v) for o, v in zip(self.origin, values, strict=True)
+        ]
+        local = torch.cat(parts, -1)
         residual = (self.sqrt_hessian @ local[..., None]).squeeze(-1) + self.offset
         jacobians = []
-        for k, (o, v) in enumerate(zip(origins, values, strict=True)):
+        for k, part in enumerate(parts):
             block = self.sqrt_hessian[..., 15 * k : 15 * (k + 1)]
-            jacobians.append(block @ nav_state_local_jacobian(o, v))
+            jacobians.append(block @ nav_state_local_jacobian(part))
         return residual, jacobians
 
 
@@ -904,6 +931,15 @@ def _lever_arm_or_zero(lever_arm: torch.Tensor | None, like: torch.Tensor) -> to
     if lever_arm is None:
         return torch.zeros(3, dtype=like.dtype, device=like.device)
     return lever_arm
+
+
+def _matmul3(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """``a @ b`` for ``a`` (..., m, 3) and ``b`` (..., 3, n) as three broadcast products: for
+    such small matrices (m n from about 18) torch's batched CPU kernel is about twice as
+    slow."""
+    out = a[..., :, 0:1] * b[..., 0:1, :]
+    out.addcmul_(a[..., :, 1:2], b[..., 1:2, :])
+    return out.addcmul_(a[..., :, 2:3], b[..., 2:3, :])
 
 
 def _widen(jacobian: torch.Tensor, kind: VariableKind) -> torch.Tensor:
