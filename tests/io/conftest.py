@@ -98,3 +98,44 @@ def sequence() -> Sequence:
 def sequence_factory():
     """``make_sequence(seed=0, n_imu=50)`` for tests that need several sequences."""
     return make_sequence
+
+
+def enu_longdouble(lat, lon, alt, origin) -> np.ndarray:
+    """ECEF difference rotated into ENU, all in extended precision (80-bit on x86)."""
+    ld = np.longdouble
+    a, f = ld(6378137.0), ld(1) / ld("298.257223563")
+    e2 = f * (2 - f)
+    deg = ld(np.pi) / 180
+
+    def ecef(la, lo, h):
+        la, lo, h = (
+            np.asarray(la, dtype=ld) * deg,
+            np.asarray(lo, dtype=ld) * deg,
+            np.asarray(h, dtype=ld),
+        )
+        n = a / np.sqrt(1 - e2 * np.sin(la) ** 2)
+        return np.stack(
+            (
+                (n + h) * np.cos(la) * np.cos(lo),
+                (n + h) * np.cos(la) * np.sin(lo),
+                (n * (1 - e2) + h) * np.sin(la),
+            ),
+            -1,
+        )
+
+    d = ecef(lat, lon, alt) - ecef(*origin)
+    la, lo = ld(origin[0]) * deg, ld(origin[1]) * deg
+    rot = np.array(
+        [
+            [-np.sin(lo), np.cos(lo), ld(0)],
+            [-np.sin(la) * np.cos(lo), -np.sin(la) * np.sin(lo), np.cos(la)],
+            [np.cos(la) * np.cos(lo), np.cos(la) * np.sin(lo), np.sin(la)],
+        ]
+    )
+    return (d @ rot.T).astype(np.float64)
+
+
+@pytest.fixture
+def enu_reference():
+    """:func:`enu_longdouble`: the textbook ENU of geodetic points, in extended precision."""
+    return enu_longdouble

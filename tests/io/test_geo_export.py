@@ -1,6 +1,6 @@
-"""Map exports (GeoJSON, KML) against a textbook ECEF route; the geodetic origin a native
-folder keeps in ``meta.json``; ``msf nmea`` storing it and ``msf run --export geojson,kml``
-using it."""
+"""Map exports (GeoJSON, KML) against the textbook ECEF route in extended precision; the
+geodetic origin a native folder keeps in ``meta.json``; ``msf nmea`` storing it and ``msf run
+--export geojson,kml`` using it."""
 
 from __future__ import annotations
 
@@ -23,33 +23,9 @@ KML = "{http://www.opengis.net/kml/2.2}"
 ORIGINS = [(49.0125, 8.4172, 115.3), (-33.8688, 151.2093, 58.0), (78.2232, 15.6267, 10.0)]
 
 
-def _enu_textbook(lon_lat_h: np.ndarray, origin) -> np.ndarray:
-    """ENU of ``[lon, lat, h]`` rows: the ECEF difference from the origin, rotated."""
-    a, f = 6378137.0, 1 / 298.257223563
-    e2 = f * (2 - f)
-
-    def ecef(lat, lon, h):
-        lat, lon = np.radians(lat), np.radians(lon)
-        n = a / np.sqrt(1 - e2 * np.sin(lat) ** 2)
-        return np.stack(
-            (
-                (n + h) * np.cos(lat) * np.cos(lon),
-                (n + h) * np.cos(lat) * np.sin(lon),
-                (n * (1 - e2) + h) * np.sin(lat),
-            ),
-            -1,
-        )
-
-    lat0, lon0 = np.radians(origin[0]), np.radians(origin[1])
-    rows = np.array(
-        [
-            [-np.sin(lon0), np.cos(lon0), 0.0],
-            [-np.sin(lat0) * np.cos(lon0), -np.sin(lat0) * np.sin(lon0), np.cos(lat0)],
-            [np.cos(lat0) * np.cos(lon0), np.cos(lat0) * np.sin(lon0), np.sin(lat0)],
-        ]
-    )
-    d = ecef(lon_lat_h[:, 1], lon_lat_h[:, 0], lon_lat_h[:, 2]) - ecef(*origin)
-    return d @ rows.T
+def _enu(lon_lat_h: np.ndarray, origin, reference) -> np.ndarray:
+    """ENU (N, 3) of ``[lon, lat, h]`` rows by the textbook route (``enu_reference``)."""
+    return reference(lon_lat_h[:, 1], lon_lat_h[:, 0], lon_lat_h[:, 2], origin)
 
 
 def _track(seed: int, n: int = 300) -> tuple[Trajectory, np.ndarray]:
@@ -81,7 +57,7 @@ def _fixes(enu: np.ndarray) -> GnssFixes:
 
 
 @pytest.mark.parametrize("origin", ORIGINS)
-def test_geojson_points_are_the_enu_positions_on_the_earth(tmp_path, origin) -> None:
+def test_geojson_points_are_the_enu_positions_on_the_earth(tmp_path, origin, enu_reference) -> None:
     traj, enu = _track(3)
     fix_enu = enu[::25] + 1.5
     path = write_geojson(
@@ -104,12 +80,12 @@ def test_geojson_points_are_the_enu_positions_on_the_earth(tmp_path, origin) -> 
     coords = np.array(line["geometry"]["coordinates"])
     assert np.abs(coords[:, 1] - origin[0]).max() > 0.1  # kilometres, not a neighbourhood
     # 9 decimals of a degree and 4 of a metre: within 0.1 mm
-    assert np.abs(_enu_textbook(coords, origin) - enu).max() < 1e-4
+    assert np.abs(_enu(coords, origin, enu_reference) - enu).max() < 1e-4
     fixes = np.array(points["geometry"]["coordinates"])
-    assert np.abs(_enu_textbook(fixes, origin) - fix_enu).max() < 1e-4
+    assert np.abs(_enu(fixes, origin, enu_reference) - fix_enu).max() < 1e-4
 
 
-def test_kml_holds_the_same_coordinates_clamped_to_the_ground(tmp_path) -> None:
+def test_kml_holds_the_same_coordinates_clamped_to_the_ground(tmp_path, enu_reference) -> None:
     origin = ORIGINS[1]
     traj, enu = _track(4)
     truth, _ = _track(5, 40)
@@ -131,7 +107,7 @@ def test_kml_holds_the_same_coordinates_clamped_to_the_ground(tmp_path) -> None:
         np.testing.assert_allclose(coords, feature["geometry"]["coordinates"], atol=1e-9)
     points = marks[2].findall(f"{KML}MultiGeometry/{KML}Point/{KML}coordinates")
     coords = np.array([[float(x) for x in p.text.split(",")] for p in points])
-    assert np.abs(_enu_textbook(coords, origin) - enu[::30]).max() < 1e-4
+    assert np.abs(_enu(coords, origin, enu_reference) - enu[::30]).max() < 1e-4
     styles = {s.get("id"): s for s in document.findall(f"{KML}Style")}
     colours = [styles[m.findtext(f"{KML}styleUrl")[1:]].findtext(f".//{KML}color") for m in marks]
     assert colours[0] != colours[1] and colours[2] is None
@@ -195,7 +171,9 @@ def test_gnss_origin_is_kept_by_the_native_format(tmp_path, short_run) -> None:
         assert read_native(write_native(seq, target)).meta["gnss_origin"] == [49.0, 8.4, 110.0]
 
 
-def test_run_exports_the_estimate_and_fixes_on_the_map(tmp_path, short_run, capsys) -> None:
+def test_run_exports_the_estimate_and_fixes_on_the_map(
+    tmp_path, short_run, capsys, enu_reference
+) -> None:
     folder = tmp_path / "run"
     write_native(short_run, folder)
     args = ["run", str(folder), "--no-plot", "--no-learned", "--export", "geojson,kml"]
@@ -215,7 +193,7 @@ def test_run_exports_the_estimate_and_fixes_on_the_map(tmp_path, short_run, caps
     estimate = read_tum(out / "trajectory.tum")
     coords = np.array(doc["features"][0]["geometry"]["coordinates"])
     assert coords.shape[0] == estimate.t.shape[1]
-    assert np.abs(_enu_textbook(coords, origin) - estimate.position[0].numpy()).max() < 1e-4
+    assert np.abs(_enu(coords, origin, enu_reference) - estimate.position[0].numpy()).max() < 1e-4
     withheld = np.array(doc["features"][3]["geometry"]["coordinates"])
     t = short_run.gnss.t[0].numpy() - float(short_run.start_time[0])
     assert withheld.shape[0] == int(((t >= 5.0) & (t <= 10.0)).sum())

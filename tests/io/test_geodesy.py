@@ -15,49 +15,14 @@ ORIGINS = [
 ]
 
 
-def _enu_longdouble(lat, lon, alt, origin) -> np.ndarray:
-    """ECEF difference rotated into ENU, all in extended precision (80-bit on x86)."""
-    ld = np.longdouble
-    a, f = ld(6378137.0), ld(1) / ld("298.257223563")
-    e2 = f * (2 - f)
-    deg = ld(np.pi) / 180
-
-    def ecef(la, lo, h):
-        la, lo, h = (
-            np.asarray(la, dtype=ld) * deg,
-            np.asarray(lo, dtype=ld) * deg,
-            np.asarray(h, dtype=ld),
-        )
-        n = a / np.sqrt(1 - e2 * np.sin(la) ** 2)
-        return np.stack(
-            (
-                (n + h) * np.cos(la) * np.cos(lo),
-                (n + h) * np.cos(la) * np.sin(lo),
-                (n * (1 - e2) + h) * np.sin(la),
-            ),
-            -1,
-        )
-
-    d = ecef(lat, lon, alt) - ecef(*origin)
-    la, lo = ld(origin[0]) * deg, ld(origin[1]) * deg
-    rot = np.array(
-        [
-            [-np.sin(lo), np.cos(lo), ld(0)],
-            [-np.sin(la) * np.cos(lo), -np.sin(la) * np.sin(lo), np.cos(la)],
-            [np.cos(la) * np.cos(lo), np.cos(la) * np.sin(lo), np.sin(la)],
-        ]
-    )
-    return (d @ rot.T).astype(np.float64)
-
-
 @pytest.mark.skipif(np.finfo(np.longdouble).eps > 1e-18, reason="needs extended precision")
 @pytest.mark.parametrize("origin", ORIGINS)
-def test_enu_matches_extended_precision(origin) -> None:
+def test_enu_matches_extended_precision(origin, enu_reference) -> None:
     rng = np.random.default_rng(1)
     lat = origin[0] + rng.uniform(-0.05, 0.05, 200)
     lon = origin[1] + rng.uniform(-0.05, 0.05, 200)
     alt = origin[2] + rng.uniform(-50, 50, 200)
-    want = _enu_longdouble(lat, lon, alt, origin)
+    want = enu_reference(lat, lon, alt, origin)
     lon = np.where(lon >= 180.0, lon - 360.0, lon)  # points past 180 deg come as -179.x
     got = geodetic_to_enu(lat, lon, alt, origin)
     assert np.abs(got - want).max() < 1e-9
