@@ -80,6 +80,7 @@ import dataclasses
 import json
 import math
 import time
+import warnings
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -245,6 +246,27 @@ def _written(options: RunOptions) -> set[str]:
     return names
 
 
+def _warn_streams_off_the_imu_clock(seq: Sequence, name: str) -> None:
+    """Warn about each stream of a B = 1 sequence none of whose samples lies within the IMU's
+    time span: the filter never reaches them (typically times of another clock, e.g. UNIX
+    GNSS times beside IMU times since boot)."""
+    imu_t = seq.imu.t[0, seq.imu.mask[0]]
+    start, end = float(imu_t[0]), float(imu_t[-1])
+    others = {**seq.streams(), **{f"pose:{k}": v for k, v in seq.pose_sources.items()}}
+    for key, stream in others.items():
+        if key == "imu":
+            continue
+        t = stream.t[0, stream.mask[0]]
+        if t.numel() and not bool(((t >= start) & (t <= end)).any()):
+            warnings.warn(
+                f"sequence {name}: none of the {t.numel()} {key} samples "
+                f"({float(t[0]):.3f} .. {float(t[-1]):.3f} s) lies within the IMU's "
+                f"{start:.3f} .. {end:.3f} s, so the estimator ignores them: another clock? "
+                "(shift the times onto the IMU's; msf nmea --t0 does that for GNSS logs)",
+                stacklevel=3,
+            )
+
+
 def _check_geo_exports(seqs: list[Sequence], names: list[str], exports: tuple[str, ...]) -> None:
     """Refuse, before any work, a map export for a sequence without ``meta["gnss_origin"]``."""
     wanted = [fmt for fmt in GEO_EXPORTS if fmt in exports]
@@ -275,6 +297,7 @@ def run_sequence(seq: Sequence, cfg: EskfConfig, options: RunOptions) -> dict[st
         The summary dict (also written to ``summary.json``).
     """
     _check_geo_exports([seq], seq.names[:1], options.exports)
+    _warn_streams_off_the_imu_clock(seq, seq.names[0])
     out_dir = _output_folder(options.out_dir)
     withheld = None
     if options.gnss_outage_s is not None:
@@ -397,6 +420,8 @@ def run_batch(seqs: list[Sequence], cfg: EskfConfig, options: RunOptions) -> dic
         )
     names = _unique_names([seq.names[0] for seq in seqs])
     _check_geo_exports(seqs, names, options.exports)
+    for seq, name in zip(seqs, names, strict=True):
+        _warn_streams_off_the_imu_clock(seq, name)
     out_dir = _output_folder(options.out_dir)
     withheld: list[GnssFixes | None] = [None] * len(seqs)
     if options.gnss_outage_s is not None:

@@ -46,10 +46,14 @@ def _rpy_matrix(roll: float, pitch: float, yaw: float) -> np.ndarray:
     return euler_angles_to_matrix(angles, "ZYX").numpy()
 
 
-def _valid(stream, b: int):
+def _valid(stream, b: int, span: tuple[float, float]):
+    """The real samples of sequence ``b`` of ``stream`` whose times lie in ``span`` (s), as
+    numpy arrays by field, or None when there are none (samples the filter never reaches,
+    e.g. stamped by another clock, must not set the initial state)."""
     if stream is None:
         return None
-    mask = stream.mask[b].cpu().numpy()
+    t = stream.t[b].detach().cpu().numpy()
+    mask = stream.mask[b].cpu().numpy() & (t >= span[0]) & (t <= span[1])
     if not mask.any():
         return None
     return {
@@ -152,9 +156,10 @@ def _one(
     yaw_sigma = cfg.init_yaw_sigma_unknown_rad  # no heading source
     position = np.zeros(3)
     velocity = np.zeros(3)
-    wheel = _valid(seq.wheel, b)
-    gnss = _valid(seq.gnss, b)
-    poses = _valid(seq.poses, b)
+    span = (t0 - cfg.time_tolerance_s, imu_t[-1] + cfg.time_tolerance_s)
+    wheel = _valid(seq.wheel, b, span)
+    gnss = _valid(seq.gnss, b, span)
+    poses = _valid(seq.poses, b, span)
     wheel_speed = 0.0
     if wheel is not None:
         wheel_speed = 0.5 * (wheel["left_speed"][0] + wheel["right_speed"][0])

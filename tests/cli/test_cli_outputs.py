@@ -16,6 +16,7 @@ import json
 
 import numpy as np
 import pytest
+import torch
 
 from msf_torch.cli import main
 from msf_torch.io.native import write_native
@@ -97,3 +98,21 @@ def test_reader_warnings_are_one_line(tmp_path, capsys) -> None:
     err = capsys.readouterr().err.splitlines()
     assert len(err) == 1 and err[0].startswith("msf posegraph: warning: ")
     assert "'FOO_BAR' x1 (first on line 4)" in err[0]
+
+
+def test_a_stream_on_another_clock_is_named_and_ignored(outage_run, tmp_path, capsys) -> None:
+    """GNSS stamped in UNIX seconds beside IMU seconds since boot: a warning names the
+    stream and both spans, and the run is the dead-reckoning run (the initial state too)."""
+    run, _ = outage_run
+    gnss = run.sequence.gnss
+    shifted = dataclasses.replace(gnss, t=gnss.t + 1.7e9)
+    off = write_native(dataclasses.replace(run.sequence, gnss=shifted), tmp_path / "off.npz")
+    none = write_native(dataclasses.replace(run.sequence, gnss=None), tmp_path / "none.npz")
+    assert main(["run", str(off), "--out", str(tmp_path / "off"), "--no-plot"]) == 0
+    err = capsys.readouterr().err
+    assert "none of the" in err and "gnss samples" in err and "another clock" in err
+    assert main(["run", str(none), "--out", str(tmp_path / "none"), "--no-plot"]) == 0
+    capsys.readouterr()
+    a = read_tum(tmp_path / "off" / "trajectory.tum")
+    b = read_tum(tmp_path / "none" / "trajectory.tum")
+    assert torch.equal(a.position, b.position)
