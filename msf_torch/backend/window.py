@@ -697,7 +697,8 @@ def build_graph(
         gnss_position = seq.gnss.position[:, keep][:, matched]
         sigma = seq.gnss.sigma[:, keep][:, matched]
         default = torch.tensor(cfg.gnss_sigma_m, dtype=dtype)
-        gnss_sigma = torch.where(torch.isfinite(sigma), sigma, default)
+        # as the front end reads them: a sigma that is not finite and positive is not given
+        gnss_sigma = torch.where(torch.isfinite(sigma) & (sigma > 0), sigma, default)
     gnss_covariance = torch.diag_embed(gnss_sigma**2)
 
     # wheels

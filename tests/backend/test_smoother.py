@@ -520,3 +520,25 @@ def test_noise_replacement_reaches_the_factors(sim_run):
         expected.expand_as(other.gnss_position),
     )
     assert dataclasses.asdict(W.SmootherConfig())["noise"] == {}
+
+
+def test_zero_gnss_sigma_reads_as_not_given(sim_run):
+    """A fix whose sigma is 0 (or negative) has none, as the front end reads it: the graph
+    takes the configured sigma (0 made its whitening a Cholesky of a singular matrix)."""
+    _, seq, cfg, frontend, _ = sim_run
+    sigma = seq.gnss.sigma.clone()
+    sigma[:, ::2] = 0.0
+    sigma[:, 1::4] = -1.0
+    odd = W.build_graph(
+        dataclasses.replace(seq, gnss=dataclasses.replace(seq.gnss, sigma=sigma)),
+        frontend,
+        cfg,
+        W.SmootherConfig(),
+    )
+    unknown = dataclasses.replace(seq.gnss, sigma=torch.full_like(sigma, math.nan))
+    plain = W.build_graph(dataclasses.replace(seq, gnss=unknown), frontend, cfg, W.SmootherConfig())
+    given = (sigma > 0)[:, : odd.gnss_covariance.shape[1]]
+    variance = torch.diagonal(odd.gnss_covariance, dim1=-2, dim2=-1)
+    expected = torch.diagonal(plain.gnss_covariance, dim1=-2, dim2=-1)
+    torch.testing.assert_close(variance[~given], expected[~given])
+    assert bool((variance > 0).all())
