@@ -173,3 +173,21 @@ def test_rules_on_time_and_rate(drive, tmp_path) -> None:
         read_kitti_raw(copy, gnss_rate_hz=0.0)
     with pytest.raises(DataError, match="not a KITTI raw drive"):
         read_kitti_raw(tmp_path)
+
+
+def test_synced_drive_and_extra_files_are_warned(drive, tmp_path) -> None:
+    _, folder = drive
+    copy = _copy(folder, tmp_path / "sync")
+    oxts = copy / "oxts"
+    stamps = (oxts / "timestamps.txt").read_text().splitlines()
+    kept = list(range(0, len(stamps), 10))  # 10 Hz, as a synced drive
+    for new, old in enumerate(kept):
+        (oxts / "data" / f"{new:010d}.txt").write_text(
+            (oxts / "data" / f"{old:010d}.txt").read_text()
+        )
+    (oxts / "timestamps.txt").write_text("\n".join(stamps[k] for k in kept) + "\n")
+    with pytest.warns(UserWarning) as caught:
+        seq = read_kitti_raw(copy)
+    text = " ".join(str(w.message) for w in caught)
+    assert "a synced drive?" in text and "more data files than the" in text
+    assert seq.imu.t.shape[1] == len(kept)
