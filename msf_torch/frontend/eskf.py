@@ -109,7 +109,7 @@ from msf_torch.frontend.guard import (
     sanitize_sequence,
 )
 from msf_torch.frontend.init import initial_state
-from msf_torch.frontend.schedule import Schedule, build_schedule
+from msf_torch.frontend.schedule import PairMemory, Schedule, build_schedule
 from msf_torch.frontend.slip import slip_factor
 from msf_torch.frontend.source_frames import (
     FRAME_DIM,
@@ -254,6 +254,10 @@ class EskfResult:
             chunk (``frontend.source_frames.FrameMemory``; None without drifting frames).
         calibration_memory: the calibration states after each sequence's last real epoch,
             for a next chunk (``frontend.calibration.CalibrationMemory``; None when off).
+        pair_memory: each pose source's latest sample with the gyro integral since and its
+            latest pair, after the last IMU sample, for a next chunk
+            (``frontend.schedule.PairMemory``; it depends on the data only, so it covers the
+            whole chunk also when interrupted; None without pose sources).
     """
 
     names: list[str]
@@ -286,10 +290,11 @@ class EskfResult:
     source_frame_covariance: dict[str, torch.Tensor] = field(default_factory=dict)
     frame_memory: FrameMemory | None = None
     calibration_memory: CalibrationMemory | None = None
+    pair_memory: PairMemory | None = None
 
     def select(self, index: int) -> EskfResult:
         """Sequence ``index`` of the batch as a result with B = 1 (views, not copies): every
-        per-sequence tensor, in the fields and in ``gate_memory`` / ``frame_memory``, cut
+        per-sequence tensor, in the fields and in the ``*_memory`` fields, cut
         to ``[index : index + 1]``; epochs stay padded to the batch's E (see ``mask``)."""
         batch = self.position.shape[0]
         if not -batch <= index < batch:
@@ -301,7 +306,7 @@ class EskfResult:
                 return value[index : index + 1]
             if isinstance(value, dict):
                 return {key: cut(item) for key, item in value.items()}
-            if isinstance(value, (GateMemory, FrameMemory, CalibrationMemory)):
+            if isinstance(value, (GateMemory, FrameMemory, CalibrationMemory, PairMemory)):
                 return dataclasses.replace(
                     value,
                     **{
@@ -652,13 +657,16 @@ def _source_scale(
     )
 
 
-def _source_gyro_change(sched: Schedule, tolerance_s: float = 1e-6) -> torch.Tensor:
+def _source_gyro_change(
+    sched: Schedule, memory: PairMemory | None = None, tolerance_s: float = 1e-6
+) -> torch.Tensor:
     """(B, E, S, 3) rate of change of the body rate over each pose-source pair, rad/s^2.
 
     The difference of the mean gyro rates of the pair and of the source's previous pair
-    (which must end where this one starts) over their mean interval; 0 where there is no
-    such previous pair. Means over a pair average the gyro noise, which a difference of
-    single samples would put into the time-offset Jacobian (biasing the offset towards 0).
+    (which must end where this one starts; before a chunk's first pair, the previous
+    chunk's latest, ``memory``) over their mean interval; 0 where there is no such previous
+    pair. Means over a pair average the gyro noise, which a difference of single samples
+    would put into the time-offset Jacobian (biasing the offset towards 0).
     """
     batch, n_epochs, n_sources = sched.source_mask.shape
     mask = sched.source_mask
@@ -669,8 +677,16 @@ def _source_gyro_change(sched: Schedule, tolerance_s: float = 1e-6) -> torch.Ten
     prev_mean = sched.source_gyro_mean.gather(1, safe[..., None].expand(-1, -1, -1, 3))
     prev_dt = sched.source_dt.gather(1, safe)
     prev_end = sched.t_end.gather(1, safe.reshape(batch, -1)).reshape(batch, n_epochs, n_sources)
+    first = previous < 0
+    if memory is not None:  # a chunk's first pairs follow the previous chunk's latest
+        prev_mean = torch.where(
+            first[..., None], memory.pair_gyro_mean.to(prev_mean)[:, None], prev_mean
+        )
+        prev_dt = torch.where(first, memory.pair_dt.to(prev_dt)[:, None], prev_dt)
+        prev_end = torch.where(first, memory.pair_end.to(prev_end)[:, None], prev_end)
+        first = first & ~torch.isfinite(prev_end)
     start = sched.t_end[:, :, None] - sched.source_dt
-    adjacent = mask & (previous >= 0) & ((prev_end - start).abs() <= tolerance_s)
+    adjacent = mask & ~first & ((prev_end - start).abs() <= tolerance_s)
     span = (0.5 * (sched.source_dt + prev_dt)).clamp_min(1e-9)
     change = (sched.source_gyro_mean - prev_mean) / span[..., None]
     return torch.where(adjacent[..., None], change, 0.0)
@@ -870,6 +886,7 @@ def run_eskf(
     gate_memory: GateMemory | None = None,
     frame_memory: FrameMemory | None = None,
     calibration_memory: CalibrationMemory | None = None,
+    pair_memory: PairMemory | None = None,
 ) -> EskfResult:
     """Run the ESKF over a batch of sequences.
 
@@ -889,6 +906,11 @@ def run_eskf(
         calibration_memory: the previous chunk's ``result.calibration_memory`` (online
             calibration): the estimates and their covariance with the state carry over
             (their correlation with drifting source frames does not).
+        pair_memory: the previous chunk's ``result.pair_memory`` (pose sources): each
+            source's pair across the boundary is fused as in the run in one piece (its mean
+            gyro rate from the previous chunk's IMU and this one's), and the time-offset
+            calibration sees the pair before it. The chunks must share their boundary IMU
+            sample (the previous chunk's last is this one's first).
     Returns:
         :class:`EskfResult` with (B, E + 1) per-epoch fields.
         Samples with non-finite values or repeated / backwards stamps are skipped and
@@ -922,6 +944,7 @@ def run_eskf(
                     gate_memory,
                     frame_memory,
                     calibration_memory,
+                    pair_memory,
                 )
         except EstimationInterrupted as stop:
             raise EstimationInterrupted(
@@ -932,7 +955,7 @@ def run_eskf(
     dtype, device = seq.imu.t.dtype, seq.imu.t.device
     noise = noise or EskfNoise.from_config(cfg, dtype, device)
     seq, dropped_samples = sanitize_sequence(seq)
-    sched = build_schedule(seq, cfg)
+    sched = build_schedule(seq, cfg, pair_memory)
     frames = (
         build_source_frames(seq, sched, cfg, frame_memory)
         if cfg.pose_source_fusion == "drifting_frame" and sched.source_names
@@ -1057,7 +1080,7 @@ def run_eskf(
             (torch.cat((cov, cross), -1), torch.cat((cross.mT, calib_cov), -1)),
             -2,
         )
-        gyro_change = _source_gyro_change(sched)
+        gyro_change = _source_gyro_change(sched, pair_memory)
     # drifting source frames (frontend.source_frames): six offset states per source, after
     # the calibration states; their prior is replaced at each source's first pair
     n_frame = 0 if frames is None else frames.size
@@ -1647,6 +1670,7 @@ def run_eskf(
     )
     if calib is not None:
         result.calibration_memory = _calibration_memory(calib, result, full_covariances, frame_col)
+    result.pair_memory = sched.pair_memory
     if interrupt.caught:
         raise EstimationInterrupted(result, done, n_epochs)
     return result

@@ -23,7 +23,12 @@ difference. The filter adds the mean-versus-end-velocity term (``frontend.eskf``
 relative rotation gives the mean body rate ``z_w = Log(dR) / dt``, ``dR = R_k-1^T R_k``, with
 covariance ``(dR^T C_r,k-1 dR + C_r,k) / dt^2`` (``C_r`` the declared rotation blocks), to
 compare with the mean raw gyro rate ``w_bar`` over the same interval (exact integral of the
-zero-order-held samples). Pairs that start before the first IMU sample are not used.
+zero-order-held samples). Pairs that start before the first IMU sample are not used, except
+in a run filtered in chunks: a chunk hands each source's latest sample and the gyro integral
+from it to the chunk's last IMU sample on to the next (:class:`PairMemory`,
+``EskfResult.pair_memory``), whose schedule then forms the pair across the boundary with
+``w_bar`` = (carried integral + integral from its first IMU sample to the pair end) / ``dt``,
+as the run in one piece does.
 
 Building the schedule is preprocessing with numpy (one pass per sequence, vectorised over
 its samples); the hot path never loops over B.
@@ -31,7 +36,7 @@ its samples); the hot path never loops over B.
 
 from __future__ import annotations
 
-__all__ = ["Schedule", "build_schedule", "source_names"]
+__all__ = ["PairMemory", "Schedule", "build_schedule", "source_names"]
 
 from dataclasses import dataclass
 
@@ -43,6 +48,33 @@ from msf_torch.geometry import so3
 from msf_torch.geometry.quaternion import quat_to_matrix
 from msf_torch.sensors.imu_gaps import interpolated_imu_samples
 from msf_torch.types import PoseMeasurements, Sequence
+
+
+@dataclass
+class PairMemory:
+    """What the pose-source pairs of a chunk hand on to the next chunk's schedule
+    (``build_schedule(..., pair_memory=...)``, ``run_eskf(..., pair_memory=...)``), so that
+    the pair across the boundary is fused and the time-offset calibration sees its
+    predecessor, as in the run in one piece. It depends on the data only (not on the
+    filter): it describes the whole chunk.
+
+    Attributes:
+        names: the S sources (``Schedule.source_names`` order).
+        start_time: (B, S) stamp of each source's latest valid sample at or before the
+            chunk's last IMU sample (the start of the next pair), s (-inf: none).
+        gyro_integral: (B, S, 3) integral of the zero-order-held raw gyro from
+            ``start_time`` to the chunk's last IMU sample, rad (0 where none).
+        pair_end: (B, S) end time of each source's latest pair so far, s (-inf: none).
+        pair_gyro_mean: (B, S, 3) that pair's mean raw gyro rate ``w_bar``, rad/s.
+        pair_dt: (B, S) its interval, s (0 where none).
+    """
+
+    names: tuple[str, ...]
+    start_time: torch.Tensor
+    gyro_integral: torch.Tensor
+    pair_end: torch.Tensor
+    pair_gyro_mean: torch.Tensor
+    pair_dt: torch.Tensor
 
 
 @dataclass
@@ -79,6 +111,8 @@ class Schedule:
             carries it, and epochs are added where updates are further apart than
             ``1 / nhc_rate_hz``.
         imu_index_end: (B, E) index of the IMU sample held at each epoch end.
+        pair_memory: the sources' pairs after the last IMU sample, for a next chunk (None
+            without pose sources).
     """
 
     t_start: torch.Tensor
@@ -112,6 +146,7 @@ class Schedule:
     source_gyro_mean: torch.Tensor
     source_dt: torch.Tensor
     source_mask: torch.Tensor
+    pair_memory: PairMemory | None = None
 
     @property
     def num_epochs(self) -> int:
@@ -210,18 +245,64 @@ def source_names(seq: Sequence, cfg: EskfConfig) -> tuple[str, ...]:
 
 
 def _source_pairs(
-    stream: PoseMeasurements, b: int, t0: float, t_last: float, cfg: EskfConfig
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    stream: PoseMeasurements,
+    b: int,
+    t0: float,
+    t_last: float,
+    cfg: EskfConfig,
+    carried_start: float = -np.inf,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Consecutive valid sample pairs of a pose source in sequence ``b`` inside
-    ``[t0, t_last]``: end times (P,) s, start times (P,) s and the sample indices of the pair
-    ends and starts (P,)."""
+    ``[t0, t_last]``, and the pair that starts at ``carried_start`` (s, a previous chunk's
+    :attr:`PairMemory.start_time`) and ends there: end times (P,) s, start times (P,) s and
+    the sample indices of the pair ends and starts (P,)."""
     tol = cfg.time_tolerance_s
     valid = np.nonzero(_np(stream.mask[b]))[0]
     t = _np(stream.t[b])[valid]
     gap = np.diff(t)
-    ok = (gap > tol) & (gap <= cfg.pose_source_max_gap_s)
-    ok &= (t[:-1] >= t0 - tol) & (t[1:] <= t_last + tol)
+    ok = (gap > tol) & (gap <= cfg.pose_source_max_gap_s) & (t[1:] <= t_last + tol)
+    ok &= (t[:-1] >= t0 - tol) | (np.abs(t[:-1] - carried_start) <= tol)
     return t[1:][ok], t[:-1][ok], valid[1:][ok], valid[:-1][ok]
+
+
+def _pair_memory_row(
+    stream: PoseMeasurements,
+    b: int,
+    t0: float,
+    t_last: float,
+    tol: float,
+    imu_t: np.ndarray,
+    gyro: np.ndarray,
+    pairs: tuple[np.ndarray, ...],
+    gyro_mean: np.ndarray,
+    carried: tuple[np.ndarray, ...] | None,
+) -> tuple[np.ndarray, ...]:
+    """One source's :class:`PairMemory` entries for sequence ``b`` after ``t_last``:
+    ``(start_time, gyro_integral (3,), pair_end, pair_gyro_mean (3,), pair_dt)``.
+
+    Args:
+        imu_t, gyro: (N,) s and (N, 3) rad/s, the sequence's IMU samples in use.
+        pairs: the chunk's pairs (:func:`_source_pairs`), gyro_mean (P, 3) their ``w_bar``.
+        carried: the previous chunk's entries (same order), or None.
+    """
+    stamps = _np(stream.t[b])[_np(stream.mask[b])]
+    latest = np.searchsorted(stamps, t_last + tol, side="right") - 1
+    start, integral = -np.inf, np.zeros(3)
+    if latest >= 0 and stamps[latest] >= t0 - tol:  # a sample of this chunk
+        start = stamps[latest]
+        ends = _gyro_integral(imu_t, gyro, np.array([start, t_last]))
+        integral = ends[1] - ends[0]
+    elif latest >= 0 and carried is not None and abs(stamps[latest] - carried[0]) <= tol:
+        # still an earlier chunk's sample: its integral runs on over this chunk
+        start = carried[0]
+        integral = carried[1] + _gyro_integral(imu_t, gyro, np.array([t_last]))[0]
+    if pairs[0].size:
+        last = (pairs[0][-1], gyro_mean[-1], pairs[0][-1] - pairs[1][-1])
+    elif carried is not None:
+        last = carried[2:]
+    else:
+        last = (-np.inf, np.zeros(3), 0.0)
+    return (start, integral, *last)
 
 
 def _gyro_integral(imu_t: np.ndarray, gyro: np.ndarray, t: np.ndarray) -> np.ndarray:
@@ -275,18 +356,43 @@ def _source_velocities(
     )
 
 
-def build_schedule(seq: Sequence, cfg: EskfConfig) -> Schedule:
+def build_schedule(
+    seq: Sequence, cfg: EskfConfig, pair_memory: PairMemory | None = None
+) -> Schedule:
     """Build the padded epoch schedule of a batch.
 
     Args:
         seq: batch of B sequences (masks mark real samples).
         cfg: front-end configuration (tolerances, NHC rate, gap threshold, ZUPT tests).
+        pair_memory: the previous chunk's ``Schedule.pair_memory`` when a run is filtered in
+            chunks (each chunk's first IMU sample the previous chunk's last): each source's
+            pair across the boundary is formed (module docstring).
     Returns:
         :class:`Schedule` on the IMU tensors' device and dtype.
+
+    Raises:
+        ValueError: fewer than two IMU samples in a sequence; a configured pose source the
+            sequence lacks; ``pair_memory`` of other sources.
     """
     tol = cfg.time_tolerance_s
     dtype, device = seq.imu.t.dtype, seq.imu.t.device
     names = source_names(seq, cfg)
+    carried_all = None  # the memory's (B, S, ...) numpy arrays
+    if pair_memory is not None:
+        if tuple(pair_memory.names) != names:
+            raise ValueError(
+                f"pair_memory holds sources {list(pair_memory.names)}, the run fuses {list(names)}"
+            )
+        carried_all = [
+            _np(x)
+            for x in (
+                pair_memory.start_time,
+                pair_memory.gyro_integral,
+                pair_memory.pair_end,
+                pair_memory.pair_gyro_mean,
+                pair_memory.pair_dt,
+            )
+        ]
     per_seq = []
     for b in range(seq.batch_size):
         imu_mask = _np(seq.imu.mask[b])
@@ -307,7 +413,14 @@ def build_schedule(seq: Sequence, cfg: EskfConfig) -> Schedule:
         wheel_t, wheel_src = stream_times(seq.wheel)
         gnss_t, gnss_src = stream_times(seq.gnss)
         pose_t, pose_src = stream_times(seq.poses)
-        pairs = [_source_pairs(seq.pose_sources[n], b, t0, t_last, cfg) for n in names]
+        carried = [
+            None if carried_all is None else tuple(x[b, s] for x in carried_all)
+            for s in range(len(names))
+        ]
+        pairs = [
+            _source_pairs(seq.pose_sources[n], b, t0, t_last, cfg, -np.inf if c is None else c[0])
+            for n, c in zip(names, carried, strict=True)
+        ]
         # the gyro and accelerometer values (N, 3) are read only where a step needs them
         gyro = _np(seq.imu.gyro[b])[imu_sel] if pairs or cfg.zupt else None
         accel = _np(seq.imu.accel[b])[imu_sel] if cfg.zupt else None
@@ -341,16 +454,18 @@ def build_schedule(seq: Sequence, cfg: EskfConfig) -> Schedule:
         wheel_idx = _match(wheel_t, updates, tol)
         gnss_idx = _match(gnss_t, updates, tol)
         pose_idx = _match(pose_t, updates, tol)
-        source_idx = [
-            (
-                _match(p[0], updates, tol),
-                p[2],
-                p[3],
-                (_gyro_integral(imu_t, gyro, p[0]) - _gyro_integral(imu_t, gyro, p[1]))
-                / (p[0] - p[1])[:, None],
+        source_idx, memory_rows = [], []
+        for n, p, c in zip(names, pairs, carried, strict=True):
+            at_start = _gyro_integral(imu_t, gyro, p[1])
+            if c is not None:  # the pair across the boundary: minus the carried integral
+                at_start[p[1] < t0 - tol] = -c[1]
+            gyro_mean = (_gyro_integral(imu_t, gyro, p[0]) - at_start) / (p[0] - p[1])[:, None]
+            source_idx.append((_match(p[0], updates, tol), p[2], p[3], gyro_mean))
+            memory_rows.append(
+                _pair_memory_row(
+                    seq.pose_sources[n], b, t0, t_last, tol, imu_t, gyro, p, gyro_mean, c
+                )
             )
-            for p in pairs
-        ]
         pseudo = np.ones(updates.size, dtype=bool)  # pseudo-measurements at every epoch
         zupt = np.zeros(updates.size, dtype=bool)
         if cfg.zupt:
@@ -385,6 +500,7 @@ def build_schedule(seq: Sequence, cfg: EskfConfig) -> Schedule:
                 nhc=pseudo & use_nhc,
                 zupt=zupt,
                 sources=source_idx,
+                memory=memory_rows,
             )
         )
 
@@ -453,6 +569,13 @@ def build_schedule(seq: Sequence, cfg: EskfConfig) -> Schedule:
     source_end, source_start, sample_index = map(tensor, (source_end, source_start, sample_index))
     masks = {k: tensor(v) for k, v in masks.items()}
     src = {k: tensor(v) for k, v in src.items()}
+    pair_memory_out = None
+    if names:  # PairMemory's fields, (B, S[, 3]) each
+        columns = [
+            np.array([[p["memory"][s][k] for s in range(n_src)] for p in per_seq], np.float64)
+            for k in range(5)
+        ]
+        pair_memory_out = PairMemory(names, *map(tensor, columns))
 
     rows = torch.arange(batch, device=device)[:, None]
     gyro_end = seq.imu.gyro[rows, end_index]
@@ -528,4 +651,5 @@ def build_schedule(seq: Sequence, cfg: EskfConfig) -> Schedule:
         source_gyro_mean=source_gyro_mean,
         source_dt=source_dt,
         source_mask=source_mask,
+        pair_memory=pair_memory_out,
     )

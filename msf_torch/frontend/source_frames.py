@@ -32,7 +32,8 @@ origin, which that model does not have.
   chunk's offsets, their joint covariance with the navigation state and each source's last
   sample time to the next (:class:`FrameMemory`, ``EskfResult.frame_memory``); a chunk's
   first pair then continues the offset when it starts at most ``pose_source_max_gap_s``
-  after that time (the pair across the chunk boundary is not formed).
+  after that time. With ``run_eskf(..., pair_memory=...)`` that first pair is the one across
+  the chunk boundary, as in the run in one piece; without, that pair is not formed.
 """
 
 from __future__ import annotations

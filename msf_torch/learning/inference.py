@@ -422,10 +422,12 @@ def run_piecewise(
     ``exp(log_scale)`` of ``pose_source`` (``"vo"`` when None), starting from the previous
     chunk's last state and covariance and carrying the gate's rejection streaks, the
     divergence guard's episode and the wheel slip factor (``EskfResult.gate_memory``), so
-    the chunks gate as one run, the drifting source frames (``EskfResult.frame_memory``) and
-    the online-calibration states (``EskfResult.calibration_memory``). What does not carry
-    over: a pose source's sample pair that straddles a chunk boundary is not fused (its
-    relative motion needs the previous chunk's IMU), one pair per source per boundary.
+    the chunks gate as one run, the drifting source frames (``EskfResult.frame_memory``),
+    the online-calibration states (``EskfResult.calibration_memory``) and each pose source's
+    latest sample with the gyro integral since (``EskfResult.pair_memory``), so the pair
+    that straddles a chunk boundary is fused as in the run in one piece. What does not
+    carry over: the source-fault detector's filters (``source_fault_detection``) restart in
+    each chunk.
     The input rule of ``frontend.guard`` is applied to the whole run once (skipped samples
     counted in ``dropped_samples`` as by ``run_eskf``).
 
@@ -460,6 +462,7 @@ def run_piecewise(
     memory = None  # the gate's rejection streaks and the guard's episode, chunk to chunk
     frames = None  # drifting source frames (pose_source_fusion: drifting_frame), the same
     calibration = None  # online calibration states, the same
+    pairs = None  # pose sources' latest samples and latest pairs, the same
     pose_column = LOG_SCALE_SENSORS.index(pose_source or "vo")
 
     def chunk_of(w0: int, w1: int | None) -> Sequence:
@@ -497,12 +500,14 @@ def run_piecewise(
                 gate_memory=memory,
                 frame_memory=frames,
                 calibration_memory=calibration,
+                pair_memory=pairs,
             )
         except EstimationInterrupted as stop:
             results.append(stop.result)
-            later = sum(
-                build_schedule(chunk_of(a, b), cfg).num_epochs for a, b in bounds[index + 1 :]
-            )
+            later, pairs = 0, stop.result.pair_memory
+            for a, b in bounds[index + 1 :]:
+                sched = build_schedule(chunk_of(a, b), cfg, pairs)
+                later, pairs = later + sched.num_epochs, sched.pair_memory
             raise EstimationInterrupted(
                 _concat(results, dropped_samples),
                 done + stop.epochs_done,
@@ -510,7 +515,7 @@ def run_piecewise(
             ) from None
         done += int(result.mask[0].sum()) - 1
         initial, memory, frames = _last(result), result.gate_memory, result.frame_memory
-        calibration = result.calibration_memory
+        calibration, pairs = result.calibration_memory, result.pair_memory
         results.append(result)
     return _concat(results, dropped_samples)
 

@@ -4,10 +4,14 @@
   (``EskfResult.gate_memory``): on a run whose GNSS turns 8 x noisier than declared (gate
   re-opens), chunks of 1 s equal the unchained run to 1e-9; without the memory they do not.
   So do the wheel slip factor (same memory) on a run with slip episodes, and the online
-  calibration states (``EskfResult.calibration_memory``) on a run with miscalibrated wheels
-  and a GNSS time offset.
-  The biases are held there (zero initial sigma and random walk): the preintegration is
-  linearised at each chunk's starting bias, a second-order difference otherwise.
+  calibration states (``EskfResult.calibration_memory``) on a run with miscalibrated wheels,
+  a GNSS time offset and a 10 Hz VO source, whose pairs across the chunk boundaries are
+  fused as in the one run (``EskfResult.pair_memory``: the pair's start and the gyro
+  integral since), also in the drifting-frame mode, with the VO's time offset calibrated,
+  and in a batch of two with masked VO samples and chunks without a VO sample.
+  The biases are held there (zero initial sigma and random walk, also after
+  ``config_for_sequence``): the preintegration is linearised at each chunk's starting bias,
+  a second-order difference otherwise.
 * Diagnostics: divergence codes, skipped samples, source-fault flags and Z, fading factors
   and noise estimates come through the chunks as ``run_eskf`` reports them.
 * Ctrl-C in a later chunk: ``EstimationInterrupted`` carries the epochs of every completed
@@ -35,7 +39,7 @@ from msf_torch.runner import RunInterrupted, RunOptions, run_sequence
 from msf_torch.sim import SimConfig, simulate_run
 from msf_torch.sim.calibration import calibration_sim_config, simulate_calibration_run
 from msf_torch.sim.noise_step import gnss_noise_step
-from msf_torch.types import NavState
+from msf_torch.types import NavState, batch_sequences
 
 TOL = 1e-9
 HELD_BIASES = EskfConfig(
@@ -60,20 +64,35 @@ def noisy_gnss_run():
     return gnss_noise_step(run.sequence, 8.0, 8.0, seed=4)
 
 
+def _held(cfg: EskfConfig) -> EskfConfig:
+    """``cfg`` with the biases held (``config_for_sequence`` sets their random walks from
+    the sequence's metadata)."""
+    return cfg.replace(
+        init_gyro_bias_sigma_radps=0.0,
+        init_accel_bias_sigma_mps2=0.0,
+        gyro_bias_rw_density=0.0,
+        accel_bias_rw_density=0.0,
+    )
+
+
 def _chunks(seq, cfg, length: int, carry: bool):
-    """run_eskf over IMU chunks of ``length`` samples, chained by hand."""
-    imu = seq.imu.compact()
-    initial, memory, parts = initial_state(seq, cfg), None, []
+    """run_eskf over IMU chunks of ``length`` samples, chained by hand (B > 1: IMU samples
+    unmasked); ``carry``: with every memory (gate, calibration, source pairs)."""
+    imu = seq.imu.compact() if seq.batch_size == 1 else seq.imu
+    initial, memory, parts = initial_state(seq, cfg), {}, []
+    rows = torch.arange(seq.batch_size)
     for start in range(0, imu.length - 1, length):
         chunk = dataclasses.replace(seq, imu=imu.map(lambda x, a=start: x[:, a : a + length + 1]))
-        part = run_eskf(chunk, cfg, initial=initial, gate_memory=memory if carry else None)
-        last = int(part.mask[0].sum()) - 1
+        part = run_eskf(chunk, cfg, initial=initial, **memory)
+        last = part.mask.sum(1) - 1
         fields = ("position", "velocity", "rotation", "gyro_bias", "accel_bias")
         initial = (
-            NavState(*(getattr(part, f)[:, last] for f in fields)),
-            part.covariance[:, last],
+            NavState(*(getattr(part, f)[rows, last] for f in fields)),
+            part.covariance[rows, last],
         )
-        memory = part.gate_memory
+        if carry:
+            names = ("gate_memory", "calibration_memory", "pair_memory")
+            memory = {name: getattr(part, name) for name in names}
         parts.append(part)
     return parts
 
@@ -120,26 +139,83 @@ def test_chunks_carry_the_slip_factor():
     assert float((forgot - whole.slip_factor[0, 1:]).abs().max()) > 0.2  # measured 0.43
 
 
-def test_chunks_carry_the_calibration():
-    run = simulate_calibration_run(3, calibration_sim_config(40.0))
-    # without its VO: a pose source's pair across a chunk boundary is not fused
-    seq = dataclasses.replace(run.sequence, pose_sources={})
-    cfg = config_for_sequence(
-        dataclasses.replace(HELD_BIASES, calibrate_wheels=True, calibrate_time_offsets=["gnss"]),
-        seq.meta,
-        set(),
+@pytest.fixture(scope="module")
+def vo_calibration_run():
+    """40 s with miscalibrated wheels, a GNSS time offset and a 10 Hz VO source."""
+    return simulate_calibration_run(3, calibration_sim_config(40.0)).sequence
+
+
+def test_chunks_carry_the_calibration(vo_calibration_run):
+    seq = vo_calibration_run
+    cfg = _held(
+        config_for_sequence(
+            EskfConfig(calibrate_wheels=True, calibrate_time_offsets=["gnss"]), seq.meta, set()
+        )
     )
     with torch.no_grad():
         whole = run_eskf(seq, cfg)
         pieces = run_piecewise(seq, cfg, _alternating(40), 200, None)
     fields = ("position", "covariance", "calibration", "calibration_covariance")
-    _assert_same_run(pieces, whole, fields, tol=1e-6)  # round-off (measured 5e-8 m)
+    _assert_same_run(pieces, whole, fields)  # round-off (measured 4.5e-13 m)
     sigma = torch.diagonal(whole.calibration_covariance[0, -1]).sqrt()
     prior = torch.diagonal(whole.calibration_covariance[0, 0]).sqrt()
     # the wheel radii were learned over many 1 s chunks (measured 0.0018 from 0.1)
     assert bool((sigma[:2] < 0.05 * prior[:2]).all())
     with pytest.raises(ValueError, match="calibrates no state"):
         run_eskf(seq, HELD_BIASES, calibration_memory=pieces.calibration_memory)
+
+
+@pytest.mark.parametrize(
+    "fusion", [{"calibrate_time_offsets": ["pose:vo"]}, {"pose_source_fusion": "drifting_frame"}]
+)
+def test_chunks_fuse_the_source_pairs_across_boundaries(vo_calibration_run, fusion):
+    seq = vo_calibration_run
+    cfg = _held(config_for_sequence(EskfConfig(**fusion), seq.meta, set()))
+    with torch.no_grad():
+        whole = run_eskf(seq, cfg)
+        pieces = run_piecewise(seq, cfg, _alternating(40), 200, None)
+    # every pair is fused, also the 39 across the 1 s chunk boundaries (the VO runs at
+    # 10 Hz from 0.08 s), with the mean gyro rate over its whole interval and, for the
+    # VO's time offset, the rate change since the pair before (before: ~1 cm apart)
+    assert torch.equal(pieces.present["pose:vo"], whole.present["pose:vo"])
+    assert torch.equal(pieces.accepted["pose:vo"], whole.accepted["pose:vo"])
+    fields = ("position", "velocity", "rotation", "covariance", "calibration")
+    fields = fields if whole.calibration is not None else fields[:-1]
+    _assert_same_run(pieces, whole, fields)  # round-off (measured 1.6e-13, 4.3e-14 m)
+    for key, frame in whole.source_frame.items():
+        assert float((pieces.source_frame[key] - frame).abs().max()) < TOL
+
+
+def test_batch_chunks_fuse_the_source_pairs_across_boundaries():
+    """B = 2, 0.1 s chunks (some hold no valid VO sample: the pair's start and its gyro
+    integral pass through), VO samples masked around two boundaries."""
+    runs = [simulate_calibration_run(s, calibration_sim_config(6.0)).sequence for s in (3, 4)]
+    vo = runs[1].pose_sources["vo"]
+    mask = vo.mask.clone()
+    mask[0, torch.isin(torch.round(vo.t[0] * 100), torch.tensor([302.0, 402.0]))] = False
+    assert int(mask.sum()) == vo.length - 2
+    runs[1] = dataclasses.replace(runs[1], pose_sources={"vo": dataclasses.replace(vo, mask=mask)})
+    seq = batch_sequences(runs)
+    cfg = _held(config_for_sequence(EskfConfig(), runs[0].meta, set()))
+    with torch.no_grad():
+        whole = run_eskf(seq, cfg)
+        parts = _chunks(seq, cfg, 20, carry=True)
+        with pytest.raises(ValueError, match="pair_memory"):
+            memory = dataclasses.replace(parts[0].pair_memory, names=("lidar",))
+            run_eskf(seq, cfg, pair_memory=memory)
+
+    def chained(name: str, b: int) -> torch.Tensor:
+        """Sequence ``b``'s real epochs of the chunks, each chunk's first (its
+        predecessor's last) dropped."""
+        return torch.cat([getattr(p, name)[b, p.mask[b]][min(k, 1) :] for k, p in enumerate(parts)])
+
+    for b in range(2):
+        t, real = chained("t", b), whole.mask[b]
+        here = torch.isin(t, whole.t[b, real])  # not the boundaries the one run has no epoch at
+        assert torch.equal(t[here], whole.t[b, real])
+        for name in ("position", "velocity", "covariance"):
+            diff = (chained(name, b)[here] - getattr(whole, name)[b, real]).abs().max()
+            assert float(diff) < TOL, (b, name)  # measured 1.1e-14 m
 
 
 @pytest.fixture(scope="module")
