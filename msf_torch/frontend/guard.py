@@ -51,7 +51,8 @@ the run without the guard.
 The gate's memory (each block's rejections in a row, its streak's innovation sums, whether
 another block vouched during it, the open episode) lives in the guard and is handed from
 one ``run_eskf`` call to the next as :class:`GateMemory` (``EskfResult.gate_memory``), so a
-run filtered in chunks gates as one run.
+run filtered in chunks gates as one run. A block that a chunk does not measure keeps its
+streak through it (another block passing its gate there vouches for it, as in one run).
 
 Interruption (:class:`InterruptCatcher`, :class:`EstimationInterrupted`). Ctrl-C (SIGINT)
 during the epoch loop ends the loop, not the results: ``run_eskf`` raises
@@ -347,6 +348,10 @@ class DivergenceGuard:
         self.nis_sum = torch.zeros(batch, len(blocks), dtype=dtype, device=device)
         self.vouched = torch.zeros(batch, len(blocks), dtype=torch.bool, device=device)
         self.episode = torch.zeros(batch, dtype=torch.bool, device=device)
+        # (B,) a re-openable block passed its gate in some epoch (vouches for the streaks of
+        # the previous chunk's blocks that this one lacks)
+        self._calm_seen = torch.zeros(batch, dtype=torch.bool, device=device)
+        self._carried: GateMemory | None = None
         if memory is not None:
             self._load(memory)
         self._open = bool((self.streak > 0).any())  # some streak runs (else sums are 0)
@@ -357,8 +362,10 @@ class DivergenceGuard:
         self._limit: torch.Tensor | None = None
 
     def _load(self, memory: GateMemory) -> None:
-        """Take over a previous chunk's memory (blocks it did not have start afresh)."""
+        """Take over a previous chunk's memory (blocks it did not have start afresh; its
+        blocks this chunk lacks pass through, :meth:`memory`)."""
         self.episode = memory.episode.to(self.episode.device)
+        self._carried = memory
         for k, key in enumerate(self.blocks):
             rows = slice(self._offsets[k], self._offsets[k + 1])
             if key in memory.streak and memory.residual_sum[key].shape[-1] == self._dims[k]:
@@ -368,15 +375,26 @@ class DivergenceGuard:
                 self.residual_sum[:, rows] = memory.residual_sum[key]
 
     def memory(self) -> GateMemory:
-        """The gate's and the guard's memory now, for the next chunk's ``run_eskf``."""
+        """The gate's and the guard's memory now, for the next chunk's ``run_eskf``: this
+        chunk's blocks, and the previous memory's blocks this chunk did not measure (their
+        streaks unchanged, vouched for where another block passed its gate)."""
         rows = [slice(a, b) for a, b in itertools.pairwise(self._offsets)]
-        return GateMemory(
+        out = GateMemory(
             streak={key: self.streak[:, k] for k, key in enumerate(self.blocks)},
             residual_sum={key: self.residual_sum[:, rows[k]] for k, key in enumerate(self.blocks)},
             nis_sum={key: self.nis_sum[:, k] for k, key in enumerate(self.blocks)},
             vouched={key: self.vouched[:, k] for k, key in enumerate(self.blocks)},
             episode=self.episode,
         )
+        carried = self._carried
+        lacking = [] if carried is None else [k for k in carried.streak if k not in self.blocks]
+        for key in lacking:
+            out.streak[key] = carried.streak[key]
+            out.residual_sum[key] = carried.residual_sum[key]
+            out.nis_sum[key] = carried.nis_sum[key]
+            streak_open = carried.streak[key] > 0
+            out.vouched[key] = carried.vouched[key] | (self._calm_seen & streak_open)
+        return out
 
     def propagated(self, state: NavState, cov: torch.Tensor) -> None:
         """Remember the propagated state of this epoch (the reset target of its update)."""
@@ -513,6 +531,7 @@ class DivergenceGuard:
         if gate is not self._gate:
             self._gate, self._limit = gate, self.nis_scale * gate
         blowup, calm = self._streaks(accepted, nis, gate, present, white)
+        self._calm_seen = self._calm_seen | calm
         if bool((finite & (info == 0) & ~(factorisation_failed | blowup)).all()):
             self.good_state, self.good_cov = state, cov
             self.episode = self.episode & ~calm
