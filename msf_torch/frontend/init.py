@@ -32,18 +32,11 @@ from collections.abc import Callable
 
 import numpy as np
 import torch
-from pytorch_kinematics.transforms import euler_angles_to_matrix
 
 from msf_torch.frontend.config import EskfConfig
 from msf_torch.geometry import so3
 from msf_torch.geometry.conventions import ERROR_STATE_DIM
 from msf_torch.types import NavState, Sequence
-
-
-def _rpy_matrix(roll: float, pitch: float, yaw: float) -> np.ndarray:
-    """``Rz(yaw) Ry(pitch) Rx(roll)`` (3, 3), through pytorch_kinematics."""
-    angles = torch.tensor([yaw, pitch, roll], dtype=torch.float64)
-    return euler_angles_to_matrix(angles, "ZYX").numpy()
 
 
 def _valid(stream, b: int, span: tuple[float, float]):
@@ -250,7 +243,7 @@ def _one(
                 # an IMU-to-vehicle yaw still to be calibrated adds its prior uncertainty
                 model_var += cfg.calibration_rotation_sigma_rad**2
             yaw_sigma = math.sqrt(model_var)
-    rot = _rpy_matrix(roll, pitch, yaw)
+    rot = so3.rpy_matrix(torch.tensor([roll, pitch, yaw], dtype=torch.float64)).numpy()
     body_velocity = np.zeros(3)
     if wheel is not None:
         body_velocity = np.array([wheel_speed, 0.0, 0.0])

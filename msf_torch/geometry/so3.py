@@ -26,6 +26,7 @@ __all__ = [
     "series_coefficients",
     "series",
     "project",
+    "rpy_matrix",
 ]
 
 import functools
@@ -300,3 +301,19 @@ def project(mat: torch.Tensor) -> torch.Tensor:
     ones = torch.ones_like(det)
     fix = torch.diag_embed(torch.stack((ones, ones, det), -1))
     return u @ fix @ vh
+
+
+def rpy_matrix(rpy: torch.Tensor) -> torch.Tensor:
+    """Fixed-axis roll-pitch-yaw (..., 3) rad -> rotation ``Rz(yaw) Ry(pitch) Rx(roll)``
+    (..., 3, 3): URDF's ``rpy``, the ZYX Euler angles of KITTI's OXTS and of most IMU
+    mounting specs."""
+    roll, pitch, yaw = rpy.unbind(-1)
+    cr, sr = torch.cos(roll), torch.sin(roll)
+    cp, sp = torch.cos(pitch), torch.sin(pitch)
+    cy, sy = torch.cos(yaw), torch.sin(yaw)
+    rows = (
+        (cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr),
+        (sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr),
+        (-sp, cp * sr, cp * cr),
+    )
+    return torch.stack([torch.stack(row, -1) for row in rows], -2)

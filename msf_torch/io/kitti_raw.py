@@ -64,6 +64,7 @@ import numpy as np
 import torch
 
 from msf_torch.geometry.quaternion import matrix_to_quat
+from msf_torch.geometry.so3 import rpy_matrix
 from msf_torch.io import _tables
 from msf_torch.io.errors import DataError
 from msf_torch.io.geodesy import geodetic_to_enu
@@ -166,19 +167,6 @@ def _read_sample(path: Path) -> np.ndarray:
     return values
 
 
-def _rotation(roll: np.ndarray, pitch: np.ndarray, yaw: np.ndarray) -> np.ndarray:
-    """(N, 3, 3) ``Rz(yaw) Ry(pitch) Rx(roll)``, body -> ENU."""
-    cr, sr, cp, sp, cy, sy = (f(a) for a in (roll, pitch, yaw) for f in (np.cos, np.sin))
-    return np.stack(
-        (
-            np.stack((cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr), -1),
-            np.stack((sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr), -1),
-            np.stack((-sp, cp * sr, cp * cr), -1),
-        ),
-        -2,
-    )
-
-
 def _fix_rows(t: np.ndarray, rate_hz: float) -> np.ndarray:
     """Indices of the first sample of each ``1 / rate_hz`` interval of ``t`` (s)."""
     bins = np.floor(t * rate_hz + 1e-9)
@@ -237,8 +225,8 @@ def read_kitti_raw(
     attitude = np.isfinite(rows[:, 3:6]).all(axis=1)
     quat = np.full((rows.shape[0], 4), np.nan)
     if attitude.any():
-        rotation = _rotation(col["roll"][attitude], col["pitch"][attitude], col["yaw"][attitude])
-        quat[attitude] = matrix_to_quat(torch.as_tensor(rotation)).numpy()
+        angles = np.stack([col[k][attitude] for k in ("roll", "pitch", "yaw")], -1)
+        quat[attitude] = matrix_to_quat(rpy_matrix(torch.as_tensor(angles))).numpy()
     report = _tables.CleanReport()
     where = str(stamps_path)
     imu = _tables.clean_stream(

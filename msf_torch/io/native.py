@@ -39,7 +39,11 @@ file                 columns
                      [lat_deg, lon_deg, alt_m]`` (WGS-84, ellipsoidal height) is the
                      geodetic point the ENU frame of ``gnss.csv`` starts from (``msf
                      nmea`` writes it), which maps the trajectory onto the Earth
-                     (``msf run --export geojson,kml``)
+                     (``msf run --export geojson,kml``); ``"imu_rpy_deg": [roll,
+                     pitch, yaw]`` is the IMU's mounting in the body frame (deg,
+                     ``R_body_imu = Rz Ry Rx``): its samples are turned into body axes on
+                     read (``meta["imu_rpy_deg_applied"]``) and the key is not kept, so a
+                     written copy holds body-axes samples
 ==================== =================================================================
 
 NPZ file
@@ -103,6 +107,7 @@ __all__ = [
 
 import contextlib
 import csv
+import dataclasses
 import json
 import math
 import os
@@ -114,6 +119,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from msf_torch.geometry.so3 import rpy_matrix
 from msf_torch.io import _tables
 from msf_torch.io._tables import CleanReport, Table
 from msf_torch.io.atomic import atomic_save_npz, atomic_write
@@ -414,19 +420,28 @@ def _parse_meta_json(path: str, text: str) -> dict[str, Any]:
     return value
 
 
-def _gnss_origin(where: str, value: Any) -> list[float]:
-    """``meta.json``'s ``gnss_origin`` checked: [lat_deg, lon_deg, alt_m], finite, latitude
-    in [-90, 90]; else a DataError naming the field."""
-    origin: list[float] = []
+def _three_numbers(value: Any) -> list[float] | None:
+    """A JSON value as three finite floats, or None when it is not a list of three finite
+    numbers (booleans, strings and integers beyond the float range are not)."""
+    numbers: list[float] = []
     if isinstance(value, list) and len(value) == 3:
         for x in value:
             if isinstance(x, bool) or not isinstance(x, int | float):
-                break
+                return None
             try:
-                origin.append(float(x))
+                numbers.append(float(x))
             except OverflowError:  # a JSON integer beyond the float range
-                break
-    if len(origin) != 3 or not all(math.isfinite(x) for x in origin):
+                return None
+    if len(numbers) != 3 or not all(math.isfinite(x) for x in numbers):
+        return None
+    return numbers
+
+
+def _gnss_origin(where: str, value: Any) -> list[float]:
+    """``meta.json``'s ``gnss_origin`` checked: [lat_deg, lon_deg, alt_m], finite, latitude
+    in [-90, 90]; else a DataError naming the field."""
+    origin = _three_numbers(value)
+    if origin is None:
         shown = repr(value)[:80]
         raise DataError(
             where, f"expected [lat_deg, lon_deg, alt_m], got {shown}", field="gnss_origin"
@@ -434,6 +449,19 @@ def _gnss_origin(where: str, value: Any) -> list[float]:
     if abs(origin[0]) > 90.0:
         raise DataError(where, f"latitude {origin[0]!r} outside [-90, 90]", field="gnss_origin")
     return origin
+
+
+def _imu_mounting(where: str, value: Any) -> np.ndarray:
+    """``meta.json``'s ``imu_rpy_deg`` ``[roll, pitch, yaw]`` (deg, the IMU's axes in the body
+    frame) as ``R_body_imu = Rz(yaw) Ry(pitch) Rx(roll)`` (3, 3); DataError naming the field
+    unless three finite numbers."""
+    angles = _three_numbers(value)
+    if angles is None:
+        shown = repr(value)[:80]
+        raise DataError(
+            where, f"expected [roll, pitch, yaw] in deg, got {shown}", field="imu_rpy_deg"
+        )
+    return rpy_matrix(torch.tensor(np.radians(angles), dtype=torch.float64)).numpy()
 
 
 def _read_meta_json(file: Path) -> dict[str, Any]:
@@ -620,13 +648,23 @@ def _assemble(
     if streams["imu"].length == 0:
         raise DataError(where["imu"][0], "no IMU samples (after dropping non-finite rows)")
     meta: dict[str, Any] = {"source": str(path), "format": fmt, **report.to_meta()}
+    where_meta = str(path / _META_FILE if fmt == "native-csv" else f"{path}[meta_json]")
+    if "imu_rpy_deg" in sensor:  # the IMU's mounting: its samples turned into body axes
+        sensor = dict(sensor)
+        angles = sensor.pop("imu_rpy_deg")
+        rotation = _imu_mounting(where_meta, angles)
+        imu = streams["imu"]
+        turn = torch.as_tensor(rotation, dtype=imu.gyro.dtype)
+        streams["imu"] = dataclasses.replace(
+            imu, gyro=imu.gyro @ turn.mT, accel=imu.accel @ turn.mT
+        )
+        meta["imu_rpy_deg_applied"] = [float(x) for x in angles]
     if sensor:
         meta["sensor"] = sensor
         if "imu_noise" in sensor:
             meta["imu_noise"] = sensor["imu_noise"]
         if "gnss_origin" in sensor:
-            where_meta = path / _META_FILE if fmt == "native-csv" else f"{path}[meta_json]"
-            meta["gnss_origin"] = _gnss_origin(str(where_meta), sensor["gnss_origin"])
+            meta["gnss_origin"] = _gnss_origin(where_meta, sensor["gnss_origin"])
     label_tensors = {
         name: torch.tensor(spans, dtype=torch.float64).reshape(1, -1, 2)
         for name, spans in labels.items()

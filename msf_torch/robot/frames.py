@@ -38,20 +38,7 @@ import pytorch_kinematics as pk
 import torch
 
 from msf_torch.geometry.quaternion import quat_to_matrix, xyzw_to_wxyz
-
-
-def rpy_matrix(rpy: torch.Tensor) -> torch.Tensor:
-    """URDF fixed-axis roll-pitch-yaw (..., 3) rad -> rotation (..., 3, 3) = Rz Ry Rx."""
-    roll, pitch, yaw = rpy.unbind(-1)
-    cr, sr = torch.cos(roll), torch.sin(roll)
-    cp, sp = torch.cos(pitch), torch.sin(pitch)
-    cy, sy = torch.cos(yaw), torch.sin(yaw)
-    rows = (
-        (cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr),
-        (sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr),
-        (-sp, cp * sr, cp * cr),
-    )
-    return torch.stack([torch.stack(row, -1) for row in rows], -2)
+from msf_torch.geometry.so3 import rpy_matrix
 
 
 def _homogeneous(rotation: torch.Tensor, translation: torch.Tensor) -> torch.Tensor:

@@ -409,3 +409,19 @@ def test_series_coefficients_equal_coefficients_and_closed_forms():
     got = so3.series_coefficients(torch.as_tensor(t * t)).numpy()
     np.testing.assert_allclose(got[:4], np.stack(closed(t)), rtol=1e-13)
     np.testing.assert_allclose(got[4:], np.stack(slopes[1:]), rtol=1e-6)
+
+
+def test_rpy_matrix_equals_pytorch_kinematics_zyx() -> None:
+    """``rpy_matrix`` (URDF / OXTS / mounting roll-pitch-yaw) against pytorch_kinematics'
+    intrinsic ZYX Euler angles ``[yaw, pitch, roll]``, batched."""
+    from pytorch_kinematics.transforms import euler_angles_to_matrix
+
+    gen = torch.Generator().manual_seed(7)
+    rpy = (torch.rand(50, 3, generator=gen, dtype=torch.float64) - 0.5) * 6.0
+    expected = euler_angles_to_matrix(rpy.flip(-1), "ZYX")
+    torch.testing.assert_close(so3.rpy_matrix(rpy), expected, rtol=0, atol=1e-14)
+    quarter = so3.rpy_matrix(torch.tensor([0.0, 0.0, torch.pi / 2], dtype=torch.float64))
+    torch.testing.assert_close(
+        quarter @ torch.tensor([1.0, 0.0, 0.0], dtype=torch.float64),
+        torch.tensor([0.0, 1.0, 0.0], dtype=torch.float64),
+    )

@@ -1,9 +1,10 @@
 """Map exports (GeoJSON, KML) against the textbook ECEF route in extended precision; the
 geodetic origin a native folder keeps in ``meta.json``; ``msf nmea`` storing it and ``msf run
---export geojson,kml`` using it."""
+--export geojson,kml`` using it; the IMU mounting ``meta.json`` may give."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import xml.etree.ElementTree as ET
 
@@ -12,6 +13,7 @@ import pytest
 import torch
 
 from msf_torch.cli import main
+from msf_torch.geometry import so3
 from msf_torch.io.errors import DataError
 from msf_torch.io.geo_export import write_geojson, write_kml
 from msf_torch.io.native import read_native, store_gnss_origin, stored_gnss_origin, write_native
@@ -199,3 +201,24 @@ def test_run_exports_the_estimate_and_fixes_on_the_map(
     assert withheld.shape[0] == int(((t >= 5.0) & (t <= 10.0)).sum())
     kml = ET.parse(out / "trajectory.kml").getroot()
     assert len(kml.findall(f"{KML}Document/{KML}Placemark")) == 4
+
+
+def test_imu_mounting_turns_the_samples_into_body_axes(tmp_path, short_run) -> None:
+    """``imu_rpy_deg`` in meta.json: an IMU mounted upside down and turned 90 degrees reads
+    back in body axes (the run's own samples), and a second write keeps them so."""
+    mounting = (180.0, 0.0, 90.0)
+    turn = so3.rpy_matrix(torch.tensor(np.radians(mounting)))  # R_body_imu
+    imu = short_run.imu
+    raw = dataclasses.replace(imu, gyro=imu.gyro @ turn, accel=imu.accel @ turn)
+    folder = write_native(dataclasses.replace(short_run, imu=raw), tmp_path / "raw")
+    (folder / "meta.json").write_text(json.dumps({"imu_rpy_deg": list(mounting)}))
+    seq = read_native(folder)
+    torch.testing.assert_close(seq.imu.gyro, imu.gyro, rtol=0, atol=1e-15)
+    torch.testing.assert_close(seq.imu.accel, imu.accel, rtol=0, atol=1e-14)
+    assert seq.meta["imu_rpy_deg_applied"] == list(mounting)
+    again = read_native(write_native(seq, tmp_path / "again"))
+    torch.testing.assert_close(again.imu.accel, imu.accel, rtol=0, atol=1e-14)
+    (folder / "meta.json").write_text(json.dumps({"imu_rpy_deg": [0, 90]}))
+    with pytest.raises(DataError, match="roll, pitch, yaw") as err:
+        read_native(folder)
+    assert err.value.field == "imu_rpy_deg"
