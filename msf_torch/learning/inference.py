@@ -417,7 +417,8 @@ def run_piecewise(
     """The ESKF over a B = 1 sequence with piecewise-constant noise per window.
 
     Consecutive windows with equal scales form one chunk; the filter runs chunk by chunk
-    over the chunk's IMU samples (the last chunk to the end of the IMU stream), each
+    over the chunk's IMU samples (the last chunk to the end of the IMU stream; each chunk
+    from the previous chunk's last real sample, also where the boundary's was skipped), each
     chunk with ``scaled_noise`` of its scales and ``seq.poses`` covariances times
     ``exp(log_scale)`` of ``pose_source`` (``"vo"`` when None), starting from the previous
     chunk's last state and covariance and carrying the gate's rejection streaks, the
@@ -464,13 +465,16 @@ def run_piecewise(
     calibration = None  # online calibration states, the same
     pairs = None  # pose sources' latest samples and latest pairs, the same
     pose_column = LOG_SCALE_SENSORS.index(pose_source or "vo")
+    # (N,) index of the last real IMU sample at or before each sample: a chunk starts at the
+    # previous chunk's last real sample, also where the sample at the boundary was skipped
+    samples = torch.arange(imu.length, device=imu.t.device)
+    last_real = torch.where(imu.mask[0], samples, 0).cummax(0).values
 
     def chunk_of(w0: int, w1: int | None) -> Sequence:
         """The run over windows [w0, w1) with those windows' pose covariances."""
+        start = int(last_real[w0 * window_length])
         end = None if w1 is None else w1 * window_length + 1
-        chunk = dataclasses.replace(
-            seq, imu=imu.map(lambda x, a=w0 * window_length, b=end: x[:, a:b])
-        )
+        chunk = dataclasses.replace(seq, imu=imu.map(lambda x, a=start, b=end: x[:, a:b]))
         if seq.poses is not None:
             covariance = scaled_pose_covariance(
                 seq.poses.covariance,
