@@ -728,6 +728,31 @@ def _reinitialise_frames(
     return cov, frame_value
 
 
+def _joint_at_last_epoch(
+    result: EskfResult, full_cov: torch.Tensor, block: slice
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """At each sequence's last real epoch (``result.mask``): the batch rows (B,), that epoch
+    (B,) and the joint covariance (B, 15 + n, 15 + n) of the conventional navigation error
+    and the augmented states in columns ``block`` of the invariant-coordinate ``full_cov``
+    (B, E + 1, N, N) (what a next chunk's ``run_eskf`` starts from)."""
+    epochs = torch.arange(result.mask.shape[1], device=full_cov.device)
+    last = torch.where(result.mask, epochs, 0).argmax(1)
+    rows = torch.arange(full_cov.shape[0], device=full_cov.device)
+    full = full_cov[rows, last]
+    to_conv, _ = _maps_at_estimate(
+        result.position[rows, last], result.velocity[rows, last], result.rotation[rows, last]
+    )
+    cross = to_conv @ full[:, :ERROR_STATE_DIM, block]
+    covariance = torch.cat(
+        (
+            torch.cat((result.covariance[rows, last], cross), -1),
+            torch.cat((cross.mT, full[:, block, block]), -1),
+        ),
+        -2,
+    )
+    return rows, last, covariance
+
+
 def _frame_memory(
     frames: SourceFrames,
     previous: FrameMemory | None,
@@ -739,23 +764,7 @@ def _frame_memory(
 ) -> FrameMemory:
     """The source frames after each sequence's last real epoch (``result.mask``), with the
     joint conventional covariance of the navigation state and the offsets there."""
-    batch = full_cov.shape[0]
-    epochs = torch.arange(result.mask.shape[1], device=full_cov.device)
-    last = torch.where(result.mask, epochs, 0).argmax(1)
-    rows = torch.arange(batch, device=full_cov.device)
-    full = full_cov[rows, last]
-    to_conv, _ = _maps_at_estimate(
-        result.position[rows, last], result.velocity[rows, last], result.rotation[rows, last]
-    )
-    nav = slice(0, ERROR_STATE_DIM)
-    cross = to_conv @ full[:, nav, frame_col:]
-    covariance = torch.cat(
-        (
-            torch.cat((result.covariance[rows, last], cross), -1),
-            torch.cat((cross.mT, full[:, frame_col:, frame_col:]), -1),
-        ),
-        -2,
-    )
+    rows, last, covariance = _joint_at_last_epoch(result, full_cov, slice(frame_col, None))
     used = sched.source_mask & result.mask[:, 1:, None]
     stamps = torch.where(used, sched.t_end[:, :, None], -math.inf).amax(1)
     if previous is not None:
@@ -776,23 +785,8 @@ def _calibration_memory(
 ) -> CalibrationMemory:
     """The calibration states after each sequence's last real epoch (``result.mask``), with
     the joint conventional covariance of the navigation state and those states there."""
-    batch = full_cov.shape[0]
-    epochs = torch.arange(result.mask.shape[1], device=full_cov.device)
-    last = torch.where(result.mask, epochs, 0).argmax(1)
-    rows = torch.arange(batch, device=full_cov.device)
-    full = full_cov[rows, last]
-    to_conv, _ = _maps_at_estimate(
-        result.position[rows, last], result.velocity[rows, last], result.rotation[rows, last]
-    )
     block = slice(ERROR_STATE_DIM, frame_col)
-    cross = to_conv @ full[:, :ERROR_STATE_DIM, block]
-    covariance = torch.cat(
-        (
-            torch.cat((result.covariance[rows, last], cross), -1),
-            torch.cat((cross.mT, full[:, block, block]), -1),
-        ),
-        -2,
-    )
+    rows, last, covariance = _joint_at_last_epoch(result, full_cov, block)
     return CalibrationMemory(calib.names, result.calibration[rows, last], covariance)
 
 
