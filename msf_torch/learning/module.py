@@ -180,7 +180,9 @@ class CovNetModule(L.LightningModule):
         self.eskf_base = load_config(eskf_config)
         self.eskf_explicit: set[str] = set()
         if eskf_config is not None:
-            self.eskf_explicit = set(read_config_keys(eskf_config))
+            # the filter's own keys (a config file may also hold a ``smoother:`` section)
+            fields = {spec.name for spec in dataclasses.fields(EskfConfig)}
+            self.eskf_explicit = set(read_config_keys(eskf_config)) & fields
         self.chunk_windows = chunk_windows
         self.noise_granularity = noise_granularity
         self.use_weather_labels = use_weather_labels

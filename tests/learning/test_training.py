@@ -307,3 +307,13 @@ def test_validation_figures_of_runs_with_one_name_get_their_own_tags(tiny_batch)
     module._add_figures(twice, [result])
     name = tiny_batch.sequence.names[0]
     assert tags == [f"val_trajectory/{name}", f"val_trajectory/{name}-2"]
+
+
+def test_filter_settings_of_a_config_with_a_smoother_section() -> None:
+    """The KITTI config holds a ``smoother:`` section beside the filter's keys: the
+    checkpoint's recorded filter settings are the filter's keys only (the section made
+    ``noise_application`` raise at the end of a KITTI fit)."""
+    path = Path(__file__).resolve().parents[2] / "msf_torch" / "configs" / "kitti-gtsam.yaml"
+    module = CovNetModule(eskf_config=str(path))
+    settings = module.noise_application().filter_settings
+    assert "smoother" not in settings and settings["imu_gap_noise_scale"] == 10000.0
