@@ -14,6 +14,7 @@ __all__ = [
     "ImuSamples",
     "WheelSamples",
     "GnssFixes",
+    "GnssVelocity",
     "PoseMeasurements",
     "Trajectory",
     "NavState",
@@ -158,6 +159,26 @@ class GnssFixes(_Stream):
 
 
 @dataclass
+class GnssVelocity(_Stream):
+    """GNSS velocity of the antenna in the local world frame (ENU, m/s): a receiver's
+    Doppler velocity, or speed and course over ground.
+
+    Attributes:
+        t: (B, N) s.
+        velocity: (B, N, 3) east, north, up, m/s; the up component is NaN where the
+            receiver gave none (NMEA RMC / VTG: horizontal only), and is then not fused.
+        sigma: (B, N, 3) per-axis standard deviation, m/s; NaN where the file gave none
+            (the estimator's configured default applies).
+        mask: (B, N) bool.
+    """
+
+    t: torch.Tensor
+    velocity: torch.Tensor
+    sigma: torch.Tensor
+    mask: torch.Tensor
+
+
+@dataclass
 class PoseMeasurements(_Stream):
     """Pose measurements of the body in the world frame (visual / LiDAR odometry, priors).
 
@@ -219,7 +240,7 @@ class Sequence:
     Attributes:
         names: one name per sequence (length B).
         imu: IMU samples (required).
-        wheel, gnss, poses: optional measurement streams.
+        wheel, gnss, gnss_velocity, poses: optional measurement streams.
         ground_truth: optional reference trajectory.
         labels: name -> (B, K, 2) intervals ``[t_start, t_end]`` in s, NaN-padded; e.g.
             ``"slip"`` or ``"weather:rain"``.
@@ -234,13 +255,14 @@ class Sequence:
     imu: ImuSamples
     wheel: WheelSamples | None = None
     gnss: GnssFixes | None = None
+    gnss_velocity: GnssVelocity | None = None
     poses: PoseMeasurements | None = None
     ground_truth: Trajectory | None = None
     labels: dict[str, torch.Tensor] = field(default_factory=dict)
     meta: dict[str, Any] = field(default_factory=dict)
     pose_sources: dict[str, PoseMeasurements] = field(default_factory=dict)
 
-    _STREAMS = ("imu", "wheel", "gnss", "poses", "ground_truth")
+    _STREAMS = ("imu", "wheel", "gnss", "gnss_velocity", "poses", "ground_truth")
 
     @property
     def batch_size(self) -> int:
@@ -338,6 +360,7 @@ def _empty_like_stream(kind: type, template) -> Any:
         "left_speed": (),
         "right_speed": (),
         "position": (3,),
+        "velocity": (3,),
         "sigma": (3,),
         "quaternion": (4,),
         "covariance": (6, 6),
@@ -365,6 +388,7 @@ def batch_sequences(sequences: list[Sequence]) -> Sequence:
         "imu": ImuSamples,
         "wheel": WheelSamples,
         "gnss": GnssFixes,
+        "gnss_velocity": GnssVelocity,
         "poses": PoseMeasurements,
         "ground_truth": Trajectory,
     }

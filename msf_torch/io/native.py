@@ -18,6 +18,11 @@ file                 columns
                      (s, rad/s, m/s^2; accel is specific force, +g on z at rest)
 ``wheel.csv``        ``t, left_speed, right_speed`` (s, rim speeds in m/s)
 ``gnss.csv``         ``t, x, y, z`` [``, sigma_x, sigma_y, sigma_z``] (s, m, m)
+``gnss_velocity.csv`` ``t, vx, vy, vz`` [``, sigma_vx, sigma_vy, sigma_vz``] (s, m/s,
+                     m/s): the antenna's velocity in the world frame (east, north, up)
+                     from the receiver's Doppler or its speed and course over ground;
+                     ``vz`` may be ``nan`` (horizontal only, e.g. NMEA RMC / VTG): the up
+                     component is then not fused
 ``poses.csv``        ``t, x, y, z, qw, qx, qy, qz`` then the uncertainty, one of:
                      nothing (covariance unknown: NaN);
                      6 standard deviations ``sigma_x, sigma_y, sigma_z, sigma_roll,
@@ -53,6 +58,8 @@ Arrays keyed ``<stream>/<field>``, float64, N samples per stream:
 ``imu/t`` (N,), ``imu/gyro`` (N, 3), ``imu/accel`` (N, 3);
 ``wheel/t``, ``wheel/left_speed``, ``wheel/right_speed`` (N,);
 ``gnss/t`` (N,), ``gnss/position`` (N, 3), optional ``gnss/sigma`` (N, 3);
+``gnss_velocity/t`` (N,), ``gnss_velocity/velocity`` (N, 3) (up may be NaN), optional
+``gnss_velocity/sigma`` (N, 3);
 ``poses/t`` (N,), ``poses/position`` (N, 3), ``poses/quaternion`` (N, 4) ``[w,x,y,z]``,
 optional ``poses/covariance`` (N, 6, 6);
 ``poses/<name>/t``, ``poses/<name>/position``, ``poses/<name>/quaternion``, optional
@@ -91,6 +98,8 @@ __all__ = [
     "WHEEL_COLUMNS",
     "GNSS_COLUMNS",
     "GNSS_SIGMA_COLUMNS",
+    "GNSS_VELOCITY_COLUMNS",
+    "GNSS_VELOCITY_SIGMA_COLUMNS",
     "POSE_COLUMNS",
     "POSE_SIGMA_COLUMNS",
     "POSE_COVARIANCE_COLUMNS",
@@ -126,6 +135,7 @@ from msf_torch.io.atomic import atomic_save_npz, atomic_write
 from msf_torch.io.errors import DataError
 from msf_torch.types import (
     GnssFixes,
+    GnssVelocity,
     ImuSamples,
     PoseMeasurements,
     Sequence,
@@ -137,6 +147,8 @@ IMU_COLUMNS = ["t", "gyro_x", "gyro_y", "gyro_z", "accel_x", "accel_y", "accel_z
 WHEEL_COLUMNS = ["t", "left_speed", "right_speed"]
 GNSS_COLUMNS = ["t", "x", "y", "z"]
 GNSS_SIGMA_COLUMNS = ["sigma_x", "sigma_y", "sigma_z"]
+GNSS_VELOCITY_COLUMNS = ["t", "vx", "vy", "vz"]
+GNSS_VELOCITY_SIGMA_COLUMNS = ["sigma_vx", "sigma_vy", "sigma_vz"]
 POSE_COLUMNS = ["t", "x", "y", "z", "qw", "qx", "qy", "qz"]
 POSE_SIGMA_COLUMNS = ["sigma_x", "sigma_y", "sigma_z", "sigma_roll", "sigma_pitch", "sigma_yaw"]
 POSE_COVARIANCE_COLUMNS = [f"c{i}{j}" for i in range(6) for j in range(i, 6)]
@@ -146,6 +158,7 @@ TABLE_FILES = {
     "imu": "imu.csv",
     "wheel": "wheel.csv",
     "gnss": "gnss.csv",
+    "gnss_velocity": "gnss_velocity.csv",
     "poses": "poses.csv",
     "ground_truth": "ground_truth.csv",
 }
@@ -224,6 +237,7 @@ _KINDS: dict[str, type] = {
     "imu": ImuSamples,
     "wheel": WheelSamples,
     "gnss": GnssFixes,
+    "gnss_velocity": GnssVelocity,
     "poses": PoseMeasurements,
     "ground_truth": Trajectory,
 }
@@ -233,11 +247,16 @@ _NPZ_FIELDS: dict[str, dict[str, tuple[int, ...]]] = {
     "imu": {"t": (), "gyro": (3,), "accel": (3,)},
     "wheel": {"t": (), "left_speed": (), "right_speed": ()},
     "gnss": {"t": (), "position": (3,), "sigma": (3,)},
+    "gnss_velocity": {"t": (), "velocity": (3,), "sigma": (3,)},
     "poses": {"t": (), "position": (3,), "quaternion": (4,), "covariance": (6, 6)},
     "ground_truth": {"t": (), "position": (3,), "quaternion": (4,)},
 }
-_OPTIONAL = {("gnss", "sigma"), ("poses", "covariance")}
-_NAN_OK = {"gnss": ("sigma",), "poses": ("covariance",)}
+_OPTIONAL = {("gnss", "sigma"), ("gnss_velocity", "sigma"), ("poses", "covariance")}
+_NAN_OK = {
+    "gnss": ("sigma",),
+    "gnss_velocity": ("sigma", "velocity_up"),
+    "poses": ("covariance",),
+}
 _QUAT_STREAMS = ("poses", "ground_truth")
 
 
@@ -345,6 +364,17 @@ def _arrays_from_table(stream: str, table: Table) -> dict[str, np.ndarray]:
         else:
             sigma = np.full((d.shape[0], 3), np.nan)
         return {"t": d[:, 0], "position": d[:, 1:4], "sigma": sigma}
+    if stream == "gnss_velocity":
+        extra = _tables.check_columns(
+            table, GNSS_VELOCITY_COLUMNS, [[GNSS_VELOCITY_SIGMA_COLUMNS]]
+        )
+        d = table.floats(GNSS_VELOCITY_COLUMNS + extra)
+        if extra:
+            _check_sigmas(table, d, GNSS_VELOCITY_SIGMA_COLUMNS, 4)
+            sigma = d[:, 4:7]
+        else:
+            sigma = np.full((d.shape[0], 3), np.nan)
+        return {"t": d[:, 0], "velocity": d[:, 1:4], "sigma": sigma}
     if stream == "poses":
         extra = _tables.check_columns(
             table, POSE_COLUMNS, [[POSE_SIGMA_COLUMNS, POSE_COVARIANCE_COLUMNS]]
@@ -628,6 +658,10 @@ def _assemble(
                 field_prefix=prefix,
                 name="qw" if lines is not None else "quaternion",
             )
+        if kind == "gnss_velocity":  # the up component may be NaN (not measured)
+            arrays = dict(arrays)
+            velocity = arrays.pop("velocity")
+            arrays["velocity"], arrays["velocity_up"] = velocity[:, :2], velocity[:, 2]
         cleaned = _tables.clean_stream(
             report,
             stream,
@@ -638,6 +672,9 @@ def _assemble(
             nan_ok=_NAN_OK.get(kind, ()),
             field_prefix=prefix,
         )
+        if kind == "gnss_velocity":
+            up = cleaned.pop("velocity_up")
+            cleaned["velocity"] = np.concatenate((cleaned["velocity"], up[:, None]), 1)
         if kind in _QUAT_STREAMS:
             cleaned["quaternion"] = _tables.normalise_quaternions(cleaned["quaternion"])
         value = _tables.stream_from_arrays(_KINDS[kind], cleaned)
@@ -820,6 +857,12 @@ def _table_for(stream: str, a: dict[str, np.ndarray]) -> tuple[list[str], np.nda
         if np.isnan(a["sigma"]).all():
             return GNSS_COLUMNS, np.hstack((t, a["position"]))
         return GNSS_COLUMNS + GNSS_SIGMA_COLUMNS, np.hstack((t, a["position"], a["sigma"]))
+    if stream == "gnss_velocity":
+        if np.isnan(a["sigma"]).all():
+            return GNSS_VELOCITY_COLUMNS, np.hstack((t, a["velocity"]))
+        return GNSS_VELOCITY_COLUMNS + GNSS_VELOCITY_SIGMA_COLUMNS, np.hstack(
+            (t, a["velocity"], a["sigma"])
+        )
     base = np.hstack((t, a["position"], a["quaternion"]))
     if stream == "poses" and not np.isnan(a["covariance"]).all():
         rows, cols = np.triu_indices(6)

@@ -240,7 +240,8 @@ def test_unknown_csv_files_warn_once_and_are_ignored(tmp_path):
     message = str(caught[0].message)
     assert message.startswith(
         f"{folder}: ignored CSV files with names a native folder does not use: gps.csv, "
-        "poses_a b.csv (recognised: imu.csv, wheel.csv, gnss.csv, poses.csv, ground_truth.csv, "
+        "poses_a b.csv (recognised: imu.csv, wheel.csv, gnss.csv, gnss_velocity.csv, poses.csv, "
+        "ground_truth.csv, "
         "poses_<name>.csv, labels.csv, meta.json)"
     )
     assert seq.gnss is None and seq.imu.length == 2
@@ -311,3 +312,38 @@ def test_npz_schema_errors(tmp_path):
     path.write_bytes(b"not a zip")
     with pytest.raises(DataError, match="not a readable .npz"):
         read_native(path)
+
+
+def test_gnss_velocity_table_round_trips_with_an_unmeasured_up_component(tmp_path):
+    folder = tmp_path / "run"
+    _write(folder, "imu.csv", IMU_HEADER + _imu_rows([0.0, 0.5, 1.0, 1.5, 2.0]))
+    rows = [
+        "t,vx,vy,vz,sigma_vx,sigma_vy,sigma_vz",
+        "0.5,1.25,-0.5,0.125,0.05,0.05,0.1",
+        "1.0,1.5,-0.25,nan,nan,nan,nan",  # RMC-style: horizontal only, default sigma
+        "1.5,nan,0.0,0.0,0.1,0.1,0.1",  # no east component: not a measurement
+        "2.0,1.75,0.0,inf,0.1,0.1,0.1",  # inf is never "not given"
+    ]
+    _write(folder, "gnss_velocity.csv", "\n".join(rows) + "\n")
+    seq = read_native(folder)
+    vel = seq.gnss_velocity
+    assert seq.meta["dropped_nonfinite"]["gnss_velocity"] == 2
+    assert seq.meta["dropped_lines"]["gnss_velocity"] == [4, 5]
+    assert vel.t.tolist() == [[0.5, 1.0]]
+    assert vel.velocity[0, 0].tolist() == [1.25, -0.5, 0.125]
+    assert vel.velocity[0, 1, :2].tolist() == [1.5, -0.25] and bool(vel.velocity[0, 1, 2].isnan())
+    assert vel.sigma[0, 0].tolist() == [0.05, 0.05, 0.1] and bool(vel.sigma[0, 1].isnan().all())
+    for target in (tmp_path / "copy", tmp_path / "copy.npz"):
+        back = read_native(write_native(seq, target)).gnss_velocity
+        for name in ("t", "velocity", "sigma"):
+            assert torch.equal(
+                getattr(back, name).nan_to_num(7.0), getattr(vel, name).nan_to_num(7.0)
+            )
+    _write(
+        folder,
+        "gnss_velocity.csv",
+        "t,vx,vy,vz,sigma_vx,sigma_vy,sigma_vz\n0.5,1,2,3,0.1,-0.1,0.1\n",
+    )
+    with pytest.raises(DataError) as info:
+        read_native(folder)
+    assert (info.value.line, info.value.field) == (2, "sigma_vy")
