@@ -2,7 +2,7 @@
 noise. The ESKF front end and the LM back end both call these."""
 
 from msf_torch.sensors.camera import reprojection_residual
-from msf_torch.sensors.gnss import gnss_residual
+from msf_torch.sensors.gnss import gnss_residual, gnss_velocity_residual
 from msf_torch.sensors.imu import ImuNoise, Preintegrated, preintegrate, propagate_nominal, zoh_step
 from msf_torch.sensors.plane import plane_residual
 from msf_torch.sensors.pose import mean_rate_residual, pose_residual, relative_pose_residual
@@ -19,6 +19,7 @@ __all__ = [
     "Preintegrated",
     "body_velocity_residual",
     "gnss_residual",
+    "gnss_velocity_residual",
     "mean_rate_residual",
     "nonholonomic_residual",
     "plane_residual",

@@ -15,6 +15,7 @@ from msf_torch.geometry import so3
 from msf_torch.sensors import (
     body_velocity_residual,
     gnss_residual,
+    gnss_velocity_residual,
     nonholonomic_residual,
     pose_residual,
     wheel_residual,
@@ -93,14 +94,25 @@ def _residuals(x: dict):
         ),
         "zero_velocity": lambda s: zero_velocity_residual(s.velocity),
         "gnss": lambda s: gnss_residual(s.position, s.rotation, x["lever"], x["measured3"]),
+        "gnss_velocity": lambda s: gnss_velocity_residual(
+            s.velocity, s.rotation, x["gyro"], s.gyro_bias, x["lever"], x["measured3"]
+        ),
         "pose": lambda s: pose_residual(
             s.position, s.rotation, x["measured_position"], x["pose_rotation"]
         ),
     }
 
 
-NAMES = ["wheel", "body_velocity", "nonholonomic", "zero_velocity", "gnss", "pose"]
-DIMS = {"wheel": 4, "body_velocity": 3, "nonholonomic": 2, "zero_velocity": 3, "gnss": 3, "pose": 6}
+NAMES = ["wheel", "body_velocity", "nonholonomic", "zero_velocity", "gnss", "gnss_velocity", "pose"]
+DIMS = {
+    "wheel": 4,
+    "body_velocity": 3,
+    "nonholonomic": 2,
+    "zero_velocity": 3,
+    "gnss": 3,
+    "gnss_velocity": 3,
+    "pose": 6,
+}
 
 
 def _finite_difference(fn, state: State, batch: int, h: float = 1e-6) -> torch.Tensor:
@@ -152,6 +164,17 @@ def test_residual_values_and_signs():
     torch.testing.assert_close(r, torch.zeros_like(r), rtol=0, atol=1e-13)
     r, _ = gnss_residual(state.position, state.rotation, lever, antenna - 1.0)
     torch.testing.assert_close(r, torch.ones_like(r), rtol=0, atol=1e-13)
+    # the antenna's velocity: d/dt (p + R l) = v + R (w x l), w the bias-corrected rate;
+    # the same by differencing the antenna position over a short rotation step
+    rate = extra["gyro"] - state.gyro_bias
+    step = 1e-6
+    later = state.rotation @ so3.exp(step * rate)
+    antenna_later = state.position + step * state.velocity + (later @ lever[..., None])[..., 0]
+    doppler = (antenna_later - antenna) / step
+    r, _ = gnss_velocity_residual(
+        state.velocity, state.rotation, extra["gyro"], state.gyro_bias, lever, doppler
+    )
+    torch.testing.assert_close(r, torch.zeros_like(r), rtol=0, atol=1e-5)
 
     # wheel: build rim speeds from the true body velocity of the axle point
     omega = extra["gyro"] - state.gyro_bias
