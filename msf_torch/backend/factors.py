@@ -19,6 +19,7 @@ __all__ = [
     "PosePriorFactor",
     "NavStatePriorFactor",
     "GnssFactor",
+    "GnssVelocityFactor",
     "ZeroVelocityFactor",
     "NonholonomicFactor",
     "BetweenFactor",
@@ -41,7 +42,7 @@ from msf_torch.backend.variables import VariableKind, unpack_nav_state, unpack_p
 from msf_torch.geometry import so3
 from msf_torch.geometry.conventions import IDX_P, IDX_THETA
 from msf_torch.sensors.camera import reprojection_residual
-from msf_torch.sensors.gnss import gnss_residual
+from msf_torch.sensors.gnss import gnss_residual, gnss_velocity_residual
 from msf_torch.sensors.imu import Preintegrated, preintegration_residual
 from msf_torch.sensors.plane import plane_residual
 from msf_torch.sensors.pose import pose_residual, relative_pose_residual
@@ -256,6 +257,56 @@ class GnssFactor(_Unary):
         block = block.expand(*white.shape[:-1], 3, 3)
         columns = slice(0, 3)
         return loss, [grad], [[(columns, columns, block)] for _ in pairs]
+
+
+class GnssVelocityFactor(_Unary):
+    """GNSS antenna velocity ``r = v + R ([w - b_g]x l) - z`` (3,) m/s on ``nav_state``
+    variables (:func:`msf_torch.sensors.gnss.gnss_velocity_residual`).
+
+    Args:
+        group, index: ``nav_state`` variables (F,). measured: (B|1, F, 3) world velocity,
+        m/s. gyro: (B|1, F, 3) raw gyro rate at each state's time, rad/s. covariance:
+        (B|1, F, 3, 3) (m/s)^2 (an axis the receiver did not give: a huge variance).
+        lever_arm: (3,) m, body. kernel: robust kernel (:mod:`msf_torch.backend.robust`),
+        or None for plain least squares.
+    """
+
+    batched = ("measured", "gyro", "lever_arm")
+
+    def __init__(
+        self,
+        group: str,
+        index: torch.Tensor,
+        measured: torch.Tensor,
+        gyro: torch.Tensor,
+        covariance: torch.Tensor,
+        lever_arm: torch.Tensor | None = None,
+        kernel: RobustKernel | None = None,
+    ) -> None:
+        super().__init__(group, index, covariance, kernel)
+        self.measured = measured
+        self.gyro = gyro
+        self.lever_arm = _lever_arm_or_zero(lever_arm, measured)
+
+    def residual(self, values: list[torch.Tensor]) -> torch.Tensor:
+        """Residuals (B, F, 3), m/s."""
+        return self.residual_and_jacobians(values, None)[0]
+
+    def residual_and_jacobians(
+        self, values: list[torch.Tensor], kinds: list[VariableKind] | None
+    ) -> tuple[torch.Tensor, list[torch.Tensor]]:
+        """Residuals (B, F, 3) m/s and the Jacobian (B, F, 3, 15) w.r.t. the nav-state tangent;
+        ``kinds`` is not read."""
+        _, velocity, rotation, gyro_bias, _ = unpack_nav_state(values[0])
+        r, jac = gnss_velocity_residual(
+            velocity,
+            rotation,
+            self.gyro.expand_as(velocity),
+            gyro_bias,
+            self.lever_arm.expand_as(velocity),
+            self.measured.expand_as(velocity),
+        )
+        return r, [jac]
 
 
 class ZeroVelocityFactor(_Unary):

@@ -140,7 +140,16 @@ def test_nav_state_factor_jacobians():
         _spd(gen, 2, 2),
         lever_arm=torch.tensor([-0.8, 0.1, -0.3], dtype=DTYPE),
     )
-    problem = Problem({"x": ("nav_state", values)}, [prior, zero, marginal, nhc])
+    gnss_velocity = F.GnssVelocityFactor(
+        "x",
+        torch.tensor([1, 3, 5]),
+        torch.randn(B, 3, 3, generator=gen, dtype=DTYPE),
+        torch.randn(1, 3, 3, generator=gen, dtype=DTYPE),
+        _spd(gen, 3, 3),
+        lever_arm=torch.tensor([0.9, -0.2, 1.1], dtype=DTYPE),
+    )
+    factors = [prior, zero, marginal, nhc, gnss_velocity]
+    problem = Problem({"x": ("nav_state", values)}, factors)
     for factor in problem.factors:
         _check_jacobians(problem, factor)
 
