@@ -638,6 +638,8 @@ _NMEA_NOISE = (
     "GPGSV,3,1,11,03,03,111,00,04,15,270,00,06,01,010,00,13,06,292,00",
     "GLGSV,1,1,02,65,35,101,41,72,12,330,",
     "GPVTG,054.7,T,034.4,M,005.5,N,010.2,K,A",
+    "GPVTG,,T,,M,0.012,N,0.022,K,A",
+    "GPVTG,,,,,,,,,N",
     "GNGSA,A,3,04,05,,09,12,,,24,,,,,2.5,1.3,2.1",
     "PUBX,00,081350.00,4717.113210,N,00833.915187,E,546.589,G3,2.1,2.0,0.007,77.52,0.007,,0.92,1.19,0.77,9,0,0",
 )
@@ -655,7 +657,8 @@ def _nmea_line(body: str, checksum: bool) -> str:
 
 def _build_nmea(rng: np.random.Generator) -> tuple[dict[str, Any], str]:
     """An NMEA 0183 log like a u-blox or NovAtel serial capture: GGA fixes at 1 or 5 Hz
-    anywhere on the globe, GSTs for some, RMC or ZDA dates (or none), GSV/VTG/GSA/PUBX noise,
+    anywhere on the globe, GSTs for some, RMC or ZDA dates (or none), RMC speeds and courses
+    (stationary, invalid, dead reckoning, before NMEA 2.3), VTGs, GSV/GSA/PUBX noise,
     no-fix GGAs, a second talker's GGA of the same epoch, checksums on all, none or some
     lines, receive stamps before a comma or a space (or none), a midnight rollover in one
     log of three."""
@@ -696,8 +699,14 @@ def _build_nmea(rng: np.random.Generator) -> tuple[dict[str, Any], str]:
             sigmas = ",".join(f"{s:.3f}" for s in rng.uniform(0.005, 3.0, 3))
             lines.append((t, f"{talker}GST,{hms},1.2,0.9,0.5,34.5,{sigmas}"))
         if date_kind == "RMC" and rng.random() < 0.5:
+            motion = str(rng.choice(("A,0.02,31.66", "A,0.0,", "A,0.004,", "V,,", "A,12.5,359.9")))
+            mode = str(rng.choice(("D", "A", "E", "N", "")))
             lines.append(
-                (t, f"{talker}RMC,{hms},A,{lat_text},{lon_text},0.02,31.66,{clock:%d%m%y},,,D")
+                (
+                    t,
+                    f"{talker}RMC,{hms},{motion[:1]},{lat_text},{lon_text},{motion[2:]},"
+                    f"{clock:%d%m%y},,,{mode}",
+                )
             )
         elif date_kind == "ZDA" and rng.random() < 0.5:
             lines.append((t, f"{talker}ZDA,{hms},{clock:%d,%m,%Y},00,00"))
@@ -932,6 +941,15 @@ def _check_nmea(log: NmeaLog) -> str | None:
         return "lines not positive and increasing"
     if any(v < 0 for v in log.counts.values()) or log.counts["kept"] != n:
         return "a negative count or counts['kept'] != N"
+    m = log.counts["velocity_kept"]
+    if log.velocity_t.shape != (m,) or log.velocity_lines.shape != (m,):
+        return "velocity_t or velocity_lines not (M,) with M = counts['velocity_kept']"
+    if log.velocity_enu.shape != (m, 3) or not np.isnan(log.velocity_enu[:, 2]).all():
+        return "velocity_enu not (M, 3) with the up component NaN"
+    if not np.isfinite(log.velocity_enu[:, :2]).all():
+        return "a velocity east / north that is not finite"
+    if not (np.isfinite(log.velocity_t).all() and (np.diff(log.velocity_t) > 0).all()):
+        return "velocity_t not finite and strictly increasing"
     if n:
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")

@@ -313,7 +313,9 @@ def build_parser() -> argparse.ArgumentParser:
     )
 
     nm = sub.add_parser(
-        "nmea", help="convert an NMEA 0183 GNSS log (GGA, GST, RMC, ZDA) to a native gnss.csv"
+        "nmea",
+        help="convert an NMEA 0183 GNSS log (GGA, GST, RMC, VTG, ZDA) to a native gnss.csv "
+        "and gnss_velocity.csv",
     )
     nm.add_argument("log", type=Path, help="NMEA log: one sentence per line, optional stamps")
     nm.add_argument(
@@ -344,6 +346,12 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="Q[,Q...]",
         help="GGA quality codes kept (default 1,2,3,4,5: GPS, DGPS, PPS, RTK fixed, RTK float; "
         "e.g. 4 for RTK-fixed only)",
+    )
+    nm.add_argument(
+        "--no-velocity",
+        action="store_true",
+        help="do not write the RMC / VTG speed and course over ground as gnss_velocity.csv "
+        "next to --out (written by default when the log has them)",
     )
 
     en = sub.add_parser(
@@ -1048,7 +1056,7 @@ def _cmd_nmea(args) -> dict[str, Any]:
     import numpy as np
 
     from msf_torch.io.errors import DataError
-    from msf_torch.io.native import store_gnss_origin, stored_gnss_origin
+    from msf_torch.io.native import store_gnss_origin, stored_gnss_origin, write_stream_csv
     from msf_torch.io.nmea import read_nmea, write_gnss_csv
 
     if args.out.is_dir():
@@ -1070,6 +1078,16 @@ def _cmd_nmea(args) -> dict[str, Any]:
         )
     folder.mkdir(parents=True, exist_ok=True)
     out = write_gnss_csv(args.out, gnss)
+    velocity_out = folder / "gnss_velocity.csv"
+    velocity_written = None
+    if not args.no_velocity and log.velocity_t.size:
+        velocity = log.to_gnss_velocity(t0=args.t0)
+        velocity_written = str(write_stream_csv(velocity_out, "gnss_velocity", velocity))
+    elif velocity_out.exists():
+        warnings.warn(
+            f"{velocity_out} (not from this conversion) is left as it is: msf run reads it",
+            stacklevel=2,
+        )
     meta = store_gnss_origin(folder, origin)
     t = gnss.t[0].numpy()
     given = np.isfinite(log.sigma_enu).all(axis=1)
@@ -1078,6 +1096,8 @@ def _cmd_nmea(args) -> dict[str, Any]:
         "out": str(out),
         "fixes": len(log),
         "fixes_with_sigma": int(given.sum()),
+        "velocities": int(log.velocity_t.size),
+        "velocity_out": velocity_written,
         "counts": log.counts,
         "origin": list(origin),
         "origin_from": origin_from,

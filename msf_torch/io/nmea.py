@@ -1,5 +1,6 @@
 """NMEA 0183 GNSS logs (u-blox, Septentrio, NovAtel serial logs; ``nmea_msgs/Sentence``
-dumps) -> GNSS fixes in local ENU metres (:class:`~msf_torch.types.GnssFixes`).
+dumps) -> GNSS fixes in local ENU metres (:class:`~msf_torch.types.GnssFixes`) and the
+horizontal velocity over ground in m/s (:class:`~msf_torch.types.GnssVelocity`).
 
 Lines
     One sentence per line, ``$<address>,<field>,...[*hh]``, optionally after a receive
@@ -26,8 +27,43 @@ Sentences read
       ``gnss_sigma_m`` applies, as for a ``NavSatFix`` without covariance.
     * RMC (``ddmmyy``; years 80-99 are 19xx, the others 20xx) and ZDA (day, month, year)
       give the UTC date.
-    * Any other sentence (GSV, VTG, GSA, proprietary ``$P...``) is counted by its type and
+    * RMC (UTC, status ``A``/``V``, ..., speed over ground in knots, course over ground in
+      degrees true, date, magnetic variation, ``E``/``W``, mode indicator, navigational
+      status) and VTG (course true + ``T``, course magnetic + ``M``, speed in knots + ``N``,
+      speed in km/h + ``K``, mode indicator) give the velocity over ground, section
+      Velocities.
+    * Any other sentence (GSV, GSA, GLL, proprietary ``$P...``) is counted by its type and
       skipped.
+
+Velocities
+    Speed ``s`` (knots x 1852/3600 m/s; VTG: knots when given, else km/h / 3.6) and course
+    ``c`` (degrees clockwise from true north) give ``east = s sin(c)``, ``north = s cos(c)``,
+    ``up = NaN`` (not measured) m/s, in the ENU frame of the fixes. The course is measured
+    from the north at the antenna; the frame's north is that of its origin: they differ by
+    the meridian convergence, about ``delta_lon sin(lat)`` (0.01 deg 1 km east of an origin
+    at 49 N), which is not corrected. NMEA gives no velocity accuracy: ``sigma`` is NaN (the
+    estimator's configured ``gnss_velocity_sigma_mps`` applies).
+
+    * A stationary receiver may leave the course empty: speed 0 with an empty course is the
+      measurement (0, 0); a speed above 0 with an empty course (u-blox below its heading
+      threshold) gives no direction and is skipped (``velocity_no_course``).
+    * RMC status ``V``, navigational status ``V`` or mode ``N`` (not valid; u-blox writes
+      ``$GPVTG,,,,,,,,,N`` without a fix) are skipped (``velocity_invalid``); so are modes
+      ``E`` (dead reckoning), ``M`` (manual input) and ``S`` (simulator), which measure
+      nothing, as GGA qualities 6-8 (``velocity_mode_not_kept``). Kept: ``A`` autonomous,
+      ``D`` differential, ``F`` RTK float, ``P`` precise, ``R`` RTK fixed, and an absent
+      mode (NMEA before 2.3; the RMC status decides).
+    * A valid sentence with an empty speed is skipped (``velocity_empty``).
+    * Times: an RMC's velocity has the RMC's UTC time. VTG has no time field: it belongs to
+      the epoch of the latest UTC time read on an earlier line (GGA, GST, RMC, ZDA), which is
+      the receiver's own epoch when it writes an epoch's sentences together (u-blox: RMC,
+      VTG, GGA, ...; others GGA, ..., VTG); a VTG with no UTC time before it, or after a
+      no-fix GGA, is skipped (``velocity_untimed``). UTC times are turned into UNIX seconds
+      as the fixes' are (same dates, same rollovers); with ``time="receive"`` a velocity has
+      its own line's receive stamp.
+    * One velocity per epoch: an RMC and a VTG of the same UTC epoch give the first in the
+      file (the later one is counted in ``velocity_duplicate``, as is a velocity at the time
+      of the previous one).
 
 Rules
     * A checksum ``*hh`` is verified when present. A mismatch (or an unreadable ``*hh``)
@@ -38,7 +74,9 @@ Rules
       (``utc_time``, ``latitude``, ``latitude_hemisphere``, ``longitude``,
       ``longitude_hemisphere``, ``quality``, ``satellites``, ``hdop``, ``altitude``,
       ``altitude_unit``, ``geoid_separation``, ``separation_unit``, ``sigma_latitude``,
-      ``sigma_longitude``, ``sigma_altitude``, ``date``, ``receive_time``).
+      ``sigma_longitude``, ``sigma_altitude``, ``date``, ``receive_time``, ``status``,
+      ``mode``, ``speed_knots``, ``speed_kmh``, ``course``, ``course_unit``,
+      ``speed_knots_unit``, ``speed_kmh_unit``).
     * The receiver's "no fix" forms -- quality 0, or empty latitude and longitude -- are
       skipped and counted (``no_fix``); so are fixes whose quality code is not in
       ``qualities`` (``quality_not_kept``). The quality is the GGA code (1 GPS, 2 DGPS,
@@ -49,11 +87,12 @@ Rules
       latest RMC/ZDA; fixes before the first date get that date back-filled, and a time of
       day more than 12 h below the previous one rolls to the next day. Without any date the
       times are seconds since 00:00 UTC of the first day (still rolling over; warned).
-      ``time="receive"`` uses the receive timestamps (DataError at a kept GGA without one).
-      ``time="auto"`` (default) uses them when every kept GGA has one, else UTC.
+      ``time="receive"`` uses the receive timestamps (DataError at a kept GGA, or an RMC /
+      VTG giving a velocity, without one). ``time="auto"`` (default) uses them when every
+      kept GGA and every such RMC / VTG has one, else UTC.
     * Fixes must not go back in time (DataError naming the line); a fix at exactly the time of
       the previous one (a second talker's GGA of the same epoch) is dropped
-      (``duplicate_time``).
+      (``duplicate_time``). Velocities likewise (``velocity_duplicate``).
     * One warning lists whatever was skipped.
 
 Units: degrees (WGS-84), metres, seconds.
@@ -62,8 +101,11 @@ Example:
     >>> log = read_nmea("drive.nmea")  # doctest: +SKIP
     >>> gnss, origin = log.to_gnss(t0=log.t[0])  # doctest: +SKIP
     >>> write_gnss_csv("run/gnss.csv", gnss)  # doctest: +SKIP
+    >>> velocity = log.to_gnss_velocity(t0=log.t[0])  # doctest: +SKIP
+    >>> write_stream_csv("run/gnss_velocity.csv", "gnss_velocity", velocity)  # doctest: +SKIP
 
-On the command line: ``msf nmea drive.nmea --out run/gnss.csv``.
+On the command line: ``msf nmea drive.nmea --out run/gnss.csv`` (also writes
+``run/gnss_velocity.csv`` when the log has velocities).
 """
 
 from __future__ import annotations
@@ -86,7 +128,7 @@ from msf_torch.io import _tables
 from msf_torch.io.errors import DataError
 from msf_torch.io.geodesy import geodetic_to_enu
 from msf_torch.io.native import write_stream_csv
-from msf_torch.types import GnssFixes
+from msf_torch.types import GnssFixes, GnssVelocity
 
 DEFAULT_QUALITIES = (1, 2, 3, 4, 5)
 """GGA quality codes kept by default: the measured fixes (GPS, DGPS, PPS, RTK fixed, RTK
@@ -125,8 +167,18 @@ _OUTCOMES = (
     "not_nmea",
     "unreadable_prefix",
     "gst_unmatched",
+    "velocity_kept",
+    "velocity_invalid",
+    "velocity_mode_not_kept",
+    "velocity_empty",
+    "velocity_no_course",
+    "velocity_untimed",
+    "velocity_duplicate",
 )
-_SENTENCES_READ = ("GGA", "GST", "RMC", "ZDA")
+_SENTENCES_READ = ("GGA", "GST", "RMC", "ZDA", "VTG")
+_MODES_KEPT = frozenset("ADFPR")  # autonomous, differential, RTK float, precise, RTK fixed
+_MODES_NOT_KEPT = frozenset("EMS")  # dead reckoning, manual input, simulator
+_KNOT_M = 1852.0  # metres per international nautical mile
 _HALF_DAY_S = 43200.0
 _DAY_S = 86400
 _EPOCH_ORDINAL = datetime.date(1970, 1, 1).toordinal()
@@ -134,7 +186,8 @@ _EPOCH_ORDINAL = datetime.date(1970, 1, 1).toordinal()
 
 @dataclass
 class NmeaLog:
-    """The kept GGA fixes of an NMEA log, in file order (module docstring for the rules).
+    """The kept GGA fixes and RMC / VTG velocities of an NMEA log, in file order (module
+    docstring for the rules).
 
     Attributes:
         t: (N,) s float64, from ``time_source``.
@@ -150,11 +203,17 @@ class NmeaLog:
         time_source: ``"utc"`` or ``"receive"``.
         counts: ``kept``, ``no_fix``, ``quality_not_kept``, ``duplicate_time``,
             ``bad_checksum``, ``not_nmea``, ``unreadable_prefix``, ``gst_unmatched`` (GSTs
-            with no kept GGA of their time), and per sentence type read (upper case:
-            ``GGA``, ``GST``, ``GSV``, ``PUBX``, ...).
+            with no kept GGA of their time), ``velocity_kept``, ``velocity_invalid``,
+            ``velocity_mode_not_kept``, ``velocity_empty``, ``velocity_no_course``,
+            ``velocity_untimed``, ``velocity_duplicate`` (module docstring, Velocities), and
+            per sentence type read (upper case: ``GGA``, ``GST``, ``GSV``, ``PUBX``, ...).
         source: the path read.
         geoid_separation_missing: True when some kept fix had an empty geoid separation
             (its height is the MSL altitude).
+        velocity_t: (M,) s float64 of the kept velocities, on the clock of :attr:`t`.
+        velocity_enu: (M, 3) m/s ``[east, north, up]`` over ground; up is NaN (not
+            measured).
+        velocity_lines: (M,) int64 1-based line of each velocity's RMC or VTG.
     """
 
     t: np.ndarray
@@ -170,6 +229,9 @@ class NmeaLog:
     counts: dict[str, int]
     source: str
     geoid_separation_missing: bool
+    velocity_t: np.ndarray
+    velocity_enu: np.ndarray
+    velocity_lines: np.ndarray
 
     def __len__(self) -> int:
         """Number of kept fixes N."""
@@ -213,6 +275,25 @@ class NmeaLog:
         )
         return gnss, used
 
+    def to_gnss_velocity(self, t0: float = 0.0) -> GnssVelocity:
+        """The velocities as a B = 1 stream in the ENU frame of :meth:`to_gnss`.
+
+        Args:
+            t0: subtracted from :attr:`velocity_t`, s (the ``t0`` given to :meth:`to_gnss`).
+
+        Returns:
+            :class:`~msf_torch.types.GnssVelocity` with ``t`` (1, M) s, ``velocity``
+            (1, M, 3) m/s = :attr:`velocity_enu` (up NaN), ``sigma`` (1, M, 3) all NaN (NMEA
+            gives none: the estimator's default applies), float64, all-True mask; M may be 0.
+        """
+        m = int(self.velocity_t.shape[0])
+        return GnssVelocity(
+            t=torch.as_tensor(self.velocity_t - float(t0), dtype=torch.float64).reshape(1, m),
+            velocity=torch.tensor(self.velocity_enu, dtype=torch.float64).reshape(1, m, 3),
+            sigma=torch.full((1, m, 3), torch.nan, dtype=torch.float64),
+            mask=torch.ones((1, m), dtype=torch.bool),
+        )
+
 
 def write_gnss_csv(path: str | os.PathLike[str], gnss: GnssFixes) -> Path:
     """Write a B = 1 GNSS stream as a native ``gnss.csv`` table, atomically.
@@ -241,6 +322,8 @@ class _Fix:
 
     line: int
     tod: tuple[int, float]  # whole seconds of the day, fraction
+    rolls: int  # day rollovers seen before it
+    date_index: int  # index into _Reader.dates of the latest date before it, -1: none
     latitude: float
     longitude: float
     altitude: float
@@ -249,6 +332,19 @@ class _Fix:
     satellites: int
     hdop: float
     stamp: float | None
+
+
+@dataclass
+class _Velocity:
+    """One RMC / VTG velocity as read (before timing); fields as :class:`_Fix`."""
+
+    line: int
+    tod: tuple[int, float]
+    rolls: int
+    date_index: int
+    stamp: float | None
+    east: float  # m/s
+    north: float  # m/s
 
 
 class _Reader:
@@ -260,14 +356,15 @@ class _Reader:
         self.counts: dict[str, int] = dict.fromkeys(_OUTCOMES, 0)
         self.bad_lines: list[int] = []
         self.fixes: list[_Fix] = []
-        self.fix_rolls: list[int] = []
+        self.velocities: list[_Velocity] = []
         # GST sigmas by time of day (ms): [(line, [east, north, up])]
         self.gst_sigmas: dict[int, list[tuple[int, list[float]]]] = {}
         # (roll count, day number) of each date sentence, in order
         self.dates: list[tuple[int, int]] = []
-        self.fix_date_index: list[int] = []  # index into dates of the latest before the fix
         self.rolls = 0
         self.last_tod: float | None = None
+        # the latest UTC time of day read (a VTG's epoch); None after a no-fix GGA
+        self.clock: tuple[int, float] | None = None
 
     # ---------------------------------------------------------------- fields
     def error(self, line: int, field: str, problem: str) -> DataError:
@@ -289,7 +386,8 @@ class _Reader:
         if hours > 23 or minutes > 59 or seconds > 60:
             raise self.error(line, "utc_time", f"not a time of day: {_tables.shown(text)}")
         fraction = float("0" + match.group(4)) if match.group(4) else 0.0
-        return 3600 * hours + 60 * minutes + seconds, fraction
+        self.clock = (3600 * hours + 60 * minutes + seconds, fraction)
+        return self.clock
 
     def angle(self, line: int, field: str, text: str, hemi: str, signs: str, top: int) -> float:
         """Degrees from ``[d]ddmm.mmmm`` and its hemisphere letter (``signs`` = "NS"/"EW")."""
@@ -327,6 +425,7 @@ class _Reader:
         no_quality = len(f) > 5 and _UNSIGNED.fullmatch(f[5]) and int(f[5]) == 0
         if no_quality or (len(f) > 3 and f[1] == "" and f[3] == ""):
             self.counts["no_fix"] += 1
+            self.clock = None
             return
         absent = self.missing(_GGA_FIELDS, f)
         if absent is not None:
@@ -369,6 +468,8 @@ class _Reader:
             _Fix(
                 line=line,
                 tod=tod,
+                rolls=self.rolls,
+                date_index=len(self.dates) - 1,
                 latitude=latitude,
                 longitude=longitude,
                 altitude=altitude,
@@ -379,8 +480,6 @@ class _Reader:
                 stamp=stamp,
             )
         )
-        self.fix_rolls.append(self.rolls)
-        self.fix_date_index.append(len(self.dates) - 1)
 
     def gst(self, line: int, f: list[str]) -> None:
         names = ("utc_time", "rms", "semi_major", "semi_minor", "orientation", *_GST_SIGMAS)
@@ -411,14 +510,109 @@ class _Reader:
             self.see_time(self.time_of_day(line, tod_text))
         self.dates.append((self.rolls, ordinal - _EPOCH_ORDINAL))
 
-    def rmc(self, line: int, f: list[str]) -> None:
-        if len(f) < 9 or not f[8]:
+    def rmc(self, line: int, f: list[str], stamp: float | None) -> None:
+        if len(f) >= 9 and f[8]:
+            match = _DDMMYY.fullmatch(f[8])
+            if match is None:
+                raise self.error(line, "date", f"expected ddmmyy, got {_tables.shown(f[8])}")
+            day, month, year = (int(g) for g in match.groups())
+            self.date(line, f[0], day, month, year + (1900 if year >= 80 else 2000))
+        status = f[1] if len(f) > 1 else ""
+        if status not in ("A", "V"):
+            raise self.error(line, "status", f"expected A or V, got {_tables.shown(status)}")
+        tod = self.time_of_day(line, f[0]) if f and f[0] else None
+        speed = self.speed(line, "speed_knots", f[6] if len(f) > 6 else "", _KNOT_M)
+        course = self.course(line, f[7] if len(f) > 7 else "")
+        valid = status == "A" and not (len(f) > 12 and f[12] == "V")
+        self.velocity(line, valid, self.mode(line, f, 11), speed, course, tod, stamp)
+
+    def vtg(self, line: int, f: list[str], stamp: float | None) -> None:
+        for index, letter, name in (
+            (1, "T", "course"),
+            (5, "N", "speed_knots"),
+            (7, "K", "speed_kmh"),
+        ):
+            if len(f) > index and f[index] not in (letter, ""):
+                raise self.error(
+                    line, f"{name}_unit", f"expected {letter}, got {_tables.shown(f[index])}"
+                )
+        course = self.course(line, f[0])
+        speed = self.speed(line, "speed_knots", f[4] if len(f) > 4 else "", _KNOT_M)
+        kmh = self.speed(line, "speed_kmh", f[6] if len(f) > 6 else "", 1000.0)
+        self.velocity(
+            line,
+            True,
+            self.mode(line, f, 8),
+            kmh if speed is None else speed,
+            course,
+            self.clock,
+            stamp,
+        )
+
+    def mode(self, line: int, f: list[str], index: int) -> str:
+        """The mode indicator letter at ``f[index]``; "" when absent (NMEA before 2.3)."""
+        mode = f[index] if len(f) > index else ""
+        if mode and mode not in _MODES_KEPT | _MODES_NOT_KEPT | {"N"}:
+            raise self.error(
+                line, "mode", f"expected one of A D E F M N P R S, got {_tables.shown(mode)}"
+            )
+        return mode
+
+    def speed(self, line: int, field: str, text: str, unit_m: float) -> float | None:
+        """m/s from a speed in ``unit_m`` metres per hour; None when empty."""
+        if not text:
+            return None
+        value = self.number(line, field, text)
+        if value < 0:
+            raise self.error(line, field, f"must not be negative, got {_tables.shown(text)}")
+        return value * unit_m / 3600.0
+
+    def course(self, line: int, text: str) -> float | None:
+        """Course over ground, degrees true in [0, 360]; None when empty."""
+        if not text:
+            return None
+        value = self.number(line, "course", text)
+        if not 0.0 <= value <= 360.0:
+            raise self.error(line, "course", f"not in [0, 360] degrees: {_tables.shown(text)}")
+        return value
+
+    def velocity(
+        self,
+        line: int,
+        valid: bool,
+        mode: str,
+        speed: float | None,
+        course: float | None,
+        tod: tuple[int, float] | None,
+        stamp: float | None,
+    ) -> None:
+        """Keep, or count as skipped, one velocity (module docstring, Velocities)."""
+        if not valid or mode == "N":
+            skipped = "velocity_invalid"
+        elif mode in _MODES_NOT_KEPT:
+            skipped = "velocity_mode_not_kept"
+        elif speed is None:
+            skipped = "velocity_empty"
+        elif course is None and speed > 0:
+            skipped = "velocity_no_course"
+        elif tod is None:
+            skipped = "velocity_untimed"
+        else:
+            heading = math.radians(course or 0.0)
+            self.see_time(tod)
+            self.velocities.append(
+                _Velocity(
+                    line=line,
+                    tod=tod,
+                    rolls=self.rolls,
+                    date_index=len(self.dates) - 1,
+                    stamp=stamp,
+                    east=speed * math.sin(heading),
+                    north=speed * math.cos(heading),
+                )
+            )
             return
-        match = _DDMMYY.fullmatch(f[8])
-        if match is None:
-            raise self.error(line, "date", f"expected ddmmyy, got {_tables.shown(f[8])}")
-        day, month, year = (int(g) for g in match.groups())
-        self.date(line, f[0], day, month, year + (1900 if year >= 80 else 2000))
+        self.counts[skipped] += 1
 
     def zda(self, line: int, f: list[str]) -> None:
         if len(f) < 4 or not (f[1] and f[2] and f[3]):
@@ -465,7 +659,9 @@ class _Reader:
         elif kind == "GST":
             self.gst(number, fields[1:])
         elif kind == "RMC":
-            self.rmc(number, fields[1:])
+            self.rmc(number, fields[1:], stamp)
+        elif kind == "VTG":
+            self.vtg(number, fields[1:], stamp)
         elif kind == "ZDA":
             self.zda(number, fields[1:])
 
@@ -482,19 +678,39 @@ def _read_text(path: str) -> str:
     return data.decode("utf-8-sig", errors="replace")
 
 
-def _utc_times(reader: _Reader) -> tuple[np.ndarray, bool]:
-    """UNIX seconds (N,) of the kept fixes, and whether a date was found."""
-    fixes, dates = reader.fixes, reader.dates
-    seconds = np.empty(len(fixes))
-    for i, fix in enumerate(fixes):
-        k = reader.fix_date_index[i]
+def _utc_times(
+    dates: list[tuple[int, int]], records: Sequence[_Fix] | Sequence[_Velocity]
+) -> np.ndarray:
+    """UNIX seconds (N,) of fixes or velocities from their time of day, the latest date
+    before them (the first date for those before it) and the rollovers since; without a
+    date, seconds since 00:00 UTC of the first day."""
+    seconds = np.empty(len(records))
+    for i, record in enumerate(records):
         if not dates:
-            day = reader.fix_rolls[i]
+            day = record.rolls
         else:
-            rolls, anchor = dates[max(k, 0)]
-            day = anchor + reader.fix_rolls[i] - rolls
-        seconds[i] = float(day * _DAY_S + fix.tod[0]) + fix.tod[1]
-    return seconds, bool(dates)
+            rolls, anchor = dates[max(record.date_index, 0)]
+            day = anchor + record.rolls - rolls
+        seconds[i] = float(day * _DAY_S + record.tod[0]) + record.tod[1]
+    return seconds
+
+
+def _forward(path: str, t: np.ndarray, lines: np.ndarray, field: str) -> np.ndarray:
+    """(N,) bool: True where ``t`` is later than the time before it (False: a duplicate).
+
+    Raises:
+        DataError: a time before the previous one, naming its line and ``field``.
+    """
+    back = np.flatnonzero(t[1:] < t[:-1])
+    if back.size:
+        i = int(back[0]) + 1
+        raise DataError(
+            path,
+            f"time goes back: {t[i]!r} s after {t[i - 1]!r} s (line {lines[i - 1]})",
+            line=int(lines[i]),
+            field=field,
+        )
+    return np.concatenate(([True], t[1:] > t[:-1]))[: t.shape[0]]
 
 
 def _attach_sigmas(reader: _Reader) -> np.ndarray:
@@ -550,41 +766,43 @@ def read_nmea(
     if counts.get("GGA", 0) == 0:
         found = ", ".join(f"{k} {v}" for k, v in counts.items() if v) or "nothing"
         raise DataError(spath, f"no GGA sentence in this file (found: {found})")
-    fixes = reader.fixes
+    fixes, velocities = reader.fixes, reader.velocities
     stamps = [fix.stamp for fix in fixes]
-    if time == "receive" or (time == "auto" and fixes and None not in stamps):
-        for fix in fixes:
-            if fix.stamp is None:
+    velocity_stamps = [v.stamp for v in velocities]
+    if time == "receive" or (time == "auto" and fixes and None not in stamps + velocity_stamps):
+        for record in sorted((*fixes, *velocities), key=lambda r: r.line):
+            if record.stamp is None:
                 raise DataError(
                     spath,
-                    "time='receive' needs a receive timestamp before every GGA sentence",
-                    line=fix.line,
+                    "time='receive' needs a receive timestamp before every GGA sentence and "
+                    "every RMC / VTG that gives a velocity",
+                    line=record.line,
                     field="receive_time",
                 )
-        source, t = "receive", np.array(stamps, dtype=np.float64)
-        time_field = "receive_time"
+        source, time_field = "receive", "receive_time"
+        t = np.array(stamps, dtype=np.float64)
+        velocity_t = np.array(velocity_stamps, dtype=np.float64)
     else:
         source, time_field = "utc", "utc_time"
-        t, dated = _utc_times(reader)
-        if fixes and not dated:
+        t = _utc_times(reader.dates, fixes)
+        velocity_t = _utc_times(reader.dates, velocities)
+        if (fixes or velocities) and not reader.dates:
             warnings.warn(
                 f"{spath}: no RMC or ZDA date; times are seconds since 00:00 UTC of the first day",
                 stacklevel=2,
             )
     sigma = _attach_sigmas(reader)
-    keep = np.ones(len(fixes), dtype=bool)
-    for i in range(1, len(fixes)):
-        previous = t[i - 1]
-        if t[i] < previous:
-            raise DataError(
-                spath,
-                f"time goes back: {t[i]!r} s after {previous!r} s (line {fixes[i - 1].line})",
-                line=fixes[i].line,
-                field=time_field,
-            )
-        keep[i] = t[i] > previous
+    keep = _forward(spath, t, np.array([fix.line for fix in fixes]), time_field)
     counts["duplicate_time"] = int((~keep).sum())
     kept = [fix for fix, k in zip(fixes, keep, strict=True) if k]
+    # one velocity per UTC epoch (an RMC and a VTG of one epoch have two receive stamps)
+    utc = _utc_times(reader.dates, velocities)
+    epoch = np.concatenate(([True], utc[1:] != utc[:-1]))[: utc.shape[0]]
+    velocity_lines = np.array([v.line for v in velocities], dtype=np.int64)[epoch]
+    forward = _forward(spath, velocity_t[epoch], velocity_lines, time_field)
+    velocity_keep = np.flatnonzero(epoch)[forward]
+    counts["velocity_duplicate"] = len(velocities) - int(velocity_keep.shape[0])
+    counts["velocity_kept"] = int(velocity_keep.shape[0])
     counts["kept"] = len(kept)
     separation_missing = any(fix.separation_missing for fix in kept)
     _warn_skipped(spath, counts, reader.bad_lines)
@@ -613,14 +831,20 @@ def read_nmea(
         counts=counts,
         source=spath,
         geoid_separation_missing=separation_missing,
+        velocity_t=velocity_t[velocity_keep],
+        velocity_enu=np.array(
+            [[velocities[i].east, velocities[i].north, math.nan] for i in velocity_keep],
+            dtype=np.float64,
+        ).reshape(-1, 3),
+        velocity_lines=velocity_lines[forward],
     )
 
 
 def _warn_skipped(path: str, counts: dict[str, int], bad_lines: list[int]) -> None:
     """One warning listing what was skipped (nothing when nothing was)."""
     parts = []
-    for name in _OUTCOMES[1:]:
-        if counts[name]:
+    for name in _OUTCOMES:
+        if counts[name] and name not in ("kept", "velocity_kept"):
             parts.append(f"{name} {counts[name]}")
         if name == "bad_checksum" and bad_lines:
             more = ", ..." if len(bad_lines) > 5 else ""

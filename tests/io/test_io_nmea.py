@@ -1,6 +1,7 @@
 """NMEA 0183 logs (msf_torch.io.nmea, ``msf nmea``): a generated log with known geodetic
-points, times across midnight, GST sigmas, a corrupted line, a no-fix GGA and sentences that
-are skipped; pynmea2 as the independent reference for every GGA; bad input."""
+points, times across midnight, GST sigmas, RMC / VTG velocities, a corrupted line, a no-fix
+GGA and sentences that are skipped; pynmea2 as the independent reference for every GGA and
+for speeds and courses; velocities against closed forms; bad input."""
 
 from __future__ import annotations
 
@@ -23,7 +24,9 @@ START_UNIX = calendar.timegm((2021, 10, 18, 23, 59, 40))  # + 0.5 s: midnight at
 CORRUPT_EPOCH = 7
 NO_GST_EPOCHS = (4, 11, 25)
 DATE_EPOCHS = (3, 13, 23, 33)  # an RMC after these GGAs: fixes 0-2 get the date back-filled
+VTG_EPOCHS = (0, 15, 30)  # a VTG after these GGAs
 SEPARATION_M = 47.5
+KNOT_MPS = 1852 / 3600  # the international nautical mile per hour
 
 
 def _checksum(body: str) -> str:
@@ -173,6 +176,14 @@ def test_generated_log_parses_to_the_points(generated, log):
     assert log.counts["duplicate_time"] == 0 and log.counts["quality_not_kept"] == 0
     assert not log.geoid_separation_missing
     assert corrupt_line not in log.lines.tolist()
+    # 0.5 kn at 10 deg from each RMC and VTG, at its epoch's time (VTG: the GGA before it),
+    # across midnight with the dates back-filled as the fixes'
+    epochs = sorted(DATE_EPOCHS + VTG_EPOCHS)
+    np.testing.assert_array_equal(log.velocity_t, truth["t"][epochs])
+    speed, course = 0.5 * KNOT_MPS, math.radians(10.0)
+    expected = np.tile([speed * math.sin(course), speed * math.cos(course), np.nan], (7, 1))
+    np.testing.assert_allclose(log.velocity_enu, expected, rtol=0, atol=1e-15)
+    assert log.counts["velocity_kept"] == 7 and log.counts["velocity_duplicate"] == 0
 
 
 def test_warning_lists_what_was_skipped(generated):
@@ -183,7 +194,7 @@ def test_warning_lists_what_was_skipped(generated):
     assert len(messages) == 1
     text = messages[0]
     assert f"bad_checksum 1 (lines {corrupt_line})" in text
-    assert "no_fix 1" in text and "GSV 4" in text and "VTG 3" in text
+    assert "no_fix 1" in text and "GSV 4" in text and "VTG" not in text and "velocity" not in text
     below = sum(1 for k in range(N_EPOCHS) if k % 3 and k != CORRUPT_EPOCH)  # quality 4
     assert f"quality_not_kept {below}" in text
 
@@ -567,3 +578,179 @@ def test_zero_gst_sigma_is_not_given_and_overflowing_height_is_refused(tmp_path)
     with pytest.raises(DataError) as info:
         read_nmea(_write(tmp_path, [gga], "sum.nmea"))
     assert (info.value.line, info.value.field) == (1, "geoid_separation")
+
+
+def _rmc_velocity(k: int, status: str, knots: str, course: str, mode: str) -> str:
+    """The RMC of epoch ``k`` with its status, speed (knots), course and mode indicator."""
+    day = (START_UNIX + k) // 86400
+    date = np.datetime64(int(day), "D").astype(object)
+    position = "4900.000,N,00824.000,E"
+    return _sentence(f"GNRMC,{_utc(k)},{status},{position},{knots},{course},{date:%d%m%y},,,{mode}")
+
+
+def test_speed_and_course_over_ground_are_enu_velocities(tmp_path):
+    """Course 90 deg at 1 kn is 1852/3600 m/s east; 36 km/h at 180 deg is 10 m/s south;
+    speed 0 with an empty course is (0, 0); the up component is not measured (NaN); a VTG
+    takes the UTC time of the sentence before it; what is not a measurement is counted."""
+    truth = _truth()
+    lines = [
+        _sentence("GNVTG,45.0,T,,M,2.0,N,3.704,K,A"),  # 1: no UTC time before it: untimed
+        _rmc_velocity(0, "A", "1.0", "90.0", "A"),  # 2: kept
+        _gga(0, truth),
+        _sentence("GNVTG,90.0,T,,M,1.0,N,1.852,K,A"),  # 4: the RMC's epoch again: duplicate
+        _gga(1, truth),
+        _sentence("GNVTG,180.0,T,,M,,N,36.0,K,D"),  # 6: km/h only: kept at epoch 1
+        _rmc_velocity(2, "A", "0.0", "", "A"),  # 7: stationary: kept
+        _gga(2, truth),
+        _rmc_velocity(3, "A", "0.004", "", "A"),  # below the heading threshold: no course
+        _gga(3, truth),
+        _rmc_velocity(4, "V", "1.0", "90.0", "N"),  # invalid
+        _sentence("GNVTG,,T,,M,,N,,K,N"),  # invalid (u-blox without a fix)
+        _gga(4, truth),
+        _sentence("GNVTG,30.0,T,,M,1.0,N,1.852,K,E"),  # dead reckoning
+        _rmc_velocity(5, "A", "", "", "A"),  # empty speed
+        _gga(5, truth),
+        _sentence("GPGGA,235946.50,,,,,0,00,99.99,,,,,,"),  # no fix: the clock is lost
+        _sentence("GNVTG,30.0,T,,M,1.0,N,1.852,K,A"),  # untimed
+    ]
+    with pytest.warns(UserWarning) as record:
+        log = read_nmea(_write(tmp_path, lines))
+    text = " ".join(str(w.message) for w in record)
+    np.testing.assert_array_equal(log.velocity_t, truth["t"][:3])
+    np.testing.assert_array_equal(log.velocity_lines, [2, 6, 7])
+    assert log.velocity_enu[0, 0] == 1852 / 3600 and abs(log.velocity_enu[0, 1]) < 1e-16
+    np.testing.assert_allclose(log.velocity_enu[1, :2], [0.0, -10.0], rtol=0, atol=1e-14)
+    np.testing.assert_array_equal(log.velocity_enu[2, :2], [0.0, 0.0])
+    assert np.isnan(log.velocity_enu[:, 2]).all()
+    expected = {
+        "velocity_kept": 3,
+        "velocity_untimed": 2,
+        "velocity_duplicate": 1,
+        "velocity_no_course": 1,
+        "velocity_invalid": 2,
+        "velocity_mode_not_kept": 1,
+        "velocity_empty": 1,
+    }
+    assert {name: log.counts[name] for name in expected} == expected
+    for name, count in expected.items():
+        assert (f"{name} {count}" in text) == (name != "velocity_kept")
+
+    velocity = log.to_gnss_velocity(t0=START_UNIX)
+    assert velocity.velocity.dtype == torch.float64 and velocity.velocity.shape == (1, 3, 3)
+    np.testing.assert_array_equal(velocity.t[0].numpy(), [0.5, 1.5, 2.5])
+    np.testing.assert_array_equal(velocity.velocity[0].numpy(), log.velocity_enu)
+    assert torch.isnan(velocity.sigma).all() and velocity.mask.all()
+
+
+@pytest.mark.parametrize(("knots", "course"), [("0.5", "10.0"), ("12.345", "271.75"), ("3", "0")])
+def test_rmc_and_vtg_speed_and_course_equal_pynmea2(tmp_path, knots, course):
+    pynmea2 = pytest.importorskip("pynmea2")
+    truth = _truth()
+    rmc = _rmc_velocity(0, "A", knots, course, "R")
+    vtg = _sentence(f"GPVTG,{course},T,,M,{knots},N,,K,F")
+    zda = _sentence("GPZDA,235940.50,18,10,2021,00,00")
+    for line in (rmc, vtg):
+        log = read_nmea(_write(tmp_path, [zda, _gga(0, truth), line]))
+        msg = pynmea2.parse(line, check=True)
+        if line is rmc:
+            speed_kn, course_deg = float(msg.spd_over_grnd), float(msg.true_course)
+        else:
+            speed_kn, course_deg = float(msg.spd_over_grnd_kts), float(msg.true_track)
+        speed, heading = speed_kn * 1852 / 3600, math.radians(course_deg)
+        np.testing.assert_allclose(
+            log.velocity_enu[0, :2],
+            [speed * math.sin(heading), speed * math.cos(heading)],
+            rtol=1e-15,
+            atol=1e-15,
+        )
+
+
+def test_velocities_on_the_receive_clock(tmp_path):
+    """time='receive': each velocity has its own line's stamp; an RMC and a VTG of one epoch
+    (two stamps) are one velocity; auto falls back to UTC when a velocity line has none."""
+    truth = _truth()
+    lines = [
+        f"100.00,{_gga(0, truth)}",
+        f"100.01,{_rmc_velocity(0, 'A', '1.0', '0.0', 'A')}",
+        f"100.02,{_sentence('GNVTG,0.0,T,,M,1.0,N,1.852,K,A')}",
+        f"101.00,{_gga(1, truth)}",
+        f"101.02,{_sentence('GNVTG,0.0,T,,M,2.0,N,3.704,K,A')}",
+    ]
+    with pytest.warns(UserWarning, match="velocity_duplicate 1"):
+        log = read_nmea(_write(tmp_path, lines))
+    assert log.time_source == "receive"
+    np.testing.assert_array_equal(log.t, [100.0, 101.0])
+    np.testing.assert_array_equal(log.velocity_t, [100.01, 101.02])
+    np.testing.assert_array_equal(log.velocity_enu[:, 1], [KNOT_MPS, 2.0 * 1852 / 3600])
+    assert log.counts["velocity_duplicate"] == 1
+
+    lines[4] = lines[4].split(",", 1)[1]  # the last VTG without its stamp
+    path = _write(tmp_path, lines)
+    with pytest.warns(UserWarning, match="velocity_duplicate 1"):
+        utc = read_nmea(path)
+    assert utc.time_source == "utc"
+    np.testing.assert_array_equal(utc.velocity_t, utc.t)
+    with pytest.raises(DataError) as err:
+        read_nmea(path, time="receive")
+    assert (err.value.line, err.value.field) == (5, "receive_time")
+
+
+@pytest.mark.parametrize(
+    ("sentence", "field"),
+    [
+        ("GNRMC,235940.50,X,4900.000,N,00824.000,E,0.5,10.0,181021,,,A", "status"),
+        ("GNRMC,235940.50,A,4900.000,N,00824.000,E,0.5,10.0,181021,,,Q", "mode"),
+        ("GNRMC,235940.50,A,4900.000,N,00824.000,E,-0.5,10.0,181021,,,A", "speed_knots"),
+        ("GNRMC,235940.50,A,4900.000,N,00824.000,E,0.5,1O.0,181021,,,A", "course"),
+        ("GNRMC,235940.50,A,4900.000,N,00824.000,E,0.5,360.5,181021,,,A", "course"),
+        ("GNRMC,2359x0.50,A,4900.000,N,00824.000,E,0.5,10.0,,,,A", "utc_time"),
+        ("GNVTG,10.0,M,,M,0.5,N,0.9,K,A", "course_unit"),
+        ("GNVTG,10.0,T,,M,0.5,K,0.9,K,A", "speed_knots_unit"),
+        ("GNVTG,10.0,T,,M,0.5,N,0.9,N,A", "speed_kmh_unit"),
+        ("GNVTG,10.0,T,,M,,N,1e3,K,A", "speed_kmh"),
+        ("GNVTG,-1.0,T,,M,0.5,N,0.9,K,A", "course"),
+        ("GNVTG,10.0,T,,M,0.5,N,0.9,K,Z", "mode"),
+    ],
+)
+def test_malformed_velocity_sentences_name_line_and_field(tmp_path, sentence, field):
+    lines = [_gga(0, _truth()), _sentence(sentence)]
+    with pytest.raises(DataError) as err:
+        read_nmea(_write(tmp_path, lines))
+    assert (err.value.line, err.value.field) == (2, field)
+    with pytest.raises(DataError):  # and without its checksum
+        read_nmea(_write(tmp_path, [lines[0], lines[1].split("*")[0]]))
+
+
+def test_cli_writes_gnss_velocity_csv_unless_told_not_to(generated, tmp_path, capsys):
+    path = generated[0]
+    out = tmp_path / "run" / "gnss.csv"
+    assert main(["nmea", str(path), "--out", str(out), "--t0", str(START_UNIX)]) == 0
+    summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    velocity_csv = out.parent / "gnss_velocity.csv"
+    assert summary["velocities"] == 7 and summary["velocity_out"] == str(velocity_csv)
+    assert velocity_csv.read_text().splitlines()[0] == "t,vx,vy,vz"
+    (out.parent / "imu.csv").write_text(
+        "t,gyro_x,gyro_y,gyro_z,accel_x,accel_y,accel_z\n0,0,0,0,0,0,9.81\n1,0,0,0,0,0,9.81\n"
+    )
+    seq = read_native(out.parent)
+    with pytest.warns(UserWarning):
+        expected = read_nmea(path).to_gnss_velocity(t0=START_UNIX)
+    np.testing.assert_array_equal(seq.gnss_velocity.t.numpy(), expected.t.numpy())
+    np.testing.assert_array_equal(seq.gnss_velocity.velocity.numpy(), expected.velocity.numpy())
+    assert torch.isnan(seq.gnss_velocity.sigma).all()
+
+    # --no-velocity writes none, and names a file of an earlier conversion left there
+    assert main(["nmea", str(path), "--out", str(out), "--no-velocity"]) == 0
+    captured = capsys.readouterr()
+    assert f"{velocity_csv} (not from this conversion) is left as it is" in captured.err
+    summary = json.loads(captured.out.strip().splitlines()[-1])
+    assert summary["velocity_out"] is None and summary["velocities"] == 7
+    other = tmp_path / "other" / "gnss.csv"
+    assert main(["nmea", str(path), "--out", str(other), "--no-velocity"]) == 0
+    assert not (other.parent / "gnss_velocity.csv").exists()
+    capsys.readouterr()
+    # a log without RMC / VTG speeds writes no velocity table
+    plain = _write(tmp_path, [_gga(k, _truth()) for k in range(3)] + [_rmc(2)])
+    bare = tmp_path / "bare" / "gnss.csv"
+    assert main(["nmea", str(plain), "--out", str(bare)]) == 0
+    assert json.loads(capsys.readouterr().out.strip().splitlines()[-1])["velocities"] == 1
