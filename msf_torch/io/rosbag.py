@@ -13,6 +13,8 @@ kind         message types                                         becomes
 ============ ===================================================== ==========================
 ``imu``      ``sensor_msgs/Imu``                                   ``Sequence.imu``
 ``gnss``     ``sensor_msgs/NavSatFix``                             ``Sequence.gnss`` (ENU)
+``gnss_velocity`` ``geometry_msgs/TwistWithCovarianceStamped``,    ``Sequence.gnss_velocity``
+             ``TwistStamped`` (the antenna's velocity, ENU)        (ENU)
 ``wheels``   ``sensor_msgs/JointState`` (wheel joint velocities    ``Sequence.wheel``
              or positions),
              ``geometry_msgs/TwistStamped``,
@@ -57,6 +59,20 @@ GNSS
     fused (sigma :data:`UNFUSED_SIGMA`); such fixes are counted in
     ``meta["gnss_no_altitude"]``. The origin's altitude is that of the earliest kept fix
     with one (0 if none has).
+GNSS velocity
+    The twist's linear part is the antenna's velocity east, north, up in m/s (u-blox
+    ``ublox_gps`` ``fix_velocity``: ``velE, velN, -velD`` of NAV-PVT, covariance diagonal
+    ``sAcc^2``, angular part -1; Septentrio ``septentrio_gnss_driver`` twist topics are ENU
+    only with ``use_ros_axis_orientation: true``, NED otherwise). The angular part is
+    ignored. The sigma per axis is the square root of the covariance diagonal (rows 0-2 of
+    the 6x6, m^2/s^2); a diagonal entry of 0 or -1 (unknown, or "not provided"), a
+    ``TwistStamped``, or ``use_message_covariance: false`` gives NaN: the estimator's
+    ``gnss_velocity_sigma_mps``. A NaN up component (a horizontal-only velocity) is kept
+    as "not measured" (``GnssVelocity``); a NaN or inf east / north drops the message.
+    The velocity is that of the antenna the fixes come from: the estimator applies the GNSS
+    lever arm to both, so with ``frames`` the two sensors must sit in the same place
+    (DataError otherwise); a ``gnss_velocity`` sensor without a ``gnss`` one gives the lever
+    arm itself.
 Pose covariance
     ROS orders a pose covariance ``[x, y, z, rot x, rot y, rot z]`` with both blocks about
     the parent (world) axes; msf_torch's is ``[dp (world), dtheta (body)]``
@@ -132,6 +148,7 @@ from msf_torch.io.geodesy import enu_to_geodetic, geodetic_to_enu
 from msf_torch.robot.frames import FrameTree, inverse_transform
 from msf_torch.types import (
     GnssFixes,
+    GnssVelocity,
     ImuSamples,
     PoseMeasurements,
     Sequence,
@@ -139,12 +156,16 @@ from msf_torch.types import (
     WheelSamples,
 )
 
-SENSOR_KINDS = ("imu", "gnss", "wheels", "pose", "joints", "image", "laser_scan")
+SENSOR_KINDS = ("imu", "gnss", "gnss_velocity", "wheels", "pose", "joints", "image", "laser_scan")
 """Sensor kinds a topic can be mapped to."""
 
 MESSAGE_TYPES: dict[str, tuple[str, ...]] = {
     "imu": ("sensor_msgs/msg/Imu",),
     "gnss": ("sensor_msgs/msg/NavSatFix",),
+    "gnss_velocity": (
+        "geometry_msgs/msg/TwistWithCovarianceStamped",
+        "geometry_msgs/msg/TwistStamped",
+    ),
     "wheels": (
         "sensor_msgs/msg/JointState",
         "geometry_msgs/msg/TwistStamped",
@@ -183,7 +204,7 @@ class SensorTopic:
             ``child_frame_id``; the body frame for ``PoseStamped`` / ``PoseWithCovariance``).
         stamp: ``"header"`` or ``"bag"`` (the recording time).
         time_offset_s: added to every time of this sensor, s.
-        use_message_covariance: GNSS / pose: take the message's covariance.
+        use_message_covariance: GNSS, GNSS velocity, pose: take the message's covariance.
         min_fix_status: GNSS: lowest ``NavSatStatus.status`` kept (-1 keeps all).
         fuse: fused components (None: all); see the module docstring.
         left_joints, right_joints: wheels from JointState: the joints of each side.
@@ -229,8 +250,9 @@ class BagLayout:
     """Which topics to read and how (the ``sensors`` and ``frames`` of a robot YAML).
 
     Attributes:
-        sensors: the topics to read; at most one each of imu, gnss and wheels, one pose
-            sensor with role ``poses`` and one with ``ground_truth``; exactly one imu.
+        sensors: the topics to read; at most one each of gnss, gnss_velocity and wheels,
+            one pose sensor with role ``poses`` and one with ``ground_truth``; exactly one
+            imu.
         frames: the robot's frames, or None (every sensor at the body origin and axes).
         body_frame: the estimator's body axes (origin at the IMU); None: the IMU's frame.
         joint_values: fixed values (rad or m) of movable joints, by name.
@@ -252,7 +274,7 @@ class BagLayout:
         kinds = [s.kind for s in self.sensors]
         if kinds.count("imu") != 1:
             raise ValueError(f"a bag layout needs exactly one imu sensor, got {kinds.count('imu')}")
-        for single in ("gnss", "wheels", "joints"):
+        for single in ("gnss", "gnss_velocity", "wheels", "joints"):
             names = [s.name for s in self.sensors if s.kind == single]
             if len(names) > 1:
                 raise ValueError(f"the estimator takes one {single} sensor, got {names}")
@@ -396,6 +418,14 @@ def _extract(
             "cov": np.array([m.position_covariance for m in messages]).reshape(-1, 9),
             "cov_type": np.array([m.position_covariance_type for m in messages], dtype=np.int64),
         }, keep
+    if spec.kind == "gnss_velocity":
+        if msgtype == "geometry_msgs/msg/TwistStamped":
+            linear = [_vec(m.twist.linear) for m in messages]
+            cov = np.full((len(messages), 3), np.nan)
+        else:
+            linear = [_vec(m.twist.twist.linear) for m in messages]
+            cov = np.array([m.twist.covariance for m in messages]).reshape(-1, 36)[:, [0, 7, 14]]
+        return {"velocity": np.array(linear).reshape(-1, 3), "cov": cov}, keep
     if spec.kind == "pose":
         pose_of = {
             "nav_msgs/msg/Odometry": lambda m: m.pose.pose,
@@ -618,7 +648,8 @@ def read_rosbag(path: str | os.PathLike[str], layout: BagLayout, sort: bool = Fa
 
     Returns:
         a :class:`~msf_torch.types.Sequence`: ``imu`` and, when mapped, ``wheel``, ``gnss``,
-        ``poses``, ``ground_truth`` and named ``pose_sources``, in the body frame (module
+        ``gnss_velocity``, ``poses``, ``ground_truth`` and named ``pose_sources``, in the
+        body frame (module
         docstring); ``names == [bag stem]``; ``meta`` with ``source``, ``format``
         (``"rosbag1"`` / ``"rosbag2"``), ``time_origin_ns``, ``body_frame``,
         ``imu_frame``, ``body_imu_rotation`` (3x3, the IMU's axes in the body frame),
@@ -684,6 +715,9 @@ def read_rosbag(path: str | os.PathLike[str], layout: BagLayout, sort: bool = Fa
             streams["gnss"], origin = _gnss_stream(r, t, layout, clean, meta)
             meta["gnss_origin"] = list(origin)
             meta["extrinsics"][name] = frames.body_from(r).tolist()
+        elif spec.kind == "gnss_velocity":
+            streams["gnss_velocity"] = _gnss_velocity_stream(r, t, clean)
+            meta["extrinsics"][name] = frames.body_from(r).tolist()
         elif spec.kind == "wheels":
             streams["wheel"] = _wheel_stream(r, t, layout, clean, bag)
             meta["extrinsics"][name] = frames.body_from(r).tolist()
@@ -710,6 +744,7 @@ def read_rosbag(path: str | os.PathLike[str], layout: BagLayout, sort: bool = Fa
                 "bag_ns": r.bag_ns.tolist(),
             }
     meta.update(report.to_meta())
+    _check_one_antenna(layout, meta, bag)
     if streams["imu"].length == 0:
         raise DataError(bag, "no IMU samples (after dropping non-finite ones)", field="imu")
     seq = Sequence(
@@ -759,6 +794,40 @@ def _gnss_stream(r: _Raw, t: np.ndarray, layout: BagLayout, clean, meta) -> tupl
     sigma[no_altitude[fix], 2] = UNFUSED_SIGMA
     arrays = clean("gnss", {"t": t[fix], "position": position, "sigma": sigma}, nan_ok=("sigma",))
     return _tables.stream_from_arrays(GnssFixes, arrays), origin
+
+
+def _gnss_velocity_stream(r: _Raw, t: np.ndarray, clean) -> GnssVelocity:
+    """The antenna's ENU velocity (N, 3) m/s with per-axis sigmas (module docstring)."""
+    cov = r.fields["cov"]
+    known = np.isfinite(cov) & (cov > 0)
+    use = r.spec.use_message_covariance
+    sigma = np.where(known & use, np.sqrt(np.where(known, cov, 1.0)), np.nan)
+    velocity = r.fields["velocity"]
+    arrays = clean(
+        "gnss_velocity",
+        {"t": t, "velocity": velocity[:, :2], "velocity_up": velocity[:, 2], "sigma": sigma},
+        nan_ok=("sigma", "velocity_up"),
+    )
+    up = arrays.pop("velocity_up")
+    arrays["velocity"] = np.concatenate((arrays["velocity"], up[:, None]), axis=1)
+    return _tables.stream_from_arrays(GnssVelocity, arrays)
+
+
+def _check_one_antenna(layout: BagLayout, meta: dict[str, Any], bag: Path) -> None:
+    """DataError when the gnss and gnss_velocity sensors sit more than 1 mm apart (the
+    estimator applies one GNSS lever arm to fixes and velocities)."""
+    fixes, velocity = layout.sensor("gnss"), layout.sensor("gnss_velocity")
+    if fixes is None or velocity is None or layout.frames is None:
+        return
+    arms = [np.array(meta["extrinsics"][s.name])[:3, 3] for s in (fixes, velocity)]
+    if np.abs(arms[0] - arms[1]).max() > 1e-3:
+        raise DataError(
+            bag,
+            f"sensor '{velocity.name}' sits at {arms[1].tolist()} m in the body frame, sensor "
+            f"'{fixes.name}' at {arms[0].tolist()} m: the estimator takes one GNSS antenna "
+            "(one lever arm) for fixes and velocities",
+            field=f"sensors.{velocity.name}.frame",
+        )
 
 
 def _side_means(messages: list, spec: SensorTopic, field: str) -> tuple[list, list, list]:
@@ -1019,6 +1088,28 @@ def _messages_for(
                     ),
                 )
             )
+    elif spec.kind == "gnss_velocity":
+        if seq.gnss_velocity is None:
+            return out
+        s = seq.gnss_velocity.compact()
+        velocity, sigma = _np(s.velocity[0]), _np(s.sigma[0])
+        stamps = _stamps(_np(s.t[0]), origin_ns, spec.time_offset_s)
+        stamped = m.types["geometry_msgs/msg/TwistWithCovarianceStamped"]
+        twist_cov = m.types["geometry_msgs/msg/TwistWithCovariance"]
+        for k, stamp in enumerate(stamps.tolist()):
+            cov = np.zeros((6, 6))
+            cov[[0, 1, 2], [0, 1, 2]] = np.where(np.isfinite(sigma[k]), sigma[k] ** 2, 0.0)
+            cov[3, 3] = -1.0  # the angular part is not measured
+            twist = m.twist(velocity[k], [0.0] * 3)
+            out.append(
+                (
+                    stamp,
+                    stamped(
+                        header=m.header(stamp, frame),
+                        twist=twist_cov(twist=twist, covariance=cov.reshape(36)),
+                    ),
+                )
+            )
     elif spec.kind == "wheels":
         if seq.wheel is None:
             return out
@@ -1102,6 +1193,7 @@ def _messages_for(
 _WRITE_TYPES = {
     "imu": "sensor_msgs/msg/Imu",
     "gnss": "sensor_msgs/msg/NavSatFix",
+    "gnss_velocity": "geometry_msgs/msg/TwistWithCovarianceStamped",
     "pose": "nav_msgs/msg/Odometry",
 }
 
@@ -1119,7 +1211,9 @@ def write_rosbag(
     :func:`read_rosbag`).
 
     Each sensor of ``layout`` becomes its topic: imu -> ``Imu``; gnss -> ``NavSatFix``
-    about ``gnss_origin`` (diagonal covariance from the sigmas, UNKNOWN when NaN); wheels
+    about ``gnss_origin`` (diagonal covariance from the sigmas, UNKNOWN when NaN);
+    gnss_velocity -> ``TwistWithCovarianceStamped`` (the ENU velocity, NaN up kept; the
+    linear covariance diagonal from the sigmas, 0 where NaN; angular -1); wheels
     -> ``JointState`` velocities (rim speed / radius per joint) when the sensor names
     joints, else ``TwistStamped``; pose (each role) -> ``Odometry`` of the sensor frame
     with the covariance in ROS order. Data are turned from the body frame into each

@@ -18,12 +18,14 @@ Top-level keys
 ``time``
     ``origin_ns``: ``first`` (default: the earliest stamp read) or an integer in ns.
 ``sensors`` (required; a mapping name -> sensor)
-    Every sensor: ``type`` (imu | gnss | wheels | pose | joints | image | laser_scan),
+    Every sensor: ``type`` (imu | gnss | gnss_velocity | wheels | pose | joints | image |
+    laser_scan),
     ``topic``, ``enabled`` (default true), ``frame`` (default: from the messages),
     ``stamp`` (header | bag), ``time_offset_s`` (0). Per type (see
     :mod:`msf_torch.io.rosbag` for what they do): gnss ``origin`` (first | [lat_deg,
     lon_deg, alt_m]), ``use_message_covariance`` (true), ``min_fix_status`` (0), ``fuse``
-    (subset of [x, y, z]); wheels ``left_joints``, ``right_joints``, ``wheel_radius_m``
+    (subset of [x, y, z]); gnss_velocity ``use_message_covariance`` (true); wheels
+    ``left_joints``, ``right_joints``, ``wheel_radius_m``
     (a number or [left, right]) for JointState, ``fuse`` (subset of [speed, yaw_rate],
     default [speed]); pose ``role`` (pose_source | poses | ground_truth),
     ``source_name``, ``sigma`` (6 numbers), ``use_message_covariance``, ``fuse`` (subset
@@ -101,6 +103,7 @@ _PER_KIND = {
         "calibrate_time_offset",
         "calibrate_lever_arm",
     ),
+    "gnss_velocity": ("use_message_covariance",),
     "wheels": ("left_joints", "right_joints", "wheel_radius_m", "fuse", "calibrate"),
     "pose": (
         "role",
@@ -256,10 +259,11 @@ class RobotConfig:
         values = dict(self.estimator)
         derived: dict[str, Any] = {}
         extrinsics = (meta or {}).get("extrinsics", {})
+        # the antenna of the fixes, else of the velocities (the reader checks they agree)
+        antenna = self.layout.sensor("gnss") or self.layout.sensor("gnss_velocity")
         if self.layout.frames is not None:
-            gnss = self.layout.sensor("gnss")
-            if gnss is not None and gnss.name in extrinsics:
-                derived["gnss_lever_arm_m"] = [row[3] for row in extrinsics[gnss.name][:3]]
+            if antenna is not None and antenna.name in extrinsics:
+                derived["gnss_lever_arm_m"] = [row[3] for row in extrinsics[antenna.name][:3]]
             wheels = self.layout.sensor("wheels")
             if wheels is not None and wheels.name in extrinsics:
                 matrix = torch.tensor(extrinsics[wheels.name], dtype=torch.float64)
@@ -276,8 +280,10 @@ class RobotConfig:
             if track is not None and "wheel_track_m" not in values:
                 derived["wheel_track_m"] = track
         if self.layout.frames is not None:
-            for key, kind in (("gnss_lever_arm_m", "gnss"), ("wheel_lever_arm_m", "wheels")):
-                sensor = self.layout.sensor(kind)
+            for key, sensor in (
+                ("gnss_lever_arm_m", antenna),
+                ("wheel_lever_arm_m", self.layout.sensor("wheels")),
+            ):
                 if key in values and sensor is not None:
                     raise self._fail(
                         ("estimator", key),

@@ -822,3 +822,185 @@ def test_wheel_joint_positions_only(tmp_path: Path, version: int) -> None:
     np.testing.assert_allclose(
         seq.wheel.left_speed[0].numpy(), 0.1 * (3.1 + seq.wheel.t[0].numpy()), rtol=1e-12
     )
+
+
+def _twist_cov_msg(store, stamp, frame, linear, linear_cov):
+    """A u-blox style ``fix_velocity``: ENU linear velocity, covariance diagonal
+    ``linear_cov`` (3 values) on the linear rows, -1 on the first angular one."""
+    cov = np.zeros((6, 6))
+    cov[[0, 1, 2], [0, 1, 2]] = linear_cov
+    cov[3, 3] = -1.0
+    twist = store.types["geometry_msgs/msg/Twist"](
+        linear=_v3(store, linear), angular=_v3(store, [0.0, 0.0, 0.0])
+    )
+    return store.types["geometry_msgs/msg/TwistWithCovarianceStamped"](
+        header=_header(store, stamp, frame),
+        twist=store.types["geometry_msgs/msg/TwistWithCovariance"](
+            twist=twist, covariance=cov.reshape(36)
+        ),
+    )
+
+
+@pytest.mark.parametrize("version", [1, 2])
+def test_gnss_velocity_from_twist_messages(tmp_path: Path, version: int) -> None:
+    """TwistWithCovarianceStamped -> Sequence.gnss_velocity: the linear part as ENU m/s,
+    sigma = sqrt(covariance diagonal), NaN where the diagonal is 0 or -1; a NaN up is kept as
+    "not measured", a NaN east drops the message; TwistStamped has no sigma."""
+    store = _store(version)
+    t0 = 1_650_000_000_000_000_000
+    step = 200_000_000
+    nan = float("nan")
+    rows = [
+        ([1.5, -0.25, 0.125], [0.0025, 0.0025, 0.0025]),  # sAcc 5 cm/s on every axis
+        ([2.0, 0.5, 0.0], [0.0, 0.0, 0.0]),  # covariance unknown
+        ([0.75, 1.0, nan], [0.01, 0.04, -1.0]),  # horizontal only
+        ([nan, 1.0, 0.0], [0.01, 0.01, 0.01]),  # dropped
+        ([-3.0, 4.0, 0.5], [0.09, 0.16, -1.0]),
+    ]
+    velocity = [
+        (t0 + k * step, _twist_cov_msg(store, t0 + k * step, "gps_link", v, c))
+        for k, (v, c) in enumerate(rows)
+    ]
+    plain = store.types["geometry_msgs/msg/TwistStamped"](
+        header=_header(store, t0, "gps_link"),
+        twist=store.types["geometry_msgs/msg/Twist"](
+            linear=_v3(store, [0.5, 0.25, -0.125]), angular=_v3(store, [0.0, 0.0, 1.0])
+        ),
+    )
+    bag = _write_bag(
+        tmp_path / ("vel.bag" if version == 1 else "vel"),
+        version,
+        {
+            "/imu": ("sensor_msgs/msg/Imu", _still_imu(store, t0, "imu", 120, 9.8)),
+            "/fix_velocity": ("geometry_msgs/msg/TwistWithCovarianceStamped", velocity),
+            "/twist": ("geometry_msgs/msg/TwistStamped", [(t0, plain)]),
+        },
+    )
+    imu = SensorTopic("imu", "imu", "/imu")
+    layout = BagLayout(
+        sensors=(imu, SensorTopic("vel", "gnss_velocity", "/fix_velocity", time_offset_s=0.01))
+    )
+    seq = read_rosbag(bag, layout)
+    vel = seq.gnss_velocity
+    assert vel.velocity.dtype == torch.float64 and vel.velocity.shape == (1, 4, 3)
+    np.testing.assert_allclose(vel.t[0].numpy(), [0.01, 0.21, 0.41, 0.81], rtol=0, atol=1e-12)
+    want = np.array([rows[k][0] for k in (0, 1, 2, 4)])
+    np.testing.assert_array_equal(vel.velocity[0].numpy(), want)
+    np.testing.assert_array_equal(
+        vel.sigma[0].numpy(),
+        [[0.05, 0.05, 0.05], [nan, nan, nan], [0.1, 0.2, nan], [0.3, 0.4, nan]],
+    )
+    assert seq.meta["dropped_nonfinite"]["gnss_velocity"] == 1
+    assert seq.meta["dropped_indices"]["gnss_velocity"] == [3]
+    assert seq.meta["topics"]["vel"]["frame"] == "gps_link"
+    # the message covariance switched off: the estimator's default everywhere
+    off = BagLayout(
+        sensors=(
+            imu,
+            SensorTopic("vel", "gnss_velocity", "/fix_velocity", use_message_covariance=False),
+        )
+    )
+    assert torch.isnan(read_rosbag(bag, off).gnss_velocity.sigma).all()
+    # TwistStamped: no covariance, the angular part ignored
+    stamped = read_rosbag(
+        bag, BagLayout(sensors=(imu, SensorTopic("vel", "gnss_velocity", "/twist")))
+    ).gnss_velocity
+    np.testing.assert_array_equal(stamped.velocity[0].numpy(), [[0.5, 0.25, -0.125]])
+    assert torch.isnan(stamped.sigma).all()
+
+
+def test_gnss_velocity_round_trips_through_write_rosbag(tmp_path: Path) -> None:
+    from msf_torch.types import GnssVelocity
+
+    seq = read_native(_native_folder_with_velocity(tmp_path))
+    layout = BagLayout(
+        sensors=(
+            SensorTopic("imu", "imu", "/imu"),
+            SensorTopic("vel", "gnss_velocity", "/ublox/fix_velocity"),
+        )
+    )
+    bag = write_rosbag(seq, tmp_path / "bag", layout, time_origin_ns=ORIGIN_NS)
+    back = read_rosbag(bag, dataclasses.replace(layout, time_origin_ns=ORIGIN_NS))
+    assert isinstance(back.gnss_velocity, GnssVelocity)
+    assert torch.equal(back.gnss_velocity.t, seq.gnss_velocity.t)
+    torch.testing.assert_close(
+        back.gnss_velocity.velocity, seq.gnss_velocity.velocity, equal_nan=True
+    )
+    torch.testing.assert_close(back.gnss_velocity.sigma, seq.gnss_velocity.sigma, equal_nan=True)
+
+
+def _native_folder_with_velocity(tmp_path: Path) -> Path:
+    """A CSV folder: a still IMU at 100 Hz for 1 s and four GNSS velocities, one without
+    an up component and one without sigmas."""
+    folder = tmp_path / "native"
+    folder.mkdir()
+    imu = "".join(f"{k / 100!r},0,0,0,0,0,9.81\n" for k in range(101))
+    (folder / "imu.csv").write_text("t,gyro_x,gyro_y,gyro_z,accel_x,accel_y,accel_z\n" + imu)
+    (folder / "gnss_velocity.csv").write_text(
+        "t,vx,vy,vz,sigma_vx,sigma_vy,sigma_vz\n"
+        "0.1,1.25,-0.5,0.0625,0.05,0.05,0.1\n"
+        "0.3,1.5,-0.25,nan,0.05,0.06,nan\n"
+        "0.5,1.75,0.0,0.125,nan,nan,nan\n"
+        "0.7,2.0,0.25,-0.125,0.02,0.03,0.04\n"
+    )
+    return folder
+
+
+def test_gnss_velocity_and_fixes_share_one_antenna(tmp_path: Path) -> None:
+    """With frames, a gnss_velocity sensor elsewhere than the gnss one is an error naming its
+    frame (the estimator applies one lever arm); alone, it gives the GNSS lever arm."""
+    from msf_torch.robot.config import load_robot_config
+
+    store = _store(2)
+    t0 = 1_650_000_000_000_000_000
+    bag = _write_bag(
+        tmp_path / "antenna",
+        2,
+        {
+            "/imu": ("sensor_msgs/msg/Imu", _still_imu(store, t0, "imu_link", 30, 9.8)),
+            "/fix": (
+                "sensor_msgs/msg/NavSatFix",
+                [(t0, _fix_msg(store, t0, "gps_link", 49, 8, 1))],
+            ),
+            "/fix_velocity": (
+                "geometry_msgs/msg/TwistWithCovarianceStamped",
+                [(t0, _twist_cov_msg(store, t0, "gps_link", [1, 0, 0], [0.01] * 3))],
+            ),
+        },
+    )
+    sensors = (
+        SensorTopic("imu", "imu", "/imu"),
+        SensorTopic("gps", "gnss", "/fix"),
+        SensorTopic("vel", "gnss_velocity", "/fix_velocity"),
+    )
+    layout = BagLayout(sensors=sensors, frames=FRAMES, body_frame="base_link")
+    seq = read_rosbag(bag, layout)
+    assert seq.meta["extrinsics"]["vel"] == seq.meta["extrinsics"]["gps"]
+    elsewhere = dataclasses.replace(
+        layout, sensors=(*sensors[:2], dataclasses.replace(sensors[2], frame="camera_link"))
+    )
+    with pytest.raises(DataError, match="one GNSS antenna") as caught:
+        read_rosbag(bag, elsewhere)
+    assert caught.value.field == "sensors.vel.frame"
+    with pytest.raises(ValueError, match="one gnss_velocity sensor"):
+        BagLayout(sensors=(*sensors, dataclasses.replace(sensors[2], name="vel2")))
+
+    yaml_text = (
+        "frames:\n  body: base_link\n  transforms:\n"
+        "    - {parent: base_link, child: imu_link, xyz: [0.1, 0.2, 0.3],\n"
+        "       rpy: [0, 0, 1.5707963267948966]}\n"
+        "    - {parent: base_link, child: gps_link, xyz: [-0.3, 0.0, 1.2], rpy: [0, 0, 0]}\n"
+        "sensors:\n"
+        "  imu: {type: imu, topic: /imu, frame: imu_link}\n"
+        "  vel: {type: gnss_velocity, topic: /fix_velocity, use_message_covariance: false}\n"
+    )
+    path = tmp_path / "robot.yaml"
+    path.write_text(yaml_text)
+    robot = load_robot_config(path)
+    assert robot.layout.sensor("gnss_velocity").use_message_covariance is False
+    alone = read_rosbag(bag, robot.layout)
+    lever = robot.eskf_config(alone.meta).gnss_lever_arm_m
+    np.testing.assert_allclose(lever, GPS_T[:3, 3] - IMU_T[:3, 3], rtol=0, atol=1e-12)
+    path.write_text(yaml_text.replace("use_message_covariance: false", "fuse: [x, y]"))
+    with pytest.raises(DataError, match="fuse"):
+        load_robot_config(path)
