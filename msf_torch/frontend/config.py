@@ -42,6 +42,9 @@ class EskfConfig:
     init_window_s: float = 0.5  # accelerometer averaging for roll/pitch
     init_min_gnss_distance_m: float = 20.0  # GNSS travel used to fix the initial yaw
     init_max_track_s: float = 30.0  # ... looked for in the first fixes up to this long
+    # a GNSS velocity (Sequence.gnss_velocity) this fast gives the course over ground, the
+    # initial heading when its modelled variance beats the track's (frontend.init)
+    init_min_gnss_speed_mps: float = 1.0
     init_position_sigma_m: float = 1.0
     init_velocity_sigma_mps: float = 0.5
     init_roll_pitch_sigma_rad: float = 0.03  # tilt from a moving accelerometer (motion part)
@@ -89,6 +92,9 @@ class EskfConfig:
     # GNSS
     gnss_sigma_m: list[float] = field(default_factory=lambda: [0.5, 0.5, 1.0])
     gnss_lever_arm_m: list[float] = field(default_factory=lambda: [0.0, 0.0, 0.0])
+    # GNSS velocity (Sequence.gnss_velocity: Doppler, or speed and course over ground) of the
+    # same antenna: default per-axis sigma east, north, up (m/s) where the data gives none
+    gnss_velocity_sigma_mps: list[float] = field(default_factory=lambda: [0.1, 0.1, 0.2])
     # named pose sources (Sequence.pose_sources: VO, LiDAR odometry) fused as odometry: the
     # body-frame mean velocity between consecutive valid samples of a source (see
     # frontend.schedule); "auto" = every source present, a list = those names, [] = none
@@ -231,6 +237,7 @@ class EskfConfig:
             "pose_source_max_gap_s",
             "divergence_nis_scale",
             "divergence_max_sigma_factor",
+            "init_min_gnss_speed_mps",
         ]
         self._require_numbers(positive, positive=True)
         count = self.imu_interpolated_min_samples
@@ -267,6 +274,7 @@ class EskfConfig:
             "nhc_lever_arm_m",
             "gnss_lever_arm_m",
             "gnss_sigma_m",
+            "gnss_velocity_sigma_mps",
             "init_gyro_bias_radps",
             "init_accel_bias_mps2",
         ):
@@ -498,9 +506,9 @@ class EskfConfig:
 
     def _validate_adaptive(self) -> None:
         """Raise ``ValueError`` naming the first bad adaptive-noise key."""
-        blocks = ("wheel", "nhc", "zupt", "gnss", "pose")
+        blocks = ("wheel", "nhc", "zupt", "gnss", "gnss_velocity", "pose")
         for key, allowed in (
-            ("adaptive_noise_sensors", ("gnss", "pose")),
+            ("adaptive_noise_sensors", ("gnss", "gnss_velocity", "pose")),
             ("strong_tracking_sensors", blocks),
         ):
             names = getattr(self, key)

@@ -134,7 +134,7 @@ from msf_torch.sensors.calibration import (
     vehicle_frame_nonholonomic_residual,
     vehicle_frame_wheel_residual,
 )
-from msf_torch.sensors.gnss import gnss_residual
+from msf_torch.sensors.gnss import gnss_residual, gnss_velocity_residual
 from msf_torch.sensors.imu import ImuNoise, Preintegrated, preintegrate, propagate_nominal
 from msf_torch.sensors.pose import (
     drifting_frame_offset,
@@ -146,8 +146,8 @@ from msf_torch.sensors.vehicle import nonholonomic_residual, zero_velocity_resid
 from msf_torch.sensors.wheel import body_velocity_residual, wheel_residual
 from msf_torch.types import NavState, Sequence, Trajectory
 
-SENSORS = ("wheel", "nhc", "zupt", "gnss", "pose")
-_DIMS = {"wheel": 4, "nhc": 2, "zupt": 3, "gnss": 3, "pose": 6}
+SENSORS = ("wheel", "nhc", "zupt", "gnss", "gnss_velocity", "pose")
+_DIMS = {"wheel": 4, "nhc": 2, "zupt": 3, "gnss": 3, "gnss_velocity": 3, "pose": 6}
 _SOURCE_PREFIX = "pose:"  # result key of a pose source: "pose:vo", "pose:lidar"
 
 
@@ -966,6 +966,7 @@ def run_eskf(
         "nhc": sched.nhc_mask,
         "zupt": sched.zupt_mask,
         "gnss": sched.gnss_mask,
+        "gnss_velocity": sched.gnss_velocity_mask,
         "pose": sched.pose_mask,
     }
     source_col = {_SOURCE_PREFIX + n: s for s, n in enumerate(sched.source_names)}
@@ -992,7 +993,9 @@ def run_eskf(
         dtype=dtype,
         device=device,
     )
-    reopen = torch.tensor([k in ("gnss", "pose") or k in source_col for k in active], device=device)
+    reopen = torch.tensor(
+        [k in ("gnss", "gnss_velocity", "pose") or k in source_col for k in active], device=device
+    )
     present_all = torch.stack([present[k] for k in active], -1) if active else None
     adaptation = BlockAdaptation(
         active,
@@ -1028,6 +1031,7 @@ def run_eskf(
     nhc_var = (per_seq(noise.nhc_sigma) ** 2)[:, None].expand(batch, 2)
     zupt_var = (per_seq(noise.zupt_sigma) ** 2)[:, None].expand(batch, 3)
     gnss_var = (sched.gnss_sigma * per_seq(noise.gnss_sigma_scale)[:, None, None]) ** 2
+    gnss_velocity_var = sched.gnss_velocity_sigma**2
     source_cov = (
         _source_covariance(sched, noise, cfg, per_seq)
         if frames is None
@@ -1370,6 +1374,23 @@ def run_eskf(
                         state.position, state.rotation, gnss_lever, sched.gnss_position[:, e]
                     )
                     var = gnss_var[:, e]
+                elif name == "gnss_velocity":
+                    col_l = None if calib is None else calib.gnss_lever_index
+                    lever = gnss_lever if col_l is None else calib_value[:, col_l : col_l + 3]
+                    r, h = gnss_velocity_residual(
+                        state.velocity,
+                        state.rotation,
+                        gyro_end,
+                        state.gyro_bias,
+                        lever,
+                        sched.gnss_velocity[:, e],
+                    )
+                    if col_l is not None:  # d(R (w x l)) / dl = R [w]x
+                        h_calib = torch.zeros(batch, 3, n_calib, dtype=dtype, device=device)
+                        h_calib[..., col_l : col_l + 3] = state.rotation @ so3.hat(
+                            gyro_end - state.gyro_bias
+                        )
+                    var = gnss_velocity_var[:, e]
                 elif name == "pose":
                     r, h = pose_residual(
                         state.position,

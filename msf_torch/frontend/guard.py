@@ -102,12 +102,20 @@ DIVERGENCE_CODES = {
 """Code bit -> name, as written in the run summary."""
 
 _PSD_JITTER = 1e-9  # relative diagonal load of the semi-definiteness test
-_NAN_OK = {"gnss": ("sigma",)}  # fields where a non-finite value means "use the default"
+# fields where a non-finite value means "use the default" (sigmas)
+_NAN_OK = {"gnss": ("sigma",), "gnss_velocity": ("sigma",)}
+# field -> leading entries that must be finite; the rest may be NaN ("not measured": a GNSS
+# velocity's up component), not inf
+_NAN_OK_TAIL = {"gnss_velocity": {"velocity": 2}}
 
 
-def _usable(stream, nan_ok: tuple[str, ...]) -> torch.Tensor:
+def _usable(
+    stream, nan_ok: tuple[str, ...], nan_ok_tail: dict[str, int] | None = None
+) -> torch.Tensor:
     """(B, N) bool: masked-in samples with finite time and values, later than every earlier
-    one of the same stream."""
+    one of the same stream. Fields in ``nan_ok`` may hold NaN; a field in ``nan_ok_tail``
+    must be finite in its first ``n`` trailing entries and may be NaN in the rest."""
+    nan_ok_tail = nan_ok_tail or {}
     good = stream.mask & torch.isfinite(stream.t)
     for name, value in stream.tensors().items():
         # a finite sum means every value is finite (one NaN or inf makes it NaN or inf):
@@ -115,7 +123,12 @@ def _usable(stream, nan_ok: tuple[str, ...]) -> torch.Tensor:
         if name in ("t", "mask") or name in nan_ok or bool(torch.isfinite(value.sum())):
             continue
         flat = value.reshape(*value.shape[:2], math.prod(value.shape[2:]))
-        good = good & torch.isfinite(flat).all(-1)
+        if name in nan_ok_tail:
+            head = nan_ok_tail[name]
+            good = good & torch.isfinite(flat[..., :head]).all(-1)
+            good = good & ~torch.isinf(flat[..., head:]).any(-1)
+        else:
+            good = good & torch.isfinite(flat).all(-1)
     neg_inf = torch.tensor(-torch.inf, dtype=stream.t.dtype, device=stream.t.device)
     latest = torch.where(good, stream.t, neg_inf).cummax(dim=1).values
     earlier = torch.cat((torch.full_like(latest[:, :1], -torch.inf), latest[:, :-1]), 1)
@@ -141,23 +154,29 @@ def sanitize_sequence(seq: Sequence) -> tuple[Sequence, dict[str, torch.Tensor]]
     """Mask out the samples the filter must not use (module docstring: the input rule).
 
     Args:
-        seq: B sequences; the IMU, wheel, GNSS, pose and pose-source streams are checked
-            (ground truth is left alone: the filter does not read it).
+        seq: B sequences; the IMU, wheel, GNSS, GNSS velocity, pose and pose-source streams
+            are checked (ground truth is left alone: the filter does not read it).
 
     Returns:
         (the cleaned sequence, stream -> (B,) int64 number of samples dropped). Streams are
-        keyed as in ``EskfResult.present`` (``"imu"``, ``"wheel"``, ``"gnss"``, ``"pose"``,
-        ``"pose:<name>"``). When nothing is dropped the input's tensors come back unchanged
-        in value.
+        keyed as in ``EskfResult.present`` (``"imu"``, ``"wheel"``, ``"gnss"``,
+        ``"gnss_velocity"``, ``"pose"``, ``"pose:<name>"``). When nothing is dropped the
+        input's tensors come back unchanged in value.
     """
-    streams = {"imu": seq.imu, "wheel": seq.wheel, "gnss": seq.gnss, "pose": seq.poses}
+    streams = {
+        "imu": seq.imu,
+        "wheel": seq.wheel,
+        "gnss": seq.gnss,
+        "gnss_velocity": seq.gnss_velocity,
+        "pose": seq.poses,
+    }
     streams |= {f"pose:{name}": s for name, s in seq.pose_sources.items()}
     cleaned: dict[str, object] = {}
     dropped: dict[str, torch.Tensor] = {}
     for key, stream in streams.items():
         if stream is None:
             continue
-        usable = _usable(stream, _NAN_OK.get(key, ()))
+        usable = _usable(stream, _NAN_OK.get(key, ()), _NAN_OK_TAIL.get(key))
         dropped[key] = (stream.mask & ~usable).sum(-1)
         cleaned[key] = _drop(stream, usable)
     sources = {name: cleaned[f"pose:{name}"] for name in seq.pose_sources}
@@ -166,6 +185,7 @@ def sanitize_sequence(seq: Sequence) -> tuple[Sequence, dict[str, torch.Tensor]]
         imu=cleaned["imu"],
         wheel=cleaned.get("wheel"),
         gnss=cleaned.get("gnss"),
+        gnss_velocity=cleaned.get("gnss_velocity"),
         poses=cleaned.get("pose"),
         pose_sources=sources,
     )

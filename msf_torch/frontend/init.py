@@ -13,6 +13,10 @@ of it is used up to its farthest fix. A GNSS heading's sigma is that of the esti
 bias and white noise bending the dead-reckoned track; for a course, the two fixes' noise
 across the baseline and the gyro's heading swing over it; plus the prior of an
 IMU-to-vehicle rotation being calibrated, the track running along the vehicle's axis).
+With GNSS velocities (``Sequence.gnss_velocity``), the course over ground of the first one
+at least ``init_min_gnss_speed_mps`` fast, carried back to the first IMU sample by the
+gyro's heading change (:func:`velocity_heading`), replaces the track's heading when its
+modelled variance is smaller.
 Biases and the other uncertainties come from the config; the initial covariance carries the
 correlations the initialisation creates: roll and pitch with the accelerometer bias (the
 tilt is read from the biased accelerometer; ``init_roll_pitch_sigma_rad`` is the part from
@@ -25,7 +29,7 @@ docs/frontend.md: it helps the NEES but keeps a stuck-gyro fault from being rese
 
 from __future__ import annotations
 
-__all__ = ["alignment_yaw_variance", "initial_state"]
+__all__ = ["alignment_yaw_variance", "initial_state", "velocity_heading"]
 
 import math
 from collections.abc import Callable
@@ -136,6 +140,80 @@ def alignment_yaw_variance(
     return float(variance), gain
 
 
+def velocity_heading(
+    velocity: dict[str, np.ndarray],
+    imu_t: np.ndarray,
+    gyro: np.ndarray,
+    tilt: np.ndarray,
+    cfg: EskfConfig,
+    reversing: Callable[[float], bool] | None = None,
+) -> tuple[float, float] | None:
+    """Heading at the first IMU sample from the course over ground of a GNSS velocity.
+
+    The first velocity at least ``cfg.init_min_gnss_speed_mps`` fast (horizontally) within
+    ``cfg.init_max_track_s`` of the first IMU sample gives the course ``atan2(v_n, v_e)``;
+    the vehicle moves along its x axis (the non-holonomic assumption; backwards when
+    ``reversing(t)`` says so), and the antenna's rotation share ``R (w x l)`` is solved for
+    exactly on level ground.
+    The gyro's heading change from the first IMU sample to that time (the world-z
+    component of the rate, ``tilt`` applied) carries it back.
+
+    Args:
+        velocity: the ``GnssVelocity`` fields ``t`` (M,) s, ``velocity`` (M, 3) m/s (up may
+            be NaN), ``sigma`` (M, 3) m/s (NaN: ``cfg.gnss_velocity_sigma_mps``).
+        imu_t: (N,) IMU times, s; gyro: (N, 3) raw rates, rad/s.
+        tilt: (3, 3) the initial roll-pitch rotation (body -> level frame).
+        cfg: the filter's config (speed threshold, lever arm, gyro noise, bias prior).
+        reversing: optional ``t -> bool``, the vehicle drives backwards at time ``t``.
+
+    Returns:
+        (yaw, variance) in rad and rad^2, or None when no velocity is fast enough. The
+        variance: the velocity's noise across the course over the speed squared, the gyro
+        bias prior and angle random walk over the carried-back seconds, and the prior of an
+        IMU-to-vehicle rotation being calibrated.
+    """
+    t0 = imu_t[0]
+    horizontal = np.hypot(velocity["velocity"][:, 0], velocity["velocity"][:, 1])
+    usable = (horizontal >= cfg.init_min_gnss_speed_mps) & (
+        velocity["t"] <= t0 + cfg.init_max_track_s
+    )
+    if not usable.any():
+        return None
+    k = int(np.argmax(usable))
+    t_v = float(velocity["t"][k])
+    inside = imu_t <= t_v
+    dt = np.diff(np.append(imu_t[inside], t_v))
+    bias = np.asarray(cfg.init_gyro_bias_radps)
+    rate = gyro[inside] - bias
+    turned = float(((rate @ tilt.T)[:, 2] * dt).sum())  # heading change t0 -> t_v
+    at_v = int(np.searchsorted(imu_t, t_v, side="right")) - 1
+    # the antenna moves with R (s e_x + w x l): in the level frame turned by the heading psi,
+    # its horizontal velocity is (s + a_x, a_y) with a = tilt (w x l), so psi is the course
+    # minus the angle of that vector, s + a_x = +-sqrt(|v_h|^2 - a_y^2) (- when reversing)
+    horizontal_velocity = velocity["velocity"][k, :2]
+    course = math.atan2(horizontal_velocity[1], horizontal_velocity[0])
+    arm = tilt @ np.cross(gyro[at_v] - bias, np.asarray(cfg.gnss_lever_arm_m))
+    along_sq = float(horizontal_velocity @ horizontal_velocity) - arm[1] ** 2
+    if along_sq <= 0.0:
+        return None
+    along = math.sqrt(along_sq) * (-1.0 if reversing is not None and reversing(t_v) else 1.0)
+    heading = course - math.atan2(arm[1], along)
+    sigma = velocity["sigma"][k, :2]
+    default = np.asarray(cfg.gnss_velocity_sigma_mps[:2], dtype=np.float64)
+    sigma = np.where(np.isfinite(sigma) & (sigma > 0), sigma, default)
+    across = np.array([-math.sin(course), math.cos(course)])
+    elapsed = t_v - t0
+    variance = float(((sigma * across) ** 2).sum()) / float(
+        horizontal_velocity @ horizontal_velocity
+    )
+    variance += (cfg.init_gyro_bias_sigma_radps * elapsed) ** 2
+    variance += cfg.gyro_noise_density**2 * elapsed
+    if cfg.calibrate_imu_body_rotation:
+        variance += cfg.calibration_rotation_sigma_rad**2
+    yaw = math.atan2(math.sin(heading - turned), math.cos(heading - turned))
+    return yaw, variance
+
+
 def _one(
     seq: Sequence, b: int, cfg: EskfConfig
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, float]:
@@ -243,6 +321,22 @@ def _one(
                 # an IMU-to-vehicle yaw still to be calibrated adds its prior uncertainty
                 model_var += cfg.calibration_rotation_sigma_rad**2
             yaw_sigma = math.sqrt(model_var)
+    gnss_velocity = _valid(seq.gnss_velocity, b, span)
+    if gnss_velocity is not None:
+        tilt = so3.rpy_matrix(torch.tensor([roll, pitch, 0.0], dtype=torch.float64)).numpy()
+        reversing = None
+        if wheel is not None:
+            mean_speed = 0.5 * (wheel["left_speed"] + wheel["right_speed"])
+
+            def reversing(t: float) -> bool:
+                return float(np.interp(t, wheel["t"], mean_speed)) < 0.0
+
+        course = velocity_heading(
+            gnss_velocity, imu_t, read_imu("gyro", slice(None)), tilt, cfg, reversing
+        )
+        if course is not None and course[1] < yaw_sigma**2:
+            yaw, yaw_sigma = course[0], math.sqrt(course[1])
+            anchored = None  # the track's origin was aligned with the other heading
     rot = so3.rpy_matrix(torch.tensor([roll, pitch, yaw], dtype=torch.float64)).numpy()
     body_velocity = np.zeros(3)
     if wheel is not None:

@@ -1,12 +1,13 @@
 """Cut a batch of sequences into filter epochs: IMU samples between update times.
 
-An *epoch* ends at an update time (a wheel, GNSS or pose measurement, the later sample of a
-pose-source pair, an NHC/ZUPT pseudo-measurement time, or the last IMU sample). The IMU
-timeline is split at every update time; each piece is held at the value of the latest IMU
-sample at or before its start (zero-order hold), so a measurement that falls between two IMU
-samples is fused at its own time with no interpolation error. The result is a set of dense,
-padded ``(B, E, L)`` tensors: the filter then loops over E only, and everything inside an
-epoch is vectorised (``sensors.imu.preintegrate``). Padding has ``dt = 0``, an exact no-op.
+An *epoch* ends at an update time (a wheel, GNSS fix, GNSS velocity or pose measurement, the
+later sample of a pose-source pair, an NHC/ZUPT pseudo-measurement time, or the last IMU
+sample). The IMU timeline is split at every update time; each piece is held at the value of
+the latest IMU sample at or before its start (zero-order hold), so a measurement that falls
+between two IMU samples is fused at its own time with no interpolation error. The result is a
+set of dense, padded ``(B, E, L)`` tensors: the filter then loops over E only, and everything
+inside an epoch is vectorised (``sensors.imu.preintegrate``). Padding has ``dt = 0``, an
+exact no-op.
 
 Pose sources (``Sequence.pose_sources``, chosen by ``EskfConfig.pose_sources``) drift, so
 they enter as odometry. Consecutive valid samples ``k - 1``, ``k`` of a source,
@@ -36,7 +37,7 @@ its samples); the hot path never loops over B.
 
 from __future__ import annotations
 
-__all__ = ["PairMemory", "Schedule", "build_schedule", "source_names"]
+__all__ = ["UNMEASURED_SIGMA", "PairMemory", "Schedule", "build_schedule", "source_names"]
 
 from dataclasses import dataclass
 
@@ -48,6 +49,12 @@ from msf_torch.geometry import so3
 from msf_torch.geometry.quaternion import quat_to_matrix
 from msf_torch.sensors.imu_gaps import interpolated_imu_samples
 from msf_torch.types import PoseMeasurements, Sequence
+
+UNMEASURED_SIGMA = 1e6
+"""Sigma (m/s) of a GNSS velocity axis the receiver did not give (NaN up component): its row
+stays in the update with a gain of order 1e-12 of the state's variance, i.e. unused."""
+
+_MEASURED = ("wheel", "gnss", "gnss_velocity", "pose")  # streams matched to epoch ends
 
 
 @dataclass
@@ -96,6 +103,10 @@ class Schedule:
         wheel_left, wheel_right: (B, E) rim speeds, m/s; wheel_mask (B, E).
         gnss_position: (B, E, 3) m; gnss_sigma (B, E, 3) m (config default filled in);
             gnss_mask (B, E).
+        gnss_velocity: (B, E, 3) antenna velocity east, north, up, m/s (0 where an axis is
+            not measured); gnss_velocity_sigma (B, E, 3) m/s (config default filled in;
+            :data:`UNMEASURED_SIGMA` on an axis the receiver did not give); gnss_velocity_mask
+            (B, E).
         pose_position (B, E, 3), pose_rotation (B, E, 3, 3), pose_covariance (B, E, 6, 6),
             pose_mask (B, E).
         source_names: the S fused pose sources, in this order along the S axes below.
@@ -131,6 +142,9 @@ class Schedule:
     gnss_position: torch.Tensor
     gnss_sigma: torch.Tensor
     gnss_mask: torch.Tensor
+    gnss_velocity: torch.Tensor
+    gnss_velocity_sigma: torch.Tensor
+    gnss_velocity_mask: torch.Tensor
     pose_position: torch.Tensor
     pose_rotation: torch.Tensor
     pose_covariance: torch.Tensor
@@ -412,6 +426,7 @@ def build_schedule(
 
         wheel_t, wheel_src = stream_times(seq.wheel)
         gnss_t, gnss_src = stream_times(seq.gnss)
+        gvel_t, gvel_src = stream_times(seq.gnss_velocity)
         pose_t, pose_src = stream_times(seq.poses)
         carried = [
             None if carried_all is None else tuple(x[b, s] for x in carried_all)
@@ -426,7 +441,8 @@ def build_schedule(
         accel = _np(seq.imu.accel[b])[imu_sel] if cfg.zupt else None
         use_nhc = cfg.nhc == "on" or (cfg.nhc == "auto" and wheel_t.size == 0)
         updates = _merge_times(
-            np.concatenate((wheel_t, gnss_t, pose_t, *[p[0] for p in pairs], [t_last])), tol
+            np.concatenate((wheel_t, gnss_t, gvel_t, pose_t, *[p[0] for p in pairs], [t_last])),
+            tol,
         )
         if use_nhc or (cfg.zupt_imu_detector and wheel_t.size == 0):
             updates = _fill_gaps(np.concatenate(([t0], updates)), 1.0 / cfg.nhc_rate_hz)[1:]
@@ -453,6 +469,7 @@ def build_schedule(
         # measurements at each epoch end
         wheel_idx = _match(wheel_t, updates, tol)
         gnss_idx = _match(gnss_t, updates, tol)
+        gvel_idx = _match(gvel_t, updates, tol)
         pose_idx = _match(pose_t, updates, tol)
         source_idx, memory_rows = [], []
         for n, p, c in zip(names, pairs, carried, strict=True):
@@ -496,6 +513,7 @@ def build_schedule(
                 imu_sel=imu_sel,
                 wheel=(wheel_idx, wheel_src),
                 gnss=(gnss_idx, gnss_src),
+                gnss_velocity=(gvel_idx, gvel_src),
                 pose=(pose_idx, pose_src),
                 nhc=pseudo & use_nhc,
                 zupt=zupt,
@@ -523,10 +541,8 @@ def build_schedule(
     # index into the flattened (B N) IMU samples, padding at each sequence's first sample
     sample_index = np.empty((batch, n_epochs, n_slots), dtype=np.int64)
     end_index = np.zeros((batch, n_epochs), dtype=np.int64)
-    masks = {
-        k: np.zeros((batch, n_epochs), dtype=bool) for k in ("wheel", "gnss", "pose", "nhc", "zupt")
-    }
-    src = {k: np.zeros((batch, n_epochs), dtype=np.int64) for k in ("wheel", "gnss", "pose")}
+    masks = {k: np.zeros((batch, n_epochs), dtype=bool) for k in (*_MEASURED, "nhc", "zupt")}
+    src = {k: np.zeros((batch, n_epochs), dtype=np.int64) for k in _MEASURED}
     n_src = len(names)
     source_mask = np.zeros((batch, n_epochs, n_src), dtype=bool)
     source_end = np.zeros((batch, n_epochs, n_src), dtype=np.int64)
@@ -545,7 +561,7 @@ def build_schedule(
         sample_index[b] = b * seq.imu.length
         sample_index[b].reshape(-1)[piece] += p["imu_sel"][p["sample"]]
         end_index[b, :n_e] = p["imu_sel"][p["end_sample"]]
-        for key in ("wheel", "gnss", "pose"):
+        for key in _MEASURED:
             idx, source = p[key]
             has = idx >= 0
             masks[key][b, :n_e] = has
@@ -593,6 +609,17 @@ def build_schedule(
     gnss_sigma = torch.where(
         torch.isfinite(gnss_sigma) & (gnss_sigma > 0), gnss_sigma, default_sigma
     )
+    gnss_velocity = take(seq.gnss_velocity, "velocity", "gnss_velocity", (3,))
+    gnss_velocity_sigma = take(seq.gnss_velocity, "sigma", "gnss_velocity", (3,))
+    default_sigma = torch.as_tensor(cfg.gnss_velocity_sigma_mps, **f64)
+    gnss_velocity_sigma = torch.where(
+        torch.isfinite(gnss_velocity_sigma) & (gnss_velocity_sigma > 0),
+        gnss_velocity_sigma,
+        default_sigma,
+    )
+    unmeasured = torch.isnan(gnss_velocity)  # the up axis of a horizontal-only receiver
+    gnss_velocity = torch.where(unmeasured, 0.0, gnss_velocity)
+    gnss_velocity_sigma = torch.where(unmeasured, UNMEASURED_SIGMA, gnss_velocity_sigma)
     pose_position = take(seq.poses, "position", "pose", (3,))
     if seq.poses is None or seq.poses.length == 0:
         pose_rotation = torch.eye(3, **f64).expand(batch, n_epochs, 3, 3).clone()
@@ -636,6 +663,9 @@ def build_schedule(
         gnss_position=gnss_position,
         gnss_sigma=gnss_sigma,
         gnss_mask=masks["gnss"],
+        gnss_velocity=gnss_velocity,
+        gnss_velocity_sigma=gnss_velocity_sigma,
+        gnss_velocity_mask=masks["gnss_velocity"],
         pose_position=pose_position,
         pose_rotation=pose_rotation,
         pose_covariance=pose_covariance,

@@ -27,7 +27,9 @@ Sensors (conventions in :mod:`msf_torch.geometry.conventions`):
   and the body yaw rate ``omega_z``; read as ``true * (1 + e) * slip_factor + noise``, then
   counted as encoder ticks (see :func:`simulate_run`).
 * GNSS at ``gnss_rate_hz``: antenna position ``p + R @ lever_arm`` plus Gaussian noise, no
-  fixes inside outages.
+  fixes inside outages. With ``gnss_velocity``, at the same times the antenna velocity
+  ``v + R (omega x lever_arm)`` plus Gaussian noise of ``gnss_velocity_sigma_mps``
+  (``Sequence.gnss_velocity``, a receiver's Doppler velocity), also none inside outages.
 
 Labels (``Sequence.labels``, (1, K, 2) intervals ``[t_start, t_end]`` in s): ``"slip"``
 (episode types in ``meta["sensor"]["slip_types"]``, details in ``meta["slip_episodes"]``) and
@@ -69,7 +71,14 @@ import torch
 
 from msf_torch.geometry.conventions import STANDARD_GRAVITY
 from msf_torch.geometry.quaternion import matrix_to_quat
-from msf_torch.types import GnssFixes, ImuSamples, Sequence, Trajectory, WheelSamples
+from msf_torch.types import (
+    GnssFixes,
+    GnssVelocity,
+    ImuSamples,
+    Sequence,
+    Trajectory,
+    WheelSamples,
+)
 
 SLIP_TYPES: tuple[str, ...] = ("spin", "skid", "lock")
 """Slip episode types: ``spin`` (both wheels read ``true * (1 + s)``), ``skid`` (one wheel
@@ -220,6 +229,8 @@ class SimConfig:
             containing it when long enough (needs ``gnss_outage_count <= slip_episodes``).
         gnss_outage_margin_s: no random outage starts before this time, s (lets a filter
             initialise).
+        gnss_velocity: also emit GNSS velocities at the fix times (``Sequence.gnss_velocity``).
+        gnss_velocity_sigma_mps: their 1-sigma noise east, north, up, m/s.
         slip_episodes: number of slip episodes.
         slip_types: the types to use (subset of ``SLIP_TYPES``); all appear before any repeats.
         slip_duration_s: episode duration range (label interval, ramps included), s.
@@ -263,6 +274,8 @@ class SimConfig:
     gnss_outage_duration_s: tuple[float, float] = (20.0, 40.0)
     gnss_outage_over_slip: bool = False
     gnss_outage_margin_s: float = 10.0
+    gnss_velocity: bool = False
+    gnss_velocity_sigma_mps: tuple[float, float, float] = (0.05, 0.05, 0.1)
     # slip
     slip_episodes: int = 0
     slip_types: tuple[str, ...] = SLIP_TYPES
@@ -344,6 +357,11 @@ class SimConfig:
             raise ValueError(
                 f"SimConfig.encoder_ticks_per_rev must be > 0 or None, "
                 f"got {self.encoder_ticks_per_rev!r}"
+            )
+        sigma = self.gnss_velocity_sigma_mps
+        if len(sigma) != 3 or not all(x > 0 for x in sigma):
+            raise ValueError(
+                f"SimConfig.gnss_velocity_sigma_mps must be 3 values > 0, got {sigma!r}"
             )
         if len(self.gnss_lever_arm_m) != 3:
             raise ValueError(
@@ -955,10 +973,12 @@ def simulate_run(config: SimConfig, seed: int, *, path_seed: int | None = None) 
         raise ValueError(
             f"simulate_run: path_seed must be a non-negative int or None, got {path_seed!r}"
         )
-    streams = np.random.SeedSequence(int(seed)).spawn(5)
+    # a sixth stream for the GNSS velocity noise leaves the first five (and every run
+    # without velocities) as they were
+    streams = np.random.SeedSequence(int(seed)).spawn(6)
     if path_seed is not None:
         streams[0] = np.random.SeedSequence(int(path_seed)).spawn(5)[0]
-    rng_path, rng_imu, rng_wheel, rng_slip, rng_gnss = (
+    rng_path, rng_imu, rng_wheel, rng_slip, rng_gnss, rng_gnss_velocity = (
         np.random.Generator(np.random.PCG64(s)) for s in streams
     )
     path = GroundPath.random(config, rng_path)
@@ -1030,6 +1050,18 @@ def simulate_run(config: SimConfig, seed: int, *, path_seed: int | None = None) 
     lever = np.asarray(config.gnss_lever_arm_m, np.float64)
     antenna = g_state.position + np.einsum("nij,j->ni", g_state.rotation, lever)
     gnss_position = antenna + gnss_noise[keep]
+    gnss_velocity = None
+    if config.gnss_velocity:
+        velocity_sigma = np.asarray(config.gnss_velocity_sigma_mps, np.float64)
+        velocity_noise = rng_gnss_velocity.normal(0.0, 1.0, (n_g, 3)) * velocity_sigma
+        arm_rate = np.cross(g_state.angular_velocity, lever)
+        antenna_velocity = g_state.velocity + np.einsum("nij,nj->ni", g_state.rotation, arm_rate)
+        gnss_velocity = GnssVelocity(
+            t=_tensor(t_g),
+            velocity=_tensor(antenna_velocity + velocity_noise[keep]),
+            sigma=_tensor(np.broadcast_to(velocity_sigma, (len(t_g), 3))),
+            mask=torch.ones((1, len(t_g)), dtype=torch.bool),
+        )
 
     # assemble -------------------------------------------------------------------------------
     slip_intervals = np.array([[ep.t_start, ep.t_end] for ep in episodes]).reshape(-1, 2)
@@ -1093,6 +1125,7 @@ def simulate_run(config: SimConfig, seed: int, *, path_seed: int | None = None) 
         imu=imu,
         wheel=wheel,
         gnss=gnss,
+        gnss_velocity=gnss_velocity,
         ground_truth=ground_truth,
         labels={"slip": _tensor(slip_intervals), "gnss_outage": _tensor(outages)},
         meta=meta,

@@ -12,6 +12,7 @@ import torch
 from benchmarks._common import trajectory_from
 from msf_torch.eval.outage import outage_metrics, split_gnss_outage
 from msf_torch.io import load_sequence
+from msf_torch.sim import SimConfig, simulate_run
 from msf_torch.types import GnssFixes, Trajectory
 
 SAMPLE = Path(__file__).resolve().parents[2] / "datasets" / "sample_slip.npz"
@@ -64,6 +65,16 @@ def test_split_gnss_outage_partitions_the_fixes():
     assert bool(((rel_withheld >= start) & (rel_withheld <= end)).all())
     assert not bool(((rel_kept >= start) & (rel_kept <= end)).any())
     assert int(withheld.mask.sum()) + int(kept.gnss.mask.sum()) == int(seq.gnss.mask.sum())
+    assert kept.gnss_velocity is None
+
+
+def test_split_gnss_outage_withholds_the_velocities_too():
+    seq = simulate_run(SimConfig(duration_s=30.0, gnss_velocity=True), seed=4).sequence
+    kept, withheld = split_gnss_outage(seq, 10.0, 19.5)
+    rel = kept.gnss_velocity.t[0] - seq.start_time[0]
+    assert not bool(((rel >= 10.0) & (rel <= 19.5)).any())
+    assert kept.gnss_velocity.length == seq.gnss_velocity.length - 10 == 21
+    assert int(withheld.mask.sum()) == 10
 
 
 def test_split_gnss_outage_needs_two_fixes():

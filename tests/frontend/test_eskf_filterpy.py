@@ -6,7 +6,8 @@ zero gyro noise and bias random walks), so the error-state filter reduces to a l
 IMU sample (ZOH: ``F = [[I, dt I], [0, I]]``, ``B = [[dt^2/2 I], [dt I]]``, a sample's accel
 noise ``sigma_a^2 / dt`` held for ``dt``: ``Q = sigma_a^2 [[dt^3/4, dt^2/2], [dt^2/2, dt]]``
 per axis, the convention ``tests/sensors/test_imu_preintegration.py`` checks) and updates at
-the GNSS fixes.
+the GNSS fixes, and (second test) at GNSS velocities too (``H = [0, I]``; an up component the
+receiver did not give drops its row).
 """
 
 from __future__ import annotations
@@ -19,7 +20,7 @@ from filterpy.kalman import KalmanFilter
 from msf_torch.frontend.config import EskfConfig
 from msf_torch.frontend.eskf import run_eskf
 from msf_torch.frontend.init import initial_state
-from msf_torch.types import GnssFixes, ImuSamples, Sequence
+from msf_torch.types import GnssFixes, GnssVelocity, ImuSamples, Sequence
 
 DTYPE = torch.float64
 G = 9.80665
@@ -88,14 +89,18 @@ def _problem(seed: int, duration: float = 6.0, imu_rate: float = 100.0, gnss_eve
     return seq, t, f, g_idx, fixes, sigma
 
 
-def _filterpy_run(t, f, g_idx, fixes, sigma, x0, p0):
-    """Step filterpy per IMU sample; return {imu index: (x (6,), P (6, 6))} at the fixes."""
+def _filterpy_run(t, f, g_idx, fixes, sigma, x0, p0, velocities=None):
+    """Step filterpy per IMU sample; return {imu index: (x (6,), P (6, 6))} at the fixes.
+
+    ``velocities``: optional (indices, values (M, 3) with NaN up where not given, sigmas):
+    GNSS velocity updates after the fix at the same sample."""
     kf = KalmanFilter(dim_x=6, dim_z=3)
     kf.x = x0.reshape(6, 1).copy()
     kf.P = p0.copy()
     kf.H = np.hstack((np.eye(3), np.zeros((3, 3))))
     gravity = np.array([0.0, 0.0, -G])
     fix_at = {int(k): i for i, k in enumerate(g_idx)}
+    vel_at = {} if velocities is None else {int(k): i for i, k in enumerate(velocities[0])}
     eye = np.eye(3)
     out = {}
     for k in range(len(t) - 1):
@@ -110,6 +115,13 @@ def _filterpy_run(t, f, g_idx, fixes, sigma, x0, p0):
         if k + 1 in fix_at:
             i = fix_at[k + 1]
             kf.update(fixes[i].reshape(3, 1), R=np.diag(sigma[i] ** 2))
+            out[k + 1] = (kf.x[:, 0].copy(), kf.P.copy())
+        if k + 1 in vel_at:
+            i = vel_at[k + 1]
+            value, vel_sigma = velocities[1][i], velocities[2][i]
+            rows = np.flatnonzero(~np.isnan(value))
+            h = np.hstack((np.zeros((3, 3)), eye))[rows]
+            kf.update(value[rows].reshape(-1, 1), R=np.diag(vel_sigma[rows] ** 2), H=h)
             out[k + 1] = (kf.x[:, 0].copy(), kf.P.copy())
     out["last"] = (kf.x[:, 0].copy(), kf.P.copy())
     return out
@@ -162,3 +174,45 @@ def test_eskf_equals_filterpy_on_linear_problem(seed):
     assert float(res.gyro_bias.abs().max()) == 0.0 and float(res.accel_bias.abs().max()) == 0.0
     assert float(res.covariance[0, :, 6:, :].abs().max()) == 0.0
     assert float(res.covariance[0, :, :, 6:].abs().max()) == 0.0
+
+
+@pytest.mark.parametrize("seed", [62, 63])
+def test_gnss_velocity_updates_equal_filterpy_on_linear_problem(seed):
+    """GNSS velocities every 10th IMU sample (half of them on a fix's sample, fused with it
+    in one stacked update; every third horizontal only) against filterpy's sequential
+    updates: the same linear KF, so the same estimate and covariance to rounding."""
+    seq, t, f, g_idx, fixes, sigma = _problem(seed)
+    rng = np.random.default_rng(seed + 100)
+    v_idx = np.arange(10, t.size, 10)
+    values = rng.normal(0.0, 0.5, (v_idx.size, 3))
+    values[::3, 2] = np.nan
+    vel_sigma = rng.uniform(0.05, 0.3, (v_idx.size, 3))
+    seq.gnss_velocity = GnssVelocity(
+        t=torch.as_tensor(t[v_idx])[None],
+        velocity=torch.as_tensor(values)[None],
+        sigma=torch.as_tensor(vel_sigma)[None],
+        mask=torch.ones(1, v_idx.size, dtype=torch.bool),
+    )
+    seq.check()
+    cfg = _config()
+    state0, cov0 = initial_state(seq, cfg)
+    x0 = torch.cat((state0.position[0], state0.velocity[0])).numpy()
+    ref = _filterpy_run(
+        t, f, g_idx, fixes, sigma, x0, cov0[0, :6, :6].numpy(), (v_idx, values, vel_sigma)
+    )
+    res = run_eskf(seq, cfg)
+    times = res.t[0].numpy()
+    compared = 0
+    for e in range(1, times.size):
+        if not bool(res.present["gnss_velocity"][0, e]):
+            continue
+        assert bool(res.accepted["gnss_velocity"][0, e])
+        x_ref, p_ref = ref[int(np.flatnonzero(t == times[e])[0])]
+        np.testing.assert_allclose(res.position[0, e].numpy(), x_ref[:3], rtol=0, atol=1e-9)
+        np.testing.assert_allclose(res.velocity[0, e].numpy(), x_ref[3:], rtol=0, atol=1e-9)
+        np.testing.assert_allclose(res.covariance[0, e, :6, :6].numpy(), p_ref, rtol=0, atol=1e-9)
+        compared += 1
+    assert compared == v_idx.size
+    # the velocities moved the estimate: without them it differs by far more than 1e-9
+    plain = run_eskf(_problem(seed)[0], cfg)
+    assert float((plain.velocity[0, -1] - res.velocity[0, -1]).abs().max()) > 1e-3
