@@ -1,4 +1,5 @@
-"""Trajectories on the map: GeoJSON (RFC 7946) and KML 2.2 in WGS-84 longitude / latitude.
+"""Trajectories on the map: GeoJSON (RFC 7946), KML 2.2 and GPX 1.1 in WGS-84 longitude /
+latitude.
 
 msf_torch estimates in a local East-North-Up frame whose origin is a geodetic point
 ``(lat0_deg, lon0_deg, alt0_m)`` (:mod:`msf_torch.io.geodesy`). Given that origin -- a ROS
@@ -20,6 +21,9 @@ Google Earth or any web map:
   KML heights are above mean sea level, ours above the ellipsoid (they differ by the geoid
   undulation, tens of metres), and a ground vehicle is on the ground anyway. The
   coordinates still carry the ellipsoidal heights.
+* :func:`write_gpx`: a GPX 1.1 file with one ``<trk>`` per track and per set of fixes,
+  ``<ele>`` the ellipsoidal height (said in the file), ``<time>`` in UTC when the sequence
+  has an absolute time origin (:func:`time_origin_ns`).
 
 Positions are the body origin's (the IMU's), GNSS fixes the antenna's. Only real samples
 (mask True) are written; a track with fewer than two is left out. Writes are atomic.
@@ -31,8 +35,16 @@ Example:
 
 from __future__ import annotations
 
-__all__ = ["geodetic_points", "write_geojson", "write_kml"]
+__all__ = [
+    "GPS_EPOCH_UNIX_NS",
+    "geodetic_points",
+    "time_origin_ns",
+    "write_geojson",
+    "write_gpx",
+    "write_kml",
+]
 
+import datetime
 import json
 import os
 import xml.etree.ElementTree as ET
@@ -47,6 +59,7 @@ from msf_torch.io.atomic import atomic_write
 from msf_torch.io.geodesy import enu_to_geodetic
 
 _KML_NS = "http://www.opengis.net/kml/2.2"
+_GPX_NS = "http://www.topografix.com/GPX/1/1"
 _TRACK_COLOURS = ("ff0000ff", "ff00c800", "ffff0000", "ff00a5ff")
 """KML line colours (aabbggrr), one per track in order: red, green, blue, orange."""
 _FIX_ICON = "https://maps.google.com/mapfiles/kml/shapes/placemark_circle.png"
@@ -218,3 +231,137 @@ def write_kml(
     with atomic_write(target, "wb") as handle:
         ET.ElementTree(root).write(handle, encoding="UTF-8", xml_declaration=True)
     return target
+
+
+GPS_EPOCH_UNIX_NS = 315_964_800_000_000_000
+"""1980-01-06T00:00:00Z, the start of GPS time, in UNIX ns: :func:`write_gpx` writes no
+``<time>`` when a time would fall before it (a clock that is not UTC: a bag recorded with
+simulated time, times since boot)."""
+
+
+def time_origin_ns(meta: Mapping[str, Any]) -> int | None:
+    """The UNIX time (ns) of a sequence's ``t = 0``, when the sequence says.
+
+    ``meta["time_origin_ns"]`` (ROS bags: the header stamps' origin; KITTI raw drives),
+    else ``meta["sensor"]["time_origin_ns"]`` (a native folder's ``meta.json``, which
+    ``msf nmea`` writes: the ``--t0`` it moved the fixes by); None when neither is there.
+
+    Raises:
+        ValueError: a value that is not an integer number of ns.
+    """
+    value = meta.get("time_origin_ns")
+    if value is None:
+        sensor = meta.get("sensor")
+        value = sensor.get("time_origin_ns") if isinstance(sensor, Mapping) else None
+    if value is None:
+        return None
+    if isinstance(value, bool) or not isinstance(value, int | np.integer):
+        raise ValueError(f"time_origin_ns must be an integer number of ns, got {value!r}")
+    return int(value)
+
+
+def _gpx_time(origin_ns: int, t: float) -> str:
+    """ISO 8601 UTC of ``origin_ns + t`` to the microsecond, e.g. ``2021-10-18T23:59:40.5Z``."""
+    micro = (origin_ns + round(t * 1e9) + 500) // 1000  # to the nearest microsecond
+    seconds, fraction = divmod(micro, 1_000_000)
+    stamp = datetime.datetime.fromtimestamp(seconds, datetime.timezone.utc)
+    text = f"{stamp:%Y-%m-%dT%H:%M:%S}"
+    if fraction:
+        text += f".{fraction:06d}".rstrip("0")
+    return text + "Z"
+
+
+def _gpx(parent: ET.Element, tag: str, text: str | None = None) -> ET.Element:
+    element = ET.SubElement(parent, f"{{{_GPX_NS}}}{tag}")
+    if text is not None:
+        element.text = text
+    return element
+
+
+def write_gpx(
+    path: str | os.PathLike[str],
+    origin: Sequence[float],
+    tracks: Mapping[str, Any],
+    fixes: Mapping[str, Any] | None = None,
+    *,
+    time_origin: int | None = None,
+    name: str = "msf_torch",
+) -> Path:
+    """Write tracks and GNSS fixes as a GPX 1.1 file (Garmin, Strava, OsmAnd, JOSM, QGIS).
+
+    One ``<trk>`` per stream, in the order given: the tracks (``<type>track</type>``: the
+    estimate, the ground truth), then each set of fixes (``<type>fixes</type>``; a
+    receiver's log is a track of fixes too). Each ``<trkpt lat lon>`` holds ``<ele>`` and,
+    with an absolute time origin, ``<time>``. Latitude and longitude are the exact
+    :func:`~msf_torch.io.geodesy.enu_to_geodetic` of the ENU positions, as
+    :func:`write_geojson` writes them (9 decimals, 0.1 mm; longitude in [-180, 180) as
+    GPX requires). ``<ele>`` is the height above the WGS-84 ellipsoid (4 decimals), not
+    above mean sea level as GPX readers assume: they differ by the geoid undulation (tens
+    of metres; e.g. an NMEA GGA's geoid separation); the file's ``<metadata><desc>`` says
+    so. ``<time>`` is ISO 8601 UTC, ``time_origin + t`` to the microsecond, written only
+    when ``time_origin`` is given and every time is after :data:`GPS_EPOCH_UNIX_NS`.
+    ``<metadata>`` also holds ``<name>`` and the ``<bounds>`` of all points.
+
+    Args:
+        path: file to write (``.gpx``).
+        origin: ``[lat0_deg, lon0_deg, alt0_m]`` of the ENU frame the positions are in.
+        tracks: name -> B = 1 trajectory (``t``, ``position``, ``mask``).
+        fixes: name -> B = 1 GNSS fixes.
+        time_origin: UNIX time of ``t = 0``, ns (:func:`time_origin_ns`); None: no times.
+        name: the file's ``<metadata><name>``.
+
+    Returns:
+        ``path`` as a ``Path``.
+    """
+    streams = _streams(origin, tracks, fixes)
+    utc_origin = time_origin
+    if time_origin is not None and any(
+        time_origin + round(float(t.min()) * 1e9) < GPS_EPOCH_UNIX_NS for _, _, t, _ in streams
+    ):
+        utc_origin = None  # not a UTC clock
+    ET.register_namespace("", _GPX_NS)
+    root = ET.Element(f"{{{_GPX_NS}}}gpx", {"version": "1.1", "creator": "msf_torch"})
+    metadata = _gpx(root, "metadata")
+    _gpx(metadata, "name", name)
+    lat0, lon0, alt0 = (float(x) for x in origin)
+    _gpx(
+        metadata,
+        "desc",
+        f"ENU origin {lat0!r} deg, {lon0!r} deg, {alt0!r} m. ele: height above the WGS-84 "
+        "ellipsoid, not mean sea level (the geoid undulation is not applied).",
+    )
+    if streams:
+        every = np.concatenate([points for _, _, _, points in streams])
+        low, high = every.min(axis=0), every.max(axis=0)
+        bounds = _gpx(metadata, "bounds")
+        bounds.attrib.update(
+            {
+                "minlat": f"{low[1]:.9f}",
+                "minlon": f"{_gpx_longitude(low[0]):.9f}",
+                "maxlat": f"{high[1]:.9f}",
+                "maxlon": f"{_gpx_longitude(high[0]):.9f}",
+            }
+        )
+    for stream_name, kind, t, points in streams:
+        track = _gpx(root, "trk")
+        _gpx(track, "name", stream_name)
+        _gpx(track, "desc", f"{len(t)} points, t = {t[0]:.3f} .. {t[-1]:.3f} s")
+        _gpx(track, "type", kind)
+        segment = _gpx(track, "trkseg")
+        for time, point in zip(t.tolist(), points, strict=True):
+            lon, lat, height = _position(point)
+            trkpt = _gpx(segment, "trkpt")
+            trkpt.attrib.update({"lat": f"{lat:.9f}", "lon": f"{_gpx_longitude(lon):.9f}"})
+            _gpx(trkpt, "ele", f"{height:.4f}")
+            if utc_origin is not None:
+                _gpx(trkpt, "time", _gpx_time(utc_origin, time))
+    ET.indent(root, space=" ")
+    target = Path(path)
+    with atomic_write(target, "wb") as handle:
+        ET.ElementTree(root).write(handle, encoding="UTF-8", xml_declaration=True)
+    return target
+
+
+def _gpx_longitude(lon: float) -> float:
+    """Longitude in GPX's [-180, 180) (180 is written as -180)."""
+    return -180.0 if lon >= 180.0 else lon

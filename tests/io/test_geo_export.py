@@ -222,3 +222,123 @@ def test_imu_mounting_turns_the_samples_into_body_axes(tmp_path, short_run) -> N
     with pytest.raises(DataError, match="roll, pitch, yaw") as err:
         read_native(folder)
     assert err.value.field == "imu_rpy_deg"
+
+
+GPX = "{http://www.topografix.com/GPX/1/1}"
+# the GPX 1.1 schema's xsd:sequence of the elements msf_torch writes (gpx.xsd, 2004)
+GPX_ORDER = {
+    "gpx": ["metadata", "wpt", "rte", "trk", "extensions"],
+    "metadata": ["name", "desc", "author", "copyright", "link", "time", "keywords", "bounds"],
+    "trk": ["name", "cmt", "desc", "src", "link", "number", "type", "extensions", "trkseg"],
+    "trkseg": ["trkpt", "extensions"],
+    "trkpt": ["ele", "time", "magvar", "geoidheight", "name", "cmt", "desc", "src", "link"],
+}
+
+
+def _check_gpx_1_1(element: ET.Element) -> None:
+    """Every element's children in its GPX 1.1 sequence order, point attributes in range."""
+    tag = element.tag.removeprefix(GPX)
+    assert element.tag.startswith(GPX), element.tag
+    if tag == "trkpt":
+        lat, lon = float(element.get("lat")), float(element.get("lon"))
+        assert -90.0 <= lat <= 90.0 and -180.0 <= lon < 180.0
+    if tag == "bounds":
+        assert set(element.keys()) == {"minlat", "minlon", "maxlat", "maxlon"}
+    order = GPX_ORDER.get(tag, [])
+    ranks = [order.index(child.tag.removeprefix(GPX)) for child in element if order]
+    assert ranks == sorted(ranks), (tag, [child.tag for child in element])
+    for child in element:
+        _check_gpx_1_1(child)
+
+
+@pytest.mark.parametrize("origin", ORIGINS)
+def test_gpx_points_are_the_geojson_points(tmp_path, origin) -> None:
+    """lat / lon of every trkpt equal geo_export's GeoJSON to 1e-9 deg, ele its height; one
+    trk per track and per set of fixes, in GPX 1.1 element order; no times without an
+    absolute time origin."""
+    from msf_torch.io.geo_export import write_gpx
+
+    traj, enu = _track(8)
+    truth, _ = _track(9, 50)
+    tracks, fixes = {"estimate": traj, "ground truth": truth}, {"GNSS fixes": _fixes(enu[::20])}
+    geo = json.loads(write_geojson(tmp_path / "t.geojson", origin, tracks, fixes).read_text())
+    root = ET.parse(write_gpx(tmp_path / "t.gpx", origin, tracks, fixes, name="run 2")).getroot()
+    assert root.tag == f"{GPX}gpx" and root.get("version") == "1.1" and root.get("creator")
+    _check_gpx_1_1(root)
+    assert root.findtext(f"{GPX}metadata/{GPX}name") == "run 2"
+    assert "WGS-84 ellipsoid" in root.findtext(f"{GPX}metadata/{GPX}desc")
+    trks = root.findall(f"{GPX}trk")
+    assert [t.findtext(f"{GPX}name") for t in trks] == ["estimate", "ground truth", "GNSS fixes"]
+    assert [t.findtext(f"{GPX}type") for t in trks] == ["track", "track", "fixes"]
+    every = []
+    for trk, feature in zip(trks, geo["features"], strict=True):
+        points = trk.findall(f"{GPX}trkseg/{GPX}trkpt")
+        got = np.array([[float(p.get("lon")), float(p.get("lat"))] for p in points])
+        want = np.array(feature["geometry"]["coordinates"])
+        np.testing.assert_allclose(got, want[:, :2], rtol=0, atol=1e-9)
+        height = np.array([float(p.findtext(f"{GPX}ele")) for p in points])
+        np.testing.assert_allclose(height, want[:, 2], rtol=0, atol=1e-4)
+        assert all(p.find(f"{GPX}time") is None for p in points)
+        every.append(got)
+    every = np.concatenate(every)
+    bounds = root.find(f"{GPX}metadata/{GPX}bounds")
+    assert float(bounds.get("minlat")) == pytest.approx(every[:, 1].min(), abs=1e-9)
+    assert float(bounds.get("maxlon")) == pytest.approx(every[:, 0].max(), abs=1e-9)
+
+
+def test_gpx_times_are_utc_from_the_time_origin(tmp_path) -> None:
+    """<time> = time origin + t in ISO 8601 UTC (to the microsecond), ele before time; an
+    origin whose times fall before the GPS epoch (simulated time) writes none."""
+    import datetime
+
+    from msf_torch.io.geo_export import write_gpx
+
+    traj, _ = _track(10, 40)
+    traj = dataclasses.replace(traj, t=traj.t * 2.5 + 0.1234565)
+    origin_ns = 1_634_601_580_123_456_789  # 2021-10-18 23:59:40.123456789 UTC
+    root = ET.parse(
+        write_gpx(tmp_path / "t.gpx", ORIGINS[0], {"estimate": traj}, time_origin=origin_ns)
+    ).getroot()
+    _check_gpx_1_1(root)
+    points = root.findall(f"{GPX}trk/{GPX}trkseg/{GPX}trkpt")
+    assert [child.tag for child in points[0]] == [f"{GPX}ele", f"{GPX}time"]
+    text = [p.findtext(f"{GPX}time") for p in points]
+    assert text[0] == "2021-10-18T23:59:40.246913Z"  # .123456789 + .1234565 s
+    assert all(x.endswith("Z") for x in text)
+    stamps = np.array([datetime.datetime.fromisoformat(x).timestamp() for x in text])
+    want = origin_ns / 1e9 + traj.t[0, traj.mask[0]].numpy()
+    np.testing.assert_allclose(stamps, want, rtol=0, atol=2e-6)
+    # a bag recorded with simulated time: its origin is no UTC time
+    sim = write_gpx(tmp_path / "sim.gpx", ORIGINS[0], {"estimate": traj}, time_origin=10**9)
+    assert ET.parse(sim).getroot().find(f".//{GPX}time") is None
+
+
+def test_gpx_longitude_stays_below_180_across_the_antimeridian(tmp_path) -> None:
+    from msf_torch.io.geo_export import write_gpx
+
+    origin = (-16.5, 179.99995, 5.0)  # Fiji: the track runs east over 180 deg
+    n = 20
+    enu = np.zeros((n, 3))
+    enu[:, 0] = np.linspace(0.0, 20.0, n)
+    traj = Trajectory(
+        t=torch.arange(n, dtype=torch.float64)[None],
+        position=torch.as_tensor(enu)[None],
+        quaternion=torch.tensor([1.0, 0.0, 0.0, 0.0], dtype=torch.float64).expand(1, n, 4),
+        mask=torch.ones(1, n, dtype=torch.bool),
+    )
+    root = ET.parse(write_gpx(tmp_path / "t.gpx", origin, {"estimate": traj})).getroot()
+    _check_gpx_1_1(root)
+    lon = np.array([float(p.get("lon")) for p in root.iter(f"{GPX}trkpt")])
+    assert (lon[:5] > 179.9).all() and (lon[-5:] < -179.9).all()
+
+
+def test_time_origin_of_a_sequence() -> None:
+    from msf_torch.io.geo_export import time_origin_ns
+
+    assert time_origin_ns({"time_origin_ns": 5}) == 5  # a ROS bag, a KITTI raw drive
+    assert time_origin_ns({"sensor": {"time_origin_ns": 7}}) == 7  # a native meta.json
+    assert time_origin_ns({"sensor": {"wheel_track_m": 0.5}}) is None
+    assert time_origin_ns({}) is None
+    for bad in (1.5, "5", True):
+        with pytest.raises(ValueError, match="integer number of ns"):
+            time_origin_ns({"sensor": {"time_origin_ns": bad}})
