@@ -5,6 +5,7 @@ geodetic origin a native folder keeps in ``meta.json``; ``msf nmea`` storing it 
 from __future__ import annotations
 
 import dataclasses
+import datetime
 import json
 import xml.etree.ElementTree as ET
 
@@ -15,7 +16,7 @@ import torch
 from msf_torch.cli import main
 from msf_torch.geometry import so3
 from msf_torch.io.errors import DataError
-from msf_torch.io.geo_export import write_geojson, write_kml
+from msf_torch.io.geo_export import time_origin_ns, write_geojson, write_gpx, write_kml
 from msf_torch.io.native import read_native, store_gnss_origin, stored_gnss_origin, write_native
 from msf_torch.io.tum import read_tum
 from msf_torch.sim import SimConfig, simulate_run
@@ -256,8 +257,6 @@ def test_gpx_points_are_the_geojson_points(tmp_path, origin) -> None:
     """lat / lon of every trkpt equal geo_export's GeoJSON to 1e-9 deg, ele its height; one
     trk per track and per set of fixes, in GPX 1.1 element order; no times without an
     absolute time origin."""
-    from msf_torch.io.geo_export import write_gpx
-
     traj, enu = _track(8)
     truth, _ = _track(9, 50)
     tracks, fixes = {"estimate": traj, "ground truth": truth}, {"GNSS fixes": _fixes(enu[::20])}
@@ -289,10 +288,6 @@ def test_gpx_points_are_the_geojson_points(tmp_path, origin) -> None:
 def test_gpx_times_are_utc_from_the_time_origin(tmp_path) -> None:
     """<time> = time origin + t in ISO 8601 UTC (to the microsecond), ele before time; an
     origin whose times fall before the GPS epoch (simulated time) writes none."""
-    import datetime
-
-    from msf_torch.io.geo_export import write_gpx
-
     traj, _ = _track(10, 40)
     traj = dataclasses.replace(traj, t=traj.t * 2.5 + 0.1234565)
     origin_ns = 1_634_601_580_123_456_789  # 2021-10-18 23:59:40.123456789 UTC
@@ -314,8 +309,6 @@ def test_gpx_times_are_utc_from_the_time_origin(tmp_path) -> None:
 
 
 def test_gpx_longitude_stays_below_180_across_the_antimeridian(tmp_path) -> None:
-    from msf_torch.io.geo_export import write_gpx
-
     origin = (-16.5, 179.99995, 5.0)  # Fiji: the track runs east over 180 deg
     n = 20
     enu = np.zeros((n, 3))
@@ -333,8 +326,6 @@ def test_gpx_longitude_stays_below_180_across_the_antimeridian(tmp_path) -> None
 
 
 def test_time_origin_of_a_sequence() -> None:
-    from msf_torch.io.geo_export import time_origin_ns
-
     assert time_origin_ns({"time_origin_ns": 5}) == 5  # a ROS bag, a KITTI raw drive
     assert time_origin_ns({"sensor": {"time_origin_ns": 7}}) == 7  # a native meta.json
     assert time_origin_ns({"sensor": {"wheel_track_m": 0.5}}) is None
