@@ -100,7 +100,12 @@ import torch
 from msf_torch.frontend.adaptive import BlockAdaptation
 from msf_torch.frontend.calibration import CalibrationLayout, CalibrationMemory, observability
 from msf_torch.frontend.config import EskfConfig
-from msf_torch.frontend.gating import SourceFaultParams, chi2_threshold, detect_source_faults
+from msf_torch.frontend.gating import (
+    FaultMemory,
+    SourceFaultParams,
+    chi2_threshold,
+    detect_source_faults,
+)
 from msf_torch.frontend.guard import (
     DivergenceGuard,
     EstimationInterrupted,
@@ -258,6 +263,9 @@ class EskfResult:
             latest pair, after the last IMU sample, for a next chunk
             (``frontend.schedule.PairMemory``; it depends on the data only, so it covers the
             whole chunk also when interrupted; None without pose sources).
+        fault_memory: the source-fault detector's state after the chunk, for a next chunk
+            (``frontend.gating.FaultMemory``; data only, like ``pair_memory``; None without
+            ``source_fault_detection`` or pose sources).
     """
 
     names: list[str]
@@ -291,6 +299,7 @@ class EskfResult:
     frame_memory: FrameMemory | None = None
     calibration_memory: CalibrationMemory | None = None
     pair_memory: PairMemory | None = None
+    fault_memory: FaultMemory | None = None
 
     def select(self, index: int) -> EskfResult:
         """Sequence ``index`` of the batch as a result with B = 1 (views, not copies): every
@@ -306,7 +315,8 @@ class EskfResult:
                 return value[index : index + 1]
             if isinstance(value, dict):
                 return {key: cut(item) for key, item in value.items()}
-            if isinstance(value, (GateMemory, FrameMemory, CalibrationMemory, PairMemory)):
+            memories = (GateMemory, FrameMemory, CalibrationMemory, PairMemory, FaultMemory)
+            if isinstance(value, memories):
                 return dataclasses.replace(
                     value,
                     **{
@@ -881,6 +891,7 @@ def run_eskf(
     frame_memory: FrameMemory | None = None,
     calibration_memory: CalibrationMemory | None = None,
     pair_memory: PairMemory | None = None,
+    fault_memory: FaultMemory | None = None,
 ) -> EskfResult:
     """Run the ESKF over a batch of sequences.
 
@@ -905,6 +916,9 @@ def run_eskf(
             gyro rate from the previous chunk's IMU and this one's), and the time-offset
             calibration sees the pair before it. The chunks must share their boundary IMU
             sample (the previous chunk's last is this one's first).
+        fault_memory: the previous chunk's ``result.fault_memory``
+            (``source_fault_detection``): the detector's models, windows and exclusions
+            carry over.
     Returns:
         :class:`EskfResult` with (B, E + 1) per-epoch fields.
         Samples with non-finite values or repeated / backwards stamps are skipped and
@@ -939,6 +953,7 @@ def run_eskf(
                     frame_memory,
                     calibration_memory,
                     pair_memory,
+                    fault_memory,
                 )
         except EstimationInterrupted as stop:
             raise EstimationInterrupted(
@@ -1039,6 +1054,8 @@ def run_eskf(
     )
     faults = None  # frontend.gating: multi-model source-fault detection over the pairs
     block_weight = None  # (B, E, K) 0/1 straight-through weight of each block
+    if fault_memory is not None and not (cfg.source_fault_detection and source_col):
+        raise ValueError("fault_memory given, but this run detects no pose-source faults")
     if cfg.source_fault_detection and source_col:
         scale = _source_scale(sched, noise, per_seq)[:, None, :, None, None]
         faults = detect_source_faults(
@@ -1050,6 +1067,8 @@ def run_eskf(
             sched.source_dt,
             sched.source_mask,
             SourceFaultParams.from_config(cfg),
+            memory=fault_memory,
+            names=sched.source_names,
         )
         keep = torch.ones(batch, n_epochs, dtype=dtype, device=device)
         block_weight = torch.stack(
@@ -1686,6 +1705,7 @@ def run_eskf(
     if calib is not None:
         result.calibration_memory = _calibration_memory(calib, result, full_covariances, frame_col)
     result.pair_memory = sched.pair_memory
+    result.fault_memory = None if faults is None else faults.memory
     if interrupt.caught:
         raise EstimationInterrupted(result, done, n_epochs)
     return result

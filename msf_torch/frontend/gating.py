@@ -91,6 +91,7 @@ __all__ = [
     "straight_through_gate",
     "SourceFaultParams",
     "SourceFaultResult",
+    "FaultMemory",
     "detect_source_faults",
 ]
 
@@ -402,17 +403,54 @@ class SourceFaultResult:
     difference_m: torch.Tensor
     threshold_m: torch.Tensor
     triggered: torch.Tensor
+    memory: FaultMemory | None = None
 
 
-def _hold(values: list[torch.Tensor], steps: list[int], n_epochs: int, fill: float) -> torch.Tensor:
+@dataclass
+class FaultMemory:
+    """The fault detector's state after a chunk's last epoch, for the next chunk of a run
+    filtered in pieces (``detect_source_faults(..., memory=...)``, ``run_eskf(...,
+    fault_memory=...)``), so that the chunks detect as the run in one piece. It depends on
+    the pose-source data only (not on the filter).
+
+    Attributes:
+        names: the S sources, in the schedule's order.
+        mean: (B, S, 6) each source's model state ``[v, w]`` (m/s, rad/s).
+        cov: (B, S, 6, 6) its covariance.
+        t_state: (B, S) time of that state, s.
+        t_last: (B, S) time of the source's latest residual in its window, s (-inf: none).
+        seen: (B, S) bool, the source has had a sample.
+        flagged: (B, S) bool, the source is excluded.
+        window: (B, S, n, 13) the latest ``n`` residual entries, newest first.
+    """
+
+    names: tuple[str, ...]
+    mean: torch.Tensor
+    cov: torch.Tensor
+    t_state: torch.Tensor
+    t_last: torch.Tensor
+    seen: torch.Tensor
+    flagged: torch.Tensor
+    window: torch.Tensor
+
+
+def _hold(
+    values: list[torch.Tensor],
+    steps: list[int],
+    n_epochs: int,
+    fill: float,
+    initial: torch.Tensor | None = None,
+) -> torch.Tensor:
     """(B, E, S) from per-processed-epoch values (B, S) at epochs ``steps`` (sorted): each
-    epoch takes the value of the last processed epoch at or before it (``fill`` before)."""
+    epoch takes the value of the last processed epoch at or before it (before the first:
+    ``initial`` (B, S), a previous chunk's, else ``fill``)."""
     stacked = torch.stack(values, 1)
     where = torch.as_tensor(steps, device=stacked.device)
     index = torch.searchsorted(where, torch.arange(n_epochs, device=stacked.device), right=True)
     held = stacked[:, (index - 1).clamp_min(0)]
     before = (index == 0)[None, :, None]
-    return torch.where(before, torch.full_like(held, fill), held)
+    first = torch.full_like(held, fill) if initial is None else initial[:, None].expand_as(held)
+    return torch.where(before, first, held)
 
 
 def _scatter(values: list[torch.Tensor], steps: list[int], n_epochs: int) -> torch.Tensor:
@@ -435,6 +473,8 @@ def detect_source_faults(
     mask: torch.Tensor,
     params: SourceFaultParams | None = None,
     sigma: MerweSigmaPoints | None = None,
+    memory: FaultMemory | None = None,
+    names: tuple[str, ...] = (),
 ) -> SourceFaultResult:
     """Multi-model fault detection over the pose-source pairs of a schedule.
 
@@ -447,8 +487,13 @@ def detect_source_faults(
         mask: (B, E, S) bool, a pair of the source ends at the epoch.
         params: settings (default :class:`SourceFaultParams()`).
         sigma: sigma-point scaling (default ``alpha = 1, beta = 2, kappa = 0``).
+        memory: the previous chunk's ``result.memory`` (a run in pieces): the detector
+            goes on from its state instead of starting afresh.
+        names: the S sources' names (recorded in the returned memory; checked against
+            ``memory.names``).
     Returns:
-        :class:`SourceFaultResult`, (B, E, S) fields.
+        :class:`SourceFaultResult`, (B, E, S) fields, and the state after the last epoch
+        (``memory``).
 
     Example:
         >>> import torch
@@ -471,11 +516,22 @@ def detect_source_faults(
     batch, _, n_src = mask.shape
     n_epochs = t.shape[1]
     dtype, device = velocity.dtype, velocity.device
+    if memory is not None and tuple(memory.names) != tuple(names):
+        raise ValueError(
+            f"fault memory holds sources {list(memory.names)}, this run has {list(names)}"
+        )
     steps = [e for e in range(n_epochs) if bool(mask[:, e].any())]
     if not steps:
         zeros = torch.zeros(batch, n_epochs, n_src, dtype=dtype, device=device)
+        held = zeros.bool() if memory is None else memory.flagged[:, None].expand_as(zeros)
         return SourceFaultResult(
-            zeros.bool(), torch.ones_like(zeros), zeros, zeros, zeros, zeros.bool()
+            held,
+            (~held).to(dtype),
+            zeros,
+            zeros,
+            zeros,
+            zeros.bool(),
+            memory,
         )
     eye6 = torch.eye(6, dtype=dtype, device=device)
     q_rate = torch.tensor(
@@ -507,13 +563,22 @@ def detect_source_faults(
     noise_all = torch.where(here_all[..., None, None], noise_all, eye6)
     scale_all = lever * dt_all[..., None]  # m per (m/s), m per (rad/s)
 
-    mean = torch.zeros(batch, n_src, 6, dtype=dtype, device=device)
-    cov = torch.diag_embed(prior).expand(batch, n_src, 6, 6)
-    t_state = torch.zeros(batch, n_src, dtype=dtype, device=device)
-    t_last = torch.full((batch, n_src), -math.inf, dtype=dtype, device=device)
-    seen = torch.zeros(batch, n_src, dtype=torch.bool, device=device)
-    flagged = torch.zeros(batch, n_src, dtype=torch.bool, device=device)
-    window = torch.zeros(batch, n_src, params.window, 13, dtype=dtype, device=device)
+    if memory is None:
+        mean = torch.zeros(batch, n_src, 6, dtype=dtype, device=device)
+        cov = torch.diag_embed(prior).expand(batch, n_src, 6, 6)
+        t_state = torch.zeros(batch, n_src, dtype=dtype, device=device)
+        t_last = torch.full((batch, n_src), -math.inf, dtype=dtype, device=device)
+        seen = torch.zeros(batch, n_src, dtype=torch.bool, device=device)
+        flagged = torch.zeros(batch, n_src, dtype=torch.bool, device=device)
+        window = torch.zeros(batch, n_src, params.window, 13, dtype=dtype, device=device)
+    else:
+        if memory.window.shape[2] != params.window:
+            raise ValueError(
+                f"fault memory holds windows of {memory.window.shape[2]} samples, this run "
+                f"uses {params.window}"
+            )
+        mean, cov, t_state, t_last = memory.mean, memory.cov, memory.t_state, memory.t_last
+        seen, flagged, window = memory.seen, memory.flagged, memory.window
     not_self = (~torch.eye(n_src, dtype=torch.bool, device=device)).to(dtype)  # (S, S)
     exit_index = min(params.exit_samples, params.window) - 1
     rec: dict[str, list[torch.Tensor]] = {
@@ -612,11 +677,14 @@ def detect_source_faults(
         rec["thr"].append(torch.where(push, threshold, 0.0))
         rec["trig"].append(triggered)
 
+    flagged_before = None if memory is None else memory.flagged  # the previous chunk's
+    weight_before = None if memory is None else (~memory.flagged).to(dtype)
     return SourceFaultResult(
-        flagged=_hold(rec["flagged"], steps, n_epochs, False),
-        weight=_hold(rec["weight"], steps, n_epochs, 1.0),
+        flagged=_hold(rec["flagged"], steps, n_epochs, False, flagged_before),
+        weight=_hold(rec["weight"], steps, n_epochs, 1.0, weight_before),
         z=_scatter(rec["z"], steps, n_epochs),
         difference_m=_scatter(rec["diff"], steps, n_epochs),
         threshold_m=_scatter(rec["thr"], steps, n_epochs),
         triggered=_scatter(rec["trig"], steps, n_epochs),
+        memory=FaultMemory(tuple(names), mean, cov, t_state, t_last, seen, flagged, window),
     )

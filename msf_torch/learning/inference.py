@@ -426,9 +426,8 @@ def run_piecewise(
     the chunks gate as one run, the drifting source frames (``EskfResult.frame_memory``),
     the online-calibration states (``EskfResult.calibration_memory``) and each pose source's
     latest sample with the gyro integral since (``EskfResult.pair_memory``), so the pair
-    that straddles a chunk boundary is fused as in the run in one piece. What does not
-    carry over: the source-fault detector's filters (``source_fault_detection``) restart in
-    each chunk.
+    that straddles a chunk boundary is fused as in the run in one piece, and the
+    source-fault detector's models, windows and exclusions (``EskfResult.fault_memory``).
     The input rule of ``frontend.guard`` is applied to the whole run once (skipped samples
     counted in ``dropped_samples`` as by ``run_eskf``).
 
@@ -464,6 +463,7 @@ def run_piecewise(
     frames = None  # drifting source frames (pose_source_fusion: drifting_frame), the same
     calibration = None  # online calibration states, the same
     pairs = None  # pose sources' latest samples and latest pairs, the same
+    faults = None  # the source-fault detector's models and windows (source_fault_detection)
     pose_column = LOG_SCALE_SENSORS.index(pose_source or "vo")
     # (N,) index of the last real IMU sample at or before each sample: a chunk starts at the
     # previous chunk's last real sample, also where the sample at the boundary was skipped
@@ -505,6 +505,7 @@ def run_piecewise(
                 frame_memory=frames,
                 calibration_memory=calibration,
                 pair_memory=pairs,
+                fault_memory=faults,
             )
         except EstimationInterrupted as stop:
             results.append(stop.result)
@@ -520,6 +521,7 @@ def run_piecewise(
         done += int(result.mask[0].sum()) - 1
         initial, memory, frames = _last(result), result.gate_memory, result.frame_memory
         calibration, pairs = result.calibration_memory, result.pair_memory
+        faults = result.fault_memory
         results.append(result)
     return _concat(results, dropped_samples)
 

@@ -14,6 +14,9 @@
   The biases are held there (zero initial sigma and random walk, also after
   ``config_for_sequence``): the preintegration is linearised at each chunk's starting bias,
   a second-order difference otherwise.
+* The pose-source fault detector's models, windows and exclusions carry over
+  (``EskfResult.fault_memory``): a LiDAR sliding along a corridor over 8 s is flagged at
+  the same pairs in 1-s chunks as in the one run.
 * An IMU sample skipped at a chunk boundary: the chunks meet at the real sample before it
   and equal the one run at its epochs.
 * Diagnostics: divergence codes, skipped samples, source-fault flags and Z, fading factors
@@ -43,7 +46,9 @@ from msf_torch.learning.inference import LearnedModel, run_piecewise
 from msf_torch.runner import RunInterrupted, RunOptions, run_sequence
 from msf_torch.sim import SimConfig, simulate_run
 from msf_torch.sim.calibration import calibration_sim_config, simulate_calibration_run
+from msf_torch.sim.faults import SourceFault, inject_faults
 from msf_torch.sim.noise_step import gnss_noise_step
+from msf_torch.sim.weather import WeatherSchedule, apply_weather
 from msf_torch.types import NavState, batch_sequences
 
 TOL = 1e-9
@@ -82,7 +87,7 @@ def _held(cfg: EskfConfig) -> EskfConfig:
 
 def _chunks(seq, cfg, length: int, carry: bool):
     """run_eskf over IMU chunks of ``length`` samples, chained by hand (B > 1: IMU samples
-    unmasked); ``carry``: with every memory (gate, calibration, source pairs)."""
+    unmasked); ``carry``: with every memory (gate, calibration, source pairs, faults)."""
     imu = seq.imu.compact() if seq.batch_size == 1 else seq.imu
     initial, memory, parts = initial_state(seq, cfg), {}, []
     rows = torch.arange(seq.batch_size)
@@ -96,7 +101,7 @@ def _chunks(seq, cfg, length: int, carry: bool):
             part.covariance[rows, last],
         )
         if carry:
-            names = ("gate_memory", "calibration_memory", "pair_memory")
+            names = ("gate_memory", "calibration_memory", "pair_memory", "fault_memory")
             memory = {name: getattr(part, name) for name in names}
         parts.append(part)
     return parts
@@ -231,6 +236,37 @@ def test_batch_chunks_fuse_the_source_pairs_across_boundaries():
             run_eskf(seq, cfg, pair_memory=memory)
     for b in range(2):  # round-off (measured 1.4e-14 m)
         _assert_same_epochs(parts, whole, b, ("position", "velocity", "covariance", "calibration"))
+
+
+def test_chunks_carry_the_source_fault_detector():
+    """35 s, wheels dropped, GNSS over the first 12 s; the LiDAR reports 20 % of the motion
+    along a corridor over 20-28 s. 1-s chunks flag it as the run in one piece does; before
+    the detector restarted in every chunk, its window and models empty, and flagged less."""
+    duration = 35.0
+    sim = SimConfig(duration_s=duration, imu_rate_hz=100.0, gnss_outages_s=((12.0, duration),))
+    run = simulate_run(sim, seed=9)
+    wet = apply_weather(run, WeatherSchedule.constant("sunny", duration), seed=9)
+    fault = SourceFault("lidar", "slide", 20.0, 28.0, axial_scale=0.2)
+    seq = dataclasses.replace(inject_faults(wet, [fault], seed=9).sequence, wheel=None)
+    cfg = config_for_sequence(HELD_BIASES, seq.meta, set()).replace(source_fault_detection=True)
+    cfg = _held(cfg)
+    with torch.no_grad():
+        whole = run_eskf(seq, cfg)
+        pieces = run_piecewise(seq, cfg, _alternating(35), 100, "lidar")
+        forgetful = _chunks(seq, cfg, 100, carry=False)
+    flagged = whole.source_fault["pose:lidar"][0]
+    assert int(flagged.sum()) > 50  # the slide was caught (pairs at 10 Hz)
+    for key in ("pose:lidar", "pose:vo"):
+        assert torch.equal(pieces.source_fault[key][0], whole.source_fault[key][0]), key
+        diff = (pieces.source_fault_z[key] - whole.source_fault_z[key]).abs().max()
+        assert float(diff) < 1e-9, key
+    _assert_same_run(pieces, whole, ("position", "velocity", "covariance"))
+    restarted = sum(
+        int(p.source_fault["pose:lidar"][0, 1:][p.mask[0, 1:]].sum()) for p in forgetful
+    )
+    assert restarted < int(flagged.sum())
+    with pytest.raises(ValueError, match="no pose-source faults"):
+        run_eskf(seq, HELD_BIASES, fault_memory=pieces.fault_memory)
 
 
 def test_chunks_without_a_block_keep_its_gate_streak():
