@@ -78,9 +78,9 @@ def build_parser() -> argparse.ArgumentParser:
         default=(),
         metavar="FORMATS",
         help="also write the trajectory as kitti (trajectory.kitti + trajectory_times.txt), "
-        "rosbag2 (nav_msgs/Odometry in trajectory_rosbag2/), geojson and / or kml (on the "
-        "map, with the GNSS fixes: needs the run's geodetic origin, meta.json gnss_origin), "
-        "comma separated",
+        "rosbag2 (nav_msgs/Odometry in trajectory_rosbag2/), geojson, kml and / or gpx (on "
+        "the map, with the GNSS fixes: needs the run's geodetic origin, meta.json "
+        "gnss_origin; gpx has UTC times with an absolute time origin), comma separated",
     )
     run.add_argument(
         "--format",
@@ -412,7 +412,7 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-EXPORTS = ("kitti", "rosbag2", "geojson", "kml")
+EXPORTS = ("kitti", "rosbag2", "geojson", "kml", "gpx")
 """Extra trajectory formats ``msf run --export`` writes."""
 
 
@@ -1056,7 +1056,13 @@ def _cmd_nmea(args) -> dict[str, Any]:
     import numpy as np
 
     from msf_torch.io.errors import DataError
-    from msf_torch.io.native import store_gnss_origin, stored_gnss_origin, write_stream_csv
+    from msf_torch.io.native import (
+        store_gnss_origin,
+        store_time_origin,
+        stored_gnss_origin,
+        stored_time_origin,
+        write_stream_csv,
+    )
     from msf_torch.io.nmea import read_nmea, write_gnss_csv
 
     if args.out.is_dir():
@@ -1089,6 +1095,18 @@ def _cmd_nmea(args) -> dict[str, Any]:
             stacklevel=2,
         )
     meta = store_gnss_origin(folder, origin)
+    # the folder's t = 0 in UNIX ns, when the fix times are UNIX times (dated UTC, or the
+    # logging host's receive stamps): GPX exports get UTC times from it
+    time_origin = None
+    if log.time_source == "receive" or log.dated:
+        time_origin = round(args.t0 * 1e9)
+        stored_origin = stored_time_origin(folder)
+        if stored_origin is not None and stored_origin != time_origin:
+            warnings.warn(
+                f"{meta}: time_origin_ns changed from {stored_origin} to {time_origin}",
+                stacklevel=2,
+            )
+        store_time_origin(folder, time_origin)
     t = gnss.t[0].numpy()
     given = np.isfinite(log.sigma_enu).all(axis=1)
     return {
@@ -1101,6 +1119,7 @@ def _cmd_nmea(args) -> dict[str, Any]:
         "counts": log.counts,
         "origin": list(origin),
         "origin_from": origin_from,
+        "time_origin_ns": time_origin,
         "meta": str(meta),
         "time_source": log.time_source,
         "t_range_s": [float(t[0]), float(t[-1])],

@@ -44,11 +44,13 @@ Used by ``msf run``. Outputs in ``out_dir`` (each written atomically: temp file 
   velocities and gyro biases, :func:`msf_torch.backend.window.interpolate_imu`; both
   covariances all zeros, the twist still written, when the smoother's ``covariance`` is
   off).
-- with ``exports`` ``geojson`` / ``kml``: ``trajectory.geojson`` and ``trajectory.kml``, the
-  estimate, the ground truth (when the sequence has one) and the GNSS fixes (fused and
-  withheld) in WGS-84 longitude / latitude (:mod:`msf_torch.io.geo_export`), from the
-  sequence's ENU origin ``meta["gnss_origin"]``; a sequence without one is refused before
-  the run starts.
+- with ``exports`` ``geojson`` / ``kml`` / ``gpx``: ``trajectory.geojson``,
+  ``trajectory.kml`` and ``trajectory.gpx``, the estimate, the ground truth (when the
+  sequence has one) and the GNSS fixes (fused and withheld) in WGS-84 longitude / latitude
+  (:mod:`msf_torch.io.geo_export`), from the sequence's ENU origin ``meta["gnss_origin"]``;
+  a sequence without one is refused before the run starts. The GPX points carry UTC times
+  when the sequence has an absolute time origin (``geo_export.time_origin_ns``: a bag's,
+  a KITTI raw drive's, ``time_origin_ns`` in a native folder's ``meta.json``).
 
 Ctrl-C (SIGINT) during the front end or the smoother writes ``trajectory.tum`` (the epochs
 completed), ``diagnostics.csv`` and ``summary.json`` (with an ``interrupted`` entry saying
@@ -141,7 +143,7 @@ class RunOptions:
         smoother: the smoother's settings (default :class:`SmootherConfig()`).
         learned: a trained CovNet that sets the filter's noise, or None (the config's).
         exports: extra trajectory formats, any of ``"kitti"``, ``"rosbag2"``, ``"geojson"``,
-            ``"kml"`` (the last two need ``seq.meta["gnss_origin"]``).
+            ``"kml"``, ``"gpx"`` (the last three need ``seq.meta["gnss_origin"]``).
     """
 
     out_dir: Path
@@ -214,13 +216,14 @@ OUTPUT_NAMES = (
     "trajectory_rosbag2",
     "trajectory.geojson",
     "trajectory.kml",
+    "trajectory.gpx",
     "diagnostics.csv",
     "overview.png",
     "summary.json",
 )
 """The files and folders a run writes to its output folder (module docstring)."""
 
-GEO_EXPORTS = ("geojson", "kml")
+GEO_EXPORTS = ("geojson", "kml", "gpx")
 """Exports that put the trajectory on the Earth: they need the sequence's geodetic origin."""
 
 
@@ -657,7 +660,7 @@ def _export(
     its epochs gives the rosbag2 twist and covariances; the map exports show ``withheld``
     GNSS fixes beside the fused ones."""
     if any(fmt in formats for fmt in GEO_EXPORTS):
-        from msf_torch.io.geo_export import write_geojson, write_kml
+        from msf_torch.io.geo_export import time_origin_ns, write_geojson, write_gpx, write_kml
 
         tracks = {"estimate": estimate}
         truth = seq.ground_truth
@@ -670,6 +673,15 @@ def _export(
             write_geojson(out_dir / "trajectory.geojson", origin, tracks, fixes)
         if "kml" in formats:
             write_kml(out_dir / "trajectory.kml", origin, tracks, fixes, name=seq.names[0])
+        if "gpx" in formats:
+            write_gpx(
+                out_dir / "trajectory.gpx",
+                origin,
+                tracks,
+                fixes,
+                time_origin=time_origin_ns(seq.meta),
+                name=seq.names[0],
+            )
     if "kitti" in formats:
         from msf_torch.io.kitti_poses import write_kitti_poses
 

@@ -242,17 +242,14 @@ simulated time, times since boot)."""
 def time_origin_ns(meta: Mapping[str, Any]) -> int | None:
     """The UNIX time (ns) of a sequence's ``t = 0``, when the sequence says.
 
-    ``meta["time_origin_ns"]`` (ROS bags: the header stamps' origin; KITTI raw drives),
-    else ``meta["sensor"]["time_origin_ns"]`` (a native folder's ``meta.json``, which
-    ``msf nmea`` writes: the ``--t0`` it moved the fixes by); None when neither is there.
+    ``meta["time_origin_ns"]``: a ROS bag's header stamps' origin, a KITTI raw drive's first
+    stamp, a native folder's ``meta.json`` entry (which ``msf nmea`` writes: the ``--t0``
+    it moved the fixes by); None when there is none.
 
     Raises:
         ValueError: a value that is not an integer number of ns.
     """
     value = meta.get("time_origin_ns")
-    if value is None:
-        sensor = meta.get("sensor")
-        value = sensor.get("time_origin_ns") if isinstance(sensor, Mapping) else None
     if value is None:
         return None
     if isinstance(value, bool) or not isinstance(value, int | np.integer):

@@ -88,7 +88,9 @@ Rules on read (every format in ``msf_torch.io`` follows them)
   ``"native-npz"``, ``meta["sensor"]`` is the ``meta.json`` object, and its ``"imu_noise"``
   entry (if any) is also put at ``meta["imu_noise"]``, where every reader puts IMU noise;
   likewise ``"gnss_origin"`` at ``meta["gnss_origin"]`` (three finite numbers, latitude in
-  [-90, 90], else a DataError naming the field), where the ROS bag reader puts it.
+  [-90, 90], else a DataError naming the field), where the ROS bag reader puts it, and
+  ``"time_origin_ns"`` (an integer: the UNIX time of ``t = 0`` in ns, which ``msf nmea``
+  stores) at ``meta["time_origin_ns"]``, as a ROS bag's.
 """
 
 from __future__ import annotations
@@ -110,6 +112,8 @@ __all__ = [
     "read_native",
     "stored_gnss_origin",
     "store_gnss_origin",
+    "stored_time_origin",
+    "store_time_origin",
     "write_stream_csv",
     "write_native",
 ]
@@ -526,9 +530,49 @@ def store_gnss_origin(
     Raises:
         DataError: an existing ``meta.json`` is not a JSON object. ValueError: a bad origin.
     """
+    return _store_meta_entry(
+        folder, "gnss_origin", _gnss_origin("origin", [float(x) for x in origin])
+    )
+
+
+def _time_origin(where: str, value: Any) -> int:
+    """``meta.json``'s ``time_origin_ns`` checked: an integer (ns)."""
+    if isinstance(value, bool) or not isinstance(value, int):
+        shown = _tables.shown(json.dumps(value))
+        raise DataError(where, f"expected an integer (ns), got {shown}", field="time_origin_ns")
+    return value
+
+
+def stored_time_origin(folder: str | os.PathLike[str]) -> int | None:
+    """The ``time_origin_ns`` a native folder's ``meta.json`` holds, or None (no file, or no
+    such entry). DataError for a malformed file or entry."""
     file = Path(folder) / _META_FILE
     sensor = _read_meta_json(file)
-    sensor["gnss_origin"] = _gnss_origin("origin", [float(x) for x in origin])
+    if "time_origin_ns" not in sensor:
+        return None
+    return _time_origin(str(file), sensor["time_origin_ns"])
+
+
+def store_time_origin(folder: str | os.PathLike[str], origin_ns: int) -> Path:
+    """Set ``time_origin_ns`` (the UNIX time of the folder's ``t = 0``, ns) in a native
+    folder's ``meta.json`` (created if absent; its other entries kept), atomically.
+
+    Returns:
+        the ``meta.json`` path.
+
+    Raises:
+        DataError: an existing ``meta.json`` is not a JSON object, or ``origin_ns`` is not
+            an integer.
+    """
+    return _store_meta_entry(folder, "time_origin_ns", _time_origin("origin_ns", origin_ns))
+
+
+def _store_meta_entry(folder: str | os.PathLike[str], key: str, value: Any) -> Path:
+    """Set ``key`` in ``folder/meta.json`` (created if absent, other entries kept),
+    atomically; the file's path."""
+    file = Path(folder) / _META_FILE
+    sensor = _read_meta_json(file)
+    sensor[key] = value
     with atomic_write(file) as handle:
         handle.write(json.dumps(sensor, indent=2, sort_keys=True, allow_nan=True) + "\n")
     return file
@@ -702,6 +746,8 @@ def _assemble(
             meta["imu_noise"] = sensor["imu_noise"]
         if "gnss_origin" in sensor:
             meta["gnss_origin"] = _gnss_origin(where_meta, sensor["gnss_origin"])
+        if "time_origin_ns" in sensor:
+            meta["time_origin_ns"] = _time_origin(where_meta, sensor["time_origin_ns"])
     label_tensors = {
         name: torch.tensor(spans, dtype=torch.float64).reshape(1, -1, 2)
         for name, spans in labels.items()
@@ -749,7 +795,7 @@ def _label_arrays(seq: Sequence) -> dict[str, np.ndarray]:
 
 def _sensor_json(seq: Sequence) -> str | None:
     sensor = dict(seq.meta.get("sensor") or {})
-    for key in ("imu_noise", "gnss_origin"):
+    for key in ("imu_noise", "gnss_origin", "time_origin_ns"):
         if key in seq.meta and key not in sensor:
             sensor[key] = seq.meta[key]
     if not sensor:
@@ -772,9 +818,9 @@ def write_native(seq: Sequence, path: str | os.PathLike[str]) -> Path:
 
     Only real samples (mask True) are written. Numbers are written with ``repr`` (the
     shortest string that reads back to the same float64), so a round trip is exact up to
-    quaternion re-normalisation. ``meta["sensor"]`` (plus ``meta["imu_noise"]`` and
-    ``meta["gnss_origin"]``) is stored as the JSON sensor description; the other meta
-    entries are derived on read and not stored.
+    quaternion re-normalisation. ``meta["sensor"]`` (plus ``meta["imu_noise"]``,
+    ``meta["gnss_origin"]`` and ``meta["time_origin_ns"]``) is stored as the JSON sensor
+    description; the other meta entries are derived on read and not stored.
 
     Args:
         seq: the sequence, B = 1, any device / floating dtype.

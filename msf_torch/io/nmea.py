@@ -210,6 +210,7 @@ class NmeaLog:
         source: the path read.
         geoid_separation_missing: True when some kept fix had an empty geoid separation
             (its height is the MSL altitude).
+        dated: True when an RMC or ZDA gave a date (UTC times are then UNIX seconds).
         velocity_t: (M,) s float64 of the kept velocities, on the clock of :attr:`t`.
         velocity_enu: (M, 3) m/s ``[east, north, up]`` over ground; up is NaN (not
             measured).
@@ -229,6 +230,7 @@ class NmeaLog:
     counts: dict[str, int]
     source: str
     geoid_separation_missing: bool
+    dated: bool
     velocity_t: np.ndarray
     velocity_enu: np.ndarray
     velocity_lines: np.ndarray
@@ -831,6 +833,7 @@ def read_nmea(
         counts=counts,
         source=spath,
         geoid_separation_missing=separation_missing,
+        dated=bool(reader.dates),
         velocity_t=velocity_t[velocity_keep],
         velocity_enu=np.array(
             [[velocities[i].east, velocities[i].north, math.nan] for i in velocity_keep],

@@ -9,6 +9,7 @@ import json
 import math
 import shlex
 import shutil
+import xml.etree.ElementTree as ET
 from pathlib import Path
 
 import numpy as np
@@ -26,6 +27,7 @@ START_UNIX = 1634601580.0
 ORIGIN = (49.0125, 8.4172, 160.0)
 COUNTS_PER_REV = 1024
 RADIUS_M = 0.1
+GPX = "{http://www.topografix.com/GPX/1/1}"
 
 
 def _commands() -> list[str]:
@@ -154,3 +156,8 @@ def test_the_page_runs_as_written(drive, tmp_path, monkeypatch, capsys) -> None:
     assert score["reference_kind"] == "gnss" and score["ate"]["rmse"] < 0.06
     kml = (tmp_path / "out" / "trajectory.kml").read_text()
     assert "<LineString>" in kml and "GNSS fixes" in kml
+    # the GPX track on the UTC clock: the estimate's first epoch at START_UNIX + t
+    gpx = ET.parse(tmp_path / "out" / "trajectory.gpx").getroot()
+    first = gpx.find(f"{GPX}trk/{GPX}trkseg/{GPX}trkpt/{GPX}time").text
+    stamp = datetime.datetime.fromisoformat(first).timestamp()
+    assert stamp == pytest.approx(START_UNIX + float(estimate.t[0, 0]), abs=1e-6)

@@ -17,7 +17,14 @@ from msf_torch.cli import main
 from msf_torch.geometry import so3
 from msf_torch.io.errors import DataError
 from msf_torch.io.geo_export import time_origin_ns, write_geojson, write_gpx, write_kml
-from msf_torch.io.native import read_native, store_gnss_origin, stored_gnss_origin, write_native
+from msf_torch.io.native import (
+    read_native,
+    store_gnss_origin,
+    store_time_origin,
+    stored_gnss_origin,
+    stored_time_origin,
+    write_native,
+)
 from msf_torch.io.tum import read_tum
 from msf_torch.sim import SimConfig, simulate_run
 from msf_torch.types import GnssFixes, Trajectory
@@ -327,9 +334,55 @@ def test_gpx_longitude_stays_below_180_across_the_antimeridian(tmp_path) -> None
 
 def test_time_origin_of_a_sequence() -> None:
     assert time_origin_ns({"time_origin_ns": 5}) == 5  # a ROS bag, a KITTI raw drive
-    assert time_origin_ns({"sensor": {"time_origin_ns": 7}}) == 7  # a native meta.json
     assert time_origin_ns({"sensor": {"wheel_track_m": 0.5}}) is None
     assert time_origin_ns({}) is None
     for bad in (1.5, "5", True):
         with pytest.raises(ValueError, match="integer number of ns"):
-            time_origin_ns({"sensor": {"time_origin_ns": bad}})
+            time_origin_ns({"time_origin_ns": bad})
+
+
+def test_time_origin_is_kept_by_the_native_format(tmp_path, short_run) -> None:
+    """meta.json's time_origin_ns reaches meta["time_origin_ns"] (as a bag's) and survives a
+    write; a value that is not an integer names the field."""
+    folder = tmp_path / "run"
+    write_native(short_run, folder)
+    assert stored_time_origin(folder) is None
+    store_time_origin(folder, 1_634_601_580_250_000_000)
+    seq = read_native(folder)
+    assert seq.meta["time_origin_ns"] == 1_634_601_580_250_000_000
+    assert stored_time_origin(folder) == 1_634_601_580_250_000_000
+    for target in (tmp_path / "copy.npz", tmp_path / "copy"):
+        back = read_native(write_native(seq, target))
+        assert back.meta["time_origin_ns"] == 1_634_601_580_250_000_000
+    for bad in (1.5e18, "1634601580", True, None):
+        (folder / "meta.json").write_text(json.dumps({"time_origin_ns": bad}))
+        with pytest.raises(DataError) as err:
+            read_native(folder)
+        assert err.value.field == "time_origin_ns"
+
+
+def test_run_exports_gpx_with_utc_times(tmp_path, short_run, capsys) -> None:
+    """msf run --export gpx: trajectory.gpx holds the estimate (lat / lon as the GeoJSON's),
+    the ground truth and the fixes, with UTC times from meta.json's time_origin_ns."""
+    folder = tmp_path / "run"
+    write_native(short_run, folder)
+    store_gnss_origin(folder, ORIGINS[0])
+    store_time_origin(folder, 1_634_601_580_000_000_000)
+    out = tmp_path / "out"
+    args = ["run", str(folder), "--no-plot", "--no-learned", "--out", str(out)]
+    assert main([*args, "--export", "gpx,geojson"]) == 0
+    capsys.readouterr()
+    root = ET.parse(out / "trajectory.gpx").getroot()
+    _check_gpx_1_1(root)
+    names = [trk.findtext(f"{GPX}name") for trk in root.findall(f"{GPX}trk")]
+    assert names == ["estimate", "ground truth", "GNSS fixes"]
+    doc = json.loads((out / "trajectory.geojson").read_text())
+    points = root.findall(f"{GPX}trk/{GPX}trkseg/{GPX}trkpt")[
+        : len(doc["features"][0]["geometry"]["coordinates"])
+    ]
+    got = np.array([[float(p.get("lon")), float(p.get("lat"))] for p in points])
+    want = np.array(doc["features"][0]["geometry"]["coordinates"])[:, :2]
+    np.testing.assert_allclose(got, want, rtol=0, atol=1e-9)
+    estimate = read_tum(out / "trajectory.tum")
+    stamp = datetime.datetime.fromisoformat(points[0].findtext(f"{GPX}time")).timestamp()
+    assert stamp == pytest.approx(1_634_601_580 + float(estimate.t[0, 0]), abs=1e-6)

@@ -471,6 +471,11 @@ def test_cli_writes_a_gnss_csv_that_read_native_reads(generated, tmp_path, capsy
     captured = capsys.readouterr()
     summary = json.loads(captured.out.strip().splitlines()[-1])
     assert "msf nmea: warning:" in captured.err and "bad_checksum 1" in captured.err
+    # dated UTC times: the folder's t = 0 is UNIX START_UNIX
+    assert summary["time_origin_ns"] == START_UNIX * 1_000_000_000
+    assert json.loads((out.parent / "meta.json").read_text())["time_origin_ns"] == (
+        START_UNIX * 1_000_000_000
+    )
     assert summary["fixes"] == N_EPOCHS - 1
     assert summary["fixes_with_sigma"] == N_EPOCHS - 1 - len(NO_GST_EPOCHS)
     assert summary["counts"]["bad_checksum"] == 1
@@ -490,11 +495,21 @@ def test_cli_writes_a_gnss_csv_that_read_native_reads(generated, tmp_path, capsy
     np.testing.assert_array_equal(seq.gnss.position.numpy(), gnss.position.numpy())
     np.testing.assert_array_equal(seq.gnss.sigma.numpy(), gnss.sigma.numpy())
 
+    assert seq.meta["time_origin_ns"] == START_UNIX * 1_000_000_000
+
     origin = "49.0,8.4,150.0"
     assert main(["nmea", str(path), "--out", str(out), "--origin", origin, "--time", "utc"]) == 0
-    summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    captured = capsys.readouterr()
+    summary = json.loads(captured.out.strip().splitlines()[-1])
     assert summary["origin"] == [49.0, 8.4, 150.0]
     assert summary["t_range_s"][0] == START_UNIX + 0.5
+    assert summary["time_origin_ns"] == 0 and "time_origin_ns changed" in captured.err
+    # without a date the times are seconds of the day: no time origin is stored
+    undated = _write(tmp_path, [_gga(k, _truth()) for k in range(3)], "undated.nmea")
+    folder = tmp_path / "undated"
+    assert main(["nmea", str(undated), "--out", str(folder / "gnss.csv")]) == 0
+    assert json.loads(capsys.readouterr().out.strip().splitlines()[-1])["time_origin_ns"] is None
+    assert "time_origin_ns" not in json.loads((folder / "meta.json").read_text())
 
 
 def test_cli_keeps_the_folders_origin_in_meta_json(generated, tmp_path, capsys):
@@ -506,7 +521,7 @@ def test_cli_keeps_the_folders_origin_in_meta_json(generated, tmp_path, capsys):
     first = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert first["origin_from"] == "first fix"
     meta = json.loads((out.parent / "meta.json").read_text())
-    assert meta == {"gnss_origin": first["origin"], "wheel_track_m": 0.5}
+    assert meta == {"gnss_origin": first["origin"], "time_origin_ns": 0, "wheel_track_m": 0.5}
     before = out.read_text()
     # a second conversion (another quality set, say) stays in the same ENU frame
     assert main(["nmea", str(path), "--out", str(out)]) == 0
