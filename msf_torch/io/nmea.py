@@ -62,8 +62,9 @@ Velocities
       as the fixes' are (same dates, same rollovers); with ``time="receive"`` a velocity has
       its own line's receive stamp.
     * One velocity per epoch: an RMC and a VTG of the same UTC epoch give the first in the
-      file (the later one is counted in ``velocity_duplicate``, as is a velocity at the time
-      of the previous one).
+      file (the later one is counted in ``velocity_same_epoch``: receivers write both every
+      epoch, so it is not warned about); a velocity at or before the time of the previous
+      epoch's is counted in ``velocity_duplicate`` (warned).
 
 Rules
     * A checksum ``*hh`` is verified when present. A mismatch (or an unreadable ``*hh``)
@@ -173,6 +174,7 @@ _OUTCOMES = (
     "velocity_empty",
     "velocity_no_course",
     "velocity_untimed",
+    "velocity_same_epoch",
     "velocity_duplicate",
 )
 _SENTENCES_READ = ("GGA", "GST", "RMC", "ZDA", "VTG")
@@ -205,7 +207,8 @@ class NmeaLog:
             ``bad_checksum``, ``not_nmea``, ``unreadable_prefix``, ``gst_unmatched`` (GSTs
             with no kept GGA of their time), ``velocity_kept``, ``velocity_invalid``,
             ``velocity_mode_not_kept``, ``velocity_empty``, ``velocity_no_course``,
-            ``velocity_untimed``, ``velocity_duplicate`` (module docstring, Velocities), and
+            ``velocity_untimed``, ``velocity_same_epoch``, ``velocity_duplicate`` (module
+            docstring, Velocities), and
             per sentence type read (upper case: ``GGA``, ``GST``, ``GSV``, ``PUBX``, ...).
         source: the path read.
         geoid_separation_missing: True when some kept fix had an empty geoid separation
@@ -803,7 +806,8 @@ def read_nmea(
     velocity_lines = np.array([v.line for v in velocities], dtype=np.int64)[epoch]
     forward = _forward(spath, velocity_t[epoch], velocity_lines, time_field)
     velocity_keep = np.flatnonzero(epoch)[forward]
-    counts["velocity_duplicate"] = len(velocities) - int(velocity_keep.shape[0])
+    counts["velocity_same_epoch"] = len(velocities) - int(epoch.sum())
+    counts["velocity_duplicate"] = int(epoch.sum()) - int(velocity_keep.shape[0])
     counts["velocity_kept"] = int(velocity_keep.shape[0])
     counts["kept"] = len(kept)
     separation_missing = any(fix.separation_missing for fix in kept)
@@ -847,7 +851,7 @@ def _warn_skipped(path: str, counts: dict[str, int], bad_lines: list[int]) -> No
     """One warning listing what was skipped (nothing when nothing was)."""
     parts = []
     for name in _OUTCOMES:
-        if counts[name] and name not in ("kept", "velocity_kept"):
+        if counts[name] and name not in ("kept", "velocity_kept", "velocity_same_epoch"):
             parts.append(f"{name} {counts[name]}")
         if name == "bad_checksum" and bad_lines:
             more = ", ..." if len(bad_lines) > 5 else ""
