@@ -377,10 +377,13 @@ class RobotConfig:
                     from_imu[sensor.name] = shifted.tolist()
             out["extrinsics_in_body"] = extrinsics
             derived = self.eskf_config({"extrinsics": from_imu})
+            # the antenna: the gnss sensor, else a gnss_velocity sensor alone
+            antenna = layout.sensor("gnss") or layout.sensor("gnss_velocity")
+            placed = {"gnss_lever_arm_m": antenna, "wheel_lever_arm_m": layout.sensor("wheels")}
             out["derived"] = {
                 key: getattr(derived, key)
-                for key, kind in (("gnss_lever_arm_m", "gnss"), ("wheel_lever_arm_m", "wheels"))
-                if layout.sensor(kind) is not None and layout.sensor(kind).name in from_imu
+                for key, sensor in placed.items()
+                if sensor is not None and sensor.name in from_imu
             } | {
                 key: getattr(derived, key)
                 for key in ("wheel_track_m", "wheel_yaw_rate_update")

@@ -128,6 +128,20 @@ def test_full_robot_config(tmp_path: Path) -> None:
     assert "vo" not in summary["extrinsics_in_body"]  # it moves with the pan joint
 
 
+def test_a_velocity_antenna_alone_gives_the_gnss_lever_arm(tmp_path: Path) -> None:
+    """A receiver whose velocity topic is fused without its fixes: the antenna's lever arm
+    still comes from the URDF, in the run's config and in ``msf config check``'s summary."""
+    text = ROBOT.replace(
+        "    type: gnss\n    topic: /gps/fix\n    frame: antenna\n"
+        "    origin: [49.0, 8.4, 110.0]\n    fuse: [x, y]\n",
+        "    type: gnss_velocity\n    topic: /gps/fix_velocity\n    frame: antenna\n",
+    )
+    assert "gnss_velocity" in text
+    robot = load_robot_config(_write(tmp_path, text))
+    derived = robot.summary()["derived"]
+    np.testing.assert_allclose(derived["gnss_lever_arm_m"], [-0.4, 0.05, 0.9], atol=1e-15)
+
+
 def test_minimal_topic_map(tmp_path: Path) -> None:
     path = _write(
         tmp_path,
