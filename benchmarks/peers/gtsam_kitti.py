@@ -61,7 +61,15 @@ Deviations from the example (deliberate):
    preintegration parameters (it is identity for this dataset anyway).
 8. Optional, off by default: ``init_from_gps=True`` sets the initial *value* (not the
    prior, which keeps zero rotation precision) to the yaw of the first GPS displacement
-   and the velocity to that displacement over its duration.
+   and the velocity to that displacement over its duration (with ``gps_velocity``: the
+   course and the velocity of the first state's measured velocity when it has one).
+9. Optional inputs for other data (the defaults are the example's and leave the KITTI
+   results unchanged): ``gravity``, ``gps_sigma`` (per-axis sigmas instead of the
+   example's precision), ``init_bias_sigmas``, and ``gps_velocity``: a world-frame
+   velocity measurement at each GPS time, entered as ``PriorFactorVector(V(i), v, sigma)``
+   at every state whose fix is used (the first one included). That is the antenna's
+   velocity only with a zero lever arm (no ``R (w x l)`` term here), which the caller
+   must ensure. A fix (or velocity) with a non-finite entry is not used.
 
 States created during the warm-up have no causal "filter" estimate: they get the value
 from the first update (a small batch that already sees up to ``warmup_intervals`` fixes
@@ -93,10 +101,13 @@ INIT_BIAS_SIGMAS = (0.1, 5.0e-5)
 """Sigmas of the initial accelerometer / gyroscope bias prior."""
 
 
-def make_imu_params(meta: dict[str, Any]) -> gtsam.PreintegrationCombinedParams:
-    """Build the combined preintegration parameters from the metadata dict."""
+def make_imu_params(
+    meta: dict[str, Any], gravity: float = GRAVITY
+) -> gtsam.PreintegrationCombinedParams:
+    """Build the combined preintegration parameters from the metadata dict; ``gravity``
+    magnitude in m/s^2 (navigation frame z up)."""
     eye = np.eye(3)
-    params = gtsam.PreintegrationCombinedParams.MakeSharedU(GRAVITY)
+    params = gtsam.PreintegrationCombinedParams.MakeSharedU(gravity)
     params.setAccelerometerCovariance(eye * float(meta["accel_noise_sigma"]) ** 2)
     params.setGyroscopeCovariance(eye * float(meta["gyro_noise_sigma"]) ** 2)
     params.setIntegrationCovariance(eye * float(meta["integration_sigma"]) ** 2)
@@ -121,6 +132,11 @@ def run_gtsam_kitti(
     warmup_intervals: int = 20,
     init_from_gps: bool = False,
     factorization: str = "QR",
+    gravity: float = GRAVITY,
+    gps_sigma: np.ndarray | None = None,
+    init_bias_sigmas: tuple[float, float] = INIT_BIAS_SIGMAS,
+    gps_velocity: np.ndarray | None = None,
+    gps_velocity_sigma: np.ndarray | None = None,
 ) -> dict[str, Any]:
     """Run the GTSAM CombinedImuFactor + GPSFactor ISAM2 pipeline.
 
@@ -142,6 +158,16 @@ def run_gtsam_kitti(
         init_from_gps: initial yaw/velocity values from the first GPS displacement
             (default: identity rotation and zero velocity, as in the example).
         factorization: ISAM2 factorization, ``"QR"`` or ``"CHOLESKY"`` (see module doc).
+        gravity: gravity magnitude, m/s^2 (default the example's 9.8).
+        gps_sigma: (3,) per-axis GPS position sigmas, m (default: the example's precision
+            ``1 / 0.07`` per axis).
+        init_bias_sigmas: sigmas of the initial (accelerometer m/s^2, gyroscope rad/s) bias
+            prior (default the example's).
+        gps_velocity: (M, 3) world-frame velocity at each GPS time, m/s, or None (no
+            velocity factors: the example's graph). A row with a non-finite entry (in it or
+            in its sigmas) is skipped.
+        gps_velocity_sigma: (3,) or (M, 3) per-axis sigmas of ``gps_velocity``, m/s
+            (required with it).
 
     Returns:
         dict with ``t`` (M',) state times (``gps_t[first_gps_index:]``),
@@ -160,6 +186,18 @@ def run_gtsam_kitti(
         raise ValueError("first_gps_index must leave at least two GPS times")
     if gps_skip < 1 or warmup_intervals < 0:
         raise ValueError("gps_skip must be >= 1 and warmup_intervals >= 0")
+    if not np.all(np.isfinite(gps_xyz[first_gps_index])):
+        raise ValueError(f"the first state's GPS fix {first_gps_index} is not finite")
+    vel_sigma = None
+    if gps_velocity is not None:
+        gps_velocity = np.asarray(gps_velocity, dtype=float)
+        if gps_velocity.shape != gps_xyz.shape:
+            raise ValueError(
+                f"gps_velocity has shape {gps_velocity.shape}, expected {gps_xyz.shape}"
+            )
+        if gps_velocity_sigma is None:
+            raise ValueError("gps_velocity needs gps_velocity_sigma")
+        vel_sigma = np.broadcast_to(np.asarray(gps_velocity_sigma, dtype=float), gps_xyz.shape)
 
     imu_dt = np.empty_like(imu_t)
     imu_dt[1:] = np.diff(imu_t)
@@ -176,15 +214,35 @@ def run_gtsam_kitti(
         return outage is not None and outage[0] <= t <= outage[1]
 
     start = time.perf_counter()
-    imu_params = make_imu_params(meta)
-    noise_gps = gtsam.noiseModel.Diagonal.Precisions(np.full(3, GPS_PRECISION))
+    imu_params = make_imu_params(meta, gravity)
+    if gps_sigma is None:
+        noise_gps = gtsam.noiseModel.Diagonal.Precisions(np.full(3, GPS_PRECISION))
+    else:
+        noise_gps = gtsam.noiseModel.Diagonal.Sigmas(np.asarray(gps_sigma, dtype=float))
     noise_init_x = gtsam.noiseModel.Diagonal.Precisions(
         np.array([0.0, 0.0, 0.0] + [INIT_POSITION_PRECISION] * 3)
     )
     noise_init_v = gtsam.noiseModel.Isotropic.Sigma(3, INIT_VELOCITY_SIGMA)
     noise_init_b = gtsam.noiseModel.Diagonal.Sigmas(
-        np.array([INIT_BIAS_SIGMAS[0]] * 3 + [INIT_BIAS_SIGMAS[1]] * 3)
+        np.array([init_bias_sigmas[0]] * 3 + [init_bias_sigmas[1]] * 3)
     )
+
+    def velocity_at(i: int) -> np.ndarray | None:
+        """The velocity measured at GPS time ``i`` if one is given and finite (its sigmas
+        too)."""
+        if gps_velocity is None or not np.all(np.isfinite(gps_velocity[i])):
+            return None
+        if not np.all(np.isfinite(vel_sigma[i])):
+            return None
+        return gps_velocity[i]
+
+    def add_velocity_prior(i: int) -> np.ndarray | None:
+        """Put the velocity prior of GPS time ``i`` (if any) on ``V(i)``; return it."""
+        v_meas = velocity_at(i)
+        if v_meas is not None:
+            noise = gtsam.noiseModel.Diagonal.Sigmas(np.array(vel_sigma[i]))
+            new_factors.push_back(gtsam.PriorFactorVector(V(i), v_meas, noise))
+        return v_meas
 
     isam_params = gtsam.ISAM2Params()
     isam_params.setFactorization(factorization)
@@ -199,8 +257,12 @@ def run_gtsam_kitti(
     if init_from_gps:
         disp = gps_xyz[first + 1] - gps_xyz[first]
         yaw = float(np.arctan2(disp[1], disp[0]))
-        pose = gtsam.Pose3(gtsam.Rot3.Yaw(yaw), gps_xyz[first])
         vel = disp / (gps_t[first + 1] - gps_t[first])
+        v_first = velocity_at(first)
+        if v_first is not None:
+            vel = v_first.copy()
+            yaw = float(np.arctan2(vel[1], vel[0]))
+        pose = gtsam.Pose3(gtsam.Rot3.Yaw(yaw), gps_xyz[first])
     bias = gtsam.imuBias.ConstantBias()
     new_values.insert(X(first), pose)
     new_values.insert(V(first), vel)
@@ -208,6 +270,7 @@ def run_gtsam_kitti(
     new_factors.addPriorPose3(X(first), pose, noise_init_x)
     new_factors.addPriorVector(V(first), vel, noise_init_v)
     new_factors.addPriorConstantBias(B(first), bias, noise_init_b)
+    add_velocity_prior(first)
     gps_used[0] = True  # the initial position prior is centred on this fix
 
     j = int(np.searchsorted(imu_t, gps_t[first], side="left"))
@@ -225,10 +288,13 @@ def run_gtsam_kitti(
 
         pred = pim.predict(gtsam.NavState(pose, vel), bias)
         pose, vel = pred.pose(), pred.velocity()
-        if i % gps_skip == 0 and not in_outage(t):
+        if i % gps_skip == 0 and not in_outage(t) and np.all(np.isfinite(gps_xyz[i])):
             new_factors.push_back(gtsam.GPSFactor(X(i), gps_xyz[i], noise_gps))
             pose = gtsam.Pose3(pose.rotation(), gps_xyz[i])
             gps_used[i - first] = True
+            v_meas = add_velocity_prior(i)
+            if v_meas is not None:
+                vel = v_meas.copy()
         new_values.insert(X(i), pose)
         new_values.insert(V(i), vel)
         new_values.insert(B(i), bias)
