@@ -5,6 +5,6 @@
 ``init`` (initial state), ``gating`` (chi-square and multi-model source-fault tests),
 ``adaptive`` (Sage-Husa and strong tracking), ``guard`` (unusable samples, divergence resets),
 ``calibration`` (online calibration states), ``slip`` (wheel slip factor), ``source_frames``
-(drifting pose-source frames), ``keyframes``, ``attitude_ukf`` and ``imu_fusion`` (several IMUs
-on one body).
+(drifting pose-source frames), ``stream`` (a run fed piece by piece as it arrives),
+``keyframes``, ``attitude_ukf`` and ``imu_fusion`` (several IMUs on one body).
 """

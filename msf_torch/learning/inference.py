@@ -53,6 +53,7 @@ from msf_torch.frontend.eskf import EskfNoise, EskfResult, run_eskf
 from msf_torch.frontend.guard import EstimationInterrupted, sanitize_sequence
 from msf_torch.frontend.init import initial_state
 from msf_torch.frontend.schedule import build_schedule
+from msf_torch.frontend.stream import concat_results, last_state
 from msf_torch.learning.covnet import (
     IMU_RATE_TOLERANCE,
     LOG_SCALE_SENSORS,
@@ -64,7 +65,7 @@ from msf_torch.learning.covnet import (
     scaled_pose_covariance,
 )
 from msf_torch.learning.features import pose_source_of, run_features
-from msf_torch.types import ImuSamples, NavState, Sequence
+from msf_torch.types import ImuSamples, Sequence
 
 DEFAULT_CHECKPOINT = (
     Path(__file__).resolve().parent.parent.parent / "checkpoints" / "covnet_default.pt"
@@ -334,78 +335,6 @@ def _pose_source(seq: Sequence) -> str | None:
     return pose_source_of(seq)
 
 
-def _last(result: EskfResult) -> tuple[NavState, torch.Tensor]:
-    """State and conventional covariance at the last real epoch (B = 1)."""
-    last = int(result.mask[0].sum()) - 1
-
-    def at(x: torch.Tensor) -> torch.Tensor:
-        return x[:, last]
-
-    state = NavState(
-        at(result.position),
-        at(result.velocity),
-        at(result.rotation),
-        at(result.gyro_bias),
-        at(result.accel_bias),
-    )
-    return state, at(result.covariance)
-
-
-def _per_epoch(values: list[torch.Tensor | None], results: list[EskfResult], keeps) -> torch.Tensor:
-    """One (B, E + 1, ...) tensor from the chunks' per-epoch ``values`` (a chunk's None or
-    missing entry: zeros like the others')."""
-    like = next(v for v in values if v is not None)
-    parts = []
-    for value, result, keep in zip(values, results, keeps, strict=True):
-        if value is None:
-            value = like.new_zeros(like.shape[0], result.mask.shape[1], *like.shape[2:])
-        parts.append(value[:, keep])
-    return torch.cat(parts, 1)
-
-
-def _concat(results: list[EskfResult], dropped_samples: dict[str, torch.Tensor]) -> EskfResult:
-    """One result from consecutive chunks' results (B = 1): real epochs only, each later
-    chunk's start epoch (its predecessor's last) dropped.
-
-    Every per-epoch field (a tensor (B, E + 1, ...) or a dict of them: states, covariance,
-    per-sensor flags and NIS, divergence codes, gaps, fading factors, noise estimates,
-    source-fault flags and Z, any later one) is concatenated, a dict's keys united (zeros
-    where a chunk lacks one); ``dropped_samples`` is the whole run's (``dropped_samples``);
-    other fields (names, ``gate_memory``, per-run flags) are the last chunk's.
-    """
-    keeps = []
-    for k, r in enumerate(results):
-        keep = r.mask[0].clone()
-        keep[0] = keep[0] and k == 0
-        keeps.append(keep)
-
-    def is_per_epoch(value: object, result: EskfResult) -> bool:
-        return (
-            isinstance(value, torch.Tensor)
-            and value.dim() >= 2
-            and value.shape[1] == result.mask.shape[1]
-        )
-
-    fields: dict[str, Any] = {}
-    for name in (f.name for f in dataclasses.fields(EskfResult)):
-        values = [getattr(r, name) for r in results]
-        if name == "dropped_samples":
-            fields[name] = dropped_samples
-        elif any(is_per_epoch(v, r) for v, r in zip(values, results, strict=True)):
-            fields[name] = _per_epoch(values, results, keeps)
-        elif isinstance(values[0], dict) and any(
-            is_per_epoch(x, results[0]) for x in values[0].values()
-        ):
-            keys = list(dict.fromkeys(key for value in values for key in value))
-            fields[name] = {
-                key: _per_epoch([value.get(key) for value in values], results, keeps)
-                for key in keys
-            }
-        else:
-            fields[name] = values[-1]
-    return EskfResult(**fields)
-
-
 def run_piecewise(
     seq: Sequence,
     cfg: EskfConfig,
@@ -514,16 +443,16 @@ def run_piecewise(
                 sched = build_schedule(chunk_of(a, b), cfg, pairs)
                 later, pairs = later + sched.num_epochs, sched.pair_memory
             raise EstimationInterrupted(
-                _concat(results, dropped_samples),
+                concat_results(results, dropped_samples),
                 done + stop.epochs_done,
                 done + stop.epochs_total + later,
             ) from None
         done += int(result.mask[0].sum()) - 1
-        initial, memory, frames = _last(result), result.gate_memory, result.frame_memory
+        initial, memory, frames = last_state(result), result.gate_memory, result.frame_memory
         calibration, pairs = result.calibration_memory, result.pair_memory
         faults = result.fault_memory
         results.append(result)
-    return _concat(results, dropped_samples)
+    return concat_results(results, dropped_samples)
 
 
 def scales_summary(scales: WindowScales, learned: LearnedModel) -> dict[str, Any]:
