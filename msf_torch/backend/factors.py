@@ -259,56 +259,6 @@ class GnssFactor(_Unary):
         return loss, [grad], [[(columns, columns, block)] for _ in pairs]
 
 
-class GnssVelocityFactor(_Unary):
-    """GNSS antenna velocity ``r = v + R ([w - b_g]x l) - z`` (3,) m/s on ``nav_state``
-    variables (:func:`msf_torch.sensors.gnss.gnss_velocity_residual`).
-
-    Args:
-        group, index: ``nav_state`` variables (F,). measured: (B|1, F, 3) world velocity,
-        m/s. gyro: (B|1, F, 3) raw gyro rate at each state's time, rad/s. covariance:
-        (B|1, F, 3, 3) (m/s)^2 (an axis the receiver did not give: a huge variance).
-        lever_arm: (3,) m, body. kernel: robust kernel (:mod:`msf_torch.backend.robust`),
-        or None for plain least squares.
-    """
-
-    batched = ("measured", "gyro", "lever_arm")
-
-    def __init__(
-        self,
-        group: str,
-        index: torch.Tensor,
-        measured: torch.Tensor,
-        gyro: torch.Tensor,
-        covariance: torch.Tensor,
-        lever_arm: torch.Tensor | None = None,
-        kernel: RobustKernel | None = None,
-    ) -> None:
-        super().__init__(group, index, covariance, kernel)
-        self.measured = measured
-        self.gyro = gyro
-        self.lever_arm = _lever_arm_or_zero(lever_arm, measured)
-
-    def residual(self, values: list[torch.Tensor]) -> torch.Tensor:
-        """Residuals (B, F, 3), m/s."""
-        return self.residual_and_jacobians(values, None)[0]
-
-    def residual_and_jacobians(
-        self, values: list[torch.Tensor], kinds: list[VariableKind] | None
-    ) -> tuple[torch.Tensor, list[torch.Tensor]]:
-        """Residuals (B, F, 3) m/s and the Jacobian (B, F, 3, 15) w.r.t. the nav-state tangent;
-        ``kinds`` is not read."""
-        _, velocity, rotation, gyro_bias, _ = unpack_nav_state(values[0])
-        r, jac = gnss_velocity_residual(
-            velocity,
-            rotation,
-            self.gyro.expand_as(velocity),
-            gyro_bias,
-            self.lever_arm.expand_as(velocity),
-            self.measured.expand_as(velocity),
-        )
-        return r, [jac]
-
-
 class ZeroVelocityFactor(_Unary):
     """Zero velocity ``r = v`` (3,) on ``nav_state`` variables.
 
@@ -333,16 +283,10 @@ class ZeroVelocityFactor(_Unary):
         return r, [jac]
 
 
-class NonholonomicFactor(_Unary):
-    """Non-holonomic constraint on ``nav_state`` variables: the lateral and vertical body
-    velocity of the point at ``lever_arm``, ``r = [R^T v + [w - b_g]x l]_{y,z}`` (2,) m/s
-    (:func:`msf_torch.sensors.vehicle.nonholonomic_residual`).
-
-    Args:
-        group, index: ``nav_state`` variables (F,). gyro: (B|1, F, 3) raw gyro rate at each
-        state's time, rad/s. covariance: (B|1, F, 2, 2) (m/s)^2. lever_arm: (3,) m, body.
-        kernel: robust kernel (:mod:`msf_torch.backend.robust`), or None for plain least squares.
-    """
+class _PointVelocityFactor(_Unary):
+    """The velocity of a point on the body (``lever_arm``), which moves with the raw gyro
+    rate at each state's time: the shared parts of :class:`NonholonomicFactor` and
+    :class:`GnssVelocityFactor`."""
 
     batched = ("gyro", "lever_arm")
 
@@ -360,8 +304,20 @@ class NonholonomicFactor(_Unary):
         self.lever_arm = _lever_arm_or_zero(lever_arm, gyro)
 
     def residual(self, values: list[torch.Tensor]) -> torch.Tensor:
-        """Residuals (B, F, 2), m/s."""
+        """Residuals (B, F, R), m/s."""
         return self.residual_and_jacobians(values, None)[0]
+
+
+class NonholonomicFactor(_PointVelocityFactor):
+    """Non-holonomic constraint on ``nav_state`` variables: the lateral and vertical body
+    velocity of the point at ``lever_arm``, ``r = [R^T v + [w - b_g]x l]_{y,z}`` (2,) m/s
+    (:func:`msf_torch.sensors.vehicle.nonholonomic_residual`).
+
+    Args:
+        group, index: ``nav_state`` variables (F,). gyro: (B|1, F, 3) raw gyro rate at each
+        state's time, rad/s. covariance: (B|1, F, 2, 2) (m/s)^2. lever_arm: (3,) m, body.
+        kernel: robust kernel (:mod:`msf_torch.backend.robust`), or None for plain least squares.
+    """
 
     def residual_and_jacobians(
         self, values: list[torch.Tensor], kinds: list[VariableKind] | None
@@ -375,6 +331,50 @@ class NonholonomicFactor(_Unary):
             self.gyro.expand_as(velocity),
             gyro_bias,
             self.lever_arm.expand_as(velocity),
+        )
+        return r, [jac]
+
+
+class GnssVelocityFactor(_PointVelocityFactor):
+    """GNSS antenna velocity ``r = v + R ([w - b_g]x l) - z`` (3,) m/s on ``nav_state``
+    variables (:func:`msf_torch.sensors.gnss.gnss_velocity_residual`).
+
+    Args:
+        group, index: ``nav_state`` variables (F,). measured: (B|1, F, 3) world velocity,
+        m/s. gyro: (B|1, F, 3) raw gyro rate at each state's time, rad/s. covariance:
+        (B|1, F, 3, 3) (m/s)^2 (an axis the receiver did not give: a huge variance).
+        lever_arm: (3,) m, body. kernel: robust kernel (:mod:`msf_torch.backend.robust`),
+        or None for plain least squares.
+    """
+
+    batched = ("measured", "gyro", "lever_arm")
+
+    def __init__(
+        self,
+        group: str,
+        index: torch.Tensor,
+        measured: torch.Tensor,
+        gyro: torch.Tensor,
+        covariance: torch.Tensor,
+        lever_arm: torch.Tensor | None = None,
+        kernel: RobustKernel | None = None,
+    ) -> None:
+        super().__init__(group, index, gyro, covariance, lever_arm, kernel)
+        self.measured = measured
+
+    def residual_and_jacobians(
+        self, values: list[torch.Tensor], kinds: list[VariableKind] | None
+    ) -> tuple[torch.Tensor, list[torch.Tensor]]:
+        """Residuals (B, F, 3) m/s and the Jacobian (B, F, 3, 15) w.r.t. the nav-state tangent;
+        ``kinds`` is not read."""
+        _, velocity, rotation, gyro_bias, _ = unpack_nav_state(values[0])
+        r, jac = gnss_velocity_residual(
+            velocity,
+            rotation,
+            self.gyro.expand_as(velocity),
+            gyro_bias,
+            self.lever_arm.expand_as(velocity),
+            self.measured.expand_as(velocity),
         )
         return r, [jac]
 

@@ -349,6 +349,21 @@ def _check_sigmas(table: Table, data: np.ndarray, columns: list[str], first: int
         )
 
 
+def _vector_and_sigmas(
+    table: Table, columns: list[str], sigma_columns: list[str], name: str
+) -> dict[str, np.ndarray]:
+    """A ``t`` + 3-vector table with optional per-axis sigmas (GNSS fixes, velocities):
+    ``t`` (N,), ``name`` (N, 3), ``sigma`` (N, 3) (NaN when the table has none)."""
+    extra = _tables.check_columns(table, columns, [[sigma_columns]])
+    d = table.floats(columns + extra)
+    if extra:
+        _check_sigmas(table, d, sigma_columns, 4)
+        sigma = d[:, 4:7]
+    else:
+        sigma = np.full((d.shape[0], 3), np.nan)
+    return {"t": d[:, 0], name: d[:, 1:4], "sigma": sigma}
+
+
 def _arrays_from_table(stream: str, table: Table) -> dict[str, np.ndarray]:
     """Convert one CSV table of the native schema to field -> (N, ...) arrays."""
     if stream == "imu":
@@ -360,25 +375,10 @@ def _arrays_from_table(stream: str, table: Table) -> dict[str, np.ndarray]:
         d = table.floats(WHEEL_COLUMNS)
         return {"t": d[:, 0], "left_speed": d[:, 1], "right_speed": d[:, 2]}
     if stream == "gnss":
-        extra = _tables.check_columns(table, GNSS_COLUMNS, [[GNSS_SIGMA_COLUMNS]])
-        d = table.floats(GNSS_COLUMNS + extra)
-        if extra:
-            _check_sigmas(table, d, GNSS_SIGMA_COLUMNS, 4)
-            sigma = d[:, 4:7]
-        else:
-            sigma = np.full((d.shape[0], 3), np.nan)
-        return {"t": d[:, 0], "position": d[:, 1:4], "sigma": sigma}
+        return _vector_and_sigmas(table, GNSS_COLUMNS, GNSS_SIGMA_COLUMNS, "position")
     if stream == "gnss_velocity":
-        extra = _tables.check_columns(
-            table, GNSS_VELOCITY_COLUMNS, [[GNSS_VELOCITY_SIGMA_COLUMNS]]
-        )
-        d = table.floats(GNSS_VELOCITY_COLUMNS + extra)
-        if extra:
-            _check_sigmas(table, d, GNSS_VELOCITY_SIGMA_COLUMNS, 4)
-            sigma = d[:, 4:7]
-        else:
-            sigma = np.full((d.shape[0], 3), np.nan)
-        return {"t": d[:, 0], "velocity": d[:, 1:4], "sigma": sigma}
+        columns, sigmas = GNSS_VELOCITY_COLUMNS, GNSS_VELOCITY_SIGMA_COLUMNS
+        return _vector_and_sigmas(table, columns, sigmas, "velocity")
     if stream == "poses":
         extra = _tables.check_columns(
             table, POSE_COLUMNS, [[POSE_SIGMA_COLUMNS, POSE_COVARIANCE_COLUMNS]]

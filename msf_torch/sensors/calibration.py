@@ -61,8 +61,9 @@ __all__ = [
 import torch
 
 from msf_torch.geometry import so3
-from msf_torch.geometry.conventions import IDX_BG, IDX_P, IDX_THETA, IDX_V
+from msf_torch.geometry.conventions import IDX_BG, IDX_THETA, IDX_V
 from msf_torch.sensors._jacobian import error_state_jacobian
+from msf_torch.sensors.gnss import gnss_residual, gnss_velocity_residual
 from msf_torch.sensors.pose import mean_rate_residual
 from msf_torch.sensors.wheel import body_velocity_residual, wheel_residual, wheel_speed_and_yaw_rate
 
@@ -140,26 +141,15 @@ def shifted_gnss_residual(
     Returns:
         residual (..., 3) m, nav Jacobian (..., 3, 15), time-offset Jacobian (..., 3, 1) m/s.
     """
+    # the fix t_d later: the antenna moved on by t_d times its velocity (and Jacobian)
     lever = lever_arm.expand_as(position)
-    omega = gyro - gyro_bias
-    arm_world = (rotation @ lever[..., None]).squeeze(-1)
-    arm_rate_body = torch.linalg.cross(omega, lever)
-    arm_rate = (rotation @ arm_rate_body[..., None]).squeeze(-1)
-    antenna_velocity = velocity + arm_rate
-    offset = time_offset[..., None]
-    residual = position + arm_world + offset * antenna_velocity - measured
-    eye = so3.identity(position.dtype, position.device).expand(*position.shape[:-1], 3, 3)
-    scale = offset[..., None]
-    jac = error_state_jacobian(
-        3,
-        [
-            (IDX_P, eye),
-            (IDX_V, scale * eye),
-            (IDX_THETA, -rotation @ so3.hat(lever) - scale * rotation @ so3.hat(arm_rate_body)),
-            (IDX_BG, scale * rotation @ so3.hat(lever)),
-        ],
-        like=position,
+    at_time, jac_position = gnss_residual(position, rotation, lever, measured)
+    antenna_velocity, jac_velocity = gnss_velocity_residual(
+        velocity, rotation, gyro, gyro_bias, lever, torch.zeros_like(velocity)
     )
+    offset = time_offset[..., None]
+    residual = at_time + offset * antenna_velocity
+    jac = jac_position + offset[..., None] * jac_velocity
     return residual, jac, antenna_velocity[..., None]
 
 
