@@ -255,6 +255,7 @@ def _one(
         far = np.nonzero(dist >= cfg.init_min_gnss_distance_m)[0]
         position = g0.copy()
         anchored = None
+        track_means = None  # (GNSS track, dead-reckoned track) means of the Kabsch fit
         # a track that never gets that far (a robot turning on the spot, a short run) is
         # used up to its farthest fix, with the heading sigma grown in proportion
         reach = float(dist.max())
@@ -287,6 +288,7 @@ def _one(
                 c, s_ = math.cos(yaw), math.sin(yaw)
                 origin = gg.mean(0) - np.array([[c, -s_], [s_, c]]) @ dr.mean(0)
                 anchored = np.array([origin[0], origin[1], g0[2]])
+                track_means = (gg.mean(0), dr.mean(0))
                 inside = imu_t <= gnss["t"][k]
                 to_world = np.array([[c, s_], [-s_, c]])  # row vectors: r @ R(yaw)^T
                 model_var, _ = alignment_yaw_variance(
@@ -336,7 +338,10 @@ def _one(
         )
         if course is not None and course[1] < yaw_sigma**2:
             yaw, yaw_sigma = course[0], math.sqrt(course[1])
-            anchored = None  # the track's origin was aligned with the other heading
+            if track_means is not None:  # the dead-reckoned track turned by this heading
+                c, s_ = math.cos(yaw), math.sin(yaw)
+                origin = track_means[0] - np.array([[c, -s_], [s_, c]]) @ track_means[1]
+                anchored = np.array([origin[0], origin[1], anchored[2]])
     rot = so3.rpy_matrix(torch.tensor([roll, pitch, yaw], dtype=torch.float64)).numpy()
     body_velocity = np.zeros(3)
     if wheel is not None:

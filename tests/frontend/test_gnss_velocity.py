@@ -158,3 +158,16 @@ def test_velocities_give_the_initial_heading_without_wheels(runs):
     # seconds of turning it took)
     assert np.median(errors) < 0.05 and np.median(errors_track) > 0.15
     assert max(abs(r) for r in ratios) < 3.0
+
+
+def test_the_initial_position_follows_the_velocity_heading():
+    """With wheels, the initial position is the dead-reckoned track's origin fitted to the
+    GNSS track; where the course over ground gives the heading, the track is turned by
+    that heading before the fit (20 runs of 30 s: RMS horizontal error 0.31 m; 0.52 m when
+    the first fix was taken instead)."""
+    errors = []
+    for seed in range(300, 320):
+        run = simulate_run(SimConfig(duration_s=30.0, gnss_velocity=True), seed=seed)
+        state, _ = initial_state(run.sequence, load_sequence_config(run.sequence.meta))
+        errors.append(float((state.position[0, :2] - run.truth.position[0, 0, :2]).norm()))
+    assert float(np.sqrt(np.mean(np.square(errors)))) < 0.4
