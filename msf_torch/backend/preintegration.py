@@ -113,10 +113,15 @@ def recursive_covariance(
     gyro_bias: torch.Tensor,
     accel_bias: torch.Tensor,
     noise_scale: torch.Tensor | None = None,
+    accel_noise_scale: torch.Tensor | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Exact sample-by-sample covariance of ``[dp, dv, dtheta]`` for unit noise densities.
 
-    Args: as :func:`msf_torch.sensors.imu.preintegrate`.
+    Args: as :func:`msf_torch.sensors.imu.preintegrate`, except that ``noise_scale`` may also
+        be (..., L, 3): one variance multiplier per sensor axis (body frame); and
+        ``accel_noise_scale`` ((..., L) or (..., L, 3)), when given, multiplies the
+        accelerometer's variance instead of ``noise_scale`` (which then scales the gyro's
+        only).
     Returns:
         (cov_unit_gyro, cov_unit_accel), each (..., 9, 9).
     """
@@ -127,7 +132,14 @@ def recursive_covariance(
     step_rot, gam1, gam2 = so3.exp_and_gammas(phi, coef).unbind(-3)
     d_gamma1, d_gamma2 = so3.gamma_vector_jacobians(phi, force, coef)
     jr = so3.right_jacobian(phi)
-    scale = torch.ones_like(dt) if noise_scale is None else noise_scale
+
+    def per_axis(scale: torch.Tensor | None) -> torch.Tensor:
+        if scale is None:
+            return torch.ones_like(dt)[..., None].expand(*dt.shape, 3)
+        return scale[..., None].expand(*dt.shape, 3) if scale.dim() == dt.dim() else scale
+
+    scale_g = per_axis(noise_scale)
+    scale_a = scale_g if accel_noise_scale is None else per_axis(accel_noise_scale)
     lead = dt.shape[:-1]
     eye = torch.eye(3, dtype=dt.dtype, device=dt.device)
     cov_g = torch.zeros(*lead, 9, 9, dtype=dt.dtype, device=dt.device)
@@ -156,12 +168,13 @@ def recursive_covariance(
             (rot @ gam2[..., k, :, :] * h**2, rot @ gam1[..., k, :, :] * h, torch.zeros_like(rot)),
             -2,
         )
-        variance = (scale[..., k] / dt[..., k].clamp_min(torch.finfo(dt.dtype).tiny))[
-            ..., None, None
-        ]
-        variance = torch.where(dt[..., k, None, None] > 0, variance, torch.zeros_like(variance))
-        cov_g = a @ cov_g @ a.mT + variance * (b_g @ b_g.mT)
-        cov_a = a @ cov_a @ a.mT + variance * (b_a @ b_a.mT)
+        # discrete white-noise variance scale / dt per axis (0 on padding)
+        held = dt[..., k, None].clamp_min(torch.finfo(dt.dtype).tiny)
+        valid = dt[..., k, None, None] > 0
+        var_g = torch.where(valid, (scale_g[..., k, :] / held)[..., None, :], 0.0)
+        var_a = torch.where(valid, (scale_a[..., k, :] / held)[..., None, :], 0.0)
+        cov_g = a @ cov_g @ a.mT + (b_g * var_g) @ b_g.mT
+        cov_a = a @ cov_a @ a.mT + (b_a * var_a) @ b_a.mT
         rot = rot @ step_rot[..., k, :, :]
     return cov_g, cov_a
 
@@ -172,20 +185,36 @@ def preintegrate_imu(
     accel_bias: torch.Tensor,
     covariance: str = "recursive",
     noise_scale: torch.Tensor | None = None,
+    accel_noise_scale: torch.Tensor | None = None,
 ) -> Preintegrated:
     """Increments of every interval (leading dims of ``intervals``), linearised at the
     given biases (..., 3); ``covariance="recursive"`` (exact, default) or ``"closed_form"``
     (the filter's zeroth-order form); ``noise_scale`` (..., L) multiplies each piece's
-    noise variance (IMU gaps), as in :func:`msf_torch.sensors.imu.preintegrate`."""
-    pre = preintegrate(
-        intervals.gyro, intervals.accel, intervals.dt, gyro_bias, accel_bias, noise_scale
-    )
+    noise variance (IMU gaps), as in :func:`msf_torch.sensors.imu.preintegrate`. With the
+    recursive covariance, ``noise_scale`` may be (..., L, 3) (one multiplier per sensor
+    axis) and ``accel_noise_scale`` ((..., L) or (..., L, 3)) multiplies the
+    accelerometer's variance instead (``noise_scale`` then scales the gyro's only)."""
     if covariance == "closed_form":
-        return pre
+        if accel_noise_scale is not None or (
+            noise_scale is not None and noise_scale.dim() != intervals.dt.dim()
+        ):
+            raise ValueError(
+                "closed_form covariance takes one noise_scale (..., L) for both sensors"
+            )
+        return preintegrate(
+            intervals.gyro, intervals.accel, intervals.dt, gyro_bias, accel_bias, noise_scale
+        )
     if covariance != "recursive":
         raise ValueError(f"covariance must be 'recursive' or 'closed_form', got {covariance!r}")
+    pre = preintegrate(intervals.gyro, intervals.accel, intervals.dt, gyro_bias, accel_bias)
     cov_g, cov_a = recursive_covariance(
-        intervals.gyro, intervals.accel, intervals.dt, gyro_bias, accel_bias, noise_scale
+        intervals.gyro,
+        intervals.accel,
+        intervals.dt,
+        gyro_bias,
+        accel_bias,
+        noise_scale,
+        accel_noise_scale,
     )
     return replace(pre, cov_unit_gyro=cov_g, cov_unit_accel=cov_a)
 

@@ -7,7 +7,14 @@ factor builder (:meth:`KeyframeGraph.factors`). One ``nav_state`` variable per k
 
 * IMU preintegration between consecutive keyframes (exact ZOH increments and recursive
   covariance, :mod:`msf_torch.backend.preintegration`), linearised at the front end's bias
-  estimate at the interval start; IMU gaps get the front end's variance multiplier;
+  estimate at the interval start. A sample held over an IMU gap (or filled in by the
+  recorder) gets the front end's variance multiplier plus the unknown motion over the gap:
+  a random walk of the true rate and specific force away from the held sample, per body
+  axis (``imu_gap_gyro_rw_density``, ``imu_gap_accel_rw_density``; a ground vehicle turns
+  about z and accelerates in x, y: defaults ``[0.005, 0.005, 0.06]`` rad/s^2/sqrt(Hz) and
+  ``[0.2, 0.2, 0.02]`` m/s^3/sqrt(Hz), from the simulated robot's held-sample errors over
+  10-s stretches: 0.004, 0.005, 0.10 rad/s and 0.32, 0.25, 0.014 m/s^2 rms), so the
+  gap's variance grows as ``T^3`` (:func:`_gap_noise_scales`);
 * GNSS fixes with the configured robust kernel. **Every epoch that carries a fix is forced
   to be a keyframe**, so a fix constrains the state at its own time exactly, with no
   propagation or interpolation error (the front end already cuts its epochs at fix times);
@@ -143,7 +150,7 @@ from msf_torch.geometry.conventions import gravity_world
 from msf_torch.geometry.quaternion import matrix_to_quat
 from msf_torch.io.yaml_files import did_you_mean, named_key, read_yaml
 from msf_torch.sensors.imu import Preintegrated, propagate_nominal
-from msf_torch.sensors.imu_gaps import interpolated_imu_samples
+from msf_torch.sensors.imu_gaps import filled_stretches, interpolated_imu_samples
 from msf_torch.types import Sequence, Trajectory
 
 _GROUP = "state"
@@ -196,6 +203,11 @@ class SmootherConfig:
         noise: front-end noise settings the back end replaces, ``{EskfConfig key: value}``
             for the keys in :data:`NOISE_KEYS` (e.g. a GNSS sigma calibrated on the
             smoother's own residuals where the front end's is inflated for its gating).
+        imu_gap_gyro_rw_density: over an IMU gap the true angular rate walks away from the
+            held sample as a random walk of this density per body axis ``[x, y, z]``,
+            rad/s^2/sqrt(Hz) (see :func:`_gap_noise_scales`); 0 turns it off.
+        imu_gap_accel_rw_density: the same for the specific force, ``[x, y, z]``,
+            m/s^3/sqrt(Hz).
     """
 
     keyframe_interval_s: float = 1.0
@@ -219,6 +231,12 @@ class SmootherConfig:
     covariance: bool = True
     output: str = "frontend"
     noise: dict[str, Any] = dataclasses.field(default_factory=dict)
+    imu_gap_gyro_rw_density: list[float] = dataclasses.field(
+        default_factory=lambda: [0.005, 0.005, 0.06]
+    )
+    imu_gap_accel_rw_density: list[float] = dataclasses.field(
+        default_factory=lambda: [0.2, 0.2, 0.02]
+    )
 
     def keyframes(self) -> KeyframeConfig:
         """The keyframe thresholds as a :class:`KeyframeConfig`."""
@@ -272,6 +290,20 @@ class SmootherConfig:
             raise bad("linear_solver", "auto, dense or sparse")
         if self.output not in ("frontend", "keyframes"):
             raise bad("output", "frontend or keyframes")
+        for key in ("imu_gap_gyro_rw_density", "imu_gap_accel_rw_density"):
+            value = getattr(self, key)
+            if not (
+                isinstance(value, (list, tuple))
+                and len(value) == 3
+                and all(
+                    isinstance(x, (int, float))
+                    and not isinstance(x, bool)
+                    and math.isfinite(x)
+                    and x >= 0
+                    for x in value
+                )
+            ):
+                raise bad(key, "three non-negative numbers [x, y, z]")
         if not isinstance(self.noise, dict):
             raise bad("noise", "a mapping of front-end noise keys to values")
         for key in self.noise:
@@ -609,6 +641,50 @@ def _wheel_intervals(
     return index, increment[None], covariance[None], samples
 
 
+def _gap_lengths(
+    t: torch.Tensor, spacing: torch.Tensor, filled: torch.Tensor, gap_s: float
+) -> torch.Tensor:
+    """Per sample of one IMU stream, the length (s) of the gap it is held over or filled in,
+    0 for a measured sample. ``t``, ``spacing`` (time to the next sample, s) and ``filled``
+    (:func:`~msf_torch.sensors.imu_gaps.interpolated_imu_samples`) are (T,); a spacing
+    above ``gap_s`` is a gap. A filled-in stretch's length runs from the real sample before
+    it to the one after it."""
+    length = torch.where(spacing > gap_s, spacing, 0.0)
+    starts, ends = filled_stretches(filled.cpu().numpy())
+    for first, end in zip(starts.tolist(), ends.tolist(), strict=True):
+        stretch = t[min(end, t.numel() - 1)] - t[max(first - 1, 0)]
+        length[first:end] = torch.maximum(length[first:end], stretch)
+    return length
+
+
+def _gap_noise_scales(
+    length: torch.Tensor, cfg: EskfConfig, smoother: SmootherConfig
+) -> torch.Tensor:
+    """Per-sample, per-axis variance multipliers (T, 6) of the gyro's (columns 0-2) and the
+    accelerometer's (3-5) white noise: 1 for a measured sample (``length`` 0), and for one
+    held over a gap of ``T = length`` s
+
+        imu_gap_noise_scale + (q / n)^2 T^2 / 3,
+
+    ``n`` the sensor's noise density, ``q`` the smoother's ``imu_gap_gyro_rw_density`` /
+    ``imu_gap_accel_rw_density`` of that body axis. Over a gap the true signal leaves the
+    held sample as a random walk, error ``e(tau)`` of variance ``q^2 tau``; its integral over
+    the gap (the angle or velocity error) has variance ``q^2 T^3 / 3``, growing with the
+    gap far faster than white noise (``~T``). That error is one constant-like offset, shared
+    by every keyframe interval inside the gap, while the IMU factors are independent: the
+    gap is given white noise of density ``q^2 T^2 / 3`` instead, whose integral over the
+    whole gap has the same variance whatever keyframes fall inside it."""
+    dtype = length.dtype
+    walk = torch.tensor(
+        [*smoother.imu_gap_gyro_rw_density, *smoother.imu_gap_accel_rw_density], dtype=dtype
+    )
+    density = torch.tensor(
+        [cfg.gyro_noise_density] * 3 + [cfg.accel_noise_density] * 3, dtype=dtype
+    )
+    held = cfg.imu_gap_noise_scale + (walk / density) ** 2 * length[:, None] ** 2 / 3.0
+    return torch.where(length[:, None] > 0, held, 1.0).to(dtype)
+
+
 def build_graph(
     seq: Sequence,
     frontend: EskfResult,
@@ -657,16 +733,17 @@ def build_graph(
         interpolated_imu_samples(imu_t, gyro, accel, cfg.imu_interpolated_min_samples),
         device=imu_t.device,
     )
-    gap = (spacing > cfg.imu_gap_s) | filled
-    scale = torch.where(gap, cfg.imu_gap_noise_scale, 1.0).to(dtype)
+    gap_length = _gap_lengths(imu_t, spacing, filled, cfg.imu_gap_s)
+    scales = _gap_noise_scales(gap_length, cfg, smoother)
     cut = cut_imu(imu_t, gyro, accel, t)
-    noise_scale = _cut_channels(imu_t, scale[:, None], t).gyro[..., 0]
+    noise_scale = cut_imu(imu_t, scales[:, :3], scales[:, 3:], t)
     intervals = ImuIntervals(cut.gyro[None], cut.accel[None], cut.dt[None])
     pre = preintegrate_imu(
         intervals,
         frontend.gyro_bias[:, epoch[:-1]],
         frontend.accel_bias[:, epoch[:-1]],
-        noise_scale=noise_scale[None],
+        noise_scale=noise_scale.gyro[None],
+        accel_noise_scale=noise_scale.accel[None],
     )
     noise = EskfNoise.from_config(cfg, dtype)
     imu_cov = imu_covariance(pre, noise.imu)
