@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import math
 
+import pytest
 import torch
 
 from msf_torch.backend.preintegration import (
@@ -122,12 +123,20 @@ def test_bias_correction_is_first_order_exact():
     assert 3.0 < errors[0] / errors[1] < 5.0
 
 
-def test_recursive_covariance_equals_noise_jacobian():
+@pytest.mark.parametrize("per_axis", [False, True])
+def test_recursive_covariance_equals_noise_jacobian(per_axis):
+    """The recursion against autograd noise Jacobians; ``per_axis``: every sample's six
+    channels with their own variance multipliers (the smoothers' IMU-gap model)."""
     gen = torch.Generator().manual_seed(11)
     count = 60
     gyro = 1.2 * torch.randn(count, 3, generator=gen, dtype=DTYPE)
     accel = 3.0 * torch.randn(count, 3, generator=gen, dtype=DTYPE)
     dt = 0.01 + 0.01 * torch.rand(count, generator=gen, dtype=DTYPE)
+    scales = (
+        1.0 + 50.0 * torch.rand(2, count, 3, generator=gen, dtype=DTYPE)
+        if per_axis
+        else torch.ones(2, count, 3, dtype=DTYPE)
+    )
     zero = torch.zeros(3, dtype=DTYPE)
     nominal = preintegrate(gyro, accel, dt, zero, zero)
 
@@ -138,14 +147,17 @@ def test_recursive_covariance_equals_noise_jacobian():
 
     zeros = torch.zeros(count, 3, dtype=DTYPE)
     jac_g, jac_a = torch.autograd.functional.jacobian(errors, (zeros, zeros))
-    weight = (1.0 / dt).repeat_interleave(3)
-    expect_g = (jac_g.reshape(9, -1) * weight) @ jac_g.reshape(9, -1).T
-    expect_a = (jac_a.reshape(9, -1) * weight) @ jac_a.reshape(9, -1).T
-    cov_g, cov_a = recursive_covariance(gyro, accel, dt, zero, zero)
+    weight = [(scale / dt[:, None]).reshape(-1) for scale in scales]
+    expect_g = (jac_g.reshape(9, -1) * weight[0]) @ jac_g.reshape(9, -1).T
+    expect_a = (jac_a.reshape(9, -1) * weight[1]) @ jac_a.reshape(9, -1).T
+    if per_axis:
+        cov_g, cov_a = recursive_covariance(gyro, accel, dt, zero, zero, *scales)
+    else:
+        cov_g, cov_a = recursive_covariance(gyro, accel, dt, zero, zero)
     torch.testing.assert_close(cov_g, expect_g, rtol=1e-9, atol=1e-15)
     torch.testing.assert_close(cov_a, expect_a, rtol=1e-9, atol=1e-15)
-    # the filter's closed form agrees to O(|w| dt)
-    assert (nominal.cov_unit_gyro - cov_g).abs().max() / cov_g.abs().max() < 5e-2
+    if not per_axis:  # the filter's closed form agrees to O(|w| dt)
+        assert (nominal.cov_unit_gyro - cov_g).abs().max() / cov_g.abs().max() < 5e-2
 
 
 def test_wheel_increment_constant_arc_and_covariance():

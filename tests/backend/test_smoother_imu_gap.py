@@ -1,8 +1,8 @@
 """The smoothers over an IMU dropout: the gap's unknown motion in the preintegration.
 
-References: autograd noise Jacobians for the per-axis covariance, the closed form
-``q^2 T^3 / 3`` of a random walk's integral for the gap variance, the simulator's ground
-truth for a 10-s dropout with wheels and GNSS running.
+References: the closed form ``q^2 T^3 / 3`` of a random walk's integral for the gap
+variance, the simulator's ground truth for a 10-s dropout with wheels and GNSS running (the
+per-axis covariance against autograd noise Jacobians: ``test_backend_preintegration.py``).
 """
 
 from __future__ import annotations
@@ -17,38 +17,9 @@ from msf_torch.backend.preintegration import cut_imu, recursive_covariance
 from msf_torch.eval.metrics import ate
 from msf_torch.frontend.config import EskfConfig, config_for_sequence, load_config
 from msf_torch.frontend.eskf import run_eskf
-from msf_torch.geometry import so3
-from msf_torch.sensors.imu import preintegrate
 from msf_torch.sim import SimConfig, simulate_run
 
 DTYPE = torch.float64
-
-
-def test_per_axis_noise_scales_equal_the_noise_jacobian():
-    gen = torch.Generator().manual_seed(5)
-    count = 40
-    gyro = 1.2 * torch.randn(count, 3, generator=gen, dtype=DTYPE)
-    accel = 3.0 * torch.randn(count, 3, generator=gen, dtype=DTYPE)
-    dt = 0.01 + 0.01 * torch.rand(count, generator=gen, dtype=DTYPE)
-    scale_g = 1.0 + 50.0 * torch.rand(count, 3, generator=gen, dtype=DTYPE)
-    scale_a = 1.0 + 50.0 * torch.rand(count, 3, generator=gen, dtype=DTYPE)
-    zero = torch.zeros(3, dtype=DTYPE)
-    nominal = preintegrate(gyro, accel, dt, zero, zero)
-
-    def errors(noise_g: torch.Tensor, noise_a: torch.Tensor) -> torch.Tensor:
-        pre = preintegrate(gyro + noise_g, accel + noise_a, dt, zero, zero)
-        theta = so3.log(nominal.delta_rotation.mT @ pre.delta_rotation)
-        return torch.cat((pre.delta_position, pre.delta_velocity, theta))
-
-    zeros = torch.zeros(count, 3, dtype=DTYPE)
-    jac_g, jac_a = torch.autograd.functional.jacobian(errors, (zeros, zeros))
-    expect = [
-        (jac.reshape(9, -1) * (scale / dt[:, None]).reshape(-1)) @ jac.reshape(9, -1).T
-        for jac, scale in ((jac_g, scale_g), (jac_a, scale_a))
-    ]
-    cov_g, cov_a = recursive_covariance(gyro, accel, dt, zero, zero, scale_g, scale_a)
-    torch.testing.assert_close(cov_g, expect[0], rtol=1e-9, atol=1e-15)
-    torch.testing.assert_close(cov_a, expect[1], rtol=1e-9, atol=1e-15)
 
 
 @pytest.mark.parametrize("keyframes", [[0.0, 20.0], [0.0, 4.0, 6.5, 7.0, 11.0, 20.0]])
