@@ -76,7 +76,10 @@ class EskfConfig:
     wheel_yaw_rate_update: bool = False
     # non-holonomic constraint (vehicles without wheel data)
     nhc: str = "auto"  # auto (when a sequence has no wheel data) | on | off
-    nhc_rate_hz: float = 2.0
+    nhc_rate_hz: float = 2.0  # its epochs where no measurement is nearer
+    # an epoch ends at least this often where nothing else ends one (the NHC's own rate
+    # where it is on): a trajectory sample and a propagation step through a GNSS outage
+    max_epoch_s: float = 0.5
     nhc_sigma_mps: float = 0.1
     nhc_lever_arm_m: list[float] = field(default_factory=lambda: [0.0, 0.0, 0.0])
     # zero-velocity update
@@ -229,6 +232,7 @@ class EskfConfig:
             "wheel_lateral_sigma_mps",
             "wheel_yaw_rate_sigma_radps",
             "nhc_rate_hz",
+            "max_epoch_s",
             "nhc_sigma_mps",
             "zupt_sigma_mps",
             "imu_gap_s",

@@ -1,13 +1,14 @@
 """Cut a batch of sequences into filter epochs: IMU samples between update times.
 
 An *epoch* ends at an update time (a wheel, GNSS fix, GNSS velocity or pose measurement, the
-later sample of a pose-source pair, an NHC/ZUPT pseudo-measurement time, or the last IMU
-sample). The IMU timeline is split at every update time; each piece is held at the value of
-the latest IMU sample at or before its start (zero-order hold), so a measurement that falls
-between two IMU samples is fused at its own time with no interpolation error. The result is a
-set of dense, padded ``(B, E, L)`` tensors: the filter then loops over E only, and everything
-inside an epoch is vectorised (``sensors.imu.preintegrate``). Padding has ``dt = 0``, an
-exact no-op.
+later sample of a pose-source pair, or the last IMU sample; in a stretch without any, every
+``max_epoch_s``, or every ``1 / nhc_rate_hz`` where the NHC or the IMU's ZUPT detector acts
+at each epoch). The IMU timeline is split at every update time; each piece is held at the
+value of the latest IMU sample at or before its start (zero-order hold), so a measurement
+that falls between two IMU samples is fused at its own time with no interpolation error.
+The result is a set of dense, padded ``(B, E, L)`` tensors: the filter then loops over E
+only, and everything inside an epoch is vectorised (``sensors.imu.preintegrate``). Padding
+has ``dt = 0``, an exact no-op.
 
 Pose sources (``Sequence.pose_sources``, chosen by ``EskfConfig.pose_sources``) drift, so
 they enter as odometry. Consecutive valid samples ``k - 1``, ``k`` of a source,
@@ -444,8 +445,16 @@ def build_schedule(
             np.concatenate((wheel_t, gnss_t, gvel_t, pose_t, *[p[0] for p in pairs], [t_last])),
             tol,
         )
+        # epochs at least every 1 / nhc_rate_hz where the pseudo-measurements act at each,
+        # else every max_epoch_s (an output sample and a propagation step, no update)
         if use_nhc or (cfg.zupt_imu_detector and wheel_t.size == 0):
             updates = _fill_gaps(np.concatenate(([t0], updates)), 1.0 / cfg.nhc_rate_hz)[1:]
+        else:  # not inside an IMU dropout: that stays one epoch, flagged as a gap
+            filled = _fill_gaps(np.concatenate(([t0], updates)), cfg.max_epoch_s)[1:]
+            dropout = np.flatnonzero(np.diff(imu_t) > cfg.imu_gap_s)
+            held = np.searchsorted(imu_t, filled, side="right") - 1
+            inside = np.isin(held, dropout) & ~np.isin(filled, updates)
+            updates = filled[~inside]
         bounds = _merge_times(np.concatenate((imu_t, updates)), tol)
         piece_start = bounds[:-1]
         piece_dt = np.diff(bounds)
