@@ -145,6 +145,7 @@ from msf_torch.frontend.calibration import WHEEL_STATES
 from msf_torch.frontend.config import EskfConfig
 from msf_torch.frontend.eskf import EskfNoise, EskfResult, _intra_op_threads
 from msf_torch.frontend.keyframes import KeyframeConfig, select_keyframes
+from msf_torch.frontend.schedule import UNMEASURED_SIGMA
 from msf_torch.geometry import so3
 from msf_torch.geometry.conventions import gravity_world
 from msf_torch.geometry.quaternion import matrix_to_quat
@@ -186,6 +187,8 @@ class SmootherConfig:
         wheel: use wheel odometry between keyframes when the sequence has wheels.
         calibrate_wheels: estimate the wheel radius ratios and track width as one
             variable of the run (full batch only; needs ``wheel``).
+        gnss_velocity: GNSS velocities (``Sequence.gnss_velocity``) at their keyframes, under
+            the GNSS fixes' kernel.
         nhc: non-holonomic constraint at keyframes where the front end applied it.
         zero_velocity: zero velocity at keyframes the front end found stationary.
         plane: planar motion between consecutive keyframes (ground vehicles).
@@ -217,6 +220,7 @@ class SmootherConfig:
     gnss_kernel_scale: float = 3.0
     wheel: bool = True
     calibrate_wheels: bool = False
+    gnss_velocity: bool = True
     nhc: bool = True
     zero_velocity: bool = True
     plane: bool = False
@@ -273,7 +277,8 @@ class SmootherConfig:
                 raise bad(key, "a positive number")
             if math.isnan(value) or value <= 0:
                 raise bad(key, "a positive number")
-        for key in ("wheel", "calibrate_wheels", "nhc", "zero_velocity", "plane", "covariance"):
+        switches = ("wheel", "calibrate_wheels", "gnss_velocity", "nhc", "zero_velocity", "plane")
+        for key in (*switches, "covariance"):
             if not isinstance(getattr(self, key), bool):
                 raise bad(key, "true or false")
         if self.calibrate_wheels and not self.wheel:
@@ -383,7 +388,9 @@ class KeyframeGraph:
         imu: increments (1, K - 1); imu_covariance (1, K - 1, 15, 15).
         gravity: (3,) m/s^2 world.
         gnss_index (G,), gnss_position (1, G, 3) m, gnss_covariance (1, G, 3, 3) m^2,
-        gnss_lever_arm (3,) m, gnss_kernel: robust kernel or None.
+        gnss_lever_arm (3,) m, gnss_kernel: robust kernel or None (also on the velocities).
+        gnss_velocity_index (V,), gnss_velocity (1, V, 3) m/s (0 on an axis not given),
+        gnss_velocity_gyro (1, V, 3) rad/s, gnss_velocity_covariance (1, V, 3, 3) (m/s)^2.
         wheel_index (W,) intervals, wheel_increment (1, W, 3) [m, m, rad],
         wheel_covariance (1, W, 3, 3), wheel_lever_arm (3,) m.
         nhc_index (N,), nhc_gyro (1, N, 3) rad/s, nhc_covariance (1, N, 2, 2),
@@ -410,6 +417,10 @@ class KeyframeGraph:
     gnss_covariance: torch.Tensor
     gnss_lever_arm: torch.Tensor
     gnss_kernel: RobustKernel | None
+    gnss_velocity_index: torch.Tensor
+    gnss_velocity: torch.Tensor
+    gnss_velocity_gyro: torch.Tensor
+    gnss_velocity_covariance: torch.Tensor
     wheel_index: torch.Tensor
     wheel_increment: torch.Tensor
     wheel_covariance: torch.Tensor
@@ -527,6 +538,19 @@ class KeyframeGraph:
                     i,
                     self.gnss_position[:, keep],
                     self.gnss_covariance[:, keep],
+                    self.gnss_lever_arm,
+                    self.gnss_kernel,
+                )
+            )
+        keep, i = unary(self.gnss_velocity_index)
+        if i.numel():
+            out.append(
+                F.GnssVelocityFactor(
+                    _GROUP,
+                    i,
+                    self.gnss_velocity[:, keep],
+                    self.gnss_velocity_gyro[:, keep],
+                    self.gnss_velocity_covariance[:, keep],
                     self.gnss_lever_arm,
                     self.gnss_kernel,
                 )
@@ -708,6 +732,8 @@ def build_graph(
         raise ValueError(f"the smoothers take one sequence (B = 1), got B = {seq.batch_size}")
     dtype = frontend.t.dtype
     force = frontend.present["gnss"] & frontend.mask
+    if smoother.gnss_velocity and "gnss_velocity" in frontend.present:
+        force = force | (frontend.present["gnss_velocity"] & frontend.mask)
     keyframes = select_keyframes(
         frontend.t, frontend.position, frontend.rotation, frontend.mask, smoother.keyframes(), force
     )
@@ -758,25 +784,20 @@ def build_graph(
     floor = torch.where(short, 1e-2, 1e-6).to(dtype)[None, :, None]
     imu_cov = imu_cov + torch.diag_embed(floor * torch.diagonal(imu_cov, dim1=-2, dim2=-1))
 
-    # GNSS: fixes at keyframe times (every fix epoch is a keyframe)
+    # GNSS: fixes and velocities at keyframe times (every epoch of one is a keyframe)
     tol = 2.0 * cfg.time_tolerance_s
-    gnss_index = torch.zeros(0, dtype=torch.long)
-    gnss_position = torch.zeros(1, 0, 3, dtype=dtype)
-    gnss_sigma = torch.zeros(1, 0, 3, dtype=dtype)
-    if seq.gnss is not None and bool(seq.gnss.mask.any()):
-        keep = seq.gnss.mask[0]
-        fix_t = seq.gnss.t[0, keep]
-        nearest = torch.searchsorted(t, fix_t).clamp(1, t.numel() - 1)
-        left_closer = (fix_t - t[nearest - 1]).abs() <= (t[nearest] - fix_t).abs()
-        nearest = torch.where(left_closer, nearest - 1, nearest)
-        matched = (t[nearest] - fix_t).abs() <= tol
-        gnss_index = nearest[matched]
-        gnss_position = seq.gnss.position[:, keep][:, matched]
-        sigma = seq.gnss.sigma[:, keep][:, matched]
-        default = torch.tensor(cfg.gnss_sigma_m, dtype=dtype)
-        # as the front end reads them: a sigma that is not finite and positive is not given
-        gnss_sigma = torch.where(torch.isfinite(sigma) & (sigma > 0), sigma, default)
+    gnss_index, gnss_position, gnss_sigma = _at_keyframes(
+        seq.gnss, "position", t, tol, cfg.gnss_sigma_m
+    )
     gnss_covariance = torch.diag_embed(gnss_sigma**2)
+    velocity_stream = seq.gnss_velocity if smoother.gnss_velocity else None
+    gnss_velocity_index, gnss_velocity, velocity_sigma = _at_keyframes(
+        velocity_stream, "velocity", t, tol, cfg.gnss_velocity_sigma_mps
+    )
+    unmeasured = torch.isnan(gnss_velocity)  # the up axis of a horizontal-only receiver
+    gnss_velocity = torch.where(unmeasured, 0.0, gnss_velocity)
+    velocity_sigma = torch.where(unmeasured, UNMEASURED_SIGMA, velocity_sigma)
+    gnss_velocity_covariance = torch.diag_embed(velocity_sigma**2)
 
     # wheels
     wheel_index = torch.zeros(0, dtype=torch.long)
@@ -803,6 +824,7 @@ def build_graph(
         nhc_index = torch.nonzero(frontend.present["nhc"][0, epoch]).squeeze(-1)
     held = (torch.searchsorted(imu_t, t + cfg.time_tolerance_s, right=True) - 1).clamp_min(0)
     nhc_gyro = gyro[held][nhc_index][None]
+    gnss_velocity_gyro = gyro[held][gnss_velocity_index][None]
     nhc_covariance = (cfg.nhc_sigma_mps**2 * torch.eye(2, dtype=dtype)).expand(
         1, nhc_index.numel(), 2, 2
     )
@@ -834,6 +856,10 @@ def build_graph(
         gnss_covariance=gnss_covariance,
         gnss_lever_arm=arm(cfg.gnss_lever_arm_m),
         gnss_kernel=smoother.kernel(),
+        gnss_velocity_index=gnss_velocity_index,
+        gnss_velocity=gnss_velocity,
+        gnss_velocity_gyro=gnss_velocity_gyro,
+        gnss_velocity_covariance=gnss_velocity_covariance,
         wheel_index=wheel_index,
         wheel_increment=wheel_increment,
         wheel_covariance=wheel_covariance,
@@ -849,6 +875,29 @@ def build_graph(
         calibration_initial=calibration_initial,
         calibration_prior=calibration_prior,
     )
+
+
+def _at_keyframes(
+    stream, field: str, t: torch.Tensor, tol: float, default_sigma: list[float]
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """A GNSS stream's samples at keyframe times ``t`` (K,) s (within ``tol``): keyframe
+    indices (G,), the ``field`` values (1, G, 3) and sigmas (1, G, 3), a sigma that is not
+    finite and positive replaced by ``default_sigma`` (as the front end reads them)."""
+    dtype = t.dtype
+    if stream is None or not bool(stream.mask.any()):
+        empty = torch.zeros(1, 0, 3, dtype=dtype)
+        return torch.zeros(0, dtype=torch.long), empty, empty.clone()
+    keep = stream.mask[0]
+    times = stream.t[0, keep]
+    nearest = torch.searchsorted(t, times).clamp(1, t.numel() - 1)
+    left_closer = (times - t[nearest - 1]).abs() <= (t[nearest] - times).abs()
+    nearest = torch.where(left_closer, nearest - 1, nearest)
+    matched = (t[nearest] - times).abs() <= tol
+    values = getattr(stream, field)[:, keep][:, matched]
+    sigma = stream.sigma[:, keep][:, matched]
+    default = torch.tensor(default_sigma, dtype=dtype)
+    sigma = torch.where(torch.isfinite(sigma) & (sigma > 0), sigma, default)
+    return nearest[matched], values, sigma
 
 
 def _wheel_calibration_prior(
