@@ -13,13 +13,10 @@ What it measures
       densities and GNSS sigmas; each velocity with its own sigma), under
       ``torch.no_grad()``, without wheels. With no wheels the config's ``nhc: auto`` turns
       the non-holonomic constraint (zero lateral / vertical body velocity) on, which the
-      peer does not have, so two extra columns show ours without it (same information as
-      the peer) and one shows ours with the wheels (velocities on). "Without NHC" keeps
-      the constraint at sigma 1e9 m/s (no information, ``NO_NHC``) rather than ``nhc:
-      off``: with ``nhc: off`` and no wheels ours' only epochs are the 1-Hz GNSS times,
-      none inside the outage, so its positions there would be a straight chord across the
-      outage (up to 8 m off the filter's own dead reckoning on these runs); with the
-      constraint kept the epochs stay at its 2 Hz;
+      peer does not have, so two extra columns show ours without it (``nhc: off``, same
+      information as the peer; its epochs then come every ``max_epoch_s`` = 0.5 s where
+      no fix does, as the constraint's at 2 Hz) and one shows ours with the wheels
+      (velocities on);
     * peer: ``benchmarks/peers/gtsam_kitti.py`` ``run_gtsam_kitti`` (CombinedImuFactor +
       GPSFactor under ISAM2, one state per 1-Hz GNSS time, the outage's times included
       with no fix), with the velocities as ``PriorFactorVector(V(i), v, sigma)`` at every
@@ -87,9 +84,8 @@ from msf_torch.types import Sequence  # noqa: E402
 PEER_WARMUP_INTERVALS = 20
 """GNSS intervals before the peer's first ISAM2 update (the GTSAM example's)."""
 
-NO_NHC: dict[str, Any] = {"nhc": "on", "nhc_sigma_mps": 1.0e9}
-"""Config overrides for ours without the non-holonomic constraint's information but with
-its 2-Hz epochs (see the module docstring)."""
+NO_NHC: dict[str, Any] = {"nhc": "off"}
+"""Config overrides for ours without the non-holonomic constraint (the peer has none)."""
 
 OURS: dict[str, dict[str, Any]] = {
     "ours": {"velocity": True, "wheels": False, "config": {}},
