@@ -223,6 +223,14 @@ def _native_arrays(rng: np.random.Generator) -> dict[str, np.ndarray]:
         "gnss/position": rng.normal(size=(n_g, 3)) * 100.0,
         "gnss/sigma": rng.uniform(0.1, 2.0, (n_g, 3)),
     }
+    n_v = int(rng.integers(0, 5))
+    velocity = rng.normal(size=(n_v, 3)) * 5.0
+    velocity[rng.random(n_v) < 0.5, 2] = np.nan  # RMC-style: no vertical speed
+    out |= {
+        "gnss_velocity/t": _times(rng, n_v, step=0.1),
+        "gnss_velocity/velocity": velocity,
+        "gnss_velocity/sigma": rng.uniform(0.02, 0.5, (n_v, 3)),
+    }
     for prefix in ("poses", "poses/vo"):
         n_p = int(rng.integers(0, 5))
         a = rng.normal(size=(n_p, 6, 6))
@@ -258,6 +266,12 @@ def _native_folder(rng: np.random.Generator) -> dict[str, str]:
         "gnss.csv": _csv(
             ["t", "x", "y", "z", "sigma_x", "sigma_y", "sigma_z"],
             np.column_stack((a["gnss/t"], a["gnss/position"], a["gnss/sigma"])),
+        ),
+        "gnss_velocity.csv": _csv(
+            ["t", "vx", "vy", "vz", "sigma_vx", "sigma_vy", "sigma_vz"],
+            np.column_stack(
+                (a["gnss_velocity/t"], a["gnss_velocity/velocity"], a["gnss_velocity/sigma"])
+            ),
         ),
         "ground_truth.csv": _csv(
             ["t", "x", "y", "z", "qw", "qx", "qy", "qz"],
@@ -779,7 +793,11 @@ def _check_stream(name: str, stream: Any) -> str | None:
         if key in ("mask", "t"):
             continue
         nan_ok = key in ("sigma", "covariance")
-        if not _finite(value[0, mask], allow_nan=nan_ok):
+        values = value[0, mask]
+        if name == "gnss_velocity" and key == "velocity":  # the up axis may be not given
+            if not (_finite(values[:, :2]) and _finite(values[:, 2:], allow_nan=True)):
+                return f"{name}.{key} holds a non-finite east / north or an inf up value"
+        elif not _finite(values, allow_nan=nan_ok):
             return f"{name}.{key} holds a non-finite value"
         if key == "quaternion" and not _unit(value[0, mask]):
             return f"{name}.quaternion not unit"
