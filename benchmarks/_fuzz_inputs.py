@@ -50,6 +50,7 @@ import json
 import math
 import os
 import re
+import struct
 import traceback
 import warnings
 import zipfile
@@ -83,6 +84,7 @@ from msf_torch.io.kitti_raw import OXTS_FIELDS, read_kitti_raw
 from msf_torch.io.nmea import DEFAULT_QUALITIES, NmeaLog, read_nmea
 from msf_torch.io.ranges import RangeRun, read_range_run
 from msf_torch.io.scans import read_scans
+from msf_torch.io.ubx import UbxLog, read_ubx
 from msf_torch.types import Sequence, Trajectory, WheelSamples
 
 OUTCOMES = ("ok", "data_error", "bad_output", "bad_error", "crash")
@@ -735,6 +737,91 @@ def _build_nmea(rng: np.random.Generator) -> tuple[dict[str, Any], str]:
     return {"log.nmea": "\n".join(text) + "\n"}, "log.nmea"
 
 
+def _ubx_frame(cls: int, ident: int, payload: bytes) -> bytes:
+    """One UBX frame: sync, class, id, length, payload, Fletcher checksum."""
+    body = bytes((cls, ident)) + len(payload).to_bytes(2, "little") + payload
+    a = b = 0
+    for byte in body:
+        a = (a + byte) & 0xFF
+        b = (b + a) & 0xFF
+    return b"\xb5\x62" + body + bytes((a, b))
+
+
+def _build_ubx(rng: np.random.Generator) -> tuple[dict[str, Any], str]:
+    """A u-blox UBX log: NAV-PVT frames at 1-10 Hz anywhere on the globe (fix types 0-5,
+    valid flags mostly set, RTK carrier states, 92- or 84-byte payloads), NAV-STATUS and
+    RXM-RAWX-like frames between, NMEA text now and then, a leap-second :60 in some."""
+    n = int(rng.integers(1, 12))
+    start = 1_500_000_000 + int(rng.integers(0, 300_000_000))
+    step_ns = int(rng.choice((100_000_000, 200_000_000, 1_000_000_000)))
+    chunks = []
+    for k in range(n):
+        stamp_ns = start * 1_000_000_000 + k * step_ns
+        whole, nano = divmod(stamp_ns, 1_000_000_000)
+        if nano > 500_000_000:  # the receiver rounds to the nearest second, nano negative
+            whole, nano = whole + 1, nano - 1_000_000_000
+        year, month, day, hour, minute, second = datetime.datetime.fromtimestamp(
+            whole, datetime.timezone.utc
+        ).timetuple()[:6]
+        fix = int(rng.choice((3, 3, 3, 4, 2, 0, 1, 5)))
+        flags = (1 if rng.random() < 0.9 else 0) | (int(rng.integers(0, 3)) << 6)
+        valid = 0x07 if rng.random() < 0.9 else int(rng.integers(0, 8))
+        lat = int(rng.integers(-900_000_000, 900_000_001))
+        lon = int(rng.integers(-1_800_000_000, 1_800_000_000))
+        fields = (
+            int(rng.integers(0, 604_800_000)), year, month, day, hour, minute, second, valid,
+            int(rng.integers(0, 1000)), nano, fix, flags, 0, int(rng.integers(0, 40)), lon, lat,
+            int(rng.integers(-400_000, 9_000_000)), 0, int(rng.integers(5, 50_000)),
+            int(rng.integers(5, 80_000)), *[int(v) for v in rng.integers(-40_000, 40_000, 3)],
+            int(rng.integers(0, 40_000)), int(rng.integers(0, 36_000_000)),
+            int(rng.integers(5, 5_000)), int(rng.integers(0, 18_000_000)), 150,
+        )  # fmt: skip
+        payload = struct.pack("<IHBBBBBBIiBBBBiiiiIIiiiiiIIH", *fields)
+        payload += bytes(6) if rng.random() < 0.2 else bytes(14)
+        chunks.append(_ubx_frame(0x01, 0x07, payload))
+        if rng.random() < 0.3:
+            chunks.append(_ubx_frame(0x01, 0x03, bytes(int(v) for v in rng.integers(0, 256, 16))))
+        if rng.random() < 0.2:
+            chunks.append(b"$GNGGA,,,,,,0,00,99.99,,,,,,*56\r\n")
+    return {"log.ubx": b"".join(chunks)}, "log.ubx"
+
+
+def _read_ubx(path: Path) -> UbxLog:
+    """``read_ubx`` on a case file; a warning that is not a UserWarning is a crash."""
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        log = read_ubx(path)
+    for w in caught:
+        if not issubclass(w.category, UserWarning):
+            raise AssertionError(f"{w.category.__name__}: {w.message}")
+    return log
+
+
+def _check_ubx(log: UbxLog) -> str | None:
+    n = len(log)
+    columns = ("latitude_deg", "longitude_deg", "height_m", "fix_type", "satellites", "carrier")
+    if any(getattr(log, c).shape != (n,) for c in (*columns, "offsets")):
+        return "a column is not (N,)"
+    if any(getattr(log, c).shape != (n, 3) for c in ("sigma_enu", "velocity_enu")):
+        return "sigma_enu or velocity_enu not (N, 3)"
+    if not (np.isfinite(log.t).all() and (np.diff(log.t) > 0).all()):
+        return "t not finite and strictly increasing"
+    if not (np.abs(log.latitude_deg) <= 90).all() or not (np.abs(log.longitude_deg) <= 180).all():
+        return "a latitude outside [-90, 90] or a longitude outside [-180, 180]"
+    arrays = (log.height_m, log.sigma_enu, log.velocity_enu, log.velocity_sigma)
+    if not all(np.isfinite(a).all() for a in arrays):
+        return "a height, sigma or velocity that is not finite"
+    if (log.sigma_enu < 0).any() or (log.velocity_sigma < 0).any():
+        return "a negative sigma"
+    if any(v < 0 for v in log.counts.values()) or log.counts["kept"] != n:
+        return "a negative count or counts['kept'] != N"
+    if n:
+        gnss, _ = log.to_gnss()
+        if not _finite(gnss.position) or gnss.t.shape != (1, n):
+            return "to_gnss gave a non-finite ENU position"
+    return None
+
+
 def _read_nmea(path: Path) -> NmeaLog:
     """``read_nmea`` on a case file; a warning that is not a UserWarning is a crash, and so
     is a DataError that names a field but no line."""
@@ -1035,6 +1122,7 @@ READERS: dict[str, Reader] = {
         Reader("nmea", _build_nmea, lambda p, s: _read_nmea(p), _check_nmea),
         Reader("kitti_raw", _build_kitti_raw, lambda p, s: _read_kitti_raw(p, s), _check_sequence),
         Reader("encoders", _build_encoders, _read_encoders, _check_wheel),
+        Reader("ubx", _build_ubx, lambda p, s: _read_ubx(p), _check_ubx),
     )
 }
 """Reader name -> :class:`Reader`: native ``.npz`` and CSV folder, TUM, EuRoC ASL, the KITTI
@@ -1042,7 +1130,7 @@ files gtsam ships (``data_dir``), g2o and TORO pose graphs (3-D and 2-D), 2-D gr
 landmarks (``landmark_2d``: ODOMETRY, LANDMARK, BR, VERTEX_XY), the EqVIO replay CSV, KITTI
 odometry poses + times, 2D LiDAR scans (``.npz``), odometry + anchor-range CSV files
 (``range_csv``), NMEA 0183 GNSS logs (``nmea``), KITTI raw OXTS drives (``kitti_raw``),
-encoder counts (``encoders``). Not
+encoder counts (``encoders``), u-blox UBX logs (``ubx``, mutated byte by byte). Not
 here: rosbags (binary containers written by ``rosbags``; their reader is tested on bags
 written by its own writers)."""
 
@@ -1296,6 +1384,12 @@ def case_strategy(draw, reader: str) -> FuzzCase:
     sort = draw(st.booleans())
     mutations: list[str] = []
     n_mutations = draw(st.integers(1, 3))
+    if isinstance(content.get(entry), bytes):  # a binary log (UBX): byte-level mutations
+        data = content[entry]
+        for _ in range(n_mutations):
+            data, name = draw(_mutate_bytes(data))
+            mutations.append(name)
+        return FuzzCase(reader, {entry: data}, entry, sort, mutations)
     if spec.binary:
         arrays = content[entry]
         byte_level = draw(st.integers(0, 3)) == 0

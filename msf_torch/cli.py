@@ -360,6 +360,34 @@ def build_parser() -> argparse.ArgumentParser:
         "next to --out (written by default when the log has them)",
     )
 
+    ub = sub.add_parser(
+        "ubx",
+        help="convert a u-blox UBX binary log (NAV-PVT) to a native gnss.csv and "
+        "gnss_velocity.csv with the receiver's accuracy estimates",
+    )
+    ub.add_argument("log", type=Path, help="UBX binary log (other messages are skipped)")
+    ub.add_argument(
+        "--out", type=Path, required=True, help="CSV to write, normally FOLDER/gnss.csv"
+    )
+    ub.add_argument(
+        "--origin",
+        type=_triple,
+        default=None,
+        metavar="LAT,LON,ALT",
+        help="ENU origin (as for msf nmea; default: the folder's meta.json, else the first fix)",
+    )
+    ub.add_argument(
+        "--t0", type=_finite_float, default=0.0, help="seconds subtracted from the UTC times"
+    )
+    ub.add_argument(
+        "--fix-types",
+        type=_quality_codes,
+        default=(3, 4),
+        metavar="F[,F...]",
+        help="NAV-PVT fixType values kept (default 3,4: 3-D and GNSS + dead reckoning)",
+    )
+    ub.add_argument("--no-velocity", action="store_true", help="do not write gnss_velocity.csv")
+
     en = sub.add_parser(
         "encoders", help="convert wheel-encoder counts (ticks) to a native wheel.csv of speeds"
     )
@@ -1062,9 +1090,63 @@ def _cmd_ranges(args) -> dict[str, Any]:
 
 
 def _cmd_nmea(args) -> dict[str, Any]:
+    """``msf nmea LOG --out FOLDER/gnss.csv``: GGA fixes and RMC / VTG velocities."""
     import numpy as np
 
     from msf_torch.io.errors import DataError
+    from msf_torch.io.nmea import read_nmea
+
+    log = read_nmea(args.log, qualities=args.quality, time=args.time)
+    if len(log) == 0:
+        raise DataError(args.log, f"no fix kept (counts: {log.counts})")
+    unix = log.time_source == "receive" or log.dated
+    summary = _write_receiver_folder(args, log, log.velocity_t.size > 0, unix)
+    given = np.isfinite(log.sigma_enu).all(axis=1)
+    return {
+        "log": str(args.log),
+        **summary,
+        "fixes": len(log),
+        "fixes_with_sigma": int(given.sum()),
+        "velocities": int(log.velocity_t.size),
+        "counts": log.counts,
+        "time_source": log.time_source,
+        "median_sigma_enu_m": np.median(log.sigma_enu[given], axis=0).tolist()
+        if given.any()
+        else None,
+        "geoid_separation_missing": log.geoid_separation_missing,
+    }
+
+
+def _cmd_ubx(args) -> dict[str, Any]:
+    """``msf ubx LOG --out FOLDER/gnss.csv``: NAV-PVT fixes and velocities with sigmas."""
+    import numpy as np
+
+    from msf_torch.io.errors import DataError
+    from msf_torch.io.ubx import read_ubx
+
+    log = read_ubx(args.log, fix_types=args.fix_types)
+    if len(log) == 0:
+        raise DataError(args.log, f"no NAV-PVT solution kept (counts: {log.counts})")
+    summary = _write_receiver_folder(args, log, True, True)
+    return {
+        "log": str(args.log),
+        **summary,
+        "fixes": len(log),
+        "velocities": len(log),
+        "counts": log.counts,
+        "rtk_fixed": int((log.carrier == 2).sum()),
+        "rtk_float": int((log.carrier == 1).sum()),
+        "median_sigma_enu_m": np.median(log.sigma_enu, axis=0).tolist(),
+        "median_speed_sigma_mps": float(np.median(log.velocity_sigma[:, 0])),
+    }
+
+
+def _write_receiver_folder(args, log, has_velocities: bool, unix_times: bool) -> dict[str, Any]:
+    """Write a receiver log's ``gnss.csv`` (``args.out``) and ``gnss_velocity.csv`` beside
+    it, and its ``gnss_origin`` / ``time_origin_ns`` into the folder's ``meta.json``
+    (``msf nmea``, ``msf ubx``). ``log`` has ``to_gnss(origin, t0)`` and
+    ``to_gnss_velocity(t0)``; ``unix_times``: its times are UNIX seconds. Returns the
+    summary's entries about what was written."""
     from msf_torch.io.native import (
         store_gnss_origin,
         store_time_origin,
@@ -1072,15 +1154,11 @@ def _cmd_nmea(args) -> dict[str, Any]:
         stored_time_origin,
         write_stream_csv,
     )
-    from msf_torch.io.nmea import read_nmea, write_gnss_csv
 
     if args.out.is_dir():
         raise ValueError(f"--out {args.out} is a folder; give a file name (FOLDER/gnss.csv)")
     folder = args.out.parent
     stored = stored_gnss_origin(folder)
-    log = read_nmea(args.log, qualities=args.quality, time=args.time)
-    if len(log) == 0:
-        raise DataError(args.log, f"no fix kept (counts: {log.counts})")
     wanted = args.origin if args.origin is not None else stored
     origin_from = "--origin" if args.origin is not None else "meta.json" if stored else "first fix"
     gnss, origin = log.to_gnss(origin=wanted, t0=args.t0)
@@ -1092,10 +1170,10 @@ def _cmd_nmea(args) -> dict[str, Any]:
             stacklevel=2,
         )
     folder.mkdir(parents=True, exist_ok=True)
-    out = write_gnss_csv(args.out, gnss)
+    out = write_stream_csv(args.out, "gnss", gnss)
     velocity_out = folder / "gnss_velocity.csv"
     velocity_written = None
-    if not args.no_velocity and log.velocity_t.size:
+    if not args.no_velocity and has_velocities:
         velocity = log.to_gnss_velocity(t0=args.t0)
         velocity_written = str(write_stream_csv(velocity_out, "gnss_velocity", velocity))
     elif velocity_out.exists():
@@ -1107,7 +1185,7 @@ def _cmd_nmea(args) -> dict[str, Any]:
     # the folder's t = 0 in UNIX ns, when the fix times are UNIX times (dated UTC, or the
     # logging host's receive stamps): GPX exports get UTC times from it
     time_origin = None
-    if log.time_source == "receive" or log.dated:
+    if unix_times:
         time_origin = round(args.t0 * 1e9)
         stored_origin = stored_time_origin(folder)
         if stored_origin is not None and stored_origin != time_origin:
@@ -1117,25 +1195,14 @@ def _cmd_nmea(args) -> dict[str, Any]:
             )
         store_time_origin(folder, time_origin)
     t = gnss.t[0].numpy()
-    given = np.isfinite(log.sigma_enu).all(axis=1)
     return {
-        "log": str(args.log),
         "out": str(out),
-        "fixes": len(log),
-        "fixes_with_sigma": int(given.sum()),
-        "velocities": int(log.velocity_t.size),
         "velocity_out": velocity_written,
-        "counts": log.counts,
         "origin": list(origin),
         "origin_from": origin_from,
         "time_origin_ns": time_origin,
         "meta": str(meta),
-        "time_source": log.time_source,
         "t_range_s": [float(t[0]), float(t[-1])],
-        "median_sigma_enu_m": np.median(log.sigma_enu[given], axis=0).tolist()
-        if given.any()
-        else None,
-        "geoid_separation_missing": log.geoid_separation_missing,
     }
 
 
@@ -1210,6 +1277,7 @@ def main(argv: list[str] | None = None) -> int:
         "lidar-map": _cmd_lidar_map,
         "ranges": _cmd_ranges,
         "nmea": _cmd_nmea,
+        "ubx": _cmd_ubx,
         "encoders": _cmd_encoders,
         "config": _cmd_config,
     }

@@ -111,7 +111,15 @@ On the command line: ``msf nmea drive.nmea --out run/gnss.csv`` (also writes
 
 from __future__ import annotations
 
-__all__ = ["DEFAULT_QUALITIES", "TIME_SOURCES", "NmeaLog", "read_nmea", "write_gnss_csv"]
+__all__ = [
+    "DEFAULT_QUALITIES",
+    "TIME_SOURCES",
+    "NmeaLog",
+    "geodetic_fixes",
+    "read_nmea",
+    "velocity_stream",
+    "write_gnss_csv",
+]
 
 import datetime
 import math
@@ -261,24 +269,15 @@ class NmeaLog:
         Raises:
             ValueError: no origin given and no fix kept; a bad origin.
         """
-        if origin is None:
-            if len(self) == 0:
-                raise ValueError(f"{self.source}: no fix kept, so no origin; give one")
-            origin = (
-                float(self.latitude_deg[0]),
-                float(self.longitude_deg[0]),
-                float(self.altitude_m[0]),
-            )
-        enu = geodetic_to_enu(self.latitude_deg, self.longitude_deg, self.altitude_m, origin)
-        used = (float(origin[0]), float(origin[1]), float(origin[2]))
-        n = len(self)
-        gnss = GnssFixes(
-            t=torch.as_tensor(self.t - float(t0), dtype=torch.float64).reshape(1, n),
-            position=torch.as_tensor(enu, dtype=torch.float64).reshape(1, n, 3),
-            sigma=torch.tensor(self.sigma_enu, dtype=torch.float64).reshape(1, n, 3),
-            mask=torch.ones((1, n), dtype=torch.bool),
+        return geodetic_fixes(
+            self.t - float(t0),
+            self.latitude_deg,
+            self.longitude_deg,
+            self.altitude_m,
+            self.sigma_enu,
+            origin,
+            self.source,
         )
-        return gnss, used
 
     def to_gnss_velocity(self, t0: float = 0.0) -> GnssVelocity:
         """The velocities as a B = 1 stream in the ENU frame of :meth:`to_gnss`.
@@ -291,13 +290,59 @@ class NmeaLog:
             (1, M, 3) m/s = :attr:`velocity_enu` (up NaN), ``sigma`` (1, M, 3) all NaN (NMEA
             gives none: the estimator's default applies), float64, all-True mask; M may be 0.
         """
-        m = int(self.velocity_t.shape[0])
-        return GnssVelocity(
-            t=torch.as_tensor(self.velocity_t - float(t0), dtype=torch.float64).reshape(1, m),
-            velocity=torch.tensor(self.velocity_enu, dtype=torch.float64).reshape(1, m, 3),
-            sigma=torch.full((1, m, 3), torch.nan, dtype=torch.float64),
-            mask=torch.ones((1, m), dtype=torch.bool),
-        )
+        sigma = np.full(self.velocity_enu.shape, np.nan)
+        return velocity_stream(self.velocity_t - float(t0), self.velocity_enu, sigma)
+
+
+def geodetic_fixes(
+    t: np.ndarray,
+    latitude_deg: np.ndarray,
+    longitude_deg: np.ndarray,
+    height_m: np.ndarray,
+    sigma_enu: np.ndarray,
+    origin: Sequence[float] | None,
+    source: str,
+) -> tuple[GnssFixes, tuple[float, float, float]]:
+    """Receiver fixes as a B = 1 GNSS stream in local ENU metres (NMEA, UBX readers).
+
+    Args:
+        t: (N,) s. latitude_deg, longitude_deg: (N,) WGS-84 degrees. height_m: (N,) above
+            the ellipsoid. sigma_enu: (N, 3) m (NaN: not given).
+        origin: ``(lat_deg, lon_deg, h_m)`` of the ENU origin; None: the first fix.
+        source: the file, named in the error.
+
+    Returns:
+        ``(GnssFixes (1, N), origin used as three floats)``.
+
+    Raises:
+        ValueError: no origin given and no fix.
+    """
+    if origin is None:
+        if t.shape[0] == 0:
+            raise ValueError(f"{source}: no fix kept, so no origin; give one")
+        origin = (float(latitude_deg[0]), float(longitude_deg[0]), float(height_m[0]))
+    enu = geodetic_to_enu(latitude_deg, longitude_deg, height_m, origin)
+    used = (float(origin[0]), float(origin[1]), float(origin[2]))
+    n = int(t.shape[0])
+    gnss = GnssFixes(
+        t=torch.as_tensor(t, dtype=torch.float64).reshape(1, n),
+        position=torch.as_tensor(enu, dtype=torch.float64).reshape(1, n, 3),
+        sigma=torch.tensor(sigma_enu, dtype=torch.float64).reshape(1, n, 3),
+        mask=torch.ones((1, n), dtype=torch.bool),
+    )
+    return gnss, used
+
+
+def velocity_stream(t: np.ndarray, velocity_enu: np.ndarray, sigma: np.ndarray) -> GnssVelocity:
+    """Receiver velocities as a B = 1 stream: ``t`` (M,) s, ``velocity_enu`` (M, 3) m/s
+    (up NaN: not measured), ``sigma`` (M, 3) m/s (NaN: not given)."""
+    m = int(t.shape[0])
+    return GnssVelocity(
+        t=torch.as_tensor(t, dtype=torch.float64).reshape(1, m),
+        velocity=torch.tensor(velocity_enu, dtype=torch.float64).reshape(1, m, 3),
+        sigma=torch.tensor(sigma, dtype=torch.float64).reshape(1, m, 3),
+        mask=torch.ones((1, m), dtype=torch.bool),
+    )
 
 
 def write_gnss_csv(path: str | os.PathLike[str], gnss: GnssFixes) -> Path:
