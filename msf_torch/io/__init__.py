@@ -25,11 +25,13 @@ The 2-D reader also reads landmark SLAM files (``ODOMETRY``, ``VERTEX_XY``, ``BR
 ``LANDMARK``: GTSAM's ``victoria_park.txt``) into the graph's landmarks and sightings.
 Odometry + anchor-range runs (UWB, radio beacons) are read from CSV files by
 :func:`read_range_run` and from the gtsam wheel's Plaza runs by :func:`load_plaza` into a
-:class:`RangeRun`. NMEA 0183 GNSS logs (GGA fixes with GST sigmas, RMC/ZDA dates) are read
-by :func:`read_nmea` into an :class:`NmeaLog`, whose fixes go to local ENU metres and a native
-``gnss.csv`` (:func:`write_gnss_csv`; ``msf nmea``), whose folder keeps the ENU origin in
-``meta.json``; with it, trajectories go on the map as GeoJSON and KML (:func:`write_geojson`,
-:func:`write_kml`; ``msf run --export geojson,kml``).
+:class:`RangeRun`. NMEA 0183 GNSS logs (GGA fixes with GST sigmas, RMC/ZDA dates, RMC / VTG
+speed and course) are read by :func:`read_nmea` into an :class:`NmeaLog`, u-blox UBX logs
+(NAV-PVT) by :func:`read_ubx` into a :class:`UbxLog`; their fixes go to local ENU metres and
+a native ``gnss.csv`` (:func:`write_gnss_csv`; ``msf nmea``, ``msf ubx``) with the velocities
+in ``gnss_velocity.csv``, whose folder keeps the ENU origin in ``meta.json``; with it,
+trajectories go on the map as GeoJSON, KML and GPX (:func:`write_geojson`, :func:`write_kml`,
+:func:`write_gpx`; ``msf run --export geojson,kml,gpx``).
 """
 
 from __future__ import annotations
@@ -48,6 +50,7 @@ __all__ = [
     "EqvioRun",
     "MissingExtraError",
     "NmeaLog",
+    "UbxLog",
     "atomic_write",
     "atomic_save_npz",
     "detect_format",
@@ -65,6 +68,7 @@ __all__ = [
     "read_rosbag",
     "read_native",
     "read_nmea",
+    "read_ubx",
     "read_range_run",
     "read_pose_graph",
     "read_pose_graph_2d",
@@ -72,6 +76,7 @@ __all__ = [
     "write_g2o",
     "write_g2o_2d",
     "write_geojson",
+    "write_gpx",
     "write_kml",
     "write_kitti_poses",
     "write_odometry_rosbag2",
@@ -104,7 +109,7 @@ from msf_torch.io.g2o_2d import (
     read_pose_graph_2d,
     write_g2o_2d,
 )
-from msf_torch.io.geo_export import write_geojson, write_kml
+from msf_torch.io.geo_export import write_geojson, write_gpx, write_kml
 from msf_torch.io.kitti_gtsam import KITTI_GTSAM_NAME, gtsam_data_path, load_kitti_gtsam
 from msf_torch.io.kitti_poses import read_kitti_poses, write_kitti_poses
 from msf_torch.io.kitti_raw import find_kitti_raw_root, read_kitti_raw
@@ -121,6 +126,7 @@ from msf_torch.io.rosbag import (
     write_rosbag,
 )
 from msf_torch.io.tum import read_tum, write_tum
+from msf_torch.io.ubx import UbxLog, read_ubx
 from msf_torch.types import Sequence
 
 FORMATS = ("native", "npz", "csv", "euroc", "kitti-raw", "tum", "kitti-gtsam")
