@@ -43,3 +43,31 @@ def test_velocities_lower_the_full_smoother_error():
     rms = {k: float(np.sqrt(np.mean(np.square(v)))) for k, v in errors.items()}
     # measured: 0.172 m with, 0.225 m without
     assert rms[True] < 0.85 * rms[False], errors
+
+
+def test_window_starts_from_the_front_end_and_beats_it():
+    """Seed 1 without wheels: dead-reckoned from the first keyframe through its 40 s, the
+    first window used to start hundreds of metres off, stop at ``max_iterations`` 5-10 m
+    off and hand that to its marginal prior (ATE 3.78 m against the front end's 0.42 m).
+    From the front end's states, as the full batch, it converges in a few iterations."""
+    sim = SimConfig(
+        duration_s=60.0, gnss_velocity=True, slip_episodes=0, gnss_outages_s=((30.0, 45.0),)
+    )
+    run = simulate_run(sim, seed=1)
+    seq = dataclasses.replace(run.sequence, wheel=None)
+    cfg = load_sequence_config(seq.meta)
+    smoother = W.SmootherConfig(covariance=False)
+    with torch.no_grad():
+        front = run_eskf(seq, cfg)
+        out = W.smooth(seq, front, cfg, smoother, "window")
+        graph = W.build_graph(seq, front, cfg, smoother)
+        first = graph.problem(graph.initial[:, : smoother.window_size], 0, smoother.window_size)
+        start_cost = first.cost(graph.values(graph.initial[:, : smoother.window_size]))
+    torch.testing.assert_close(out.lm[0].initial_cost, start_cost)
+    assert all(r.status == ["converged"] for r in out.lm)
+    front_ate = ate(
+        front.trajectory().select(0).compact(), seq.ground_truth, align="none", max_dt=0.02
+    )
+    window_ate = ate(out.output, seq.ground_truth, align="none", max_dt=0.02)
+    # measured: front end 0.421 m, window 0.222 m (full batch 0.221 m)
+    assert window_ate["rmse"] < 0.7 * front_ate["rmse"], (window_ate, front_ate)
