@@ -241,6 +241,8 @@ def _one(
         position = poses["position"][0]
         body_velocity = np.array([wheel_speed, 0.0, 0.0])
         return position, rot @ body_velocity, rot, body_velocity, cfg.init_yaw_sigma_rad
+    anchored = None  # the aligned dead-reckoning origin (wheels and a GNSS track)
+    track_means = None  # (GNSS track, dead-reckoned track) means of the Kabsch fit
     if gnss is not None:
         g0 = gnss["position"][0]
         dist = np.linalg.norm(gnss["position"][:, :2] - g0[:2], axis=1)
@@ -254,8 +256,6 @@ def _one(
         dist = dist[: last + 1]
         far = np.nonzero(dist >= cfg.init_min_gnss_distance_m)[0]
         position = g0.copy()
-        anchored = None
-        track_means = None  # (GNSS track, dead-reckoned track) means of the Kabsch fit
         # a track that never gets that far (a robot turning on the spot, a short run) is
         # used up to its farthest fix, with the heading sigma grown in proportion
         reach = float(dist.max())

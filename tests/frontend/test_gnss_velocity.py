@@ -171,3 +171,18 @@ def test_the_initial_position_follows_the_velocity_heading():
         state, _ = initial_state(run.sequence, load_sequence_config(run.sequence.meta))
         errors.append(float((state.position[0, :2] - run.truth.position[0, 0, :2]).norm()))
     assert float(np.sqrt(np.mean(np.square(errors)))) < 0.4
+
+
+def test_velocities_without_fixes(runs):
+    """A receiver that logs only its Doppler velocity (no fixes): the heading still comes
+    from the course (this crashed the initialisation once), the position stays where it
+    starts, unobserved."""
+    run = runs[0]
+    seq = dataclasses.replace(run.sequence, gnss=None)
+    cfg = load_sequence_config(seq.meta)
+    state, cov = initial_state(seq, cfg)
+    yaw_error = float(so3.log(run.truth.rotation[0, 0].mT @ state.rotation[0])[2])
+    assert abs(yaw_error) < 3.0 * float(cov[0, 8, 8].sqrt()) < 0.2
+    with torch.no_grad():
+        result = run_eskf(seq, cfg)
+    assert int(result.accepted["gnss_velocity"].sum()) >= 0.95 * seq.gnss_velocity.length
