@@ -1011,6 +1011,7 @@ def run_eskf(
     reopen = torch.tensor(
         [k in ("gnss", "gnss_velocity", "pose") or k in source_col for k in active], device=device
     )
+    velocity_col = active.index("gnss_velocity") if "gnss_velocity" in active else None
     present_all = torch.stack([present[k] for k in active], -1) if active else None
     adaptation = BlockAdaptation(
         active,
@@ -1563,7 +1564,16 @@ def run_eskf(
             white = torch.linalg.solve_triangular(chol_b, r_all[..., None], upper=False)
             nis = ((white[..., 0] ** 2) @ segment) * here
             ok = here & (nis < threshold)
-            ok = ok | (here & reopen & (guard.streak >= cfg.gate_reopen_after))
+            reopening = here & reopen & (guard.streak >= cfg.gate_reopen_after)
+            if velocity_col is not None:
+                # a GNSS velocity that disagrees while another re-openable block (a fix, a
+                # pose) passes its gate during its streak is the suspect: its gate stays
+                # shut (a burst of Doppler outliers must not be let in)
+                calm = ok & reopen
+                others_calm = calm.sum(-1) - calm[:, velocity_col].long() > 0
+                suspect = guard.vouched[:, velocity_col] | others_calm
+                reopening[:, velocity_col] = reopening[:, velocity_col] & ~suspect
+            ok = ok | reopening
             if "wheel" in active and cfg.slip_detection:
                 wheel_col = active.index("wheel")
                 ok[:, wheel_col] = ok[:, wheel_col] & (slip >= cfg.slip_skip_below)
