@@ -323,17 +323,10 @@ def build_parser() -> argparse.ArgumentParser:
         help="convert an NMEA 0183 GNSS log (GGA, GST, RMC, VTG, ZDA) to a native gnss.csv "
         "and gnss_velocity.csv",
     )
-    nm.add_argument("log", type=Path, help="NMEA log: one sentence per line, optional stamps")
-    nm.add_argument(
-        "--out", type=Path, required=True, help="CSV to write, normally FOLDER/gnss.csv"
-    )
-    nm.add_argument(
-        "--origin",
-        type=_triple,
-        default=None,
-        metavar="LAT,LON,ALT",
-        help="ENU origin: degrees, degrees, m above the WGS-84 ellipsoid (default: the "
-        "gnss_origin of the folder's meta.json, else the first fix); stored in that meta.json",
+    _receiver_arguments(
+        nm,
+        "NMEA log: one sentence per line, optional stamps",
+        "the RMC / VTG speed and course over ground",
     )
     nm.add_argument(
         "--time",
@@ -343,9 +336,6 @@ def build_parser() -> argparse.ArgumentParser:
         "receive stamps when every GGA has one (default)",
     )
     nm.add_argument(
-        "--t0", type=_finite_float, default=0.0, help="seconds subtracted from the fix times"
-    )
-    nm.add_argument(
         "--quality",
         type=_quality_codes,
         default=(1, 2, 3, 4, 5),
@@ -353,31 +343,14 @@ def build_parser() -> argparse.ArgumentParser:
         help="GGA quality codes kept (default 1,2,3,4,5: GPS, DGPS, PPS, RTK fixed, RTK float; "
         "e.g. 4 for RTK-fixed only)",
     )
-    nm.add_argument(
-        "--no-velocity",
-        action="store_true",
-        help="do not write the RMC / VTG speed and course over ground as gnss_velocity.csv "
-        "next to --out (written by default when the log has them)",
-    )
 
     ub = sub.add_parser(
         "ubx",
         help="convert a u-blox UBX binary log (NAV-PVT) to a native gnss.csv and "
         "gnss_velocity.csv with the receiver's accuracy estimates",
     )
-    ub.add_argument("log", type=Path, help="UBX binary log (other messages are skipped)")
-    ub.add_argument(
-        "--out", type=Path, required=True, help="CSV to write, normally FOLDER/gnss.csv"
-    )
-    ub.add_argument(
-        "--origin",
-        type=_triple,
-        default=None,
-        metavar="LAT,LON,ALT",
-        help="ENU origin (as for msf nmea; default: the folder's meta.json, else the first fix)",
-    )
-    ub.add_argument(
-        "--t0", type=_finite_float, default=0.0, help="seconds subtracted from the UTC times"
+    _receiver_arguments(
+        ub, "UBX binary log (other messages are skipped)", "the NAV-PVT Doppler velocities"
     )
     ub.add_argument(
         "--fix-types",
@@ -386,7 +359,6 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="F[,F...]",
         help="NAV-PVT fixType values kept (default 3,4: 3-D and GNSS + dead reckoning)",
     )
-    ub.add_argument("--no-velocity", action="store_true", help="do not write gnss_velocity.csv")
 
     en = sub.add_parser(
         "encoders", help="convert wheel-encoder counts (ticks) to a native wheel.csv of speeds"
@@ -444,6 +416,32 @@ def build_parser() -> argparse.ArgumentParser:
         help="start PLICP from identity, not from the scans' wheel odometry",
     )
     return parser
+
+
+def _receiver_arguments(parser: argparse.ArgumentParser, log_help: str, velocities: str) -> None:
+    """The arguments ``msf nmea`` and ``msf ubx`` share: the log, ``--out``, ``--origin``,
+    ``--t0`` and ``--no-velocity`` (``velocities``: what ``gnss_velocity.csv`` holds)."""
+    parser.add_argument("log", type=Path, help=log_help)
+    parser.add_argument(
+        "--out", type=Path, required=True, help="CSV to write, normally FOLDER/gnss.csv"
+    )
+    parser.add_argument(
+        "--origin",
+        type=_triple,
+        default=None,
+        metavar="LAT,LON,ALT",
+        help="ENU origin: degrees, degrees, m above the WGS-84 ellipsoid (default: the "
+        "gnss_origin of the folder's meta.json, else the first fix); stored in that meta.json",
+    )
+    parser.add_argument(
+        "--t0", type=_finite_float, default=0.0, help="seconds subtracted from the fix times"
+    )
+    parser.add_argument(
+        "--no-velocity",
+        action="store_true",
+        help=f"do not write {velocities} as gnss_velocity.csv next to --out (written by "
+        "default when the log has them)",
+    )
 
 
 EXPORTS = ("kitti", "rosbag2", "geojson", "kml", "gpx")
