@@ -32,7 +32,9 @@ What it measures
       (20 s) warm-up, so its states in the first 20 s are a small batch solution that
       sees up to 20 s into their future (ours is causal throughout). The main peer figure
       is its causal "filter" estimate (newest state right after each update); its final
-      (smoothed) ISAM2 estimate is given for reference.
+      (smoothed) ISAM2 estimate is compared with our full smoother over the same data
+      (``msf_torch.backend.window.smooth``, mode ``full``, default settings, after our
+      front end; ``smoothed`` under the ``ours`` and ``ours_no_velocity`` columns).
 
     Scoring, the same for all (``msf_torch.eval.outage.interpolate_positions`` at the
     1-Hz GNSS times, ours and the truth interpolated there): ``rmse_m`` position RMSE
@@ -74,6 +76,7 @@ import torch  # noqa: E402
 
 from benchmarks._common import emit_json, log, machine_info, time_repeats  # noqa: E402
 from benchmarks.peers.gtsam_kitti import run_gtsam_kitti  # noqa: E402
+from msf_torch.backend.window import SmootherConfig, smooth  # noqa: E402
 from msf_torch.eval.outage import interpolate_positions  # noqa: E402
 from msf_torch.frontend.config import load_sequence_config  # noqa: E402
 from msf_torch.frontend.eskf import run_eskf  # noqa: E402
@@ -95,6 +98,9 @@ OURS: dict[str, dict[str, Any]] = {
     "ours_wheels": {"velocity": True, "wheels": True, "config": {}},
 }
 """Our columns: GNSS velocities used, wheels used, config overrides."""
+
+SMOOTHED = ("ours", "ours_no_velocity")
+"""Our columns also smoothed afterwards (full batch, ``msf run --smooth full``)."""
 
 PEERS: dict[str, bool] = {"peer": True, "peer_no_velocity": False}
 """Peer columns: GNSS velocities used."""
@@ -210,6 +216,15 @@ def run_seed(seed: int, sim_cfg: SimConfig, repeats: int) -> dict[str, Any]:
         wall, _, result = time_repeats(ours, repeats)
         position = interpolate_positions(result.trajectory(), grid_t)
         row[name] = {**score(position, truth, grid, outage), "wall_s": wall}
+        if name in SMOOTHED:  # our full smoother over that front end (beside the peer's)
+
+            def smoothed(variant: Sequence = variant, cfg: Any = cfg, result: Any = result) -> Any:
+                with torch.no_grad():
+                    return smooth(variant, result, cfg, SmootherConfig(covariance=False), "full")
+
+            wall_s, _, out = time_repeats(smoothed, repeats)
+            position = interpolate_positions(out.output, grid_t)
+            row[name]["smoothed"] = {**score(position, truth, grid, outage), "wall_s": wall_s}
     for name, use_velocity in PEERS.items():
         kwargs = dict(arrays)
         if not use_velocity:
@@ -240,8 +255,9 @@ def medians(rows: list[dict[str, Any]], column: str) -> dict[str, float]:
     """Median over runs of each metric (and wall time) of one column."""
     out = {k: statistics.median(r[column][k] for r in rows) for k in (*METRICS, "wall_s")}
     if "smoothed" in rows[0][column]:
+        keys = [k for k in (*METRICS, "wall_s") if k in rows[0][column]["smoothed"]]
         out["smoothed"] = {
-            k: statistics.median(r[column]["smoothed"][k] for r in rows) for k in METRICS
+            k: statistics.median(r[column]["smoothed"][k] for r in rows) for k in keys
         }
     return out
 
@@ -317,6 +333,9 @@ def main(argv: list[str] | None = None) -> int:
             / on["outage_max_error_m"],
             "outage_max_velocity_over_none_peer": pm["outage_max_error_m"]
             / pn["outage_max_error_m"],
+            "smoothed_outage_max_ours_over_peer": om["smoothed"]["outage_max_error_m"]
+            / pm["smoothed"]["outage_max_error_m"],
+            "smoothed_rmse_ours_over_peer": om["smoothed"]["rmse_m"] / pm["smoothed"]["rmse_m"],
         },
         "accuracy": {name: {k: columns[name][k] for k in METRICS} for name in (*OURS, *PEERS)},
         "runs": rows,
