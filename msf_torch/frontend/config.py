@@ -61,6 +61,17 @@ class EskfConfig:
     # IMU gaps
     imu_gap_s: float = 0.1  # a sample interval longer than this is a gap
     imu_gap_noise_scale: float = 100.0  # variance multiplier over a gap
+    # over a gap of T s the true rate and specific force leave the held sample as a random
+    # walk of this density per body axis [x, y, z]: the gap's pieces get white noise of
+    # density q^2 T^2 / 3 on top (rad/s^2/sqrt(Hz), m/s^3/sqrt(Hz); 0 turns it off; as the
+    # smoothers' keys of the same names)
+    imu_gap_gyro_rw_density: list[float] = field(default_factory=lambda: [0.005, 0.005, 0.06])
+    imu_gap_accel_rw_density: list[float] = field(default_factory=lambda: [0.2, 0.2, 0.02])
+    # the walk skips an epoch holding more gap than this, s (a blind dropout: no update in
+    # it; the walk's yaw sigma q_z sqrt(T^3 / 3) is 0.5 rad at 6 s): past it the updates
+    # after the gap do not recover from the walk's covariance, the divergence guard's reset
+    # does recover from the x imu_gap_noise_scale alone (docs/frontend.md, "Faulty input")
+    imu_gap_walk_max_blind_s: float = 6.0
     # runs of at least this many samples that lie exactly on the line through their
     # neighbours in all six channels were filled in by the recorder, not measured
     # (``sensors.imu_gaps``): they count as a gap too; 0 turns the check off
@@ -237,6 +248,7 @@ class EskfConfig:
             "zupt_sigma_mps",
             "imu_gap_s",
             "imu_gap_noise_scale",
+            "imu_gap_walk_max_blind_s",
             "slip_sensitivity",
             "pose_source_max_gap_s",
             "divergence_nis_scale",
@@ -281,6 +293,8 @@ class EskfConfig:
             "gnss_velocity_sigma_mps",
             "init_gyro_bias_radps",
             "init_accel_bias_mps2",
+            "imu_gap_gyro_rw_density",
+            "imu_gap_accel_rw_density",
         ):
             value = getattr(self, key)
             if len(value) != 3:

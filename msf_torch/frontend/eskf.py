@@ -404,11 +404,16 @@ class _EpochIncrements:
         gravity_mps2: float,
         background: bool = False,
         max_samples: int | None = None,
+        gap_walk: torch.Tensor | None = None,
+        gap_walk_max_blind_s: float = math.inf,
     ) -> None:
         """Args: sched: the batch's schedule (B, E, L). gyro_bias, accel_bias: (B, 3)
         linearisation biases. noise: the filter's noise. gravity_mps2: gravity, m/s^2.
         background: see the class docstring. max_samples: IMU pieces per chunk (default
-        :data:`INCREMENT_CHUNK_SAMPLES`)."""
+        :data:`INCREMENT_CHUNK_SAMPLES`). gap_walk: (6,) random-walk densities of the true
+        rate and specific force away from a sample held over a gap, per body axis (rad/s^2
+        and m/s^3 per sqrt(Hz); :func:`_gap_walk_covariance`), or None.
+        gap_walk_max_blind_s: the walk skips epochs that hold more gap than this, s."""
         batch, n_epochs, n_slots = sched.dt.shape
         max_samples = max_samples or INCREMENT_CHUNK_SAMPLES
         self.step = max(1, max_samples // max(1, batch * n_slots))
@@ -426,6 +431,10 @@ class _EpochIncrements:
                 accel_bias[:, None, :].expand(batch, count, 3),
                 sched.noise_scale[:, sl],
             )
+            if gap_walk is not None:
+                pre = _gap_walk_covariance(
+                    pre, gyro, accel, sched, sl, noise.imu, gap_walk, gap_walk_max_blind_s
+                )
             return _IncrementChunk(
                 start,
                 pre,
@@ -484,6 +493,61 @@ class _EpochIncrements:
         if self._executor is not None:
             self._executor.shutdown(wait=True, cancel_futures=True)
             self._executor = None
+
+
+def _gap_walk_covariance(
+    pre: Preintegrated,
+    gyro: torch.Tensor,
+    accel: torch.Tensor,
+    sched: Schedule,
+    sl: slice,
+    imu: ImuNoise,
+    walk: torch.Tensor,
+    max_blind_s: float,
+) -> Preintegrated:
+    """``pre`` (B, E_c) with the covariance of every epoch that holds gap pieces redone
+    per body axis: over a gap of ``T`` s the true rate and specific force leave the held
+    sample as a random walk of density ``q`` (``walk`` (6,), gyro x, y, z then accel), whose
+    integral over the gap has variance ``q^2 T^3 / 3``; each piece held in the gap gets
+    white noise of density ``q^2 T^2 / 3`` on top of ``imu_gap_noise_scale``, so the whole
+    gap carries that variance whatever epochs cut it (as the smoothers,
+    ``backend.window._gap_noise_scales``). As a multiplier of the filter's own density ``n``
+    (() or (B,)): ``scale + (q / n)^2 T^2 / 3``, through the exact per-axis covariance of
+    :func:`~msf_torch.sensors.imu.preintegrate`. gyro, accel: the chunk's held samples
+    (B, E_c, L, 3); the other epochs are left as they are, bit for bit.
+
+    An epoch that holds more than ``max_blind_s`` of gap (a dropout with no update inside,
+    e.g. every sensor silent) keeps the isotropic ``imu_gap_noise_scale`` only: with the
+    walk, such an epoch ends with a heading sigma of half a radian and more, from which the
+    linearised updates after it do not recover (they shrink the sigma while the error
+    stays, the fixes are then rejected and nothing resets the filter), whereas the smaller
+    covariance lets the returning fixes blow up the NIS, and the divergence guard's reset
+    recovers (``frontend.guard``; docs/frontend.md, "Faulty input")."""
+    length = sched.gap_length[:, sl]
+    blind = (sched.dt[:, sl] * (length > 0)).sum(-1)
+    rows = torch.nonzero((length.amax(-1) > 0) & (blind <= max_blind_s), as_tuple=True)
+    if rows[0].numel() == 0:
+        return pre
+    batch = length.shape[0]
+    density = torch.cat(
+        [imu.gyro_noise_density.expand(batch)[:, None].expand(batch, 3)]
+        + [imu.accel_noise_density.expand(batch)[:, None].expand(batch, 3)],
+        -1,
+    )[rows[0]]  # (G, 6)
+    extra = (walk / density)[:, None] ** 2 * length[rows][..., None] ** 2 / 3.0
+    redone = preintegrate(
+        gyro[rows],
+        accel[rows],
+        sched.dt[:, sl][rows],
+        pre.gyro_bias_lin[rows],
+        pre.accel_bias_lin[rows],
+        sched.noise_scale[:, sl][rows][..., None] + extra,
+    )
+    return dataclasses.replace(
+        pre,
+        cov_unit_gyro=pre.cov_unit_gyro.index_put(rows, redone.cov_unit_gyro),
+        cov_unit_accel=pre.cov_unit_accel.index_put(rows, redone.cov_unit_accel),
+    )
 
 
 def _local_process_noise(pre: Preintegrated, noise: EskfNoise) -> torch.Tensor:
@@ -1171,8 +1235,17 @@ def run_eskf(
         and torch.get_num_threads() >= 2
     )
     loop_threads = 1 if batch < 16 or background else torch.get_num_threads()
+    walk = [*cfg.imu_gap_gyro_rw_density, *cfg.imu_gap_accel_rw_density]
+    walk_on = any(walk) and bool(sched.gap.any())  # one check: runs without gaps skip it
     increments = _EpochIncrements(
-        sched, state.gyro_bias, state.accel_bias, noise, cfg.gravity_mps2, background
+        sched,
+        state.gyro_bias,
+        state.accel_bias,
+        noise,
+        cfg.gravity_mps2,
+        background,
+        gap_walk=torch.tensor(walk, dtype=dtype, device=device) if walk_on else None,
+        gap_walk_max_blind_s=cfg.imu_gap_walk_max_blind_s,
     )
     with contextlib.closing(increments), _intra_op_threads(loop_threads), interrupt:
         for e in range(n_epochs):

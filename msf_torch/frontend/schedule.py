@@ -38,7 +38,14 @@ its samples); the hot path never loops over B.
 
 from __future__ import annotations
 
-__all__ = ["UNMEASURED_SIGMA", "PairMemory", "Schedule", "build_schedule", "source_names"]
+__all__ = [
+    "UNMEASURED_SIGMA",
+    "PairMemory",
+    "Schedule",
+    "build_schedule",
+    "gap_lengths",
+    "source_names",
+]
 
 from dataclasses import dataclass
 
@@ -48,7 +55,7 @@ import torch
 from msf_torch.frontend.config import EskfConfig
 from msf_torch.geometry import so3
 from msf_torch.geometry.quaternion import quat_to_matrix
-from msf_torch.sensors.imu_gaps import interpolated_imu_samples
+from msf_torch.sensors.imu_gaps import filled_stretches, interpolated_imu_samples
 from msf_torch.types import PoseMeasurements, Sequence
 
 UNMEASURED_SIGMA = 1e6
@@ -99,6 +106,8 @@ class Schedule:
         imu_gyro, imu_accel: (B N, 3) the batch's raw IMU samples, flattened (views).
         dt: (B, E, L) piece durations, s (0 = padding).
         noise_scale: (B, E, L) IMU variance multipliers (gaps).
+        gap_length: (B, E, L) length of the IMU gap a piece is held over (or the filled-in
+            stretch it lies in, see :func:`gap_lengths`), s; 0 outside gaps.
         gap: (B, E) bool, the epoch contains an IMU gap.
         gyro_end: (B, E, 3) raw gyro held at the epoch end (for lever-arm terms).
         wheel_left, wheel_right: (B, E) rim speeds, m/s; wheel_mask (B, E).
@@ -135,6 +144,7 @@ class Schedule:
     imu_accel: torch.Tensor
     dt: torch.Tensor
     noise_scale: torch.Tensor
+    gap_length: torch.Tensor
     gap: torch.Tensor
     gyro_end: torch.Tensor
     wheel_left: torch.Tensor
@@ -188,6 +198,19 @@ def _merge_times(times: np.ndarray, tol: float) -> np.ndarray:
     times = np.sort(times, kind="stable")  # timsort: linear on a few concatenated sorted runs
     keep = np.concatenate(([True], np.diff(times) > tol))
     return times[keep]
+
+
+def gap_lengths(t: np.ndarray, spacing: np.ndarray, filled: np.ndarray, gap_s: float) -> np.ndarray:
+    """Per IMU sample, the length (s) of the gap it is held over or filled in, 0 for a
+    measured sample. ``t``, ``spacing`` (time to the next sample, s) and ``filled``
+    (:func:`~msf_torch.sensors.imu_gaps.interpolated_imu_samples`) are (T,); a spacing
+    above ``gap_s`` is a gap. A filled-in stretch's length runs from the real sample before
+    it to the one after it."""
+    length = np.where(spacing > gap_s, spacing, 0.0)
+    for first, end in zip(*filled_stretches(filled), strict=True):
+        stretch = t[min(end, t.size - 1)] - t[max(first - 1, 0)]
+        length[first:end] = np.maximum(length[first:end], stretch)
+    return length
 
 
 def _fill_gaps(times: np.ndarray, max_step: float) -> np.ndarray:
@@ -473,6 +496,7 @@ def build_schedule(
             cfg.imu_interpolated_min_samples,
         )
         gap_piece = (spacing[sample] > cfg.imu_gap_s) | filled[sample]
+        gap_length = gap_lengths(imu_t, spacing, filled, cfg.imu_gap_s)[sample]
         end_sample = np.searchsorted(imu_t, updates + tol, side="right") - 1
         end_sample = np.clip(end_sample, 0, imu_t.size - 1)
         # measurements at each epoch end
@@ -518,6 +542,7 @@ def build_schedule(
                 sample=sample,
                 piece_dt=piece_dt,
                 gap_piece=gap_piece,
+                gap_length=gap_length,
                 end_sample=end_sample,
                 imu_sel=imu_sel,
                 wheel=(wheel_idx, wheel_src),
@@ -546,6 +571,7 @@ def build_schedule(
     epoch_mask = np.zeros((batch, n_epochs), dtype=bool)
     dt = np.zeros((batch, n_epochs, n_slots))
     noise_scale = np.ones((batch, n_epochs, n_slots))
+    gap_length = np.zeros((batch, n_epochs, n_slots))
     gap = np.zeros((batch, n_epochs), dtype=bool)
     # index into the flattened (B N) IMU samples, padding at each sequence's first sample
     sample_index = np.empty((batch, n_epochs, n_slots), dtype=np.int64)
@@ -566,6 +592,7 @@ def build_schedule(
         piece = p["epoch"] * n_slots + p["slot"]  # index into the sequence's (E L) slots
         dt[b].reshape(-1)[piece] = p["piece_dt"]
         noise_scale[b].reshape(-1)[piece[p["gap_piece"]]] = cfg.imu_gap_noise_scale
+        gap_length[b].reshape(-1)[piece] = p["gap_length"]
         gap[b, p["epoch"][p["gap_piece"]]] = True
         sample_index[b] = b * seq.imu.length
         sample_index[b].reshape(-1)[piece] += p["imu_sel"][p["sample"]]
@@ -587,8 +614,8 @@ def build_schedule(
     def tensor(x: np.ndarray) -> torch.Tensor:
         return torch.as_tensor(x, device=device, dtype=dtype if x.dtype == np.float64 else None)
 
-    t_start, t_end, dt, noise_scale, source_gyro_mean = map(
-        tensor, (t_start, t_end, dt, noise_scale, source_gyro_mean)
+    t_start, t_end, dt, noise_scale, gap_length, source_gyro_mean = map(
+        tensor, (t_start, t_end, dt, noise_scale, gap_length, source_gyro_mean)
     )
     epoch_mask, gap, end_index, source_mask = map(tensor, (epoch_mask, gap, end_index, source_mask))
     source_end, source_start, sample_index = map(tensor, (source_end, source_start, sample_index))
@@ -664,6 +691,7 @@ def build_schedule(
         imu_accel=seq.imu.accel.reshape(-1, 3),
         dt=dt,
         noise_scale=noise_scale,
+        gap_length=gap_length,
         gap=gap,
         gyro_end=gyro_end,
         wheel_left=wheel_left,

@@ -267,7 +267,10 @@ def preintegrate(
         accel: (..., L, 3) raw specific force, m/s^2.
         dt: (..., L) hold time of each sample, s.
         gyro_bias, accel_bias: (..., 3) linearisation biases.
-        noise_scale: optional (..., L) variance multiplier per sample (e.g. IMU gaps).
+        noise_scale: optional variance multipliers (e.g. IMU gaps): (..., L) one per sample
+            (the closed-form covariance above), or (..., L, 6) one per sample and body axis,
+            gyro x, y, z then accel x, y, z (the exact per-sample noise maps of
+            :func:`_per_axis_covariance`; slower, for the epochs that need it).
     Returns:
         :class:`Preintegrated` with leading dims (...).
     """
@@ -346,7 +349,8 @@ def preintegrate(
         """``sum_j R_j X_j`` (N, 3, 3) from the transposed blocks ``X_j^T`` (N, 3, 3, L)."""
         return (block_t.reshape(batch, 3, 3 * length) @ rot_flat_t).mT
 
-    sum_gam2 = rotated_sum(_series_matrix(phi, c3 * dt2, dt2 * (0.5 - c3 * theta2), -(c2 * dt2)))
+    gam2_t = _series_matrix(phi, c3 * dt2, dt2 * (0.5 - c3 * theta2), -(c2 * dt2))
+    sum_gam2 = rotated_sum(gam2_t)
     # the vectors u_n of dG_n's u_n phi^T, with [phi]x^2 f = (phi . f) phi - t^2 f
     u_1 = series_vector(-(e2 * theta2 + 2.0 * c2), e1, e2)
     u_2 = series_vector(-(e3 * theta2 + 2.0 * c3), e2, e3)
@@ -362,8 +366,10 @@ def preintegrate(
         block.diagonal(dim1=1, dim2=2).add_((beta * dot)[..., None])
         return _add_hat(block, force, alpha)
 
-    sum_in_v = rotated_sum(jacobian_block(alpha_v, beta_v, vec_v))
-    sum_in_p = rotated_sum(jacobian_block(alpha_p, beta_p, vec_p))
+    in_v_t = jacobian_block(alpha_v, beta_v, vec_v)
+    in_p_t = jacobian_block(alpha_p, beta_p, vec_p)
+    sum_in_v = rotated_sum(in_v_t)
+    sum_in_p = rotated_sum(in_p_t)
 
     # Weighted sums of acc_v over samples, one contraction: weights 1 and T_L - T_{j+1}
     # (sum_acc_v, and with sum_gam2 sum_acc_p), and the lever terms
@@ -391,9 +397,51 @@ def preintegrate(
         -2,
     )
 
-    scale = torch.ones_like(dt) if noise_scale is None else noise_scale.reshape(batch, length)
+    if noise_scale is not None and noise_scale.dim() == len(lead) + 2:  # (..., L, 6)
+        cov_g, cov_a = _per_axis_covariance(
+            noise_scale.reshape(batch, length, 6),
+            dt,
+            rot_start,
+            delta_rotation,
+            acc_v,
+            (in_p_t, in_v_t, gam2_t),
+            levers,
+            remaining,
+        )
+    else:
+        scale = torch.ones_like(dt) if noise_scale is None else noise_scale.reshape(batch, length)
+        cov_g, cov_a = _closed_form_covariance(scale, dt, levers, remaining, delta_rotation)
+
+    def unflat(x: torch.Tensor) -> torch.Tensor:
+        return x.reshape(*lead, *x.shape[1:]) if lead else x[0]
+
+    return Preintegrated(
+        delta_t=unflat(delta_t),
+        delta_rotation=unflat(delta_rotation),
+        delta_velocity=unflat(delta_velocity),
+        delta_position=unflat(delta_position),
+        bias_jacobian=unflat(jac),
+        cov_unit_gyro=unflat(cov_g),
+        cov_unit_accel=unflat(cov_a),
+        gyro_bias_lin=gyro_bias,
+        accel_bias_lin=accel_bias,
+    )
+
+
+def _closed_form_covariance(
+    scale: torch.Tensor,
+    dt: torch.Tensor,
+    levers: torch.Tensor,
+    remaining: torch.Tensor,
+    delta_rotation: torch.Tensor,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Unit-density covariances (N, 9, 9) of :func:`preintegrate` with the noise maps at
+    zeroth order in ``w dt`` and one variance multiplier per sample, ``scale`` (N, L):
+    rotation-free weighted sums. ``dt`` (N, L) s; ``levers`` (N, 6, L) the levers ``D_j``,
+    ``C_j``; ``remaining`` (N, L) ``T_L - T_{j+1}``; ``delta_rotation`` (N, 3, 3)."""
     weight = scale * dt  # discrete variance (1/dt) times dt^2 from the maps
-    eye = so3.identity(dtype, device)
+    eye = so3.identity(dt.dtype, dt.device)
+    zeros = torch.zeros_like(delta_rotation)
     w_sum = weight.sum(-1)[:, None, None]
     weighted_levers = levers * weight[:, None]
     lever_sums = weighted_levers.sum(-1)
@@ -432,21 +480,73 @@ def preintegrate(
         ),
         -2,
     )
+    return cov_g, cov_a
 
-    def unflat(x: torch.Tensor) -> torch.Tensor:
-        return x.reshape(*lead, *x.shape[1:]) if lead else x[0]
 
-    return Preintegrated(
-        delta_t=unflat(delta_t),
-        delta_rotation=unflat(delta_rotation),
-        delta_velocity=unflat(delta_velocity),
-        delta_position=unflat(delta_position),
-        bias_jacobian=unflat(jac),
-        cov_unit_gyro=unflat(cov_g),
-        cov_unit_accel=unflat(cov_a),
-        gyro_bias_lin=gyro_bias,
-        accel_bias_lin=accel_bias,
+def _per_axis_covariance(
+    scale: torch.Tensor,
+    dt: torch.Tensor,
+    rot_start: torch.Tensor,
+    delta_rotation: torch.Tensor,
+    acc_v: torch.Tensor,
+    blocks_t: tuple[torch.Tensor, torch.Tensor, torch.Tensor],
+    levers: torch.Tensor,
+    remaining: torch.Tensor,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Unit-density covariances (N, 9, 9) of :func:`preintegrate` with one variance
+    multiplier per sample and body axis, ``scale`` (N, L, 6) (gyro x, y, z, accel x, y, z).
+
+    A noise sample held over piece j acts on the increments as a bias held there does, so
+    its exact first-order map is sample j's term of the bias Jacobian (the recursion
+    unrolled, with ``J_r``, ``Gamma_n`` and their derivatives at the sample's own rotation):
+
+        gyro:  [[C_j]x a_j - R_j P_j ; [D_j]x a_j - R_j V_j ; -R_L^T a_j]
+        accel: [-(T_L - T_{j+1}) a_j - R_j Gamma_2 dt^2 ; -a_j ; 0]
+
+    with ``a_j = R_j Gamma_1 dt`` (``acc_v``) and ``V_j``, ``P_j`` the sample-frame blocks
+    ``in_v``, ``in_p``. The covariance is ``sum_j M_j diag(scale_j / dt_j) M_j^T``: exact
+    for the linearised recursion whatever the rotation inside a piece (a gap's long held
+    piece turns by ``w T``), where the closed form is within O(|w| dt). A body-frame
+    per-axis variance does not commute with the rotations, which is why this path exists.
+
+    Args: ``rot_start`` (N, 3, 3, L) ``R_j``; ``delta_rotation`` (N, 3, 3) ``R_L``;
+    ``acc_v`` (N, 3, 3, L); ``blocks_t`` the transposed sample-frame blocks ``P_j^T``,
+    ``V_j^T``, ``(Gamma_2 dt^2)^T`` (N, 3, 3, L); the rest as
+    :func:`_closed_form_covariance`. Cost: a few (N, 9, 3 L) products, so the filter calls
+    it only on epochs with gap pieces.
+    """
+
+    def rotated(block_t: torch.Tensor) -> torch.Tensor:
+        """``R_j X_j`` per sample (N, 3, 3, L) from ``X_j^T``."""
+        return torch.einsum("nakl,nckl->nacl", rot_start, block_t)
+
+    def hat(vec: torch.Tensor) -> torch.Tensor:
+        """``[v_j]x`` (N, 3, 3, L) of vec (N, 3, L)."""
+        return so3.hat(vec.mT).permute(0, 2, 3, 1)
+
+    def lever_times(vec: torch.Tensor) -> torch.Tensor:
+        return torch.einsum("nakl,nkcl->nacl", hat(vec), acc_v)
+
+    in_p, in_v, gam2 = (rotated(b) for b in blocks_t)
+    gyro_map = torch.cat(
+        (
+            lever_times(levers[:, 3:]) - in_p,
+            lever_times(levers[:, :3]) - in_v,
+            -torch.einsum("nka,nkcl->nacl", delta_rotation, acc_v),
+        ),
+        1,
     )
+    zeros = torch.zeros_like(acc_v)
+    accel_map = torch.cat((-(remaining[:, None, None] * acc_v + gam2), -acc_v, zeros), 1)
+    # discrete white-noise variance scale / dt per axis (0 on padding)
+    held = dt.clamp_min(torch.finfo(dt.dtype).tiny)[..., None]
+    root = torch.where(dt[..., None] > 0, scale / held, 0.0).sqrt().mT  # (N, 6, L)
+
+    def gram(noise_map: torch.Tensor, root_var: torch.Tensor) -> torch.Tensor:
+        flat = (noise_map * root_var[:, None]).reshape(noise_map.shape[0], 9, -1)
+        return flat @ flat.mT
+
+    return gram(gyro_map, root[:, :3]), gram(accel_map, root[:, 3:])
 
 
 def propagate_nominal(

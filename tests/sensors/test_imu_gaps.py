@@ -126,7 +126,14 @@ def test_schedule_treats_the_filled_stretch_as_a_gap():
 
 def test_added_attitude_variance_matches_closed_form():
     seq, t, first, last = _run_with_filled_stretch()
-    base = EskfConfig(nhc="off", zupt=False, init_yaw_sigma_rad=0.05)
+    # the isotropic multiplier alone (the held sample's random walk off)
+    base = EskfConfig(
+        nhc="off",
+        zupt=False,
+        init_yaw_sigma_rad=0.05,
+        imu_gap_gyro_rw_density=[0.0] * 3,
+        imu_gap_accel_rw_density=[0.0] * 3,
+    )
     with torch.no_grad():
         on = run_eskf(seq, base)
         off = run_eskf(seq, dataclasses.replace(base, imu_interpolated_min_samples=0))
