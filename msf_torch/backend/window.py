@@ -154,13 +154,13 @@ from msf_torch.frontend.calibration import WHEEL_STATES
 from msf_torch.frontend.config import EskfConfig
 from msf_torch.frontend.eskf import EskfNoise, EskfResult, _intra_op_threads
 from msf_torch.frontend.keyframes import KeyframeConfig, select_keyframes
-from msf_torch.frontend.schedule import UNMEASURED_SIGMA
+from msf_torch.frontend.schedule import UNMEASURED_SIGMA, gap_lengths
 from msf_torch.geometry import so3
 from msf_torch.geometry.conventions import gravity_world
 from msf_torch.geometry.quaternion import matrix_to_quat
 from msf_torch.io.yaml_files import did_you_mean, named_key, read_yaml
 from msf_torch.sensors.imu import Preintegrated, propagate_nominal
-from msf_torch.sensors.imu_gaps import filled_stretches, interpolated_imu_samples
+from msf_torch.sensors.imu_gaps import interpolated_imu_samples
 from msf_torch.types import Sequence, Trajectory
 
 _GROUP = "state"
@@ -674,22 +674,6 @@ def _wheel_intervals(
     return index, increment[None], covariance[None], samples
 
 
-def _gap_lengths(
-    t: torch.Tensor, spacing: torch.Tensor, filled: torch.Tensor, gap_s: float
-) -> torch.Tensor:
-    """Per sample of one IMU stream, the length (s) of the gap it is held over or filled in,
-    0 for a measured sample. ``t``, ``spacing`` (time to the next sample, s) and ``filled``
-    (:func:`~msf_torch.sensors.imu_gaps.interpolated_imu_samples`) are (T,); a spacing
-    above ``gap_s`` is a gap. A filled-in stretch's length runs from the real sample before
-    it to the one after it."""
-    length = torch.where(spacing > gap_s, spacing, 0.0)
-    starts, ends = filled_stretches(filled.cpu().numpy())
-    for first, end in zip(starts.tolist(), ends.tolist(), strict=True):
-        stretch = t[min(end, t.numel() - 1)] - t[max(first - 1, 0)]
-        length[first:end] = torch.maximum(length[first:end], stretch)
-    return length
-
-
 def _gap_noise_scales(
     length: torch.Tensor, cfg: EskfConfig, smoother: SmootherConfig
 ) -> torch.Tensor:
@@ -764,11 +748,11 @@ def build_graph(
     imu_t = seq.imu.t[0, imu_keep]
     gyro, accel = seq.imu.gyro[0, imu_keep], seq.imu.accel[0, imu_keep]
     spacing = torch.cat((imu_t[1:] - imu_t[:-1], imu_t.new_zeros(1)))
-    filled = torch.as_tensor(
-        interpolated_imu_samples(imu_t, gyro, accel, cfg.imu_interpolated_min_samples),
-        device=imu_t.device,
+    filled = interpolated_imu_samples(imu_t, gyro, accel, cfg.imu_interpolated_min_samples)
+    length = gap_lengths(
+        imu_t.detach().cpu().numpy(), spacing.detach().cpu().numpy(), filled, cfg.imu_gap_s
     )
-    gap_length = _gap_lengths(imu_t, spacing, filled, cfg.imu_gap_s)
+    gap_length = torch.as_tensor(length, dtype=dtype, device=imu_t.device)
     scales = _gap_noise_scales(gap_length, cfg, smoother)
     cut = cut_imu(imu_t, gyro, accel, t)
     noise_scale = cut_imu(imu_t, scales[:, :3], scales[:, 3:], t)

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 
+import numpy as np
 import pytest
 import torch
 
@@ -17,6 +18,7 @@ from msf_torch.backend.preintegration import cut_imu, recursive_covariance
 from msf_torch.eval.metrics import ate
 from msf_torch.frontend.config import EskfConfig, config_for_sequence, load_config
 from msf_torch.frontend.eskf import run_eskf
+from msf_torch.frontend.schedule import gap_lengths
 from msf_torch.sim import SimConfig, simulate_run
 
 DTYPE = torch.float64
@@ -34,7 +36,8 @@ def test_gap_heading_variance_is_the_random_walk_integral(keyframes):
     spacing = torch.cat((t[1:] - t[:-1], t.new_zeros(1)))
     cfg = EskfConfig()
     smoother = W.SmootherConfig()
-    length = W._gap_lengths(t, spacing, torch.zeros(t.numel(), dtype=torch.bool), cfg.imu_gap_s)
+    still = np.zeros(t.numel(), dtype=bool)  # no filled-in stretch
+    length = torch.as_tensor(gap_lengths(t.numpy(), spacing.numpy(), still, cfg.imu_gap_s))
     assert float(length.max()) == pytest.approx(10.0) and int((length > 0).sum()) == 1
     scales = W._gap_noise_scales(length, cfg, smoother)
     knots = torch.tensor(keyframes, dtype=DTYPE)
