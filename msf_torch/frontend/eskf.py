@@ -114,7 +114,7 @@ from msf_torch.frontend.guard import (
     sanitize_sequence,
 )
 from msf_torch.frontend.init import initial_state
-from msf_torch.frontend.schedule import PairMemory, Schedule, build_schedule
+from msf_torch.frontend.schedule import UNMEASURED_SIGMA, PairMemory, Schedule, build_schedule
 from msf_torch.frontend.slip import slip_factor
 from msf_torch.frontend.source_frames import (
     FRAME_DIM,
@@ -1076,6 +1076,9 @@ def run_eskf(
         [k in ("gnss", "gnss_velocity", "pose") or k in source_col for k in active], device=device
     )
     velocity_col = active.index("gnss_velocity") if "gnss_velocity" in active else None
+    # a horizontal-only GNSS velocity (no up component) is gated with two degrees of freedom
+    horizontal_only = sched.gnss_velocity_sigma[..., 2] >= UNMEASURED_SIGMA  # (B, E)
+    two_dof = chi2_threshold(2, cfg.gate_probability)
     present_all = torch.stack([present[k] for k in active], -1) if active else None
     adaptation = BlockAdaptation(
         active,
@@ -1636,7 +1639,13 @@ def run_eskf(
             chol_b, info_b = torch.linalg.cholesky_ex(s_blocks)
             white = torch.linalg.solve_triangular(chol_b, r_all[..., None], upper=False)
             nis = ((white[..., 0] ** 2) @ segment) * here
-            ok = here & (nis < threshold)
+            gate = threshold
+            if velocity_col is not None and bool(here[:, velocity_col].any()):
+                gate = threshold.expand(batch, -1).clone()
+                gate[:, velocity_col] = torch.where(
+                    horizontal_only[:, e], two_dof, threshold[velocity_col]
+                )
+            ok = here & (nis < gate)
             reopening = here & reopen & (guard.streak >= cfg.gate_reopen_after)
             if velocity_col is not None:
                 # a GNSS velocity that disagrees while another re-openable block (a fix, a

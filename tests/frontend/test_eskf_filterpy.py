@@ -216,3 +216,53 @@ def test_gnss_velocity_updates_equal_filterpy_on_linear_problem(seed):
     # the velocities moved the estimate: without them it differs by far more than 1e-9
     plain = run_eskf(_problem(seed)[0], cfg)
     assert float((plain.velocity[0, -1] - res.velocity[0, -1]).abs().max()) > 1e-3
+
+
+def _predicted_at(t, f, g_idx, fixes, sigma, x0, p0, stop):
+    """filterpy's state and covariance at IMU sample ``stop``, predicted, before any update
+    there (the fixes before it fused)."""
+    kf = KalmanFilter(dim_x=6, dim_z=3)
+    kf.x, kf.P = x0.reshape(6, 1).copy(), p0.copy()
+    kf.H = np.hstack((np.eye(3), np.zeros((3, 3))))
+    fix_at = {int(k): i for i, k in enumerate(g_idx)}
+    eye = np.eye(3)
+    for k in range(stop):
+        dt = t[k + 1] - t[k]
+        kf.F = np.block([[eye, dt * eye], [0 * eye, eye]])
+        kf.B = np.vstack((0.5 * dt**2 * eye, dt * eye))
+        kf.Q = ACCEL_DENSITY**2 * np.block(
+            [[dt**3 / 4 * eye, dt**2 / 2 * eye], [dt**2 / 2 * eye, dt * eye]]
+        )
+        kf.predict(u=(f[k] + np.array([0.0, 0.0, -G])).reshape(3, 1))
+        if k + 1 in fix_at and k + 1 < stop:
+            i = fix_at[k + 1]
+            kf.update(fixes[i].reshape(3, 1), R=np.diag(sigma[i] ** 2))
+    return kf.x[:, 0], kf.P
+
+
+@pytest.mark.parametrize("up_given", [False, True])
+def test_a_horizontal_only_velocity_is_gated_with_two_degrees_of_freedom(up_given):
+    """A velocity whose horizontal innovation has NIS 20: above the 2-dof gate (18.42 at
+    0.9999), below the 3-dof one (21.11). Without an up component it is rejected; with one
+    that agrees with the prediction (NIS + 0) it passes."""
+    seq, t, f, g_idx, fixes, sigma = _problem(64)
+    cfg = _config().replace(gate_probability=0.9999)
+    state0, cov0 = initial_state(seq, cfg)
+    x0 = torch.cat((state0.position[0], state0.velocity[0])).numpy()
+    k, sigma_v = 35, np.array([0.1, 0.1, 0.1])
+    x, p = _predicted_at(t, f, g_idx, fixes, sigma, x0, cov0[0, :6, :6].numpy(), k)
+    s = p[3:5, 3:5] + np.diag(sigma_v[:2] ** 2)
+    direction = np.array([1.0, 0.0])
+    offset = direction * np.sqrt(20.0 / (direction @ np.linalg.solve(s, direction)))
+    value = np.append(x[3:5] + offset, x[5] if up_given else np.nan)
+    seq.gnss_velocity = GnssVelocity(
+        t=torch.tensor([[t[k]]]),
+        velocity=torch.as_tensor(value)[None, None],
+        sigma=torch.as_tensor(sigma_v)[None, None],
+        mask=torch.ones(1, 1, dtype=torch.bool),
+    )
+    result = run_eskf(seq, cfg)
+    at = result.present["gnss_velocity"][0]
+    assert int(at.sum()) == 1
+    assert float(result.nis["gnss_velocity"][0, at]) == pytest.approx(20.0, rel=1e-6)
+    assert bool(result.accepted["gnss_velocity"][0, at]) == up_given
