@@ -160,7 +160,7 @@ from msf_torch.geometry.conventions import gravity_world
 from msf_torch.geometry.quaternion import matrix_to_quat
 from msf_torch.io.yaml_files import did_you_mean, named_key, read_yaml
 from msf_torch.sensors.imu import Preintegrated, propagate_nominal
-from msf_torch.sensors.imu_gaps import interpolated_imu_samples
+from msf_torch.sensors.imu_gaps import gap_walk_scale, interpolated_imu_samples
 from msf_torch.types import Sequence, Trajectory
 
 _GROUP = "state"
@@ -698,7 +698,7 @@ def _gap_noise_scales(
     density = torch.tensor(
         [cfg.gyro_noise_density] * 3 + [cfg.accel_noise_density] * 3, dtype=dtype
     )
-    held = cfg.imu_gap_noise_scale + (walk / density) ** 2 * length[:, None] ** 2 / 3.0
+    held = cfg.imu_gap_noise_scale + gap_walk_scale(length, walk, density)
     return torch.where(length[:, None] > 0, held, 1.0).to(dtype)
 
 

@@ -141,6 +141,7 @@ from msf_torch.sensors.calibration import (
 )
 from msf_torch.sensors.gnss import gnss_residual, gnss_velocity_residual
 from msf_torch.sensors.imu import ImuNoise, Preintegrated, preintegrate, propagate_nominal
+from msf_torch.sensors.imu_gaps import gap_walk_scale
 from msf_torch.sensors.pose import (
     drifting_frame_offset,
     drifting_frame_pose_residual,
@@ -510,11 +511,12 @@ def _gap_walk_covariance(
     sample as a random walk of density ``q`` (``walk`` (6,), gyro x, y, z then accel), whose
     integral over the gap has variance ``q^2 T^3 / 3``; each piece held in the gap gets
     white noise of density ``q^2 T^2 / 3`` on top of ``imu_gap_noise_scale``, so the whole
-    gap carries that variance whatever epochs cut it (as the smoothers,
-    ``backend.window._gap_noise_scales``). As a multiplier of the filter's own density ``n``
-    (() or (B,)): ``scale + (q / n)^2 T^2 / 3``, through the exact per-axis covariance of
-    :func:`~msf_torch.sensors.imu.preintegrate`. gyro, accel: the chunk's held samples
-    (B, E_c, L, 3); the other epochs are left as they are, bit for bit.
+    gap carries that variance whatever epochs cut it
+    (:func:`~msf_torch.sensors.imu_gaps.gap_walk_scale`, as in the smoothers). As a
+    multiplier of the filter's own density ``n`` (() or (B,)): ``scale + (q / n)^2 T^2 /
+    3``, through the exact per-axis covariance of :func:`~msf_torch.sensors.imu.preintegrate`.
+    gyro, accel: the chunk's held samples (B, E_c, L, 3); the other epochs are left as they
+    are, bit for bit.
 
     An epoch that holds more than ``max_blind_s`` of gap (a dropout with no update inside,
     e.g. every sensor silent) keeps the isotropic ``imu_gap_noise_scale`` only: with the
@@ -534,7 +536,7 @@ def _gap_walk_covariance(
         + [imu.accel_noise_density.expand(batch)[:, None].expand(batch, 3)],
         -1,
     )[rows[0]]  # (G, 6)
-    extra = (walk / density)[:, None] ** 2 * length[rows][..., None] ** 2 / 3.0
+    extra = gap_walk_scale(length[rows], walk, density[:, None])  # (G, L, 6)
     redone = preintegrate(
         gyro[rows],
         accel[rows],

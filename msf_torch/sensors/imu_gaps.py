@@ -19,7 +19,7 @@ vehicle's unknown motion, not the sensor's.
 
 from __future__ import annotations
 
-__all__ = ["filled_stretches", "interpolated_imu_samples"]
+__all__ = ["filled_stretches", "gap_walk_scale", "interpolated_imu_samples"]
 
 import numpy as np
 import torch
@@ -97,3 +97,27 @@ def filled_stretches(flags: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """
     edges = np.diff(np.asarray(flags).astype(np.int8), prepend=np.int8(0), append=np.int8(0))
     return np.nonzero(edges == 1)[0], np.nonzero(edges == -1)[0]
+
+
+def gap_walk_scale(
+    length: torch.Tensor, walk: torch.Tensor, density: torch.Tensor
+) -> torch.Tensor:
+    """Extra white-noise variance of an IMU sample held over a gap, as a multiplier of the
+    sensor's own noise variance: ``(q / n)^2 T^2 / 3`` per channel.
+
+    Over a gap of ``T`` s the true rate and specific force leave the held sample as a
+    random walk of density ``q``; its integral over the gap has variance ``q^2 T^3 / 3``.
+    White noise of density ``q^2 T^2 / 3`` on each piece held in the gap gives the gap that
+    variance whatever epochs or keyframes cut it. The front end and the smoothers add this
+    to ``imu_gap_noise_scale``.
+
+    Args:
+        length: (...,) the gap each sample is held over, s (0: a measured sample).
+        walk: (6,) ``q``: gyro x, y, z (rad/s^2/sqrt(Hz)) then accelerometer (m/s^3/sqrt(Hz)).
+        density: (..., 6) or (6,) ``n``, the sensors' white-noise densities, broadcast
+            against ``length[..., None]``.
+
+    Returns:
+        (..., 6) multipliers (0 where ``length`` is 0).
+    """
+    return (walk / density) ** 2 * length[..., None] ** 2 / 3.0
