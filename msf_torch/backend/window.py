@@ -489,13 +489,13 @@ class KeyframeGraph:
             return keep, index[keep] - first, index[keep] + 1 - first
 
         if first == 0 and stop > 0:
-            zero = torch.zeros(1, dtype=torch.long)
+            zero = torch.zeros(1, dtype=torch.long, device=self.t.device)
             out.append(
                 F.NavStatePriorFactor(_GROUP, zero, self.initial[:, :1], self.prior_covariance)
             )
             if self.calibration_prior is not None:
                 out.append(F.VectorPriorFactor(_CALIB, zero, *self.calibration_prior))
-        intervals = torch.arange(self.size - 1)
+        intervals = torch.arange(self.size - 1, device=self.t.device)
         keep, i, j = binary(intervals)
         if i.numel():
             out.append(
@@ -621,11 +621,11 @@ def _wheel_intervals(
     wheel = seq.wheel
     keep = wheel.mask[0]
     stamp = wheel.t[0, keep]
-    dtype = stamp.dtype
+    dtype, device = stamp.dtype, stamp.device
     empty = (
-        torch.zeros(0, dtype=torch.long),
-        torch.zeros(1, 0, 3, dtype=dtype),
-        torch.zeros(1, 0, 3, 3, dtype=dtype),
+        torch.zeros(0, dtype=torch.long, device=device),
+        torch.zeros(1, 0, 3, dtype=dtype, device=device),
+        torch.zeros(1, 0, 3, 3, dtype=dtype, device=device),
     )
     if stamp.numel() < 2:
         return (*empty, None)
@@ -640,7 +640,7 @@ def _wheel_intervals(
     lo = torch.minimum(start[:1], keyframe_times[:1])
     hi = torch.maximum(stamp[-1:], keyframe_times[-1:])
     times = torch.cat((lo, start, stamp[-1:], hi))
-    filler = torch.tensor([[0.0, 0.0, 1.0, 0.0]], dtype=dtype)
+    filler = torch.tensor([[0.0, 0.0, 1.0, 0.0]], dtype=dtype, device=device)
     channels = torch.cat((filler, channels, filler, filler))
     # equal times: cut_imu keeps zero-length pieces out; the stable sort keeps order
     cut = _cut_channels(times, channels, keyframe_times)
@@ -691,12 +691,14 @@ def _gap_noise_scales(
     by every keyframe interval inside the gap, while the IMU factors are independent: the
     gap is given white noise of density ``q^2 T^2 / 3`` instead, whose integral over the
     whole gap has the same variance whatever keyframes fall inside it."""
-    dtype = length.dtype
+    dtype, device = length.dtype, length.device
     walk = torch.tensor(
-        [*smoother.imu_gap_gyro_rw_density, *smoother.imu_gap_accel_rw_density], dtype=dtype
+        [*smoother.imu_gap_gyro_rw_density, *smoother.imu_gap_accel_rw_density],
+        dtype=dtype,
+        device=device,
     )
     density = torch.tensor(
-        [cfg.gyro_noise_density] * 3 + [cfg.accel_noise_density] * 3, dtype=dtype
+        [cfg.gyro_noise_density] * 3 + [cfg.accel_noise_density] * 3, dtype=dtype, device=device
     )
     held = cfg.imu_gap_noise_scale + gap_walk_scale(length, walk, density)
     return torch.where(length[:, None] > 0, held, 1.0).to(dtype)
@@ -723,7 +725,7 @@ def build_graph(
     cfg = smoother.apply_noise(cfg)
     if seq.batch_size != 1 or frontend.t.shape[0] != 1:
         raise ValueError(f"the smoothers take one sequence (B = 1), got B = {seq.batch_size}")
-    dtype = frontend.t.dtype
+    dtype, device = frontend.t.dtype, frontend.t.device
     force = frontend.present["gnss"] & frontend.mask
     if smoother.gnss_velocity and "gnss_velocity" in frontend.present:
         force = force | (frontend.present["gnss_velocity"] & frontend.mask)
@@ -764,7 +766,7 @@ def build_graph(
         noise_scale=noise_scale.gyro[None],
         accel_noise_scale=noise_scale.accel[None],
     )
-    noise = EskfNoise.from_config(cfg, dtype)
+    noise = EskfNoise.from_config(cfg, dtype, device)
     imu_cov = imu_covariance(pre, noise.imu)
     # a piece's accelerometer noise drives dp and dv along one direction: an interval of one
     # or two pieces has a (nearly) singular covariance; a 1e-6 relative diagonal floor keeps
@@ -793,9 +795,9 @@ def build_graph(
     gnss_velocity_covariance = torch.diag_embed(velocity_sigma**2)
 
     # wheels
-    wheel_index = torch.zeros(0, dtype=torch.long)
-    wheel_increment = torch.zeros(1, 0, 3, dtype=dtype)
-    wheel_covariance = torch.zeros(1, 0, 3, 3, dtype=dtype)
+    wheel_index = torch.zeros(0, dtype=torch.long, device=device)
+    wheel_increment = torch.zeros(1, 0, 3, dtype=dtype, device=device)
+    wheel_covariance = torch.zeros(1, 0, 3, 3, dtype=dtype, device=device)
     wheel_samples = None
     if smoother.wheel and seq.wheel is not None and bool(seq.wheel.mask.any()):
         wheel_index, wheel_increment, wheel_covariance, wheel_samples = _wheel_intervals(
@@ -812,29 +814,31 @@ def build_graph(
         calibration_initial, calibration_prior = _wheel_calibration_prior(frontend, cfg, dtype)
 
     # pseudo-measurements where the front end applied them
-    nhc_index = torch.zeros(0, dtype=torch.long)
+    nhc_index = torch.zeros(0, dtype=torch.long, device=device)
     if smoother.nhc:
         nhc_index = torch.nonzero(frontend.present["nhc"][0, epoch]).squeeze(-1)
     held = (torch.searchsorted(imu_t, t + cfg.time_tolerance_s, right=True) - 1).clamp_min(0)
     nhc_gyro = gyro[held][nhc_index][None]
     gnss_velocity_gyro = gyro[held][gnss_velocity_index][None]
-    nhc_covariance = (cfg.nhc_sigma_mps**2 * torch.eye(2, dtype=dtype)).expand(
+    nhc_covariance = (cfg.nhc_sigma_mps**2 * torch.eye(2, dtype=dtype, device=device)).expand(
         1, nhc_index.numel(), 2, 2
     )
-    zupt_index = torch.zeros(0, dtype=torch.long)
+    zupt_index = torch.zeros(0, dtype=torch.long, device=device)
     if smoother.zero_velocity:
         zupt_index = torch.nonzero(frontend.present["zupt"][0, epoch]).squeeze(-1)
-    zupt_covariance = (cfg.zupt_sigma_mps**2 * torch.eye(3, dtype=dtype)).expand(
+    zupt_covariance = (cfg.zupt_sigma_mps**2 * torch.eye(3, dtype=dtype, device=device)).expand(
         1, zupt_index.numel(), 3, 3
     )
     plane_covariance = None
     if smoother.plane:
         tilt, height = smoother.plane_tilt_sigma_rad, smoother.plane_height_sigma_m
-        plane_covariance = torch.diag(torch.tensor([tilt**2, tilt**2, height**2], dtype=dtype))
+        plane_covariance = torch.diag(
+            torch.tensor([tilt**2, tilt**2, height**2], dtype=dtype, device=device)
+        )
         plane_covariance = plane_covariance[None, None]
 
     def arm(values: list[float]) -> torch.Tensor:
-        return torch.tensor(values, dtype=dtype)
+        return torch.tensor(values, dtype=dtype, device=device)
 
     return KeyframeGraph(
         t=t,
@@ -843,7 +847,7 @@ def build_graph(
         prior_covariance=prior_covariance,
         imu=pre,
         imu_covariance=imu_cov,
-        gravity=gravity_world(cfg.gravity_mps2, dtype),
+        gravity=gravity_world(cfg.gravity_mps2, dtype, device),
         gnss_index=gnss_index,
         gnss_position=gnss_position,
         gnss_covariance=gnss_covariance,
@@ -876,10 +880,10 @@ def _at_keyframes(
     """A GNSS stream's samples at keyframe times ``t`` (K,) s (within ``tol``): keyframe
     indices (G,), the ``field`` values (1, G, 3) and sigmas (1, G, 3), a sigma that is not
     finite and positive replaced by ``default_sigma`` (as the front end reads them)."""
-    dtype = t.dtype
+    dtype, device = t.dtype, t.device
     if stream is None or not bool(stream.mask.any()):
-        empty = torch.zeros(1, 0, 3, dtype=dtype)
-        return torch.zeros(0, dtype=torch.long), empty, empty.clone()
+        empty = torch.zeros(1, 0, 3, dtype=dtype, device=device)
+        return torch.zeros(0, dtype=torch.long, device=device), empty, empty.clone()
     keep = stream.mask[0]
     times = stream.t[0, keep]
     nearest = torch.searchsorted(t, times).clamp(1, t.numel() - 1)
@@ -888,7 +892,7 @@ def _at_keyframes(
     matched = (t[nearest] - times).abs() <= tol
     values = getattr(stream, field)[:, keep][:, matched]
     sigma = stream.sigma[:, keep][:, matched]
-    default = torch.tensor(default_sigma, dtype=dtype)
+    default = torch.tensor(default_sigma, dtype=dtype, device=device)
     sigma = torch.where(torch.isfinite(sigma) & (sigma > 0), sigma, default)
     return nearest[matched], values, sigma
 
@@ -899,12 +903,16 @@ def _wheel_calibration_prior(
     """Starting value (1, 1, 3) of ``[k_l, k_r, D]`` and its prior mean (1, 1, 3) and
     covariance (1, 1, 3, 3): the front end's initial calibration and sigmas; the start is
     the front end's final estimate when it calibrated its wheels, else the prior mean."""
+    device = frontend.t.device
     mean = torch.tensor(
-        [*map(float, cfg.calibration_wheel_radius_ratio), float(cfg.wheel_track_m)], dtype=dtype
+        [*map(float, cfg.calibration_wheel_radius_ratio), float(cfg.wheel_track_m)],
+        dtype=dtype,
+        device=device,
     )
     sigma = torch.tensor(
         [cfg.calibration_wheel_radius_sigma] * 2 + [cfg.calibration_wheel_track_sigma_m],
         dtype=dtype,
+        device=device,
     )
     start = mean
     names = frontend.calibration_names
@@ -1199,7 +1207,7 @@ def _marginalize(
     else:
         raise FloatingPointError(f"marginal Hessian of keyframes {start}:{stop} not definite")
     offset = torch.linalg.solve_triangular(chol, g_marg[..., None], upper=False).squeeze(-1)
-    slots = ((_GROUP, torch.zeros(1, dtype=torch.long)),)
+    slots = ((_GROUP, torch.zeros(1, dtype=torch.long, device=values.device)),)
     origin = [values[:, stop : stop + 1]]
     return F.MarginalPriorFactor(slots, origin, chol.mT[:, None], offset[:, None])
 
@@ -1208,7 +1216,7 @@ def _predict(graph: KeyframeGraph, state: torch.Tensor, interval: int) -> torch.
     """Nav state (1, 21) at keyframe ``interval + 1`` from ``state`` (1, 21) at keyframe
     ``interval`` through the bias-corrected IMU increments (dead reckoning)."""
     position, velocity, rotation, gyro_bias, accel_bias = unpack_nav_state(state)
-    pre = _slice_pre(graph.imu, torch.tensor([interval]))
+    pre = _slice_pre(graph.imu, torch.tensor([interval], device=state.device))
     d_rot, d_vel, d_pos = pre.corrected(gyro_bias[:, None], accel_bias[:, None])
     p, v, r = propagate_nominal(
         position,
@@ -1253,7 +1261,7 @@ def smooth_window(
     values = graph.initial.clone()
     output = graph.initial.clone()
     dim = NAV_STATE.tangent_dim
-    covariance = torch.zeros(1, count, dim, dim, dtype=values.dtype)
+    covariance = torch.zeros(1, count, dim, dim, dtype=values.dtype, device=values.device)
     results: list[LMResult] = []
     marginal: F.MarginalPriorFactor | None = None
     # keyframes before `filled` hold a starting value: the first window the front end's
@@ -1492,7 +1500,7 @@ def smooth(
             t=graph.t[None],
             position=position,
             quaternion=matrix_to_quat(rotation),
-            mask=torch.ones(1, graph.size, dtype=torch.bool),
+            mask=torch.ones(1, graph.size, dtype=torch.bool, device=graph.t.device),
         )
     return SmootherResult(
         mode=mode,
