@@ -116,11 +116,11 @@ def run_features(
         wheel_hold_s: a wheel reading counts as present for this long after its stamp, s.
 
     Returns:
-        :class:`RunFeatures` with W = ``(N_imu - 1) // L`` windows, float32 signals.
-
-    Raises:
-        ValueError: the run is too short for one window (the message names it).
+        :class:`RunFeatures` with W = ``(N_imu - 1) // L`` windows, float32 signals, on the
+        CPU whatever ``seq``'s device (the windowing and statistics run in numpy, the
+        reference pass on the CPU copy).
     """
+    seq = seq.to("cpu")
     imu = seq.imu.compact()
     t = imu.t[0].numpy()
     windows = (t.size - 1) // window_length

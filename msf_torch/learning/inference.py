@@ -64,7 +64,7 @@ from msf_torch.learning.covnet import (
     scaled_noise,
     scaled_pose_covariance,
 )
-from msf_torch.learning.features import pose_source_of, run_features
+from msf_torch.learning.features import RunFeatures, pose_source_of, run_features
 from msf_torch.types import ImuSamples, Sequence
 
 DEFAULT_CHECKPOINT = (
@@ -300,12 +300,15 @@ def window_scales(
     features = run_features(seq, net.window_length, net.pose_sources, net.weather_classes, cfg)
     labels = features.weather
     weather = labels if use_labels else torch.full_like(labels, net.unknown_weather)
+    on_model = next(model.parameters()).device
+    features = RunFeatures(**{k: v.to(on_model) for k, v in vars(features).items()})
+    weather = weather.to(on_model)
     with torch.no_grad():
         out = model(
             features.imu, features.wheel, features.wheel_present, features.residual_stats, weather
         )
         scales = apply_fusion_weights(out.log_scales, out.fusion_weights, net.pose_sources)
-    scales = scales.double()
+    scales = scales.to(device=seq.imu.t.device, dtype=torch.float64)
     windows = scales.shape[0]
     step = chunk_windows if granularity == "chunk" else windows
     for w0 in range(0, windows, step):
@@ -317,7 +320,7 @@ def window_scales(
         chunk_windows=step,
         labels=labels,
         from_labels=use_labels and bool((labels != net.unknown_weather).any()),
-        inferred=out.weather_logits.argmax(-1),
+        inferred=out.weather_logits.argmax(-1).cpu(),
     )
 
 
