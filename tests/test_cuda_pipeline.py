@@ -1,0 +1,177 @@
+"""The whole estimator on CUDA gives the CPU's answers (skipped without a GPU).
+
+One 20-s simulated drive holding every stream the front end fuses (IMU with a 3-s dropout,
+wheels with a slip episode, GNSS fixes and velocities, visual and LiDAR odometry under a
+weather schedule, the source-fault detector on) runs on the CPU and on ``MSF_TEST_DEVICE``
+(default ``cuda``): the front end, the front end fed piece by piece, both smoothers, the
+shipped CovNet checkpoint's noise and a gradient through the filter. The CPU results are
+the reference; cuSOLVER / cuBLAS round differently from LAPACK, so positions are compared
+to 1e-8 m (the back end's CUDA check measured 3.4e-9 m), gate decisions exactly.
+
+Measured on an H200 (torch 2.11 + CUDA 13.0, 2026-11-28): 8 passed with this file and
+``tests/backend/test_backend_cuda.py``; smoothed positions 2.5e-10 m (full) and 8.4e-11 m
+(window) from the CPU's, marginal covariances 5.7e-6 / 1.6e-6 of ``sigma_i sigma_j``. The
+first run found the smoothers' graph built partly on the CPU (the IMU-gap noise, gravity,
+the IMU noise, index and empty tensors) and the CovNet features read with numpy from
+device tensors.
+
+``MSF_TEST_DEVICE=cpu pytest tests/test_cuda_pipeline.py`` runs the same checks CPU
+against CPU (to check the test itself on a machine without a GPU).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+from pathlib import Path
+
+import pytest
+import torch
+
+from msf_torch.backend import window as W
+from msf_torch.frontend.config import EskfConfig, config_for_sequence
+from msf_torch.frontend.eskf import EskfNoise, run_eskf
+from msf_torch.frontend.init import initial_state
+from msf_torch.frontend.stream import EskfStream, concat_results, time_slice
+from msf_torch.learning.inference import learned_scales, load_learned, run_piecewise
+from msf_torch.sim import SimConfig, simulate_run
+from msf_torch.sim.weather import WeatherSchedule, apply_weather
+
+DEVICE = os.environ.get("MSF_TEST_DEVICE", "cuda")
+CHECKPOINT = Path(__file__).resolve().parents[1] / "checkpoints" / "covnet_weather.pt"
+KEYS = ("wheel", "gnss", "gnss_velocity", "pose:vo", "pose:lidar")
+
+pytestmark = pytest.mark.skipif(
+    DEVICE == "cuda" and not torch.cuda.is_available(), reason="needs CUDA"
+)
+
+
+@pytest.fixture(scope="module")
+def drive():
+    """The drive (IMU samples inside 9..12 s dropped) and its filter settings."""
+    sim = SimConfig(duration_s=20.0, gnss_velocity=True, slip_episodes=1, gnss_outage_count=0)
+    wet = apply_weather(simulate_run(sim, seed=5), WeatherSchedule.random(20.0, seed=2), seed=3)
+    seq = wet.sequence
+    keep = (seq.imu.t[0] <= 9.0) | (seq.imu.t[0] >= 12.0)
+    seq = dataclasses.replace(seq, imu=seq.imu.map(lambda x: x[:, keep]))
+    cfg = config_for_sequence(EskfConfig(source_fault_detection=True), seq.meta, set())
+    return seq, cfg
+
+
+def _largest(a: torch.Tensor, b: torch.Tensor) -> float:
+    """Largest absolute difference of two same-shape tensors, ``b`` brought to ``a``'s device;
+    NaN where they are NaN in different places."""
+    b = b.to(a.device)
+    if not torch.equal(a.isnan(), b.isnan()):
+        return float("nan")
+    return float((a - b).nan_to_num().abs().max())
+
+
+def test_front_end(drive):
+    seq, cfg = drive
+    with torch.no_grad():
+        cpu = run_eskf(seq, cfg)
+        dev = run_eskf(seq.to(DEVICE), cfg)
+    assert dev.position.device.type == DEVICE
+    assert bool(dev.gap[0].any()), "the dropout is an IMU gap"
+    assert torch.equal(dev.t.cpu(), cpu.t)
+    for key in KEYS:
+        assert torch.equal(dev.accepted[key].cpu(), cpu.accepted[key]), key
+    assert _largest(cpu.position, dev.position) < 1e-8
+    assert _largest(cpu.velocity, dev.velocity) < 1e-8
+    assert _largest(cpu.rotation, dev.rotation) < 1e-9
+    torch.testing.assert_close(dev.covariance.cpu(), cpu.covariance, rtol=1e-6, atol=1e-12)
+
+
+def test_pieces_on_the_device_equal_one_run(drive):
+    seq, cfg = drive
+    bounds = [0.0, 4.9, 9.5, 11.35, 16.0, 20.01]
+    moved = seq.to(DEVICE)
+    with torch.no_grad():
+        whole = run_eskf(moved, cfg)
+        stream = EskfStream(cfg, initial=initial_state(moved, cfg))
+        for a, b in zip(bounds[:-1], bounds[1:], strict=True):
+            stream.push(time_slice(moved, a, b))
+        joined = concat_results(stream.results)
+    real = whole.t[0, whole.mask[0]]
+    index = torch.searchsorted(joined.t[0], real)
+    assert torch.equal(joined.t[0, index], real)
+    for key in KEYS:
+        assert int(joined.accepted[key].sum()) == int(whole.accepted[key].sum()), key
+    # biases estimated: 1.2e-5 m measured on the CPU (test_stream.py), the chunk boundaries
+    # re-linearise the bias states
+    assert _largest(whole.position[0, whole.mask[0]], joined.position[0, index]) < 1e-4
+
+
+@pytest.mark.parametrize("mode", ["full", "window"])
+def test_smoothers(drive, mode):
+    seq, cfg = drive
+    smoother = W.SmootherConfig()
+    outputs = {}
+    for device in ("cpu", DEVICE):
+        moved = seq.to(device)
+        with torch.no_grad():
+            front = run_eskf(moved, cfg)
+            outputs[device] = W.smooth(moved, front, cfg, smoother, mode)
+    cpu, dev = outputs["cpu"], outputs[DEVICE]
+    assert [r.status for r in dev.lm] == [r.status for r in cpu.lm]
+    assert dev.output.position.device.type == DEVICE
+    position = _largest(cpu.output.position, dev.output.position)
+    # the marginal covariances invert a Hessian whose bias rows carry 1e10 and more of
+    # random-walk information: near-zero cross terms differ by percents between LAPACK and
+    # cuSOLVER, so each entry is compared relative to its row and column's sigmas
+    sigma = cpu.covariance.diagonal(dim1=-2, dim2=-1).sqrt()
+    scale = sigma[..., :, None] * sigma[..., None, :]
+    correlation = _largest(cpu.covariance / scale, dev.covariance.cpu() / scale)
+    print(f"{mode}: position {position:.2e} m, covariance / (sigma_i sigma_j) {correlation:.2e}")
+    assert position < 1e-7
+    assert correlation < 1e-4
+
+
+def test_learned_noise(drive):
+    seq, cfg = drive
+    learned = load_learned(CHECKPOINT)
+    runs = {}
+    for device in ("cpu", DEVICE):
+        moved = seq.to(device)
+        model = dataclasses.replace(learned, model=learned.model.to(device))
+        with torch.no_grad():
+            scales = learned_scales(moved, model, cfg)
+            result = run_piecewise(
+                moved, cfg, scales.log_scales, scales.window_length, scales.pose_source
+            )
+        runs[device] = scales, result
+    (cpu_scales, cpu), (dev_scales, dev) = runs["cpu"], runs[DEVICE]
+    assert dev_scales.log_scales.device.type == DEVICE
+    assert _largest(cpu_scales.log_scales, dev_scales.log_scales) < 1e-5
+    assert _largest(cpu.position, dev.position) < 1e-6
+
+
+def test_gradient_through_the_filter(drive):
+    """d(position error) / d(wheel speed sigma, accelerometer density) over the first 6 s
+    (the training path: the noise as tensors with gradients)."""
+    seq, cfg = drive
+    first = time_slice(seq, 0.0, 6.0)
+    truth = seq.ground_truth
+    grads = {}
+    for device in ("cpu", DEVICE):
+        moved = first.to(device)
+        params = (
+            torch.tensor(cfg.wheel_speed_sigma_mps, dtype=torch.float64, device=device),
+            torch.tensor(cfg.accel_noise_density, dtype=torch.float64, device=device),
+        )
+        for p in params:
+            p.requires_grad_(True)
+        base = EskfNoise.from_config(cfg, device=device)
+        noise = dataclasses.replace(
+            base,
+            imu=dataclasses.replace(base.imu, accel_noise_density=params[1]),
+            wheel_speed_sigma=params[0],
+        )
+        result = run_eskf(moved, cfg, noise)
+        index = torch.searchsorted(truth.t[0].to(device), result.t[0].clamp(max=6.0))
+        error = result.position[0] - truth.position[0].to(device)[index]
+        loss = (error.square().sum(-1) * result.mask[0]).sum()
+        grads[device] = torch.stack(torch.autograd.grad(loss, params))
+    assert bool(torch.isfinite(grads["cpu"]).all()) and float(grads["cpu"].abs().min()) > 0
+    torch.testing.assert_close(grads[DEVICE].cpu(), grads["cpu"], rtol=1e-6, atol=0)
