@@ -214,6 +214,12 @@ def velocity_heading(
     return yaw, variance
 
 
+def _rpy_numpy(roll: float, pitch: float, yaw: float) -> np.ndarray:
+    """Rotation matrix (3, 3) of roll, pitch, yaw (rad), computed on the CPU."""
+    angles = torch.tensor([roll, pitch, yaw], dtype=torch.float64, device="cpu")
+    return so3.rpy_matrix(angles).numpy()
+
+
 def _one(
     seq: Sequence, b: int, cfg: EskfConfig
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, float]:
@@ -325,7 +331,7 @@ def _one(
             yaw_sigma = math.sqrt(model_var)
     gnss_velocity = _valid(seq.gnss_velocity, b, span)
     if gnss_velocity is not None:
-        tilt = so3.rpy_matrix(torch.tensor([roll, pitch, 0.0], dtype=torch.float64)).numpy()
+        tilt = _rpy_numpy(roll, pitch, 0.0)
         reversing = None
         if wheel is not None:
             mean_speed = 0.5 * (wheel["left_speed"] + wheel["right_speed"])
@@ -342,7 +348,7 @@ def _one(
                 c, s_ = math.cos(yaw), math.sin(yaw)
                 origin = track_means[0] - np.array([[c, -s_], [s_, c]]) @ track_means[1]
                 anchored = np.array([origin[0], origin[1], anchored[2]])
-    rot = so3.rpy_matrix(torch.tensor([roll, pitch, yaw], dtype=torch.float64)).numpy()
+    rot = _rpy_numpy(roll, pitch, yaw)
     body_velocity = np.zeros(3)
     if wheel is not None:
         body_velocity = np.array([wheel_speed, 0.0, 0.0])

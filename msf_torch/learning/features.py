@@ -131,8 +131,8 @@ def run_features(
     used = windows * window_length
     t_used = t[:used]
     signals = torch.cat((imu.gyro[0, :used], imu.accel[0, :used]), -1).float()
-    wheel = torch.zeros(used, 2)
-    present = torch.zeros(used, dtype=torch.bool)
+    wheel = torch.zeros(used, 2, device="cpu")
+    present = torch.zeros(used, dtype=torch.bool, device="cpu")
     if seq.wheel is not None and bool(seq.wheel.mask.any()):
         wh = seq.wheel.compact()
         t_w = wh.t[0].numpy()
@@ -143,7 +143,7 @@ def run_features(
         wheel = speeds[torch.from_numpy(held)] * torch.from_numpy(valid)[:, None]
         present = torch.from_numpy(valid & (t_used - t_w[held] <= wheel_hold_s))
     starts, ends = t[0:used:window_length], t[window_length : used + 1 : window_length]
-    stats = torch.zeros(windows, len(pose_sources), len(RESIDUAL_FEATURES))
+    stats = torch.zeros(windows, len(pose_sources), len(RESIDUAL_FEATURES), device="cpu")
     streams = {"gnss": seq.gnss, **seq.pose_sources}
     source = pose_source_of(seq)
     if source is not None:
