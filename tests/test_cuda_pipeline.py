@@ -29,13 +29,10 @@ import pytest
 import torch
 
 from msf_torch.backend import window as W
-from msf_torch.frontend.config import EskfConfig, config_for_sequence
 from msf_torch.frontend.eskf import EskfNoise, run_eskf
 from msf_torch.frontend.init import initial_state
 from msf_torch.frontend.stream import EskfStream, concat_results, time_slice
 from msf_torch.learning.inference import learned_scales, load_learned, run_piecewise
-from msf_torch.sim import SimConfig, simulate_run
-from msf_torch.sim.weather import WeatherSchedule, apply_weather
 
 DEVICE = os.environ.get("MSF_TEST_DEVICE", "cuda")
 CHECKPOINT = Path(__file__).resolve().parents[1] / "checkpoints" / "covnet_weather.pt"
@@ -47,15 +44,9 @@ pytestmark = pytest.mark.skipif(
 
 
 @pytest.fixture(scope="module")
-def drive():
-    """The drive (IMU samples inside 9..12 s dropped) and its filter settings."""
-    sim = SimConfig(duration_s=20.0, gnss_velocity=True, slip_episodes=1, gnss_outage_count=0)
-    wet = apply_weather(simulate_run(sim, seed=5), WeatherSchedule.random(20.0, seed=2), seed=3)
-    seq = wet.sequence
-    keep = (seq.imu.t[0] <= 9.0) | (seq.imu.t[0] >= 12.0)
-    seq = dataclasses.replace(seq, imu=seq.imu.map(lambda x: x[:, keep]))
-    cfg = config_for_sequence(EskfConfig(source_fault_detection=True), seq.meta, set())
-    return seq, cfg
+def drive(every_stream_drive):
+    """The drive of ``tests/conftest.py`` and its filter settings."""
+    return every_stream_drive
 
 
 def _largest(a: torch.Tensor, b: torch.Tensor) -> float:

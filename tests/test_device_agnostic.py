@@ -1,0 +1,87 @@
+"""No tensor of the estimator is made on torch's default device.
+
+The CUDA check (``test_cuda_pipeline.py``) runs only where a GPU is; its first run found
+factory calls without ``device=`` in the smoothers and the CovNet features, which put CPU
+tensors into CUDA work. This is its CPU stand-in for CI: the inputs are made on the CPU,
+then the pipeline runs with torch's default device set to ``meta`` (tensors without data).
+A tensor made without naming a device becomes a meta tensor, which either stops the run
+(mixing it with CPU data, or reading it with numpy) or leaks into the results. Every
+result must equal the normal run's bit for bit and lie on the CPU.
+
+The drive (``every_stream_drive`` in ``tests/conftest.py``) holds every stream the front
+end fuses and an IMU dropout; the front end, the front end fed piece by piece, both
+smoothers and the shipped CovNet checkpoint's noise are checked.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import pytest
+import torch
+
+from msf_torch.backend import window as W
+from msf_torch.frontend.eskf import run_eskf
+from msf_torch.frontend.init import initial_state
+from msf_torch.frontend.stream import EskfStream, concat_results, time_slice
+from msf_torch.learning.inference import learned_scales, load_learned, run_piecewise
+
+CHECKPOINT = Path(__file__).resolve().parents[1] / "checkpoints" / "covnet_weather.pt"
+
+
+def _twice(run: Callable[[], Any]) -> tuple[Any, Any]:
+    """``run()`` as it is, then with the default device ``meta``."""
+    with torch.no_grad():
+        normal = run()
+        with torch.device("meta"):
+            guarded = run()
+    return normal, guarded
+
+
+def _same(normal: torch.Tensor, guarded: torch.Tensor) -> None:
+    assert guarded.device.type == "cpu"
+    assert torch.equal(normal.isnan(), guarded.isnan())
+    assert torch.equal(normal.nan_to_num(), guarded.nan_to_num())
+
+
+def test_front_end_and_pieces(every_stream_drive):
+    seq, cfg = every_stream_drive
+
+    def pieces():
+        stream = EskfStream(cfg, initial=initial_state(seq, cfg))
+        for a, b in ((0.0, 4.9), (4.9, 11.35), (11.35, 20.01)):
+            stream.push(time_slice(seq, a, b))
+        return concat_results(stream.results)
+
+    for run in (lambda: run_eskf(seq, cfg), pieces):
+        normal, guarded = _twice(run)
+        for field in ("position", "velocity", "rotation", "covariance"):
+            _same(getattr(normal, field), getattr(guarded, field))
+
+
+@pytest.mark.parametrize("mode", ["full", "window"])
+def test_smoothers(every_stream_drive, mode):
+    seq, cfg = every_stream_drive
+    with torch.no_grad():
+        front = run_eskf(seq, cfg)
+    normal, guarded = _twice(lambda: W.smooth(seq, front, cfg, W.SmootherConfig(), mode))
+    _same(normal.output.position, guarded.output.position)
+    _same(normal.covariance, guarded.covariance)
+
+
+def test_learned_noise(every_stream_drive):
+    seq, cfg = every_stream_drive
+    learned = load_learned(CHECKPOINT)
+
+    def run():
+        scales = learned_scales(seq, learned, cfg)
+        result = run_piecewise(
+            seq, cfg, scales.log_scales, scales.window_length, scales.pose_source
+        )
+        return scales, result
+
+    (normal_scales, normal), (guarded_scales, guarded) = _twice(run)
+    _same(normal_scales.log_scales, guarded_scales.log_scales)
+    _same(normal.position, guarded.position)
