@@ -20,6 +20,7 @@ __all__ = [
     "NavState",
     "Sequence",
     "batch_sequences",
+    "move_to",
 ]
 
 import dataclasses
@@ -30,6 +31,7 @@ from typing import Any, TypeVar
 import torch
 
 StreamT = TypeVar("StreamT")
+T = TypeVar("T")
 
 
 class _Stream:
@@ -426,3 +428,26 @@ def batch_sequences(sequences: list[Sequence]) -> Sequence:
         pose_sources=pose_sources,
         **streams,
     )
+
+
+def move_to(obj: T, device: torch.device | str) -> T:
+    """``obj`` with every tensor in it on ``device``: a tensor, or dataclasses, dicts, lists,
+    tuples and named tuples holding tensors, recursively (rebuilt; other values kept as
+    they are). For results such as ``EskfResult`` or ``SmootherResult`` made on a GPU and
+    written from the CPU."""
+    if isinstance(obj, torch.Tensor):
+        return obj.to(device)
+    if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
+        moved = {
+            f.name: move_to(getattr(obj, f.name), device)
+            for f in dataclasses.fields(obj)
+            if f.init
+        }
+        return dataclasses.replace(obj, **moved)
+    if isinstance(obj, dict):
+        return type(obj)((key, move_to(value, device)) for key, value in obj.items())
+    if isinstance(obj, tuple) and hasattr(obj, "_fields"):
+        return type(obj)(*(move_to(value, device) for value in obj))
+    if isinstance(obj, list | tuple):
+        return type(obj)(move_to(value, device) for value in obj)
+    return obj

@@ -41,3 +41,50 @@ def test_median_rate_of_too_short_streams_is_nan() -> None:
     rate = padded.median_rate_hz()
     assert math.isclose(rate[0].item(), 100.0, rel_tol=1e-12)
     assert math.isnan(rate[1].item())
+
+
+def test_move_to_reaches_every_tensor_and_keeps_the_rest() -> None:
+    from collections import namedtuple
+    from dataclasses import dataclass, field
+
+    from msf_torch.types import move_to
+
+    Pair = namedtuple("Pair", "left right")
+
+    @dataclass
+    class Inner:
+        value: torch.Tensor
+        name: str = "inner"
+
+    @dataclass
+    class Outer:
+        inner: Inner
+        by_key: dict
+        items: list
+        pair: Pair
+        count: int = 3
+        derived: torch.Tensor = field(init=False)
+
+        def __post_init__(self) -> None:
+            self.derived = self.inner.value * 2
+
+    outer = Outer(
+        Inner(torch.ones(2)),
+        {"a": torch.zeros(1), "b": None},
+        [torch.arange(3), (torch.ones(1), "x")],
+        Pair(torch.ones(1), 7),
+    )
+    moved = move_to(outer, "meta")
+    tensors = [
+        moved.inner.value,
+        moved.derived,
+        moved.by_key["a"],
+        moved.items[0],
+        moved.items[1][0],
+        moved.pair.left,
+    ]
+    assert all(t.device.type == "meta" for t in tensors)
+    assert isinstance(moved.pair, Pair) and moved.pair.right == 7
+    assert moved.by_key["b"] is None and moved.items[1][1] == "x" and moved.count == 3
+    assert moved.inner.name == "inner" and isinstance(moved.items[1], tuple)
+    assert outer.inner.value.device.type == "cpu"  # the original is left as it was
