@@ -111,6 +111,13 @@ def build_parser() -> argparse.ArgumentParser:
     )
     run.add_argument("--no-plot", action="store_true", help="skip overview.png")
     run.add_argument(
+        "--device",
+        type=_device,
+        default="cpu",
+        help="where the estimator runs: cpu (default), cuda or cuda:N; a batch of many "
+        "sequences gains the most on a GPU, one sequence is faster on the CPU",
+    )
+    run.add_argument(
         "--progress",
         choices=("auto", "on", "off"),
         default="auto",
@@ -603,6 +610,29 @@ def _one_or_two(text: str) -> tuple[float, float]:
     return (parts[0], parts[-1])
 
 
+def _device(text: str) -> str:
+    """``--device cpu|cuda|cuda:N``: a device torch can use here."""
+    import torch
+
+    try:
+        device = torch.device(text)
+    except RuntimeError:
+        raise argparse.ArgumentTypeError(f"expected cpu, cuda or cuda:N, got {text!r}") from None
+    if device.type == "cpu":
+        return "cpu"
+    if device.type != "cuda":
+        raise argparse.ArgumentTypeError(f"expected cpu, cuda or cuda:N, got {text!r}")
+    if not torch.cuda.is_available():
+        raise argparse.ArgumentTypeError(
+            f"{text}: this torch ({torch.__version__}) sees no CUDA device"
+        )
+    if device.index is not None and device.index >= torch.cuda.device_count():
+        raise argparse.ArgumentTypeError(
+            f"{text}: there are {torch.cuda.device_count()} CUDA device(s), numbered from 0"
+        )
+    return str(device)
+
+
 def _quality_codes(text: str) -> tuple[int, ...]:
     """``--quality 4,5``: GGA quality codes 1-9."""
     try:
@@ -669,6 +699,7 @@ def _cmd_run(args) -> dict[str, Any]:
         smoother=smoother,
         learned=learned,
         exports=args.export,
+        device=args.device,
     )
     summary = run_sequence(seq, cfg, options)
     _notes(summary, "")
@@ -738,6 +769,7 @@ def _cmd_run_batch(args) -> dict[str, Any]:
         smoother=_smoother_config(args, first),
         learned=_learned(args),
         exports=args.export,
+        device=args.device,
     )
     summary = run_batch([seq for seq, _, _ in loaded], cfg, options)
     for name in summary["names"]:

@@ -101,7 +101,7 @@ from msf_torch.frontend.guard import DIVERGENCE_CODES, EstimationInterrupted
 from msf_torch.io.atomic import atomic_write
 from msf_torch.io.tum import write_tum
 from msf_torch.sensors.imu_gaps import filled_stretches, interpolated_imu_samples
-from msf_torch.types import GnssFixes, Sequence, Trajectory, batch_sequences
+from msf_torch.types import GnssFixes, Sequence, Trajectory, batch_sequences, move_to
 
 if TYPE_CHECKING:
     from msf_torch.learning.inference import LearnedModel
@@ -144,6 +144,8 @@ class RunOptions:
         learned: a trained CovNet that sets the filter's noise, or None (the config's).
         exports: extra trajectory formats, any of ``"kitti"``, ``"rosbag2"``, ``"geojson"``,
             ``"kml"``, ``"gpx"`` (the last three need ``seq.meta["gnss_origin"]``).
+        device: where the estimator runs (``"cpu"``, ``"cuda"``, ``"cuda:1"``); the results
+            come back to the CPU to be scored and written.
     """
 
     out_dir: Path
@@ -155,6 +157,7 @@ class RunOptions:
     smoother: SmootherConfig | None = None
     learned: LearnedModel | None = None
     exports: tuple[str, ...] = ()
+    device: str = "cpu"
 
 
 def write_diagnostics(result: EskfResult, path: Path, index: int = 0) -> None:
@@ -310,10 +313,12 @@ def run_sequence(seq: Sequence, cfg: EskfConfig, options: RunOptions) -> dict[st
         callback, close = options.progress()
     start = time.perf_counter()
     learned = None
+    device = torch.device(options.device)
+    work = seq.to(device)  # the estimator's copy; seq stays on the CPU for scoring and writing
     with torch.no_grad():
         if options.learned is None:
             try:
-                result = run_eskf(seq, cfg, progress=callback)
+                result = run_eskf(work, cfg, progress=callback)
             except EstimationInterrupted as stop:
                 if close is not None:
                     close()
@@ -322,10 +327,11 @@ def run_sequence(seq: Sequence, cfg: EskfConfig, options: RunOptions) -> dict[st
         else:
             from msf_torch.learning.inference import learned_scales, run_piecewise, scales_summary
 
-            scales = learned_scales(seq, options.learned, cfg)
+            model = dataclasses.replace(options.learned, model=options.learned.model.to(device))
+            scales = learned_scales(work, model, cfg)
             try:
                 result = run_piecewise(
-                    seq, cfg, scales.log_scales, scales.window_length, scales.pose_source, callback
+                    work, cfg, scales.log_scales, scales.window_length, scales.pose_source, callback
                 )
             except EstimationInterrupted as stop:
                 if close is not None:
@@ -333,8 +339,7 @@ def run_sequence(seq: Sequence, cfg: EskfConfig, options: RunOptions) -> dict[st
                 wall = time.perf_counter() - start
                 total = stop.epochs_total
                 _write_interrupted(seq, stop.result, out_dir, "frontend", total, wall, "learned")
-            learned = scales_summary(scales, options.learned)
-        trajectory = result.trajectory()
+            learned = scales_summary(move_to(scales, "cpu"), options.learned)
     frontend_wall = time.perf_counter() - start
     if close is not None:
         close()
@@ -343,7 +348,7 @@ def run_sequence(seq: Sequence, cfg: EskfConfig, options: RunOptions) -> dict[st
         callback, close = options.progress() if options.progress is not None else (None, None)
         with torch.no_grad():
             try:
-                smoothed = smooth(seq, result, cfg, options.smoother, options.smooth, callback)
+                smoothed = smooth(work, result, cfg, options.smoother, options.smooth, callback)
             except KeyboardInterrupt:
                 if close is not None:
                     close()
@@ -352,8 +357,11 @@ def run_sequence(seq: Sequence, cfg: EskfConfig, options: RunOptions) -> dict[st
                 _write_interrupted(seq, result, out_dir, "smoother", total, wall)
         if close is not None:
             close()
+    result, smoothed = move_to((result, smoothed), "cpu")
+    trajectory = result.trajectory()
     wall = time.perf_counter() - start
     summary = _header(seq, result, wall)
+    summary["device"] = str(device)
     summary["noise"] = "config" if learned is None else "learned"
     if learned is not None:
         summary["learned"] = learned
@@ -412,8 +420,9 @@ def run_batch(seqs: list[Sequence], cfg: EskfConfig, options: RunOptions) -> dic
     Returns:
         The batch summary: ``sequences``, ``names``, ``out``, total ``duration_s`` and
         ``imu_samples``, ``wall_s`` (the one batched front-end run), ``realtime_factor``
-        (total duration / wall), ``imu_samples_per_s``, with smoothing ``smoother_wall_s``
-        (all sequences' smoothers), and ``runs`` (per sequence, the ``runs.csv`` row).
+        (total duration / wall), ``imu_samples_per_s``, ``device`` (where the estimator
+        ran), with smoothing ``smoother_wall_s`` (all sequences' smoothers), and ``runs``
+        (per sequence, the ``runs.csv`` row).
     """
     if not seqs:
         raise ValueError("run_batch: no sequences")
@@ -436,7 +445,8 @@ def run_batch(seqs: list[Sequence], cfg: EskfConfig, options: RunOptions) -> dic
                 raise ValueError(f"sequence {name}: {err}") from None
         seqs, withheld = [s for s, _ in split], [w for _, w in split]
     callback, close = options.progress() if options.progress is not None else (None, None)
-    batch = batch_sequences(seqs)
+    device = torch.device(options.device)
+    batch = batch_sequences(seqs).to(device)
     start = time.perf_counter()
     try:
         with torch.no_grad():
@@ -454,16 +464,18 @@ def run_batch(seqs: list[Sequence], cfg: EskfConfig, options: RunOptions) -> dic
             try:
                 with torch.no_grad():
                     smoothed[index] = smooth(
-                        seq, own[index], cfg, options.smoother, options.smooth, callback
+                        seq.to(device), own[index], cfg, options.smoother, options.smooth, callback
                     )
             finally:
                 if close is not None:
                     close()
     smoother_wall = time.perf_counter() - smoother_start
+    own, smoothed = move_to((own, smoothed), "cpu")
     rows = []
     for index, (seq, name) in enumerate(zip(seqs, names, strict=True)):
         (out_dir / name).mkdir(parents=True, exist_ok=True)
         summary = _header(seq, own[index], wall)
+        summary["device"] = str(device)
         summary["noise"] = "config"
         summary["batch"] = {"size": len(seqs), "index": index}
         if smoothed[index] is not None:
@@ -494,6 +506,7 @@ def run_batch(seqs: list[Sequence], cfg: EskfConfig, options: RunOptions) -> dic
         "wall_s": round(wall, 4),
         "realtime_factor": round(duration / wall, 1) if wall > 0 else math.inf,
         "imu_samples_per_s": round(samples / wall) if wall > 0 else math.inf,
+        "device": str(device),
     }
     if options.smooth is not None:
         out["smoother_wall_s"] = round(smoother_wall, 4)
@@ -887,6 +900,7 @@ def _write_interrupted(
 ) -> None:
     """Write the partial outputs of an interrupted run (``noise``: the summary's ``"config"``
     or ``"learned"``), then raise :class:`RunInterrupted`."""
+    result = move_to(result, "cpu")
     done = int(result.mask[0].sum()) - 1
     t_stop = float(result.t[0, done])
     summary: dict[str, Any] = {

@@ -15,6 +15,7 @@ smoothers and the shipped CovNet checkpoint's noise are checked.
 
 from __future__ import annotations
 
+import contextlib
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -27,6 +28,7 @@ from msf_torch.frontend.eskf import run_eskf
 from msf_torch.frontend.init import initial_state
 from msf_torch.frontend.stream import EskfStream, concat_results, time_slice
 from msf_torch.learning.inference import learned_scales, load_learned, run_piecewise
+from msf_torch.runner import RunOptions, run_sequence
 
 CHECKPOINT = Path(__file__).resolve().parents[1] / "checkpoints" / "covnet_weather.pt"
 
@@ -85,3 +87,22 @@ def test_learned_noise(every_stream_drive):
     (normal_scales, normal), (guarded_scales, guarded) = _twice(run)
     _same(normal_scales.log_scales, guarded_scales.log_scales)
     _same(normal.position, guarded.position)
+
+
+@pytest.mark.parametrize("smooth", [None, "full"])
+def test_msf_run_writes_the_same_files(every_stream_drive, tmp_path, smooth):
+    """``runner.run_sequence`` (``msf run``): the estimator's copy of the run and its results
+    come back to the CPU (``types.move_to``) to be scored and written."""
+    seq, cfg = every_stream_drive
+    written = {}
+    for guarded in (False, True):
+        out = tmp_path / ("meta" if guarded else "normal")
+        options = RunOptions(out_dir=out, plot=False, smooth=smooth)
+        with torch.device("meta") if guarded else contextlib.nullcontext():
+            summary = run_sequence(seq, cfg, options)
+        for timing in ("wall_s", "realtime_factor", "frontend_wall_s"):
+            summary.pop(timing, None)
+        summary.get("smoother", {}).pop("wall_s", None)
+        written[guarded] = summary, (out / "trajectory.tum").read_text()
+    assert written[True] == written[False]
+    assert written[True][0]["device"] == "cpu"

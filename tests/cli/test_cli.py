@@ -33,6 +33,7 @@ def test_run_writes_outputs_and_prints_summary(short_run, tmp_path, capsys):
     summary = _last_json(capsys)
     for key in ("sequence", "duration_s", "imu_samples", "wall_s", "realtime_factor", "ate_rmse_m"):
         assert key in summary
+    assert summary["device"] == "cpu"  # the default of --device
     assert summary["imu_samples"] == 6001
     assert summary["ate_rmse_m"] < 2.0
     for name in ("trajectory.tum", "diagnostics.csv", "summary.json", "overview.png"):
@@ -143,6 +144,24 @@ def test_version_matches_the_installed_distribution(capsys):
     line = capsys.readouterr().out.strip()
     assert line.startswith(f"msf {importlib.metadata.version('msf_torch')} ("), line
     assert f"torch {torch.__version__}" in line
+
+
+@pytest.mark.parametrize(
+    ("device", "message"),
+    [
+        ("mps", "expected cpu, cuda or cuda:N, got 'mps'"),
+        ("gpu0", "expected cpu, cuda or cuda:N, got 'gpu0'"),
+        ("cuda:64", "cuda:64: "),
+    ],
+)
+def test_run_device_is_checked_before_any_work(tmp_path, capsys, device, message):
+    """``msf run --device``: a device torch cannot use here stops the command at once, with
+    the reason (no CUDA in this torch, or no such CUDA device)."""
+    with pytest.raises(SystemExit) as stop:
+        main(["run", "--device", device, "--out", str(tmp_path / "o")])
+    assert stop.value.code == 2
+    assert message in capsys.readouterr().err
+    assert not (tmp_path / "o").exists()
 
 
 def test_simulate_too_short_for_its_slip_episodes_says_what_to_change(tmp_path, capsys):
