@@ -19,6 +19,11 @@ What the stream does with the samples:
 * A measurement (wheel, GNSS fix or velocity, pose, pose source) stamped after a piece's
   last IMU sample (beyond ``time_tolerance_s``) is held back and fused with the next piece,
   where the IMU reaches it: a fix that arrives before the IMU sample after it is not lost.
+* A piece that ends on IMU samples lying on a straight line (a filled-in stretch of the
+  recording, :func:`~msf_torch.sensors.imu_gaps.interpolated_imu_samples`, whose length
+  sets its variance) is filtered up to the real sample the line starts from; the rest
+  waits for the next piece, up to ``max_hold_s`` of it. A boundary inside a 2-s stretch
+  had moved the estimate by up to 1.3 m from the run in one piece.
 * A measurement stamped at or before the previous piece's last IMU sample, in a later
   piece, is late: skipped and counted (``late_samples``), with one warning per stream.
 * The first piece sets the initial state from its own data (:func:`initial_state`: the
@@ -50,6 +55,7 @@ import torch
 
 from msf_torch.frontend.config import EskfConfig
 from msf_torch.frontend.eskf import EskfNoise, EskfResult, run_eskf
+from msf_torch.sensors.imu_gaps import open_stretch_start
 from msf_torch.types import NavState, Sequence
 
 _MEMORIES = ("gate_memory", "frame_memory", "calibration_memory", "pair_memory", "fault_memory")
@@ -157,6 +163,9 @@ class EskfStream:
             piece's first IMU sample; default: from the first piece's data.
         keep_results: keep every piece's result in :attr:`results` (for
             :func:`concat_results`); off for a long-running stream.
+        max_hold_s: longest tail of IMU samples held back as a possibly unfinished
+            filled-in stretch, s; a longer one is filtered as it is (the stretch is then
+            modelled as two).
 
     Attributes:
         results: the pieces' results (``keep_results``).
@@ -170,8 +179,10 @@ class EskfStream:
         noise: EskfNoise | None = None,
         initial: tuple[NavState, torch.Tensor] | None = None,
         keep_results: bool = True,
+        max_hold_s: float = 10.0,
     ) -> None:
         self.cfg = cfg or EskfConfig()
+        self.max_hold_s = max_hold_s
         self.noise = noise
         self.keep_results = keep_results
         self.results: list[EskfResult] = []
@@ -192,7 +203,8 @@ class EskfStream:
         Returns:
             the piece's :class:`EskfResult` (epoch 0: the state at the previous piece's last
             IMU sample, or the initial state), or None when the piece adds no IMU sample to
-            filter up to (its measurements wait for the next piece).
+            filter up to (its samples wait for the next piece; also when all its new IMU
+            samples may continue a filled-in stretch).
 
         Raises:
             ValueError: B != 1; a first piece with fewer than two IMU samples.
@@ -208,13 +220,20 @@ class EskfStream:
             # nothing to filter up to: the samples wait for more IMU
             self._pending = piece
             return None
+        unjoined = piece
         if self._boundary is not None:
             piece = _joined(self._boundary, piece)
         imu = piece.imu.compact()
-        t_last = float(imu.t[0, -1])
-        self._pending = _after(piece, t_last + tol)
+        last = self._last_to_filter(imu)
+        if last < 1:
+            self._pending = unjoined  # all new IMU samples may lie in an open stretch: wait
+            return None
+        t_last = float(imu.t[0, last])
+        held = imu.map(lambda x: x[:, last + 1 :])
+        self._pending = _after(piece, t_last + tol, held)
+        filtered = dataclasses.replace(piece, imu=imu.map(lambda x: x[:, : last + 1]))
         result = run_eskf(
-            piece,
+            filtered,
             self.cfg,
             self.noise,
             initial=self._initial,
@@ -222,10 +241,24 @@ class EskfStream:
         )
         self._initial = last_state(result)
         self._memories = {name: getattr(result, name) for name in _MEMORIES}
-        self._boundary = _boundary(piece, imu.length - 1, t_last + tol)
+        self._boundary = _boundary(filtered, last, t_last + tol)
         if self.keep_results:
             self.results.append(result)
         return result
+
+    def _last_to_filter(self, imu) -> int:
+        """Index of the last IMU sample of the (compacted) piece to filter now: the last,
+        unless the piece ends inside what may be a filled-in stretch
+        (:func:`~msf_torch.sensors.imu_gaps.open_stretch_start`) no longer than
+        ``max_hold_s``: then the real sample the stretch starts from, the rest held back
+        until the stretch's end is known (its variance grows with its whole length)."""
+        last = imu.length - 1
+        if self.cfg.imu_interpolated_min_samples == 0:
+            return last
+        start = open_stretch_start(imu.t[0], imu.gyro[0], imu.accel[0])
+        if start is None or float(imu.t[0, last] - imu.t[0, start]) > self.max_hold_s:
+            return last
+        return start
 
     def _drop_late(self, piece: Sequence, t_boundary: float, tol: float) -> Sequence:
         """``piece`` without the samples stamped at or before the last IMU sample filtered
@@ -272,18 +305,19 @@ def _boundary(seq: Sequence, index: int, t: float) -> Sequence:
     )
 
 
-def _after(seq: Sequence, t: float) -> Sequence | None:
-    """The measurements of ``seq`` stamped after ``t`` (no IMU, no ground truth), or None."""
+def _after(seq: Sequence, t: float, imu=None) -> Sequence | None:
+    """The measurements of ``seq`` stamped after ``t`` (no ground truth) with ``imu`` (held
+    IMU samples; default none), or None when there are none of either."""
     streams = {k: v.compact() for k, v in seq.streams().items() if k not in ("imu", "ground_truth")}
     sources = {k: v.compact() for k, v in seq.pose_sources.items()}
     later = {k: v.map(lambda x, s=v: x[:, s.t[0] > t]) for k, v in streams.items()}
     later_sources = {k: v.map(lambda x, s=v: x[:, s.t[0] > t]) for k, v in sources.items()}
-    if not any(v.length for v in (*later.values(), *later_sources.values())):
+    imu = seq.imu.map(lambda x: x[:, :0]) if imu is None else imu
+    if not any(v.length for v in (*later.values(), *later_sources.values(), imu)):
         return None
-    empty = seq.imu.map(lambda x: x[:, :0])
     return Sequence(
         names=list(seq.names),
-        imu=empty,
+        imu=imu,
         meta=seq.meta,
         pose_sources=later_sources,
         **later,

@@ -19,7 +19,12 @@ vehicle's unknown motion, not the sensor's.
 
 from __future__ import annotations
 
-__all__ = ["filled_stretches", "gap_walk_scale", "interpolated_imu_samples"]
+__all__ = [
+    "filled_stretches",
+    "gap_walk_scale",
+    "interpolated_imu_samples",
+    "open_stretch_start",
+]
 
 import numpy as np
 import torch
@@ -86,6 +91,52 @@ def interpolated_imu_samples(
     for a, b in zip(*runs(confirmed), strict=True):
         out[a + 1 : b + 1] = True  # index k of the interior arrays is sample k + 1
     return out
+
+
+def open_stretch_start(
+    t: torch.Tensor | np.ndarray,
+    gyro: torch.Tensor | np.ndarray,
+    accel: torch.Tensor | np.ndarray,
+    rtol: float = 1e-6,
+) -> int | None:
+    """Where a filled-in stretch that may go on past the stream's end begins.
+
+    The samples before the last that lie on the line through their neighbours, every
+    channel within ``rtol * max(1, |value|)`` (the test of :func:`interpolated_imu_samples`),
+    and reach the last-but-one sample: the stream may stop inside a stretch whose length is
+    not known yet (a piece of a recording).
+
+    Args:
+        t: (N,) sample times, s, increasing.
+        gyro: (N, 3) angular rate, rad/s.
+        accel: (N, 3) specific force, m/s^2.
+        rtol: as :func:`interpolated_imu_samples`.
+
+    Returns:
+        the index of the real sample the trailing run of collinear samples starts from (the
+        samples after it may be filled in), or None when the last-but-one sample is not
+        collinear (or N < 3).
+    """
+    times = np.asarray(t.detach().cpu() if isinstance(t, torch.Tensor) else t, dtype=np.float64)
+    n = times.shape[0]
+    if n < 3:
+        return None
+    values = np.concatenate(
+        [
+            np.asarray(x.detach().cpu() if isinstance(x, torch.Tensor) else x, np.float64)
+            for x in (gyro, accel)
+        ],
+        axis=1,
+    )
+    span = times[2:] - times[:-2]
+    frac = (times[1:-1] - times[:-2]) / np.where(span > 0, span, np.inf)
+    line = values[:-2] + (values[2:] - values[:-2]) * frac[:, None]
+    tolerance = rtol * np.maximum(1.0, np.abs(values[1:-1]))
+    collinear = np.all(np.abs(values[1:-1] - line) <= tolerance, axis=1) & (span > 0)
+    if not collinear[-1]:
+        return None
+    off = np.flatnonzero(~collinear)
+    return int(off[-1] + 1) if off.size else 0  # collinear[k] is sample k + 1
 
 
 def filled_stretches(flags: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

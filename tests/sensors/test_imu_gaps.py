@@ -24,7 +24,11 @@ import torch
 from msf_torch.frontend.config import EskfConfig
 from msf_torch.frontend.eskf import run_eskf
 from msf_torch.frontend.schedule import build_schedule
-from msf_torch.sensors.imu_gaps import filled_stretches, interpolated_imu_samples
+from msf_torch.sensors.imu_gaps import (
+    filled_stretches,
+    interpolated_imu_samples,
+    open_stretch_start,
+)
 from msf_torch.sim import SimConfig, simulate_run
 
 
@@ -170,3 +174,20 @@ def test_msf_run_says_so_on_stderr(tmp_path, capsys):
     assert main(args) == 0
     err = capsys.readouterr().err
     assert "msf run: 1 IMU stretch(es)" in err and "bridged as IMU gaps" in err
+
+
+def test_open_stretch_start_finds_a_line_running_to_the_end():
+    rng = np.random.default_rng(4)
+    t = np.arange(50) * 0.01
+    gyro, accel = rng.normal(size=(50, 3)), rng.normal(size=(50, 3)) + 9.8
+    assert open_stretch_start(t, gyro, accel) is None  # noise: no line
+    for start in (0, 20, 47):  # the line from sample `start` through the last
+        g, a = gyro.copy(), accel.copy()
+        frac = (t[start:] - t[start]) / (t[-1] - t[start])
+        g[start:] = g[start] + (g[-1] - g[start]) * frac[:, None] * 0.5
+        a[start:] = a[start] + (a[-1] - a[start]) * frac[:, None] * 0.5
+        assert open_stretch_start(t, g, a) == start
+        # a stretch that ended before the last sample is not open
+        g[-1] += 0.3
+        assert open_stretch_start(t, g, a) is None
+    assert open_stretch_start(t[:2], gyro[:2], accel[:2]) is None
