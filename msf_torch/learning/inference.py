@@ -65,6 +65,7 @@ from msf_torch.learning.covnet import (
     scaled_pose_covariance,
 )
 from msf_torch.learning.features import RunFeatures, pose_source_of, run_features
+from msf_torch.sensors.imu_gaps import filled_stretches, interpolated_imu_samples
 from msf_torch.types import ImuSamples, Sequence
 
 DEFAULT_CHECKPOINT = (
@@ -361,7 +362,9 @@ def run_piecewise(
     that straddles a chunk boundary is fused as in the run in one piece, and the
     source-fault detector's models, windows and exclusions (``EskfResult.fault_memory``).
     The input rule of ``frontend.guard`` is applied to the whole run once (skipped samples
-    counted in ``dropped_samples`` as by ``run_eskf``).
+    counted in ``dropped_samples`` as by ``run_eskf``). A chunk boundary inside a filled-in
+    IMU stretch moves to the stretch's end, so the stretch is one gap as in the one run
+    (the windows it crosses into take the earlier chunk's scales there).
 
     Args:
         seq: one run (B = 1).
@@ -401,11 +404,25 @@ def run_piecewise(
     # previous chunk's last real sample, also where the sample at the boundary was skipped
     samples = torch.arange(imu.length, device=imu.t.device)
     last_real = torch.where(imu.mask[0], samples, 0).cummax(0).values
+    # a boundary inside a filled-in IMU stretch moves to the stretch's end (the real sample
+    # after it), so that the stretch is modelled as one, as in the run in one piece
+    outside = _outside_stretches(imu, cfg)
+
+    def sample_range(w0: int, w1: int | None) -> tuple[int, int | None]:
+        """First and end (exclusive; None: to the end) IMU sample of windows [w0, w1)."""
+        start = outside[int(last_real[w0 * window_length])]
+        return start, None if w1 is None else outside[w1 * window_length] + 1
+
+    # a chunk wholly inside a stretch is left to the chunk before, which runs to its end
+    def enough(w0: int, w1: int | None) -> bool:
+        start, end = sample_range(w0, w1)
+        return end is None or end - start >= 2
+
+    bounds = [(a, b) for a, b in bounds if enough(a, b)]
 
     def chunk_of(w0: int, w1: int | None) -> Sequence:
         """The run over windows [w0, w1) with those windows' pose covariances."""
-        start = int(last_real[w0 * window_length])
-        end = None if w1 is None else w1 * window_length + 1
+        start, end = sample_range(w0, w1)
         chunk = dataclasses.replace(seq, imu=imu.map(lambda x, a=start, b=end: x[:, a:b]))
         if seq.poses is not None:
             covariance = scaled_pose_covariance(
@@ -456,6 +473,22 @@ def run_piecewise(
         faults = result.fault_memory
         results.append(result)
     return concat_results(results, dropped_samples)
+
+
+def _outside_stretches(imu, cfg: EskfConfig) -> list[int]:
+    """Per sample of a B = 1 IMU stream (masked samples in place), the sample a chunk
+    boundary there moves to: itself, or for a sample inside a filled-in stretch
+    (:func:`~msf_torch.sensors.imu_gaps.interpolated_imu_samples` over the real samples)
+    the real sample that ends the stretch."""
+    real = torch.nonzero(imu.mask[0]).squeeze(-1).tolist()
+    filled = interpolated_imu_samples(
+        imu.t[0, real], imu.gyro[0, real], imu.accel[0, real], cfg.imu_interpolated_min_samples
+    )
+    moved = list(range(imu.length))
+    for first, end in zip(*filled_stretches(filled), strict=True):
+        for k in range(real[first], real[end]):
+            moved[k] = real[end]
+    return moved
 
 
 def scales_summary(scales: WindowScales, learned: LearnedModel) -> dict[str, Any]:

@@ -143,6 +143,39 @@ def test_chunks_bridge_a_skipped_sample_at_a_boundary(noisy_gnss_run):
         assert float(diff) < TOL, name  # round-off (measured 1.9e-12 m)
 
 
+def _with_filled_stretch(seq, t0: float, t1: float):
+    """``seq`` with its IMU samples from ``t0`` to ``t1`` s on the straight line between the
+    two (a recorder's filled-in stretch)."""
+    t = seq.imu.t[0]
+    a, b = (int(torch.searchsorted(t, torch.tensor(x, dtype=t.dtype))) for x in (t0, t1))
+    frac = ((t[a : b + 1] - t[a]) / (t[b] - t[a]))[:, None]
+
+    def fill(x):
+        x = x.clone()
+        x[0, a : b + 1] = x[0, a] + (x[0, b] - x[0, a]) * frac
+        return x
+
+    return dataclasses.replace(
+        seq, imu=dataclasses.replace(seq.imu, gyro=fill(seq.imu.gyro), accel=fill(seq.imu.accel))
+    )
+
+
+@pytest.mark.parametrize("length", [160, 360])
+def test_chunks_keep_a_filled_in_stretch_whole(noisy_gnss_run, length):
+    """A 2-s filled-in stretch (8..10 s) that chunk boundaries fall into: each boundary
+    moves to the stretch's end, so the stretch's variance comes from its whole length, as
+    in the one run (before: 19.1 m apart with 0.8-s chunks, 21.4 m with 1.8-s ones on this run
+    whose GNSS turns 8 x noisier than declared); a
+    chunk wholly inside it is left to the chunk before."""
+    seq = _with_filled_stretch(noisy_gnss_run, 8.0, 10.0)
+    windows = (seq.imu.length - 1) // length
+    with torch.no_grad():
+        whole = run_eskf(seq, HELD_BIASES)
+        pieces = run_piecewise(seq, HELD_BIASES, _alternating(windows), length, None)
+    assert int(whole.gap[0].sum()) > 0
+    _assert_same_run(pieces, whole)
+
+
 def _assert_same_run(
     pieces, whole, fields=("position", "velocity", "rotation", "covariance"), tol=TOL
 ):
