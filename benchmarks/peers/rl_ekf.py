@@ -145,9 +145,10 @@ def transfer_jacobian(state: np.ndarray, dt: float) -> np.ndarray:
     ``transfer_function_jacobian_``): the transfer matrix plus the derivatives of its
     angle-dependent entries.
 
-    robot_localization derives the terms by hand; one release line has the sign of the
-    ``cr tan(pitch) / cos(pitch) vyaw`` term of d(yaw)/d(pitch) flipped (``ekf.cpp`` in
-    ROS 2 ``rolling``); this follows the exact derivative, as its ROS 1 releases do.
+    robot_localization derives the terms by hand. Its ROS 2 ``ekf.cpp`` (rclcpp; stored
+    commit 0108d3f) has the sign of the ``cr tan(pitch) / cos(pitch) vyaw`` term of
+    d(yaw)/d(pitch) flipped; its ROS 1 ``ekf.cpp`` (commit 1bfc112) has the exact
+    derivative, which this follows. The term is zero at zero pitch.
     """
     roll, pitch, yaw = state[ROLL], state[PITCH], state[YAW]
     sr, cr = math.sin(roll), math.cos(roll)
