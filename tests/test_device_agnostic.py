@@ -106,3 +106,51 @@ def test_msf_run_writes_the_same_files(every_stream_drive, tmp_path, smooth):
         written[guarded] = summary, (out / "trajectory.tum").read_text()
     assert written[True] == written[False]
     assert written[True][0]["device"] == "cpu"
+
+
+def test_pose_graph_and_visual_inertial_window():
+    """``optimize_pose_graph`` on a GTSAM example graph and ``solve_vio`` on a simulated
+    visual-inertial run (the window BA with landmarks and the Schur complement)."""
+    from msf_torch.backend.lm import LMConfig
+    from msf_torch.backend.posegraph import optimize_pose_graph
+    from msf_torch.backend.vio import VioConfig, solve_vio
+    from msf_torch.io import gtsam_pose_graph_path, read_pose_graph
+    from tests.backend.test_vio_window import _simulate
+
+    graph = read_pose_graph(str(gtsam_pose_graph_path("pose3Localizationexample.txt")))
+    normal, guarded = _twice(lambda: optimize_pose_graph(graph))
+    assert guarded.final_cost == normal.final_cost
+    _same(normal.graph.rotations, guarded.graph.rotations)
+    _same(normal.graph.positions, guarded.graph.positions)
+    data, _, _ = _simulate()
+    growth = LMConfig(max_iterations=5, relative_tolerance=1e-6, eliminate="landmark")
+    config = VioConfig(keyframe_stride=1, rest_duration=0.4, window=10, growth_lm=growth)
+    normal, guarded = _twice(lambda: solve_vio(data, config))
+    _same(normal.residual, guarded.residual)
+
+
+def test_training_step():
+    """One loss and backward pass of ``CovNetModule`` (the differentiable filter in chunks,
+    the NLL term, the weather head)."""
+    from msf_torch.learning import CovNetConfig
+    from msf_torch.learning.data import collate_runs, run_features, simulate_labelled_run
+    from msf_torch.learning.module import CovNetModule
+
+    seq = simulate_labelled_run(7, 6.0)
+    weather = ("sunny", "rain", "fog", "night", "snow")
+    batch = collate_runs([(seq, run_features(seq, 100, ("gnss", "vo", "lidar"), weather))], 100)
+    torch.manual_seed(0)
+    module = CovNetModule(CovNetConfig(), chunk_windows=3)
+
+    def step() -> tuple[torch.Tensor, list[torch.Tensor]]:
+        module.zero_grad()
+        with torch.enable_grad():
+            loss = module._losses(batch)[0]["loss"]
+            loss.backward()
+        return loss.detach(), [p.grad.clone() for p in module.parameters() if p.grad is not None]
+
+    (normal_loss, normal_grads), (guarded_loss, guarded_grads) = _twice(step)
+    _same(normal_loss, guarded_loss)
+    assert len(normal_grads) == len(guarded_grads) > 0
+    for a, b in zip(normal_grads, guarded_grads, strict=True):
+        _same(a, b)
