@@ -1,5 +1,7 @@
-"""Labelled-run simulators with known truth (wheeled robot with slip and GNSS outages; weather)."""
+"""Labelled-run simulators with known truth (wheeled robot with slip and GNSS outages; weather;
+recorder artefacts)."""
 
+from msf_torch.sim.recorder import fill_imu_stretch
 from msf_torch.sim.weather import (
     CONDITIONS,
     DEFAULT_CONDITIONS,
@@ -54,6 +56,7 @@ __all__ = [
     "WheelModel",
     "apply_weather",
     "default_slip_config",
+    "fill_imu_stretch",
     "gnss_denied_slip_config",
     "sample_slip_config",
     "simulate_run",

@@ -19,7 +19,7 @@ from msf_torch.frontend.config import EskfConfig, config_for_sequence
 from msf_torch.frontend.eskf import run_eskf
 from msf_torch.frontend.init import initial_state
 from msf_torch.frontend.stream import EskfStream, concat_results, time_slice
-from msf_torch.sim import SimConfig, simulate_run
+from msf_torch.sim import SimConfig, fill_imu_stretch, simulate_run
 from msf_torch.sim.weather import WeatherSchedule, apply_weather
 
 BOUNDS = [0.0, 2.37, 4.9, 7.1, 11.3, 11.35, 16.0, 20.01]
@@ -139,29 +139,13 @@ def test_the_first_piece_sets_the_initial_state_and_tiny_pieces_wait(run):
     assert int(second.dropped_samples["gnss"].sum()) == 0
 
 
-def _with_filled_stretch(seq, t0: float, t1: float):
-    """``seq`` with its IMU samples from ``t0`` to ``t1`` s replaced by the straight line
-    between the two (a recorder's filled-in stretch)."""
-    t = seq.imu.t[0]
-    a, b = (int(torch.searchsorted(t, torch.tensor(x, dtype=t.dtype))) for x in (t0, t1))
-    frac = ((t[a : b + 1] - t[a]) / (t[b] - t[a]))[:, None]
-
-    def fill(x):
-        x = x.clone()
-        x[0, a : b + 1] = x[0, a] + (x[0, b] - x[0, a]) * frac
-        return x
-
-    imu = dataclasses.replace(seq.imu, gyro=fill(seq.imu.gyro), accel=fill(seq.imu.accel))
-    return dataclasses.replace(seq, imu=imu)
-
-
 @pytest.mark.parametrize("cut", [8.02, 9.0, 9.98])
 def test_a_boundary_inside_a_filled_in_stretch(run, cut):
     """A 2-s filled-in stretch (8..10 s) cut by a piece boundary: the tail from its first
     sample waits for the next piece, so the stretch is modelled as one, as in the run in
     one piece (before: 0.19-1.28 m apart, each part's variance from its own length)."""
     seq, cfg = run
-    seq, cfg = _with_filled_stretch(seq, 8.0, 10.0), cfg.replace(**HELD)
+    seq, cfg = fill_imu_stretch(seq, 8.0, 10.0), cfg.replace(**HELD)
     with torch.no_grad():
         whole = run_eskf(seq, cfg)
         stream, joined = _streamed(seq, cfg, [time_slice(seq, 0, cut), time_slice(seq, cut, 21)])
@@ -173,7 +157,7 @@ def test_a_boundary_inside_a_filled_in_stretch(run, cut):
 
 def test_pieces_inside_a_stretch_wait_and_max_hold_s_bounds_the_wait(run):
     seq, cfg = run
-    seq, cfg = _with_filled_stretch(seq, 8.0, 10.0), cfg.replace(**HELD)
+    seq, cfg = fill_imu_stretch(seq, 8.0, 10.0), cfg.replace(**HELD)
     pieces = [time_slice(seq, a, b) for a, b in ((0, 8.5), (8.5, 9.5), (9.5, 21))]
     with torch.no_grad():
         stream = EskfStream(cfg, initial=initial_state(seq, cfg))

@@ -44,7 +44,7 @@ from msf_torch.learning import CovNet, CovNetConfig
 from msf_torch.learning.data import simulate_labelled_run
 from msf_torch.learning.inference import LearnedModel, run_piecewise
 from msf_torch.runner import RunInterrupted, RunOptions, run_sequence
-from msf_torch.sim import SimConfig, simulate_run
+from msf_torch.sim import SimConfig, fill_imu_stretch, simulate_run
 from msf_torch.sim.calibration import calibration_sim_config, simulate_calibration_run
 from msf_torch.sim.faults import SourceFault, inject_faults
 from msf_torch.sim.noise_step import gnss_noise_step
@@ -143,23 +143,6 @@ def test_chunks_bridge_a_skipped_sample_at_a_boundary(noisy_gnss_run):
         assert float(diff) < TOL, name  # round-off (measured 1.9e-12 m)
 
 
-def _with_filled_stretch(seq, t0: float, t1: float):
-    """``seq`` with its IMU samples from ``t0`` to ``t1`` s on the straight line between the
-    two (a recorder's filled-in stretch)."""
-    t = seq.imu.t[0]
-    a, b = (int(torch.searchsorted(t, torch.tensor(x, dtype=t.dtype))) for x in (t0, t1))
-    frac = ((t[a : b + 1] - t[a]) / (t[b] - t[a]))[:, None]
-
-    def fill(x):
-        x = x.clone()
-        x[0, a : b + 1] = x[0, a] + (x[0, b] - x[0, a]) * frac
-        return x
-
-    return dataclasses.replace(
-        seq, imu=dataclasses.replace(seq.imu, gyro=fill(seq.imu.gyro), accel=fill(seq.imu.accel))
-    )
-
-
 @pytest.mark.parametrize("length", [160, 360])
 def test_chunks_keep_a_filled_in_stretch_whole(noisy_gnss_run, length):
     """A 2-s filled-in stretch (8..10 s) that chunk boundaries fall into: each boundary
@@ -167,7 +150,7 @@ def test_chunks_keep_a_filled_in_stretch_whole(noisy_gnss_run, length):
     in the one run (before: 19.1 m apart with 0.8-s chunks, 21.4 m with 1.8-s ones on this run
     whose GNSS turns 8 x noisier than declared); a
     chunk wholly inside it is left to the chunk before."""
-    seq = _with_filled_stretch(noisy_gnss_run, 8.0, 10.0)
+    seq = fill_imu_stretch(noisy_gnss_run, 8.0, 10.0)
     windows = (seq.imu.length - 1) // length
     with torch.no_grad():
         whole = run_eskf(seq, HELD_BIASES)
