@@ -1,0 +1,89 @@
+"""The robot_localization EKF peer (``benchmarks/peers/rl_ekf.py``) and its benchmark
+(``benchmarks/robot_localization.py``): the predict Jacobian against finite differences,
+a noise-free straight drive tracked from the node's default zero start, and the
+benchmark's smoke run."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+from benchmarks import robot_localization
+from benchmarks.peers.rl_ekf import STATE_SIZE, run_rl_ekf, transfer_jacobian, transfer_matrix
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_predict_jacobian_matches_finite_differences(seed):
+    rng = np.random.default_rng(seed)
+    state = rng.normal(size=STATE_SIZE)
+    state[3:6] = rng.uniform(-1.2, 1.2, 3)  # roll, pitch, yaw away from the pitch singularity
+    dt = rng.uniform(0.005, 0.5)
+    step = 1e-6
+    numeric = np.zeros((STATE_SIZE, STATE_SIZE))
+    for i in range(STATE_SIZE):
+        e = np.zeros(STATE_SIZE)
+        e[i] = step
+        plus = transfer_matrix(state + e, dt) @ (state + e)
+        minus = transfer_matrix(state - e, dt) @ (state - e)
+        numeric[:, i] = (plus - minus) / (2.0 * step)
+    np.testing.assert_allclose(transfer_jacobian(state, dt), numeric, rtol=0.0, atol=1e-8)
+
+
+def test_straight_drive_tracked_from_default_start():
+    """1.5 m/s along a 0.6-rad heading, level, exact IMU / wheels / GNSS: from the node's zero
+    start (heading 0) the filter must find the heading and track the position."""
+    speed, heading, g, track = 1.5, 0.6, 9.80665, 0.5
+    imu_t = np.arange(0.0, 40.0 + 1e-9, 0.01)
+    wheel_t = np.arange(0.04, 40.0 + 1e-9, 0.04)
+    gnss_t = np.arange(0.0, 40.0 + 1e-9, 1.0)
+    direction = np.array([math.cos(heading), math.sin(heading), 0.0])
+    out = run_rl_ekf(
+        imu_t=imu_t,
+        imu_gyro=np.zeros((imu_t.size, 3)),
+        imu_accel=np.tile([0.0, 0.0, g], (imu_t.size, 1)),
+        gyro_variance=np.full(3, 1e-6),
+        accel_variance=np.full(3, 1e-4),
+        wheel_t=wheel_t,
+        wheel_left=np.full(wheel_t.size, speed),
+        wheel_right=np.full(wheel_t.size, speed),
+        wheel_track_m=track,
+        wheel_twist_variance=np.full(4, 1e-4),
+        gnss_t=gnss_t,
+        gnss_xyz=gnss_t[:, None] * speed * direction,
+        gnss_sigma=np.full(3, 0.05),
+        gravity=g,
+    )
+    truth = out["t"][:, None] * speed * direction
+    err = np.linalg.norm(out["position"] - truth, axis=1)
+    late = out["t"] >= 20.0
+    assert np.all(np.isfinite(out["position"]))
+    assert err[late].max() < 0.05, err[late].max()
+    assert abs(out["rpy"][-1, 2] - heading) < 1e-3
+    assert out["rejected"] == 0
+
+
+def test_smoke_run_json_line(capsys, one_torch_thread):
+    argv = ["--seeds", "2", "--tune-seeds", "1", "--q-scales", "1", "--q-attitude-scales", "1"]
+    argv += ["--duration-s", "24", "--outage-after-s", "10", "--outage-s", "6", "--slip", "1"]
+    assert robot_localization.main(argv) == 0
+    record = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert record["benchmark"] == "robot_localization"
+    for key in ("inputs", "ours", "peer", "columns", "ratio", "wins_ours", "accuracy", "runs"):
+        assert key in record
+    assert record["inputs"]["seeds"] == [300, 301]
+    best = record["inputs"]["tuning"]["best"]
+    assert (
+        best["scale"] == best["attitude_scale"] == 1.0
+        and len(record["inputs"]["tuning"]["grid"]) == 2
+    )
+    assert set(record["columns"]) == {"ours", *robot_localization.PEERS}
+    for name, figures in record["accuracy"].items():
+        for metric in robot_localization.METRICS:
+            assert math.isfinite(figures[metric]) and figures[metric] > 0.0, (name, metric)
+    assert "wall_s_numpy" in record["peer"] and "wall_ours_over_peer" not in record["ratio"]
+    for row in record["runs"]:
+        start, end = row["outage_s"]
+        assert 10.0 <= start and end - start == pytest.approx(6.0)
