@@ -33,6 +33,9 @@ What it measures
       it), ``two_d_mode`` off and on;
     * ``peer_2d``: the peer with ``two_d_mode`` on (z, roll, pitch and their rates forced
       to 0), what its docs suggest for planar robots.
+    * ``peer_ahrs``: the peer as configured, with an orientation ours does not get: an AHRS
+      on the IMU (``imu0`` roll, pitch, yaw: the simulated truth plus white noise of 0.5,
+      0.5 and 2 deg, :data:`AHRS_SIGMA_RAD`), how robots with such an IMU feed it.
 
     Scoring, the same for all: each estimate (ours at its epochs, the peer at its
     measurement stamps) is linearly interpolated at the simulator's 200-Hz truth samples
@@ -53,8 +56,8 @@ Why the peer drifts
     8.8 and 11.7 m with the noisy data. Ours integrates the IMU as a strapdown mechanisation
     with estimated biases, so the wheel and GNSS updates observe its roll and pitch through
     gravity; the peer's model has neither. Where a robot's IMU reports orientation (an AHRS,
-    or ``imu_filter_madgwick`` in front), the peer would fuse it; that input is not
-    simulated here.
+    or ``imu_filter_madgwick`` in front), the peer fuses it: ``peer_ahrs`` shows it with a
+    simulated AHRS that ours does not get.
 
 How to run
     OMP_NUM_THREADS=1 .venv/bin/python benchmarks/robot_localization.py        # ~7 min
@@ -100,11 +103,15 @@ from msf_torch.frontend.config import EskfConfig, load_sequence_config  # noqa: 
 from msf_torch.frontend.eskf import run_eskf  # noqa: E402
 from msf_torch.frontend.init import initial_state  # noqa: E402
 from msf_torch.geometry.conventions import STANDARD_GRAVITY  # noqa: E402
+from msf_torch.geometry.quaternion import quat_to_matrix  # noqa: E402
 from msf_torch.sim import SimConfig, simulate_run  # noqa: E402
 from msf_torch.types import Sequence, Trajectory  # noqa: E402
 
 METRICS = ("rmse_m", "outage_max_error_m", "outage_rmse_m")
-PEERS = ("peer", "peer_default_init", "peer_tuned", "peer_2d")
+PEERS = ("peer", "peer_default_init", "peer_tuned", "peer_2d", "peer_ahrs")
+AHRS_SIGMA_RAD = np.radians([0.5, 0.5, 2.0])
+"""1-sigma of the simulated AHRS orientation fed to ``peer_ahrs``: roll, pitch, yaw, rad
+(a MEMS AHRS's typical 0.5 deg level and 2 deg magnetic heading)."""
 
 
 def peer_inputs(seq: Sequence, cfg: EskfConfig) -> dict[str, Any]:
@@ -255,7 +262,28 @@ def run_seed(seed: int, sim_cfg: SimConfig, tuned: dict[str, Any]) -> dict[str, 
     row["peer_default_init"] = run_peer(seq, arrays, outage, initial_state=None)
     row["peer_tuned"] = run_peer(seq, arrays, outage, **tuned_options(**tuned))
     row["peer_2d"] = run_peer(seq, arrays, outage, two_d_mode=True)
+    row["peer_ahrs"] = run_peer(seq, arrays, outage, **ahrs_orientation(seq, seed))
     return row
+
+
+def ahrs_orientation(seq: Sequence, seed: int) -> dict[str, Any]:
+    """``run_rl_ekf`` inputs of an AHRS on the IMU: the true roll, pitch, yaw at the IMU
+    samples plus white noise of :data:`AHRS_SIGMA_RAD` (seeded by the run)."""
+    truth = seq.ground_truth
+    imu_t = seq.imu.t[0, seq.imu.mask[0]]
+    index = torch.searchsorted(truth.t[0, truth.mask[0]], imu_t).clamp(max=truth.length - 1)
+    rot = quat_to_matrix(truth.quaternion[0, truth.mask[0]][index]).numpy()
+    rpy = np.stack(
+        (
+            np.arctan2(rot[:, 2, 1], rot[:, 2, 2]),
+            -np.arcsin(np.clip(rot[:, 2, 0], -1.0, 1.0)),
+            np.arctan2(rot[:, 1, 0], rot[:, 0, 0]),
+        ),
+        -1,
+    )
+    rng = np.random.default_rng(seed + 7_000)
+    noisy = rpy + AHRS_SIGMA_RAD * rng.standard_normal(rpy.shape)
+    return {"imu_rpy": noisy, "rpy_variance": AHRS_SIGMA_RAD**2}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -347,6 +375,9 @@ def main(argv: list[str] | None = None) -> int:
             "outage_rmse_ours_over_peer": om["outage_rmse_m"] / pm["outage_rmse_m"],
             "rmse_ours_over_peer_tuned": om["rmse_m"] / tm["rmse_m"],
             "outage_max_ours_over_peer_tuned": om["outage_max_error_m"] / tm["outage_max_error_m"],
+            "rmse_ours_over_peer_ahrs": om["rmse_m"] / columns["peer_ahrs"]["rmse_m"],
+            "outage_max_ours_over_peer_ahrs": om["outage_max_error_m"]
+            / columns["peer_ahrs"]["outage_max_error_m"],
         },
         "wins_ours": wins,
         "accuracy": {name: {k: columns[name][k] for k in METRICS} for name in columns},

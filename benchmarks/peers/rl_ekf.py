@@ -287,11 +287,12 @@ class RlEkf:
             self.last_time = time
 
 
-IMU_TWIST, IMU_ACCEL, ODOM_TWIST, GNSS_POSE = range(4)
+IMU_POSE, IMU_TWIST, IMU_ACCEL, ODOM_TWIST, GNSS_POSE = range(5)
 _ODOM_INDEX = np.array([VX, VY, VZ, VYAW])
 _GYRO_INDEX = np.array([VROLL, VPITCH, VYAW])
 _ACCEL_INDEX = np.array([AX, AY, AZ])
 _POSE_INDEX = np.array([X, Y, Z])
+_ORIENTATION_INDEX = np.array([ROLL, PITCH, YAW])
 
 
 def run_rl_ekf(
@@ -313,6 +314,8 @@ def run_rl_ekf(
     initial_state: np.ndarray | None = None,
     two_d_mode: bool = False,
     rejection_threshold: float = math.inf,
+    imu_rpy: np.ndarray | None = None,
+    rpy_variance: np.ndarray | None = None,
 ) -> dict[str, Any]:
     """Run the robot_localization EKF over IMU, wheel and GNSS streams (one run).
 
@@ -331,6 +334,11 @@ def run_rl_ekf(
             zero state initialised by the first measurement.
         two_d_mode: robot_localization's ``two_d_mode``.
         rejection_threshold: Mahalanobis threshold of every sensor (default: none).
+        imu_rpy: (N, 3) the IMU's own orientation (an AHRS output: roll, pitch, yaw in the
+            world frame, rad) at ``imu_t``, fused as ``imu0``'s roll / pitch / yaw before
+            its rates (robot_localization's order within an IMU message); None: the IMU
+            reports no orientation (orientation covariance -1).
+        rpy_variance: (3,) variances of ``imu_rpy``, rad^2.
 
     Returns:
         dict with ``t`` (S,) the distinct measurement stamps, s; ``position`` (S, 3) m and
@@ -351,6 +359,10 @@ def run_rl_ekf(
         raise ValueError("wheel_left and wheel_right must match wheel_t's shape")
     # the queue: (time, kind, row), stable order of kinds at equal times
     events = [(t, IMU_TWIST, i) for i, t in enumerate(imu_t)]
+    if imu_rpy is not None:
+        if np.shape(imu_rpy) != (imu_t.size, 3) or np.shape(rpy_variance) != (3,):
+            raise ValueError("imu_rpy must be (N, 3) at imu_t and rpy_variance (3,)")
+        events += [(t, IMU_POSE, i) for i, t in enumerate(imu_t)]
     events += [(t, IMU_ACCEL, i) for i, t in enumerate(imu_t)]
     events += [(t, ODOM_TWIST, i) for i, t in enumerate(wheel_t)]
     events += [(t, GNSS_POSE, i) for i, t in enumerate(gnss_t) if np.all(np.isfinite(gnss_xyz[i]))]
@@ -364,7 +376,9 @@ def run_rl_ekf(
     gravity_w = np.array([0.0, 0.0, gravity])
     stamps, positions, rpys = [], [], []
     for k, (t, kind, i) in enumerate(events):
-        if kind == IMU_TWIST:
+        if kind == IMU_POSE:
+            ekf.process(t, _ORIENTATION_INDEX, imu_rpy[i], rpy_variance, rejection_threshold)
+        elif kind == IMU_TWIST:
             ekf.process(t, _GYRO_INDEX, imu_gyro[i], gyro_variance, rejection_threshold)
         elif kind == IMU_ACCEL:
             rot = rotation_rpy(*ekf.state[ROLL : YAW + 1])

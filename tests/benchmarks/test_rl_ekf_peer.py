@@ -32,15 +32,14 @@ def test_predict_jacobian_matches_finite_differences(seed):
     np.testing.assert_allclose(transfer_jacobian(state, dt), numeric, rtol=0.0, atol=1e-8)
 
 
-def test_straight_drive_tracked_from_default_start():
-    """1.5 m/s along a 0.6-rad heading, level, exact IMU / wheels / GNSS: from the node's zero
-    start (heading 0) the filter must find the heading and track the position."""
-    speed, heading, g, track = 1.5, 0.6, 9.80665, 0.5
+def _straight_drive(speed: float, heading: float, g: float, **options):
+    """1.5 m/s along ``heading``, level, exact IMU / wheels / GNSS, through ``run_rl_ekf``."""
+    track = 0.5
     imu_t = np.arange(0.0, 40.0 + 1e-9, 0.01)
     wheel_t = np.arange(0.04, 40.0 + 1e-9, 0.04)
     gnss_t = np.arange(0.0, 40.0 + 1e-9, 1.0)
     direction = np.array([math.cos(heading), math.sin(heading), 0.0])
-    out = run_rl_ekf(
+    return run_rl_ekf(
         imu_t=imu_t,
         imu_gyro=np.zeros((imu_t.size, 3)),
         imu_accel=np.tile([0.0, 0.0, g], (imu_t.size, 1)),
@@ -55,7 +54,15 @@ def test_straight_drive_tracked_from_default_start():
         gnss_xyz=gnss_t[:, None] * speed * direction,
         gnss_sigma=np.full(3, 0.05),
         gravity=g,
-    )
+        **options,
+    ), direction
+
+
+def test_straight_drive_tracked_from_default_start():
+    """From the node's zero start (heading 0) the filter must find the 0.6-rad heading of a
+    straight drive and track the position."""
+    speed, heading, g = 1.5, 0.6, 9.80665
+    out, direction = _straight_drive(speed, heading, g)
     truth = out["t"][:, None] * speed * direction
     err = np.linalg.norm(out["position"] - truth, axis=1)
     late = out["t"] >= 20.0
@@ -63,6 +70,18 @@ def test_straight_drive_tracked_from_default_start():
     assert err[late].max() < 0.05, err[late].max()
     assert abs(out["rpy"][-1, 2] - heading) < 1e-3
     assert out["rejected"] == 0
+
+
+def test_ahrs_orientation_is_fused_first():
+    """An AHRS's roll, pitch, yaw (``imu_rpy``) enter as ``imu0`` orientation: with the true
+    heading given at every IMU sample the filter's yaw holds it from the first stamp."""
+    speed, heading, g = 1.5, 0.6, 9.80665
+    n = 4001
+    rpy = np.tile([0.0, 0.0, heading], (n, 1))
+    out, _ = _straight_drive(speed, heading, g, imu_rpy=rpy, rpy_variance=np.full(3, 1e-6))
+    assert np.abs(out["rpy"][:, 2] - heading).max() < 1e-3
+    with pytest.raises(ValueError, match="imu_rpy"):
+        _straight_drive(speed, heading, g, imu_rpy=rpy[:-1], rpy_variance=np.full(3, 1e-6))
 
 
 def test_smoke_run_json_line(capsys, one_torch_thread):
