@@ -30,6 +30,35 @@ import numpy as np
 import torch
 
 
+def _imu_arrays(
+    t: torch.Tensor | np.ndarray,
+    gyro: torch.Tensor | np.ndarray,
+    accel: torch.Tensor | np.ndarray,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Times (N,) and the six channels (N, 6), gyro then accelerometer, as float64 numpy."""
+
+    def host(x: torch.Tensor | np.ndarray) -> np.ndarray:
+        return np.asarray(x.detach().cpu() if isinstance(x, torch.Tensor) else x, np.float64)
+
+    return host(t), np.concatenate((host(gyro), host(accel)), axis=1)
+
+
+def _line_fractions(times: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per interior sample k + 1: the span (N - 2,) s between its neighbours and where it
+    lies on it (0..1; 0 where the span is not positive)."""
+    span = times[2:] - times[:-2]
+    return span, (times[1:-1] - times[:-2]) / np.where(span > 0, span, np.inf)
+
+
+def _on_line(
+    before: np.ndarray, here: np.ndarray, after: np.ndarray, frac: np.ndarray, rtol: float
+) -> np.ndarray:
+    """(M,) whether every channel of ``here`` (M, C) lies within ``rtol * max(1, |value|)``
+    of the line from ``before`` to ``after`` at fraction ``frac`` (M,)."""
+    off_line = np.abs(here - before - (after - before) * frac[:, None])
+    return np.all(off_line <= rtol * np.maximum(1.0, np.abs(here)), axis=1)
+
+
 def interpolated_imu_samples(
     t: torch.Tensor | np.ndarray,
     gyro: torch.Tensor | np.ndarray,
@@ -54,18 +83,12 @@ def interpolated_imu_samples(
     """
     if min_samples < 0:
         raise ValueError(f"min_samples must be >= 0, got {min_samples}")
-    times = np.asarray(t.detach().cpu() if isinstance(t, torch.Tensor) else t, dtype=np.float64)
-    values = [
-        np.asarray(x.detach().cpu() if isinstance(x, torch.Tensor) else x, dtype=np.float64)
-        for x in (gyro, accel)
-    ]
+    times, values = _imu_arrays(t, gyro, accel)
     n = times.shape[0]
     out = np.zeros(n, dtype=bool)
     if min_samples == 0 or n < 3:
         return out
-    span = times[2:] - times[:-2]
-    frac = (times[1:-1] - times[:-2]) / np.where(span > 0, span, np.inf)
-    gyro_np, accel_np = values
+    span, frac = _line_fractions(times)
 
     def runs(flags: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Start and end (exclusive) of the runs of True in ``flags`` that are long enough."""
@@ -74,7 +97,7 @@ def interpolated_imu_samples(
         return starts[long], ends[long]
 
     # candidates from one channel with the loosest tolerance of the stream (a superset)
-    gyro_z = gyro_np[:, 2]
+    gyro_z = values[:, 2]
     line = gyro_z[:-2] + (gyro_z[2:] - gyro_z[:-2]) * frac
     loose = rtol * max(1.0, float(np.abs(gyro_z).max()))
     starts, ends = runs((np.abs(gyro_z[1:-1] - line) <= loose) & (span > 0))
@@ -82,12 +105,8 @@ def interpolated_imu_samples(
         return out
     # every channel of every candidate sample, at its own tolerance
     rows = np.concatenate([np.arange(a, b) for a, b in zip(starts, ends, strict=True)])
-    here = np.concatenate((gyro_np[rows + 1], accel_np[rows + 1]), axis=1)
-    before = np.concatenate((gyro_np[rows], accel_np[rows]), axis=1)
-    after = np.concatenate((gyro_np[rows + 2], accel_np[rows + 2]), axis=1)
-    off_line = np.abs(here - before - (after - before) * frac[rows, None])
     confirmed = np.zeros(n - 2, dtype=bool)
-    confirmed[rows] = np.all(off_line <= rtol * np.maximum(1.0, np.abs(here)), axis=1)
+    confirmed[rows] = _on_line(values[rows], values[rows + 1], values[rows + 2], frac[rows], rtol)
     for a, b in zip(*runs(confirmed), strict=True):
         out[a + 1 : b + 1] = True  # index k of the interior arrays is sample k + 1
     return out
@@ -117,22 +136,11 @@ def open_stretch_start(
         samples after it may be filled in), or None when the last-but-one sample is not
         collinear (or N < 3).
     """
-    times = np.asarray(t.detach().cpu() if isinstance(t, torch.Tensor) else t, dtype=np.float64)
-    n = times.shape[0]
-    if n < 3:
+    times, values = _imu_arrays(t, gyro, accel)
+    if times.shape[0] < 3:
         return None
-    values = np.concatenate(
-        [
-            np.asarray(x.detach().cpu() if isinstance(x, torch.Tensor) else x, np.float64)
-            for x in (gyro, accel)
-        ],
-        axis=1,
-    )
-    span = times[2:] - times[:-2]
-    frac = (times[1:-1] - times[:-2]) / np.where(span > 0, span, np.inf)
-    line = values[:-2] + (values[2:] - values[:-2]) * frac[:, None]
-    tolerance = rtol * np.maximum(1.0, np.abs(values[1:-1]))
-    collinear = np.all(np.abs(values[1:-1] - line) <= tolerance, axis=1) & (span > 0)
+    span, frac = _line_fractions(times)
+    collinear = _on_line(values[:-2], values[1:-1], values[2:], frac, rtol) & (span > 0)
     if not collinear[-1]:
         return None
     off = np.flatnonzero(~collinear)
