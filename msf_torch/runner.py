@@ -77,6 +77,7 @@ __all__ = [
     "BATCH_TABLE_COLUMNS",
 ]
 
+import copy
 import csv
 import dataclasses
 import json
@@ -327,7 +328,10 @@ def run_sequence(seq: Sequence, cfg: EskfConfig, options: RunOptions) -> dict[st
         else:
             from msf_torch.learning.inference import learned_scales, run_piecewise, scales_summary
 
-            model = dataclasses.replace(options.learned, model=options.learned.model.to(device))
+            network = options.learned.model  # a copy on the device: the caller's stays put
+            if next(network.parameters()).device != device:
+                network = copy.deepcopy(network).to(device)
+            model = dataclasses.replace(options.learned, model=network)
             scales = learned_scales(work, model, cfg)
             try:
                 result = run_piecewise(
