@@ -17,7 +17,13 @@ What it measures
     * peer: ``benchmarks/peers/gtsam_kitti.py`` (CombinedImuFactor + GPSFactor under ISAM2,
       a port of GTSAM's IMUKittiExampleGPS), scored with its causal "filter" estimate
       (newest state right after the ISAM2 update at each GPS time); its smoothed (final
-      ISAM2) estimate is reported for reference.
+      ISAM2) estimate is reported for reference;
+    * second peer: robot_localization's EKF (``benchmarks/peers/rl_ekf.py``, its
+      ``ekf_localization_node`` rewritten in numpy; see ``benchmarks/robot_localization.py``)
+      on the same reduced sequence: IMU angular velocity + gravity-removed acceleration with
+      ours' noise densities, GPS as pose x, y, z with ours' GPS sigma, its default process
+      noise, ours' initial state as its ``initial_state`` (the drive has no wheels and the
+      IMU no orientation output). Its wall time is a numpy rewrite's: recorded, no ratio.
 
     Windows (M = number of fixes; a window is the fix-index range [i0, i1)):
     the main one, the middle 30 % (i0 = int(0.35 M), 0.3 M fixes); 30 % windows starting at
@@ -66,6 +72,8 @@ from benchmarks._common import (  # noqa: E402
     trajectory_from,
 )
 from benchmarks.peers.gtsam_kitti import run_gtsam_kitti  # noqa: E402
+from benchmarks.peers.rl_ekf import run_rl_ekf  # noqa: E402
+from benchmarks.robot_localization import peer_start_state  # noqa: E402
 from msf_torch.backend.window import SmootherConfig, load_smoother_config, smooth  # noqa: E402
 from msf_torch.eval.outage import outage_metrics, split_gnss_outage  # noqa: E402
 from msf_torch.frontend.config import EskfConfig, packaged_config  # noqa: E402
@@ -96,6 +104,33 @@ def make_windows(n_fix: int, gps_t: np.ndarray, quick: bool) -> list[dict[str, A
         i1 = int(np.searchsorted(gps_t, gps_t[i0] + 60.0 + EPS_S, side="right"))
         windows.append({"name": f"60s@{frac:.0%}", "kind": "60s", "i0": i0, "i1": min(i1, n_fix)})
     return windows
+
+
+def rl_inputs(seq: Sequence, cfg: EskfConfig) -> dict[str, Any]:
+    """``run_rl_ekf`` inputs of a B = 1 IMU + GPS sequence: the IMU with ours' noise
+    densities over its sample time, the fixes with ours' GPS sigma, no wheels, gravity and
+    start state (:func:`benchmarks.robot_localization.peer_start_state`) as ours."""
+    imu_m, gnss_m = seq.imu.mask[0], seq.gnss.mask[0]
+    imu_t = seq.imu.t[0, imu_m].numpy()
+    rate = 1.0 / float(np.median(np.diff(imu_t)))
+    none = np.zeros(0)
+    return {
+        "imu_t": imu_t,
+        "imu_gyro": seq.imu.gyro[0, imu_m].numpy(),
+        "imu_accel": seq.imu.accel[0, imu_m].numpy(),
+        "gyro_variance": np.full(3, cfg.gyro_noise_density**2 * rate),
+        "accel_variance": np.full(3, cfg.accel_noise_density**2 * rate),
+        "wheel_t": none,
+        "wheel_left": none,
+        "wheel_right": none,
+        "wheel_track_m": 1.0,
+        "wheel_twist_variance": np.ones(4),
+        "gnss_t": seq.gnss.t[0, gnss_m].numpy(),
+        "gnss_xyz": seq.gnss.position[0, gnss_m].numpy(),
+        "gnss_sigma": np.asarray(cfg.gnss_sigma_m, float),
+        "gravity": cfg.gravity_mps2,
+        "initial_state": peer_start_state(seq, cfg),
+    }
 
 
 def run_window(
@@ -145,6 +180,12 @@ def run_window(
     if not np.array_equal(withheld_peer, np.arange(i0, i1)):
         raise RuntimeError(f"window {window['name']}: GTSAM withheld other fixes than ours")
     filt_m = outage_metrics(trajectory_from(res["t"], res["filter_position"]), withheld)
+    rl_start = time.perf_counter()
+    rl = run_rl_ekf(**rl_inputs(reduced, cfg))
+    rl_m = {
+        **outage_metrics(trajectory_from(rl["t"], rl["position"]), withheld),
+        "wall_s_numpy": time.perf_counter() - rl_start,
+    }
     smooth_m = outage_metrics(trajectory_from(res["t"], res["smoothed_position"]), withheld)
     causal = res["causal"][i0 - first : i1 - first]
     return {
@@ -166,6 +207,7 @@ def run_window(
         },
         "peer_filter": {**filt_m, "wall_s": peer_wall, "timing": peer_times},
         "peer_smoothed": smooth_m,
+        "peer_robot_localization": rl_m,
         "peer_causal_in_window": bool(np.all(causal)),
     }
 
@@ -276,6 +318,8 @@ def main(argv: list[str] | None = None) -> int:
             f"({sm['outage_rmse_m'] / o['outage_rmse_m']:.3f} of ours) | "
             f"gtsam filter drift {f['outage_drift_pct']:.2f}% max {f['outage_max_error_m']:.1f} m"
             f" | gtsam smoothed drift {s['outage_drift_pct']:.2f}% rmse {s['outage_rmse_m']:.1f} m"
+            f" | robot_localization ekf drift "
+            f"{row['peer_robot_localization']['outage_drift_pct']:.2f}%"
             f" | wall ours {o['wall_s']:.2f} s smoother {sm['wall_s']:.2f} s "
             f"gtsam {f['wall_s']:.2f} s"
         )
@@ -330,6 +374,10 @@ def main(argv: list[str] | None = None) -> int:
         "peer": {
             "filter": {**pick(pm), "wall_s": pm["wall_s"], "timing": pm["timing"]},
             "smoothed_reference": pick(main_row["peer_smoothed"]),
+            "robot_localization": {
+                **pick(main_row["peer_robot_localization"]),
+                "wall_s_numpy": main_row["peer_robot_localization"]["wall_s_numpy"],
+            },
         },
         "ratio": {
             "drift_ours_over_peer_filter": om["outage_drift_pct"] / pm["outage_drift_pct"],
@@ -342,6 +390,9 @@ def main(argv: list[str] | None = None) -> int:
             "ours_drift_pct": om["outage_drift_pct"],
             "peer_filter_drift_pct": pm["outage_drift_pct"],
             "peer_smoothed_drift_pct": main_row["peer_smoothed"]["outage_drift_pct"],
+            "peer_robot_localization_drift_pct": main_row["peer_robot_localization"][
+                "outage_drift_pct"
+            ],
             "ours_rmse_m": om["outage_rmse_m"],
             "smoother_rmse_m": sm["outage_rmse_m"],
             "peer_filter_rmse_m": pm["outage_rmse_m"],
@@ -358,6 +409,7 @@ def main(argv: list[str] | None = None) -> int:
                 "peer_filter": {k: r["peer_filter"][k] for k in keys},
                 "peer_smoothed_drift_pct": r["peer_smoothed"]["outage_drift_pct"],
                 "peer_smoothed_rmse_m": r["peer_smoothed"]["outage_rmse_m"],
+                "peer_robot_localization": {k: r["peer_robot_localization"][k] for k in keys},
                 "smoother_target_met": smoother_ok(r),
                 "peer_causal_in_window": r["peer_causal_in_window"],
                 "wall_s": {

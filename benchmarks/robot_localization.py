@@ -128,14 +128,6 @@ def peer_inputs(seq: Sequence, cfg: EskfConfig) -> dict[str, Any]:
     imu_m, wheel_m, gnss_m = seq.imu.mask[0], seq.wheel.mask[0], seq.gnss.mask[0]
     imu_t = seq.imu.t[0, imu_m].numpy()
     rate = 1.0 / float(np.median(np.diff(imu_t)))
-    nav, _ = initial_state(seq, cfg)
-    rot = nav.rotation[0].numpy()
-    start = np.zeros(15)
-    start[0:3] = nav.position[0].numpy()
-    start[3] = np.arctan2(rot[2, 1], rot[2, 2])
-    start[4] = -np.arcsin(np.clip(rot[2, 0], -1.0, 1.0))
-    start[5] = np.arctan2(rot[1, 0], rot[0, 0])
-    start[6:9] = rot.T @ nav.velocity[0].numpy()
     return {
         "imu_t": imu_t,
         "imu_gyro": seq.imu.gyro[0, imu_m].numpy(),
@@ -159,8 +151,23 @@ def peer_inputs(seq: Sequence, cfg: EskfConfig) -> dict[str, Any]:
         "gnss_xyz": seq.gnss.position[0, gnss_m].numpy(),
         "gnss_sigma": seq.gnss.sigma[0, gnss_m].numpy(),
         "gravity": STANDARD_GRAVITY,
-        "initial_state": start,
+        "initial_state": peer_start_state(seq, cfg),
     }
+
+
+def peer_start_state(seq: Sequence, cfg: EskfConfig) -> np.ndarray:
+    """The peer's start state (15,) from ours' initial state
+    (``msf_torch.frontend.init.initial_state``): position, roll / pitch / yaw (tf2 order) and
+    body-frame velocity, the rest zero."""
+    nav, _ = initial_state(seq, cfg)
+    rot = nav.rotation[0].numpy()
+    start = np.zeros(15)
+    start[0:3] = nav.position[0].numpy()
+    start[3] = np.arctan2(rot[2, 1], rot[2, 2])
+    start[4] = -np.arcsin(np.clip(rot[2, 0], -1.0, 1.0))
+    start[5] = np.arctan2(rot[1, 0], rot[0, 0])
+    start[6:9] = rot.T @ nav.velocity[0].numpy()
+    return start
 
 
 def score(estimate: Trajectory, truth: Trajectory, outage: tuple[float, float]) -> dict[str, float]:
