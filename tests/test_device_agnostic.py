@@ -16,6 +16,7 @@ smoothers and the shipped CovNet checkpoint's noise are checked.
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -28,7 +29,7 @@ from msf_torch.frontend.eskf import run_eskf
 from msf_torch.frontend.init import initial_state
 from msf_torch.frontend.stream import EskfStream, concat_results, time_slice
 from msf_torch.learning.inference import learned_scales, load_learned, run_piecewise
-from msf_torch.runner import RunOptions, run_sequence
+from msf_torch.runner import RunOptions, run_batch, run_sequence
 
 CHECKPOINT = Path(__file__).resolve().parents[1] / "checkpoints" / "covnet_weather.pt"
 
@@ -89,21 +90,31 @@ def test_learned_noise(every_stream_drive):
     _same(normal.position, guarded.position)
 
 
-@pytest.mark.parametrize("smooth", [None, "full"])
-def test_msf_run_writes_the_same_files(every_stream_drive, tmp_path, smooth):
-    """``runner.run_sequence`` (``msf run``): the estimator's copy of the run and its results
-    come back to the CPU (``types.move_to``) to be scored and written."""
+@pytest.mark.parametrize(("batch", "smooth"), [(False, None), (False, "full"), (True, "full")])
+def test_msf_run_writes_the_same_files(every_stream_drive, tmp_path, batch, smooth):
+    """``runner.run_sequence`` and ``run_batch`` (``msf run`` with one or two sequences):
+    the estimator's copy of the runs and its results come back to the CPU
+    (``types.move_to``) to be scored and written."""
     seq, cfg = every_stream_drive
     written = {}
     for guarded in (False, True):
         out = tmp_path / ("meta" if guarded else "normal")
         options = RunOptions(out_dir=out, plot=False, smooth=smooth)
         with torch.device("meta") if guarded else contextlib.nullcontext():
-            summary = run_sequence(seq, cfg, options)
-        for timing in ("wall_s", "realtime_factor", "frontend_wall_s"):
+            if batch:
+                other = dataclasses.replace(seq, names=["second"])
+                summary = run_batch([seq, other], cfg, options)
+                files = [out / name / "trajectory.tum" for name in summary["names"]]
+            else:
+                summary = run_sequence(seq, cfg, options)
+                files = [out / "trajectory.tum"]
+        for timing in ("wall_s", "realtime_factor", "frontend_wall_s", "imu_samples_per_s"):
             summary.pop(timing, None)
-        summary.get("smoother", {}).pop("wall_s", None)
-        written[guarded] = summary, (out / "trajectory.tum").read_text()
+        for entry in (summary.get("smoother", {}), *summary.get("runs", [])):
+            entry.pop("wall_s", None)
+        summary.pop("smoother_wall_s", None)
+        summary.pop("out", None)
+        written[guarded] = summary, [f.read_text() for f in files]
     assert written[True] == written[False]
     assert written[True][0]["device"] == "cpu"
 
