@@ -22,7 +22,8 @@ What the stream does with the samples:
 * A piece that ends on IMU samples lying on a straight line (a filled-in stretch of the
   recording, :func:`~msf_torch.sensors.imu_gaps.interpolated_imu_samples`, whose length
   sets its variance) is filtered up to the real sample the line starts from; the rest
-  waits for the next piece, up to ``max_hold_s`` of it. A boundary inside a 2-s stretch
+  waits for the next piece, up to ``max_hold_s`` of it (:meth:`EskfStream.finish` filters
+  what is held when the run ends). A boundary inside a 2-s stretch
   had moved the estimate by up to 1.3 m from the run in one piece.
 * A measurement stamped at or before the previous piece's last IMU sample, in a later
   piece, is late: skipped and counted (``late_samples``), with one warning per stream.
@@ -192,6 +193,7 @@ class EskfStream:
         # the last IMU sample and each pose source's latest sample up to it
         self._boundary: Sequence | None = None
         self._pending: Sequence | None = None  # measurements after the last IMU sample
+        self._finishing = False  # finish(): filter to the last IMU sample, hold nothing
 
     def push(self, piece: Sequence) -> EskfResult | None:
         """Filter the next piece of the run.
@@ -246,6 +248,24 @@ class EskfStream:
             self.results.append(result)
         return result
 
+    def finish(self) -> EskfResult | None:
+        """The run has ended: filter the IMU samples still held back as a possibly
+        unfinished filled-in stretch (a stretch that reaches the end of the run is modelled
+        up to there, as in the run in one piece).
+
+        Returns:
+            the result over the held samples, or None when none were held (measurements
+            stamped after the last IMU sample stay unfused: no IMU reaches them).
+        """
+        if self._pending is None or self._pending.imu.length == 0:
+            return None
+        piece, self._pending = self._pending, None
+        self._finishing = True
+        try:
+            return self.push(piece)
+        finally:
+            self._finishing = False
+
     def _last_to_filter(self, imu) -> int:
         """Index of the last IMU sample of the (compacted) piece to filter now: the last,
         unless the piece ends inside what may be a filled-in stretch
@@ -253,7 +273,7 @@ class EskfStream:
         ``max_hold_s``: then the real sample the stretch starts from, the rest held back
         until the stretch's end is known (its variance grows with its whole length)."""
         last = imu.length - 1
-        if self.cfg.imu_interpolated_min_samples == 0:
+        if self.cfg.imu_interpolated_min_samples == 0 or self._finishing:
             return last
         start = open_stretch_start(imu.t[0], imu.gyro[0], imu.accel[0])
         if start is None or float(imu.t[0, last] - imu.t[0, start]) > self.max_hold_s:

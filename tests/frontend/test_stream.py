@@ -169,3 +169,24 @@ def test_pieces_inside_a_stretch_wait_and_max_hold_s_bounds_the_wait(run):
     assert float(first.t[0, first.mask[0]][-1]) == pytest.approx(8.0)
     assert float(cut_short.t[0, cut_short.mask[0]][-1]) == pytest.approx(8.495)
     assert [float(r.t[0, 0]) for r in stream.results] == pytest.approx([0.0, 8.0])
+
+
+def test_finish_filters_a_stretch_that_reaches_the_end(run):
+    """A run that ends inside a filled-in stretch (from 18 s to its last sample): the last
+    piece holds the stretch back; ``finish`` filters it, and the pieces equal the run in
+    one piece (which models the stretch up to its end too)."""
+    seq, cfg = run
+    last = float(seq.imu.t[0, seq.imu.mask[0]][-1])
+    seq, cfg = fill_imu_stretch(seq, 18.0, last), cfg.replace(**HELD)
+    with torch.no_grad():
+        whole = run_eskf(seq, cfg)
+        stream = EskfStream(cfg, initial=initial_state(seq, cfg))
+        stream.push(time_slice(seq, 0, 10))
+        held = stream.push(time_slice(seq, 10, 21))
+        tail = stream.finish()
+        assert stream.finish() is None
+    assert float(held.t[0, held.mask[0]][-1]) == pytest.approx(18.0)
+    assert float(tail.t[0, tail.mask[0]][-1]) == pytest.approx(last)
+    joined = concat_results(stream.results)
+    assert int(whole.gap[0].sum()) == int(joined.gap[0].sum()) > 0
+    assert max(_largest_difference(joined, whole).values()) < 1e-9
