@@ -439,9 +439,7 @@ def move_to(obj: T, device: torch.device | str) -> T:
         return obj.to(device)
     if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
         moved = {
-            f.name: move_to(getattr(obj, f.name), device)
-            for f in dataclasses.fields(obj)
-            if f.init
+            f.name: move_to(getattr(obj, f.name), device) for f in dataclasses.fields(obj) if f.init
         }
         return dataclasses.replace(obj, **moved)
     if isinstance(obj, dict):

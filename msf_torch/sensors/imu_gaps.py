@@ -158,9 +158,7 @@ def filled_stretches(flags: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return np.nonzero(edges == 1)[0], np.nonzero(edges == -1)[0]
 
 
-def gap_walk_scale(
-    length: torch.Tensor, walk: torch.Tensor, density: torch.Tensor
-) -> torch.Tensor:
+def gap_walk_scale(length: torch.Tensor, walk: torch.Tensor, density: torch.Tensor) -> torch.Tensor:
     """Extra white-noise variance of an IMU sample held over a gap, as a multiplier of the
     sensor's own noise variance: ``(q / n)^2 T^2 / 3`` per channel.
 
