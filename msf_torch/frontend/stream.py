@@ -23,8 +23,8 @@ What the stream does with the samples:
   recording, :func:`~msf_torch.sensors.imu_gaps.interpolated_imu_samples`, whose length
   sets its variance) is filtered up to the real sample the line starts from; the rest
   waits for the next piece, up to ``max_hold_s`` of it (:meth:`EskfStream.finish` filters
-  what is held when the run ends). A boundary inside a 2-s stretch
-  had moved the estimate by up to 1.3 m from the run in one piece.
+  what is held when the run ends). A boundary inside a 2-s stretch had moved the estimate
+  by up to 1.3 m from the run in one piece.
 * A measurement stamped at or before the previous piece's last IMU sample, in a later
   piece, is late: skipped and counted (``late_samples``), with one warning per stream.
 * The first piece sets the initial state from its own data (:func:`initial_state`: the
