@@ -119,6 +119,9 @@ def run_features(
         :class:`RunFeatures` with W = ``(N_imu - 1) // L`` windows, float32 signals, on the
         CPU whatever ``seq``'s device (the windowing and statistics run in numpy, the
         reference pass on the CPU copy).
+
+    Raises:
+        ValueError: the run is too short for one window (the message names it).
     """
     seq = seq.to("cpu")
     imu = seq.imu.compact()
