@@ -4,7 +4,8 @@ One 20-s simulated drive holding every stream the front end fuses (IMU with a 3-
 wheels with a slip episode, GNSS fixes and velocities, visual and LiDAR odometry under a
 weather schedule, the source-fault detector on) runs on the CPU and on ``MSF_TEST_DEVICE``
 (default ``cuda``): the front end, the front end fed piece by piece, both smoothers, the
-shipped CovNet checkpoint's noise, a gradient through the filter and ``msf run --device``.
+shipped CovNet checkpoint's noise, a gradient through the filter, ``msf run --device`` and
+the Lightning smoke fit with its accelerator on the device.
 The CPU results are the reference; cuSOLVER / cuBLAS round differently from LAPACK, so
 positions are compared to 1e-8 m (the back end's CUDA check measured 3.4e-9 m), gate
 decisions exactly.
@@ -15,7 +16,8 @@ Measured on an H200 (torch 2.11 + CUDA 13.0, 2026-11-28): 10 passed with this fi
 ``sigma_i sigma_j`` (two runs; cuSOLVER's results vary a little from run to run). The
 first run found the smoothers' graph built partly on the CPU (the IMU-gap noise, gravity,
 the IMU noise, index and empty tensors) and the CovNet features read with numpy from
-device tensors.
+device tensors. The smoke fit's test was added after the device time was spent; the same
+command (``--trainer.accelerator=gpu``) ran its epoch on the H200.
 
 ``MSF_TEST_DEVICE=cpu pytest tests/test_cuda_pipeline.py`` runs the same checks CPU
 against CPU (to check the test itself on a machine without a GPU).
@@ -24,6 +26,7 @@ against CPU (to check the test itself on a machine without a GPU).
 from __future__ import annotations
 
 import dataclasses
+import math
 import os
 from pathlib import Path
 
@@ -195,3 +198,37 @@ def test_msf_run_device(drive, tmp_path, batch):
     for cpu, dev in zip(trajectories["cpu"], trajectories[DEVICE], strict=True):
         assert torch.equal(cpu.t, dev.t)
         assert _largest(cpu.position, dev.position) < 1e-6
+
+
+def test_training_fit_on_the_device(tmp_path):
+    """``training/train.py fit`` with Lightning's accelerator on the device: the smoke
+    config's one epoch (training and validation) with finite losses in its event files."""
+    import subprocess
+    import sys
+
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    root = Path(__file__).resolve().parents[1]
+    accelerator = "gpu" if DEVICE.startswith("cuda") else DEVICE
+    command = [
+        sys.executable,
+        str(root / "training" / "train.py"),
+        "fit",
+        "--config",
+        str(root / "training" / "configs" / "smoke.yaml"),
+        f"--trainer.accelerator={accelerator}",
+        "--trainer.devices=1",
+        f"--trainer.logger.init_args.save_dir={tmp_path}",
+        f"--trainer.default_root_dir={tmp_path}",
+    ]
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": str(root)}
+    done = subprocess.run(
+        command, cwd=tmp_path, env=env, capture_output=True, text=True, timeout=600
+    )
+    assert done.returncode == 0, done.stderr[-4000:]
+    (version,) = sorted((tmp_path / "smoke").iterdir())
+    events = EventAccumulator(str(version), size_guidance={"scalars": 0})
+    events.Reload()
+    for tag in ("train/loss", "val/loss"):
+        values = [e.value for e in events.Scalars(tag)]
+        assert values and all(math.isfinite(v) for v in values), tag
