@@ -59,3 +59,40 @@ def every_stream_drive():
     seq = dataclasses.replace(seq, imu=seq.imu.map(lambda x: x[:, keep]))
     cfg = config_for_sequence(EskfConfig(source_fault_detection=True), seq.meta, set())
     return seq, cfg
+
+
+@pytest.fixture
+def smoke_fit(tmp_path):
+    """``smoke_fit(*args, timeout=600)``: ``training/train.py fit`` with the smoke config and
+    ``args`` (``--trainer.*`` overrides) as a subprocess in the test's temporary folder (one
+    OpenMP thread, logs there); returns the ``CompletedProcess`` and the run's TensorBoard
+    scalars (an ``EventAccumulator``, loaded; None when the fit wrote no log)."""
+    from pathlib import Path
+
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    root = Path(__file__).resolve().parents[1]
+
+    def run(*args: str, timeout: float = 600):
+        command = [
+            sys.executable,
+            str(root / "training" / "train.py"),
+            "fit",
+            "--config",
+            str(root / "training" / "configs" / "smoke.yaml"),
+            *args,
+            f"--trainer.logger.init_args.save_dir={tmp_path}",
+            f"--trainer.default_root_dir={tmp_path}",
+        ]
+        env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": str(root)}
+        done = subprocess.run(
+            command, cwd=tmp_path, env=env, capture_output=True, text=True, timeout=timeout
+        )
+        versions = sorted((tmp_path / "smoke").glob("version_*"))
+        if not versions:
+            return done, None
+        events = EventAccumulator(str(versions[-1]), size_guidance={"scalars": 0})
+        events.Reload()
+        return done, events
+
+    return run

@@ -200,35 +200,12 @@ def test_msf_run_device(drive, tmp_path, batch):
         assert _largest(cpu.position, dev.position) < 1e-6
 
 
-def test_training_fit_on_the_device(tmp_path):
+def test_training_fit_on_the_device(smoke_fit):
     """``training/train.py fit`` with Lightning's accelerator on the device: the smoke
     config's one epoch (training and validation) with finite losses in its event files."""
-    import subprocess
-    import sys
-
-    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
-
-    root = Path(__file__).resolve().parents[1]
     accelerator = "gpu" if DEVICE.startswith("cuda") else DEVICE
-    command = [
-        sys.executable,
-        str(root / "training" / "train.py"),
-        "fit",
-        "--config",
-        str(root / "training" / "configs" / "smoke.yaml"),
-        f"--trainer.accelerator={accelerator}",
-        "--trainer.devices=1",
-        f"--trainer.logger.init_args.save_dir={tmp_path}",
-        f"--trainer.default_root_dir={tmp_path}",
-    ]
-    env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": str(root)}
-    done = subprocess.run(
-        command, cwd=tmp_path, env=env, capture_output=True, text=True, timeout=600
-    )
+    done, events = smoke_fit(f"--trainer.accelerator={accelerator}", "--trainer.devices=1")
     assert done.returncode == 0, done.stderr[-4000:]
-    (version,) = sorted((tmp_path / "smoke").iterdir())
-    events = EventAccumulator(str(version), size_guidance={"scalars": 0})
-    events.Reload()
     for tag in ("train/loss", "val/loss"):
         values = [e.value for e in events.Scalars(tag)]
         assert values and all(math.isfinite(v) for v in values), tag

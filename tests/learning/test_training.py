@@ -5,9 +5,6 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import os
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
@@ -96,27 +93,16 @@ def test_smoke_fit_through_cli_logs_expected_tags(tmp_path: Path, train_script) 
     )
 
 
-def test_ddp_two_cpu_processes_one_step(tmp_path: Path) -> None:
-    command = [
-        sys.executable,
-        str(TRAIN),
-        "fit",
-        "--config",
-        str(SMOKE),
+def test_ddp_two_cpu_processes_one_step(smoke_fit) -> None:
+    done, events = smoke_fit(
         "--trainer.strategy=ddp",
         "--trainer.devices=2",
         "--trainer.accelerator=cpu",
         "--trainer.max_steps=1",
-        f"--trainer.logger.init_args.save_dir={tmp_path}",
-        f"--trainer.default_root_dir={tmp_path}",
-    ]
-    env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": str(ROOT)}
-    done = subprocess.run(
-        command, cwd=tmp_path, env=env, capture_output=True, text=True, timeout=300
+        timeout=300,
     )
     assert done.returncode == 0, done.stderr[-4000:]
     assert "Starting with 2 processes" in done.stderr + done.stdout
-    events = _events(_version_dir(tmp_path, "smoke"))
     (loss,) = [e.value for e in events.Scalars("train/loss")]
     assert math.isfinite(loss)
     assert math.isfinite(events.Scalars("val/loss")[0].value)
