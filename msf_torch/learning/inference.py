@@ -65,7 +65,7 @@ from msf_torch.learning.covnet import (
     scaled_pose_covariance,
 )
 from msf_torch.learning.features import RunFeatures, pose_source_of, run_features
-from msf_torch.sensors.imu_gaps import filled_stretches, interpolated_imu_samples
+from msf_torch.sensors.imu_gaps import outside_stretches
 from msf_torch.types import ImuSamples, Sequence
 
 DEFAULT_CHECKPOINT = (
@@ -406,7 +406,9 @@ def run_piecewise(
     last_real = torch.where(imu.mask[0], samples, 0).cummax(0).values
     # a boundary inside a filled-in IMU stretch moves to the stretch's end (the real sample
     # after it), so that the stretch is modelled as one, as in the run in one piece
-    outside = _outside_stretches(imu, cfg)
+    outside = outside_stretches(
+        imu.t[0], imu.gyro[0], imu.accel[0], imu.mask[0], cfg.imu_interpolated_min_samples
+    ).tolist()
 
     def sample_range(w0: int, w1: int | None) -> tuple[int, int | None]:
         """First and end (exclusive; None: to the end) IMU sample of windows [w0, w1)."""
@@ -473,22 +475,6 @@ def run_piecewise(
         faults = result.fault_memory
         results.append(result)
     return concat_results(results, dropped_samples)
-
-
-def _outside_stretches(imu, cfg: EskfConfig) -> list[int]:
-    """Per sample of a B = 1 IMU stream (masked samples in place), the sample a chunk
-    boundary there moves to: itself, or for a sample inside a filled-in stretch
-    (:func:`~msf_torch.sensors.imu_gaps.interpolated_imu_samples` over the real samples)
-    the real sample that ends the stretch."""
-    real = torch.nonzero(imu.mask[0]).squeeze(-1).tolist()
-    filled = interpolated_imu_samples(
-        imu.t[0, real], imu.gyro[0, real], imu.accel[0, real], cfg.imu_interpolated_min_samples
-    )
-    moved = list(range(imu.length))
-    for first, end in zip(*filled_stretches(filled), strict=True):
-        for k in range(real[first], real[end]):
-            moved[k] = real[end]
-    return moved
 
 
 def scales_summary(scales: WindowScales, learned: LearnedModel) -> dict[str, Any]:

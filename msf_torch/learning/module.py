@@ -13,7 +13,10 @@ Per batch (:class:`~msf_torch.learning.data.RunBatch`, B runs of W windows):
    and :func:`~msf_torch.frontend.eskf.run_eskf` runs over the chunk's IMU samples, starting
    from the previous chunk's final state and covariance, *detached* (truncated
    backpropagation through time: gradients stay inside a chunk; the graph of the whole
-   batch is kept until the one backward pass, so memory grows with the run length).
+   batch is kept until the one backward pass, so memory grows with the run length). A
+   chunk boundary that falls inside a filled-in IMU stretch of any run of the batch moves
+   past it, as :func:`~msf_torch.learning.inference.run_piecewise` does at inference, so
+   that the stretch is one gap (the chunk keeps its own windows' scales).
 3. Loss, averaged over the real filter epochs of all chunks (``e_p`` position error, m;
    ``e_R = Log(R_true^T R_est)``, rad; ``P_p`` the filter's 3x3 position covariance, m^2)::
 
@@ -49,6 +52,7 @@ from pathlib import Path
 from typing import Any, Literal
 
 import lightning as L
+import numpy as np
 import torch
 from lightning.pytorch.loggers import TensorBoardLogger
 from matplotlib.figure import Figure
@@ -75,7 +79,8 @@ from msf_torch.learning.covnet import (
     scaled_noise,
 )
 from msf_torch.learning.data import RunBatch
-from msf_torch.types import NavState, Sequence, Trajectory
+from msf_torch.sensors.imu_gaps import outside_stretches
+from msf_torch.types import ImuSamples, NavState, Sequence, Trajectory
 
 _TERMS = ("position", "orientation", "nll", "weather_ce")
 
@@ -127,6 +132,54 @@ def _final(result: EskfResult) -> tuple[NavState, torch.Tensor]:
         at(result.accel_bias),
     )
     return state, at(result.covariance)
+
+
+def _chunk_samples(
+    imu: ImuSamples, windows: int, chunk_windows: int, length: int, min_samples: int
+) -> list[tuple[int, int, int, int]]:
+    """The filter chunks of a batch: windows ``[w0, w1)`` and IMU samples
+    ``[first, last]`` (the end sample included; the next chunk starts there).
+
+    Chunks of ``chunk_windows`` windows of ``length`` samples; a boundary that falls inside
+    a filled-in IMU stretch of any run (:func:`~msf_torch.sensors.imu_gaps.outside_stretches`,
+    stretches of at least ``min_samples`` samples) moves to that stretch's end, to the
+    largest end over the runs and again until no run has a stretch across it (the runs
+    share the samples' indices), so that each stretch is one gap as in the run in one piece
+    (:func:`~msf_torch.learning.inference.run_piecewise` moves its boundaries alike). A chunk
+    left with no samples (wholly inside a stretch) is dropped: the chunk before runs to the
+    stretch's end with its own windows' scales.
+
+    Args:
+        imu: (B, N) the batch's IMU samples, N = ``windows * length + 1``.
+        windows: W, CovNet windows per run.
+        chunk_windows: windows per chunk.
+        length: IMU samples per window.
+        min_samples: ``EskfConfig.imu_interpolated_min_samples``.
+
+    Returns:
+        ``(w0, w1, first, last)`` per chunk, in order; the first starts at sample 0, the last
+        ends at sample ``windows * length``.
+    """
+    moved = np.stack(
+        [
+            outside_stretches(imu.t[b], imu.gyro[b], imu.accel[b], imu.mask[b], min_samples)
+            for b in range(imu.t.shape[0])
+        ]
+    )
+
+    def boundary(sample: int) -> int:
+        while (after := int(moved[:, sample].max())) != sample:
+            sample = after
+        return sample
+
+    cuts = list(range(0, windows, chunk_windows))
+    starts = [0] + [boundary(w * length) for w in cuts[1:]]
+    ends = starts[1:] + [windows * length]
+    return [  # a chunk wholly inside a stretch is empty: the chunk before ends past it
+        (w0, min(w0 + chunk_windows, windows), first, last)
+        for w0, first, last in zip(cuts, starts, ends, strict=True)
+        if last > first
+    ]
 
 
 class CovNetModule(L.LightningModule):
@@ -289,13 +342,15 @@ class CovNetModule(L.LightningModule):
         totals = {k: seq.imu.t.new_zeros(()) for k in ("position", "orientation", "nll")}
         totals["count"] = seq.imu.t.new_zeros(())
         results = []
-        for w0 in range(0, windows, self.chunk_windows):
-            w1 = min(w0 + self.chunk_windows, windows)
+        min_samples = cfg.imu_interpolated_min_samples
+        for w0, w1, first, last in _chunk_samples(
+            seq.imu, windows, self.chunk_windows, length, min_samples
+        ):
             scales = log_scales[:, w0:w1] if self.noise_granularity == "chunk" else log_scales
             scales = scales.mean(1).to(seq.imu.t.dtype)
             chunk = dataclasses.replace(
                 self._scaled_sequence(seq, scales, batch.pose_source),
-                imu=seq.imu.map(lambda x, a=w0 * length, b=w1 * length: x[:, a : b + 1]),
+                imu=seq.imu.map(lambda x, a=first, b=last: x[:, a : b + 1]),
             )
             result = run_eskf(chunk, cfg, scaled_noise(base, scales), initial=(state, cov))
             state, cov = _final(result)

@@ -14,7 +14,9 @@ impossible, so such a run is a reliable signature.
 through their neighbours (to ``rtol`` relative to the channel's magnitude). The front end
 and the smoothers treat those samples as an IMU gap (``EskfConfig.imu_gap_noise_scale``):
 the interpolated values are still the best guess of the motion, but their noise is the
-vehicle's unknown motion, not the sensor's.
+vehicle's unknown motion, not the sensor's. A run filtered in chunks (learned noise, at
+inference and in training) moves a chunk boundary that falls inside a stretch to the
+stretch's end (:func:`outside_stretches`), so that each stretch stays one gap.
 """
 
 from __future__ import annotations
@@ -24,6 +26,7 @@ __all__ = [
     "gap_walk_scale",
     "interpolated_imu_samples",
     "open_stretch_start",
+    "outside_stretches",
 ]
 
 import numpy as np
@@ -156,6 +159,41 @@ def filled_stretches(flags: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """
     edges = np.diff(np.asarray(flags).astype(np.int8), prepend=np.int8(0), append=np.int8(0))
     return np.nonzero(edges == 1)[0], np.nonzero(edges == -1)[0]
+
+
+def outside_stretches(
+    t: torch.Tensor | np.ndarray,
+    gyro: torch.Tensor | np.ndarray,
+    accel: torch.Tensor | np.ndarray,
+    mask: torch.Tensor | np.ndarray,
+    min_samples: int = 10,
+) -> np.ndarray:
+    """Where a chunk boundary at each sample of one IMU stream moves to, so that no chunk
+    boundary cuts a filled-in stretch (the filter then models each stretch as one gap, as in
+    the run in one piece).
+
+    Args:
+        t: (N,) sample times, s (masked samples in place).
+        gyro: (N, 3) angular rate, rad/s.
+        accel: (N, 3) specific force, m/s^2.
+        mask: (N,) bool, real samples; the stretches are found among these
+            (:func:`interpolated_imu_samples`).
+        min_samples: as :func:`interpolated_imu_samples`.
+
+    Returns:
+        (N,) int64 sample index: the sample itself, or for a sample inside a filled-in
+        stretch (from its first filled-in sample up to the real sample that ends it,
+        exclusive) that ending real sample. A stretch's ending sample maps to itself.
+    """
+    real = np.flatnonzero(
+        np.asarray(mask.detach().cpu() if isinstance(mask, torch.Tensor) else mask)
+    )
+    times, values = _imu_arrays(t, gyro, accel)
+    filled = interpolated_imu_samples(times[real], values[real, :3], values[real, 3:], min_samples)
+    moved = np.arange(times.shape[0])
+    for first, end in zip(*filled_stretches(filled), strict=True):
+        moved[real[first] : real[end]] = real[end]
+    return moved
 
 
 def gap_walk_scale(length: torch.Tensor, walk: torch.Tensor, density: torch.Tensor) -> torch.Tensor:
