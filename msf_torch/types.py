@@ -15,6 +15,7 @@ __all__ = [
     "WheelSamples",
     "GnssFixes",
     "GnssVelocity",
+    "GnssHeading",
     "PoseMeasurements",
     "Trajectory",
     "NavState",
@@ -181,6 +182,26 @@ class GnssVelocity(_Stream):
 
 
 @dataclass
+class GnssHeading(_Stream):
+    """Heading of a dual-antenna (moving-baseline) GNSS receiver: the azimuth of the
+    baseline from the primary to the secondary antenna, as receivers report it (u-blox
+    NAV-RELPOSNED ``relPosHeading``, NMEA ``HDT`` / ``THS``, Septentrio ``AttEuler``).
+
+    Attributes:
+        t: (B, N) s.
+        heading: (B, N) clockwise from north (true north, the local frame's +y), rad.
+        sigma: (B, N) standard deviation, rad; NaN where the file gave none (the
+            estimator's configured default applies).
+        mask: (B, N) bool.
+    """
+
+    t: torch.Tensor
+    heading: torch.Tensor
+    sigma: torch.Tensor
+    mask: torch.Tensor
+
+
+@dataclass
 class PoseMeasurements(_Stream):
     """Pose measurements of the body in the world frame (visual / LiDAR odometry, priors).
 
@@ -242,7 +263,7 @@ class Sequence:
     Attributes:
         names: one name per sequence (length B).
         imu: IMU samples (required).
-        wheel, gnss, gnss_velocity, poses: optional measurement streams.
+        wheel, gnss, gnss_velocity, gnss_heading, poses: optional measurement streams.
         ground_truth: optional reference trajectory.
         labels: name -> (B, K, 2) intervals ``[t_start, t_end]`` in s, NaN-padded; e.g.
             ``"slip"`` or ``"weather:rain"``.
@@ -258,13 +279,14 @@ class Sequence:
     wheel: WheelSamples | None = None
     gnss: GnssFixes | None = None
     gnss_velocity: GnssVelocity | None = None
+    gnss_heading: GnssHeading | None = None
     poses: PoseMeasurements | None = None
     ground_truth: Trajectory | None = None
     labels: dict[str, torch.Tensor] = field(default_factory=dict)
     meta: dict[str, Any] = field(default_factory=dict)
     pose_sources: dict[str, PoseMeasurements] = field(default_factory=dict)
 
-    _STREAMS = ("imu", "wheel", "gnss", "gnss_velocity", "poses", "ground_truth")
+    _STREAMS = ("imu", "wheel", "gnss", "gnss_velocity", "gnss_heading", "poses", "ground_truth")
 
     @property
     def batch_size(self) -> int:
@@ -366,7 +388,10 @@ def _empty_like_stream(kind: type, template) -> Any:
         "sigma": (3,),
         "quaternion": (4,),
         "covariance": (6, 6),
+        "heading": (),
     }
+    if kind is GnssHeading:
+        shapes["sigma"] = ()
     out = {}
     for f in dataclasses.fields(kind):
         dtype = torch.bool if f.name == "mask" else template.dtype
@@ -391,6 +416,7 @@ def batch_sequences(sequences: list[Sequence]) -> Sequence:
         "wheel": WheelSamples,
         "gnss": GnssFixes,
         "gnss_velocity": GnssVelocity,
+        "gnss_heading": GnssHeading,
         "poses": PoseMeasurements,
         "ground_truth": Trajectory,
     }

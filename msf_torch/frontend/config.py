@@ -109,6 +109,12 @@ class EskfConfig:
     # GNSS velocity (Sequence.gnss_velocity: Doppler, or speed and course over ground) of the
     # same antenna: default per-axis sigma east, north, up (m/s) where the data gives none
     gnss_velocity_sigma_mps: list[float] = field(default_factory=lambda: [0.1, 0.1, 0.2])
+    # dual-antenna GNSS heading (Sequence.gnss_heading): the baseline from the primary to the
+    # secondary antenna in the body frame (m; only its direction counts: [1, 0, 0] when the
+    # receiver reports the heading of the body's x axis, as most are set up to), and the
+    # default sigma (rad) where the data gives none
+    gnss_heading_baseline_m: list[float] = field(default_factory=lambda: [1.0, 0.0, 0.0])
+    gnss_heading_sigma_rad: float = 0.01
     # named pose sources (Sequence.pose_sources: VO, LiDAR odometry) fused as odometry: the
     # body-frame mean velocity between consecutive valid samples of a source (see
     # frontend.schedule); "auto" = every source present, a list = those names, [] = none
@@ -291,6 +297,7 @@ class EskfConfig:
             "gnss_lever_arm_m",
             "gnss_sigma_m",
             "gnss_velocity_sigma_mps",
+            "gnss_heading_baseline_m",
             "init_gyro_bias_radps",
             "init_accel_bias_mps2",
             "imu_gap_gyro_rw_density",
@@ -299,6 +306,11 @@ class EskfConfig:
             value = getattr(self, key)
             if len(value) != 3:
                 raise ValueError(f"config key '{key}' must have 3 entries, got {value!r}")
+        if math.hypot(*self.gnss_heading_baseline_m) < 1e-3:
+            raise ValueError(
+                "config key 'gnss_heading_baseline_m' must be a baseline direction (a vector "
+                f"longer than 1 mm), got {self.gnss_heading_baseline_m!r}"
+            )
 
     def _validate_types(self) -> None:
         """Raise ``ValueError`` naming the first key whose value does not have its field's
@@ -524,9 +536,9 @@ class EskfConfig:
 
     def _validate_adaptive(self) -> None:
         """Raise ``ValueError`` naming the first bad adaptive-noise key."""
-        blocks = ("wheel", "nhc", "zupt", "gnss", "gnss_velocity", "pose")
+        blocks = ("wheel", "nhc", "zupt", "gnss", "gnss_velocity", "gnss_heading", "pose")
         for key, allowed in (
-            ("adaptive_noise_sensors", ("gnss", "gnss_velocity", "pose")),
+            ("adaptive_noise_sensors", ("gnss", "gnss_velocity", "gnss_heading", "pose")),
             ("strong_tracking_sensors", blocks),
         ):
             names = getattr(self, key)

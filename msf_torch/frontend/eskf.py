@@ -139,7 +139,7 @@ from msf_torch.sensors.calibration import (
     vehicle_frame_nonholonomic_residual,
     vehicle_frame_wheel_residual,
 )
-from msf_torch.sensors.gnss import gnss_residual, gnss_velocity_residual
+from msf_torch.sensors.gnss import gnss_heading_residual, gnss_residual, gnss_velocity_residual
 from msf_torch.sensors.imu import ImuNoise, Preintegrated, preintegrate, propagate_nominal
 from msf_torch.sensors.imu_gaps import gap_walk_scale
 from msf_torch.sensors.pose import (
@@ -152,8 +152,16 @@ from msf_torch.sensors.vehicle import nonholonomic_residual, zero_velocity_resid
 from msf_torch.sensors.wheel import body_velocity_residual, wheel_residual
 from msf_torch.types import NavState, Sequence, Trajectory
 
-SENSORS = ("wheel", "nhc", "zupt", "gnss", "gnss_velocity", "pose")
-_DIMS = {"wheel": 4, "nhc": 2, "zupt": 3, "gnss": 3, "gnss_velocity": 3, "pose": 6}
+SENSORS = ("wheel", "nhc", "zupt", "gnss", "gnss_velocity", "gnss_heading", "pose")
+_DIMS = {
+    "wheel": 4,
+    "nhc": 2,
+    "zupt": 3,
+    "gnss": 3,
+    "gnss_velocity": 3,
+    "gnss_heading": 1,
+    "pose": 6,
+}
 _SOURCE_PREFIX = "pose:"  # result key of a pose source: "pose:vo", "pose:lidar"
 
 
@@ -1048,6 +1056,7 @@ def run_eskf(
         "zupt": sched.zupt_mask,
         "gnss": sched.gnss_mask,
         "gnss_velocity": sched.gnss_velocity_mask,
+        "gnss_heading": sched.gnss_heading_mask,
         "pose": sched.pose_mask,
     }
     source_col = {_SOURCE_PREFIX + n: s for s, n in enumerate(sched.source_names)}
@@ -1075,7 +1084,8 @@ def run_eskf(
         device=device,
     )
     reopen = torch.tensor(
-        [k in ("gnss", "gnss_velocity", "pose") or k in source_col for k in active], device=device
+        [k in ("gnss", "gnss_velocity", "gnss_heading", "pose") or k in source_col for k in active],
+        device=device,
     )
     velocity_col = active.index("gnss_velocity") if "gnss_velocity" in active else None
     # a horizontal-only GNSS velocity (no up component) is gated with two degrees of freedom
@@ -1117,6 +1127,8 @@ def run_eskf(
     zupt_var = (per_seq(noise.zupt_sigma) ** 2)[:, None].expand(batch, 3)
     gnss_var = (sched.gnss_sigma * per_seq(noise.gnss_sigma_scale)[:, None, None]) ** 2
     gnss_velocity_var = sched.gnss_velocity_sigma**2
+    gnss_heading_var = (sched.gnss_heading_sigma**2)[..., None]  # (B, E, 1)
+    heading_baseline = torch.as_tensor(cfg.gnss_heading_baseline_m, dtype=dtype, device=device)
     source_cov = (
         _source_covariance(sched, noise, cfg, per_seq)
         if frames is None
@@ -1489,6 +1501,11 @@ def run_eskf(
                             gyro_end - state.gyro_bias
                         )
                     var = gnss_velocity_var[:, e]
+                elif name == "gnss_heading":
+                    r, h = gnss_heading_residual(
+                        state.rotation, heading_baseline, sched.gnss_heading[:, e]
+                    )
+                    var = gnss_heading_var[:, e]
                 elif name == "pose":
                     r, h = pose_residual(
                         state.position,

@@ -16,7 +16,9 @@ IMU-to-vehicle rotation being calibrated, the track running along the vehicle's 
 With GNSS velocities (``Sequence.gnss_velocity``), the course over ground of the first one
 at least ``init_min_gnss_speed_mps`` fast, carried back to the first IMU sample by the
 gyro's heading change (:func:`velocity_heading`), replaces the track's heading when its
-modelled variance is smaller.
+modelled variance is smaller. A dual-antenna GNSS heading (``Sequence.gnss_heading``) does
+the same with the first heading in the track's span (:func:`antenna_heading_yaw`), standing
+still or not.
 Biases and the other uncertainties come from the config; the initial covariance carries the
 correlations the initialisation creates: roll and pitch with the accelerometer bias (the
 tilt is read from the biased accelerometer; ``init_roll_pitch_sigma_rad`` is the part from
@@ -29,9 +31,10 @@ docs/frontend.md: it helps the NEES but keeps a stuck-gyro fault from being rese
 
 from __future__ import annotations
 
-__all__ = ["alignment_yaw_variance", "initial_state", "velocity_heading"]
+__all__ = ["alignment_yaw_variance", "antenna_heading_yaw", "initial_state", "velocity_heading"]
 
 import math
+import warnings
 from collections.abc import Callable
 
 import numpy as np
@@ -172,20 +175,16 @@ def velocity_heading(
         bias prior and angle random walk over the carried-back seconds, and the prior of an
         IMU-to-vehicle rotation being calibrated.
     """
-    t0 = imu_t[0]
     horizontal = np.hypot(velocity["velocity"][:, 0], velocity["velocity"][:, 1])
     usable = (horizontal >= cfg.init_min_gnss_speed_mps) & (
-        velocity["t"] <= t0 + cfg.init_max_track_s
+        velocity["t"] <= imu_t[0] + cfg.init_max_track_s
     )
     if not usable.any():
         return None
     k = int(np.argmax(usable))
     t_v = float(velocity["t"][k])
-    inside = imu_t <= t_v
-    dt = np.diff(np.append(imu_t[inside], t_v))
+    turned, carry_variance = _carried_back(imu_t, gyro, tilt, t_v, cfg)
     bias = np.asarray(cfg.init_gyro_bias_radps)
-    rate = gyro[inside] - bias
-    turned = float(((rate @ tilt.T)[:, 2] * dt).sum())  # heading change t0 -> t_v
     at_v = int(np.searchsorted(imu_t, t_v, side="right")) - 1
     # the antenna moves with R (s e_x + w x l): in the level frame turned by the heading psi,
     # its horizontal velocity is (s + a_x, a_y) with a = tilt (w x l), so psi is the course
@@ -202,16 +201,91 @@ def velocity_heading(
     default = np.asarray(cfg.gnss_velocity_sigma_mps[:2], dtype=np.float64)
     sigma = np.where(np.isfinite(sigma) & (sigma > 0), sigma, default)
     across = np.array([-math.sin(course), math.cos(course)])
-    elapsed = t_v - t0
     variance = float(((sigma * across) ** 2).sum()) / float(
         horizontal_velocity @ horizontal_velocity
     )
-    variance += (cfg.init_gyro_bias_sigma_radps * elapsed) ** 2
-    variance += cfg.gyro_noise_density**2 * elapsed
+    variance += carry_variance
     if cfg.calibrate_imu_body_rotation:
         variance += cfg.calibration_rotation_sigma_rad**2
     yaw = math.atan2(math.sin(heading - turned), math.cos(heading - turned))
     return yaw, variance
+
+
+def antenna_heading_yaw(
+    heading: dict[str, np.ndarray],
+    imu_t: np.ndarray,
+    gyro: np.ndarray,
+    tilt: np.ndarray,
+    cfg: EskfConfig,
+) -> tuple[float, float] | None:
+    """Heading at the first IMU sample from a dual-antenna GNSS heading.
+
+    The first heading within ``cfg.init_max_track_s`` of the first IMU sample gives the yaw
+    that turns the tilted baseline ``tilt @ cfg.gnss_heading_baseline_m`` to the measured
+    azimuth (clockwise from north), carried back to the first IMU sample by the gyro's
+    heading change. It needs no motion: a vehicle standing still is aligned at once.
+
+    Args:
+        heading: the ``GnssHeading`` fields ``t`` (M,) s, ``heading`` (M,) rad, ``sigma``
+            (M,) rad (NaN: ``cfg.gnss_heading_sigma_rad``).
+        imu_t: (N,) IMU times, s; gyro: (N, 3) raw rates, rad/s.
+        tilt: (3, 3) the initial roll-pitch rotation (body -> level frame).
+        cfg: the filter's config (baseline, default sigma, gyro noise, bias prior).
+
+    Returns:
+        (yaw, variance) in rad (ENU, counter-clockwise from east) and rad^2, or None when
+        no heading lies in that span or the tilted baseline is vertical. The variance: the
+        heading's, plus the gyro bias prior and angle random walk over the carried-back
+        seconds.
+    """
+    usable = heading["t"] <= imu_t[0] + cfg.init_max_track_s
+    level = tilt @ np.asarray(cfg.gnss_heading_baseline_m, dtype=np.float64)
+    if not usable.any() or math.hypot(level[0], level[1]) < 1e-6 * np.linalg.norm(level):
+        return None
+    k = int(np.argmax(usable))
+    turned, variance = _carried_back(imu_t, gyro, tilt, float(heading["t"][k]), cfg)
+    sigma = float(heading["sigma"][k])
+    sigma = sigma if math.isfinite(sigma) and sigma > 0 else cfg.gnss_heading_sigma_rad
+    # azimuth (clockwise from north) = pi / 2 - (yaw + the level baseline's ENU angle)
+    yaw = math.pi / 2 - float(heading["heading"][k]) - math.atan2(level[1], level[0]) - turned
+    return math.atan2(math.sin(yaw), math.cos(yaw)), sigma**2 + variance
+
+
+def _check_antenna_heading(
+    name: str, measured: tuple[float, float], yaw: float, yaw_sigma: float
+) -> None:
+    """Warn when the dual-antenna heading's yaw and the GNSS track's (or course's) differ
+    by more than 5 sigma of the two together: a wrong ``gnss_heading_baseline_m`` (antennas
+    mounted left-right, the receiver's heading offset) makes the filter trust the heading
+    and refuse the fixes."""
+    difference = math.remainder(measured[0] - yaw, 2.0 * math.pi)
+    sigma = math.sqrt(measured[1] + yaw_sigma**2)
+    if abs(difference) > 5.0 * sigma:
+        warnings.warn(
+            f"sequence '{name}': the dual-antenna GNSS heading gives a yaw "
+            f"{math.degrees(difference):+.1f} degrees from the GNSS track's "
+            f"({abs(difference) / sigma:.0f} sigma): check gnss_heading_baseline_m (the "
+            "primary -> secondary antenna direction in the body frame) and the receiver's "
+            "heading offset",
+            stacklevel=4,
+        )
+
+
+def _carried_back(
+    imu_t: np.ndarray, gyro: np.ndarray, tilt: np.ndarray, t: float, cfg: EskfConfig
+) -> tuple[float, float]:
+    """The gyro's heading change (rad) from the first IMU sample to time ``t`` (s; the
+    world-z component of the bias-corrected rate, ``tilt`` applied), and the variance
+    (rad^2) carrying a heading back over it adds: the gyro bias prior times the seconds,
+    squared, and the angle random walk."""
+    inside = imu_t <= t
+    dt = np.diff(np.append(imu_t[inside], t))
+    rate = gyro[inside] - np.asarray(cfg.init_gyro_bias_radps)
+    turned = float(((rate @ tilt.T)[:, 2] * dt).sum())
+    elapsed = t - imu_t[0]
+    variance = (cfg.init_gyro_bias_sigma_radps * elapsed) ** 2
+    variance += cfg.gyro_noise_density**2 * elapsed
+    return turned, variance
 
 
 def _rpy_numpy(roll: float, pitch: float, yaw: float) -> np.ndarray:
@@ -249,6 +323,7 @@ def _one(
         return position, rot @ body_velocity, rot, body_velocity, cfg.init_yaw_sigma_rad
     anchored = None  # the aligned dead-reckoning origin (wheels and a GNSS track)
     track_means = None  # (GNSS track, dead-reckoned track) means of the Kabsch fit
+    track_yaw = True  # the yaw is the track's (not replaced by a velocity or antenna heading)
     if gnss is not None:
         g0 = gnss["position"][0]
         dist = np.linalg.norm(gnss["position"][:, :2] - g0[:2], axis=1)
@@ -344,10 +419,22 @@ def _one(
         )
         if course is not None and course[1] < yaw_sigma**2:
             yaw, yaw_sigma = course[0], math.sqrt(course[1])
-            if track_means is not None:  # the dead-reckoned track turned by this heading
-                c, s_ = math.cos(yaw), math.sin(yaw)
-                origin = track_means[0] - np.array([[c, -s_], [s_, c]]) @ track_means[1]
-                anchored = np.array([origin[0], origin[1], anchored[2]])
+            track_yaw = False
+    antenna_heading = _valid(seq.gnss_heading, b, span)
+    if antenna_heading is not None:
+        tilt = _rpy_numpy(roll, pitch, 0.0)
+        measured = antenna_heading_yaw(
+            antenna_heading, imu_t, read_imu("gyro", slice(None)), tilt, cfg
+        )
+        if measured is not None and yaw_sigma < cfg.init_yaw_sigma_unknown_rad:
+            _check_antenna_heading(seq.names[b], measured, yaw, yaw_sigma)
+        if measured is not None and measured[1] < yaw_sigma**2:
+            yaw, yaw_sigma = measured[0], math.sqrt(measured[1])
+            track_yaw = False
+    if track_means is not None and not track_yaw:  # the dead-reckoned track turned by yaw
+        c, s_ = math.cos(yaw), math.sin(yaw)
+        origin = track_means[0] - np.array([[c, -s_], [s_, c]]) @ track_means[1]
+        anchored = np.array([origin[0], origin[1], anchored[2]])
     rot = _rpy_numpy(roll, pitch, yaw)
     body_velocity = np.zeros(3)
     if wheel is not None:

@@ -62,7 +62,13 @@ UNMEASURED_SIGMA = 1e6
 """Sigma (m/s) of a GNSS velocity axis the receiver did not give (NaN up component): its row
 stays in the update with a gain of order 1e-12 of the state's variance, i.e. unused."""
 
-_MEASURED = ("wheel", "gnss", "gnss_velocity", "pose")  # streams matched to epoch ends
+_MEASURED = (
+    "wheel",
+    "gnss",
+    "gnss_velocity",
+    "gnss_heading",
+    "pose",
+)  # streams matched to epoch ends
 
 
 @dataclass
@@ -117,6 +123,9 @@ class Schedule:
             not measured); gnss_velocity_sigma (B, E, 3) m/s (config default filled in;
             :data:`UNMEASURED_SIGMA` on an axis the receiver did not give); gnss_velocity_mask
             (B, E).
+        gnss_heading: (B, E) dual-antenna baseline azimuth clockwise from north, rad (0
+            where absent); gnss_heading_sigma (B, E) rad (config default filled in);
+            gnss_heading_mask (B, E).
         pose_position (B, E, 3), pose_rotation (B, E, 3, 3), pose_covariance (B, E, 6, 6),
             pose_mask (B, E).
         source_names: the S fused pose sources, in this order along the S axes below.
@@ -156,6 +165,9 @@ class Schedule:
     gnss_velocity: torch.Tensor
     gnss_velocity_sigma: torch.Tensor
     gnss_velocity_mask: torch.Tensor
+    gnss_heading: torch.Tensor
+    gnss_heading_sigma: torch.Tensor
+    gnss_heading_mask: torch.Tensor
     pose_position: torch.Tensor
     pose_rotation: torch.Tensor
     pose_covariance: torch.Tensor
@@ -451,6 +463,7 @@ def build_schedule(
         wheel_t, wheel_src = stream_times(seq.wheel)
         gnss_t, gnss_src = stream_times(seq.gnss)
         gvel_t, gvel_src = stream_times(seq.gnss_velocity)
+        head_t, head_src = stream_times(seq.gnss_heading)
         pose_t, pose_src = stream_times(seq.poses)
         carried = [
             None if carried_all is None else tuple(x[b, s] for x in carried_all)
@@ -465,7 +478,9 @@ def build_schedule(
         accel = _np(seq.imu.accel[b])[imu_sel] if cfg.zupt else None
         use_nhc = cfg.nhc == "on" or (cfg.nhc == "auto" and wheel_t.size == 0)
         updates = _merge_times(
-            np.concatenate((wheel_t, gnss_t, gvel_t, pose_t, *[p[0] for p in pairs], [t_last])),
+            np.concatenate(
+                (wheel_t, gnss_t, gvel_t, head_t, pose_t, *[p[0] for p in pairs], [t_last])
+            ),
             tol,
         )
         # epochs at least every 1 / nhc_rate_hz where the pseudo-measurements act at each,
@@ -503,6 +518,7 @@ def build_schedule(
         wheel_idx = _match(wheel_t, updates, tol)
         gnss_idx = _match(gnss_t, updates, tol)
         gvel_idx = _match(gvel_t, updates, tol)
+        head_idx = _match(head_t, updates, tol)
         pose_idx = _match(pose_t, updates, tol)
         source_idx, memory_rows = [], []
         for n, p, c in zip(names, pairs, carried, strict=True):
@@ -548,6 +564,7 @@ def build_schedule(
                 wheel=(wheel_idx, wheel_src),
                 gnss=(gnss_idx, gnss_src),
                 gnss_velocity=(gvel_idx, gvel_src),
+                gnss_heading=(head_idx, head_src),
                 pose=(pose_idx, pose_src),
                 nhc=pseudo & use_nhc,
                 zupt=zupt,
@@ -656,6 +673,13 @@ def build_schedule(
     unmeasured = torch.isnan(gnss_velocity)  # the up axis of a horizontal-only receiver
     gnss_velocity = torch.where(unmeasured, 0.0, gnss_velocity)
     gnss_velocity_sigma = torch.where(unmeasured, UNMEASURED_SIGMA, gnss_velocity_sigma)
+    gnss_heading = take(seq.gnss_heading, "heading", "gnss_heading", ())
+    gnss_heading_sigma = take(seq.gnss_heading, "sigma", "gnss_heading", ())
+    gnss_heading_sigma = torch.where(
+        torch.isfinite(gnss_heading_sigma) & (gnss_heading_sigma > 0),
+        gnss_heading_sigma,
+        cfg.gnss_heading_sigma_rad,
+    )
     pose_position = take(seq.poses, "position", "pose", (3,))
     if seq.poses is None or seq.poses.length == 0:
         pose_rotation = torch.eye(3, **f64).expand(batch, n_epochs, 3, 3).clone()
@@ -703,6 +727,9 @@ def build_schedule(
         gnss_velocity=gnss_velocity,
         gnss_velocity_sigma=gnss_velocity_sigma,
         gnss_velocity_mask=masks["gnss_velocity"],
+        gnss_heading=gnss_heading,
+        gnss_heading_sigma=gnss_heading_sigma,
+        gnss_heading_mask=masks["gnss_heading"],
         pose_position=pose_position,
         pose_rotation=pose_rotation,
         pose_covariance=pose_covariance,

@@ -2,7 +2,7 @@
 noise. The ESKF front end and the LM back end both call these."""
 
 from msf_torch.sensors.camera import reprojection_residual
-from msf_torch.sensors.gnss import gnss_residual, gnss_velocity_residual
+from msf_torch.sensors.gnss import gnss_heading_residual, gnss_residual, gnss_velocity_residual
 from msf_torch.sensors.imu import ImuNoise, Preintegrated, preintegrate, propagate_nominal, zoh_step
 from msf_torch.sensors.plane import plane_residual
 from msf_torch.sensors.pose import mean_rate_residual, pose_residual, relative_pose_residual
@@ -18,6 +18,7 @@ __all__ = [
     "ImuNoise",
     "Preintegrated",
     "body_velocity_residual",
+    "gnss_heading_residual",
     "gnss_residual",
     "gnss_velocity_residual",
     "mean_rate_residual",

@@ -8,16 +8,24 @@ moves with ``v + R (w x l)``, ``w = gyro - b_g`` the body rate, so
 ``r = v + R (w x l) - z`` (..., 3) in m/s, world frame. Jacobian: ``dr/ddv = I``,
 ``dr/ddtheta = -R [w x l]x``, ``dr/ddb_g = R [l]x`` (``w x l`` changes by
 ``-db_g x l = [l]x db_g``).
+
+Heading (a dual-antenna receiver): the baseline ``b`` from the primary to the secondary
+antenna (body frame) points along ``u = R b`` in the world (ENU), whose azimuth clockwise
+from north is ``psi = atan2(u_e, u_n)``. ``r = wrap(psi - z)`` (..., 1) in rad, wrapped to
+(-pi, pi]. Jacobian: ``dr/ddtheta = [u_n, -u_e, 0] / (u_e^2 + u_n^2) (-R [b]x)``; the
+antenna positions do not enter (only the baseline's direction). Undefined where the
+baseline points straight up or down (``u_e = u_n = 0``).
 """
 
 from __future__ import annotations
 
-__all__ = ["gnss_residual", "gnss_velocity_residual"]
+__all__ = ["gnss_heading_residual", "gnss_residual", "gnss_velocity_residual"]
 
 import torch
 
 from msf_torch.geometry import so3
 from msf_torch.geometry.conventions import IDX_BG, IDX_P, IDX_THETA, IDX_V
+from msf_torch.geometry.se2 import wrap_angle
 from msf_torch.sensors._jacobian import error_state_jacobian
 
 
@@ -80,3 +88,38 @@ def gnss_velocity_residual(
         like=velocity,
     )
     return residual, jac
+
+
+def gnss_heading_residual(
+    rotation: torch.Tensor, baseline: torch.Tensor, measured: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Dual-antenna GNSS heading residual (..., 1) rad and Jacobian (..., 1, 15).
+
+    Args:
+        rotation: (..., 3, 3) body -> world (ENU).
+        baseline: (..., 3) or (3,) primary -> secondary antenna in the body frame, m (only
+            its direction matters).
+        measured: (...,) baseline azimuth clockwise from north, rad.
+
+    Returns:
+        ``wrap(psi - measured)`` in (-pi, pi] and its Jacobian (only the attitude
+        columns are non-zero). A baseline pointing straight up or down has no azimuth:
+        residual and Jacobian are then zero (the update does nothing).
+    """
+    arm = baseline.expand(*rotation.shape[:-2], 3)
+    world = (rotation @ arm[..., None]).squeeze(-1)
+    east, north = world[..., 0], world[..., 1]
+    horizontal = east**2 + north**2
+    defined = horizontal > 1e-12 * (world**2).sum(-1).clamp_min(1e-300)
+    safe = torch.where(defined, horizontal, torch.ones_like(horizontal))
+    residual = torch.where(
+        defined, wrap_angle(torch.atan2(east, north) - measured), torch.zeros_like(east)
+    )
+    d_azimuth = torch.stack((north, -east, torch.zeros_like(east)), -1) / safe[..., None]
+    d_azimuth = torch.where(defined[..., None], d_azimuth, torch.zeros_like(d_azimuth))
+    jac = error_state_jacobian(
+        1,
+        [(IDX_THETA, -(d_azimuth[..., None, :] @ rotation @ so3.hat(arm)))],
+        like=rotation,
+    )
+    return residual[..., None], jac

@@ -30,6 +30,9 @@ Sensors (conventions in :mod:`msf_torch.geometry.conventions`):
   fixes inside outages. With ``gnss_velocity``, at the same times the antenna velocity
   ``v + R (omega x lever_arm)`` plus Gaussian noise of ``gnss_velocity_sigma_mps``
   (``Sequence.gnss_velocity``, a receiver's Doppler velocity), also none inside outages.
+  With ``gnss_heading``, at the same times a dual-antenna heading: the azimuth of
+  ``R @ gnss_heading_baseline_m`` clockwise from north plus Gaussian noise of
+  ``gnss_heading_sigma_rad``, in [0, 2 pi) (``Sequence.gnss_heading``), none inside outages.
 
 Labels (``Sequence.labels``, (1, K, 2) intervals ``[t_start, t_end]`` in s): ``"slip"``
 (episode types in ``meta["sensor"]["slip_types"]``, details in ``meta["slip_episodes"]``) and
@@ -73,6 +76,7 @@ from msf_torch.geometry.conventions import STANDARD_GRAVITY
 from msf_torch.geometry.quaternion import matrix_to_quat
 from msf_torch.types import (
     GnssFixes,
+    GnssHeading,
     GnssVelocity,
     ImuSamples,
     Sequence,
@@ -231,6 +235,10 @@ class SimConfig:
             initialise).
         gnss_velocity: also emit GNSS velocities at the fix times (``Sequence.gnss_velocity``).
         gnss_velocity_sigma_mps: their 1-sigma noise east, north, up, m/s.
+        gnss_heading: also emit dual-antenna headings at the fix times
+            (``Sequence.gnss_heading``).
+        gnss_heading_sigma_rad: their 1-sigma noise, rad.
+        gnss_heading_baseline_m: primary -> secondary antenna in the body frame, m.
         slip_episodes: number of slip episodes.
         slip_types: the types to use (subset of ``SLIP_TYPES``); all appear before any repeats.
         slip_duration_s: episode duration range (label interval, ramps included), s.
@@ -276,6 +284,9 @@ class SimConfig:
     gnss_outage_margin_s: float = 10.0
     gnss_velocity: bool = False
     gnss_velocity_sigma_mps: tuple[float, float, float] = (0.05, 0.05, 0.1)
+    gnss_heading: bool = False
+    gnss_heading_sigma_rad: float = 0.005
+    gnss_heading_baseline_m: tuple[float, float, float] = (1.0, 0.0, 0.0)
     # slip
     slip_episodes: int = 0
     slip_types: tuple[str, ...] = SLIP_TYPES
@@ -362,6 +373,18 @@ class SimConfig:
         if len(sigma) != 3 or not all(x > 0 for x in sigma):
             raise ValueError(
                 f"SimConfig.gnss_velocity_sigma_mps must be 3 values > 0, got {sigma!r}"
+            )
+        if not self.gnss_heading_sigma_rad > 0:
+            raise ValueError(
+                f"SimConfig.gnss_heading_sigma_rad must be > 0, got {self.gnss_heading_sigma_rad!r}"
+            )
+        if (
+            len(self.gnss_heading_baseline_m) != 3
+            or math.hypot(*self.gnss_heading_baseline_m[:2]) == 0
+        ):
+            raise ValueError(
+                "SimConfig.gnss_heading_baseline_m must be 3 entries with a horizontal part, "
+                f"got {self.gnss_heading_baseline_m!r}"
             )
         if len(self.gnss_lever_arm_m) != 3:
             raise ValueError(
@@ -973,12 +996,12 @@ def simulate_run(config: SimConfig, seed: int, *, path_seed: int | None = None) 
         raise ValueError(
             f"simulate_run: path_seed must be a non-negative int or None, got {path_seed!r}"
         )
-    # a sixth stream for the GNSS velocity noise leaves the first five (and every run
-    # without velocities) as they were
-    streams = np.random.SeedSequence(int(seed)).spawn(6)
+    # a sixth stream for the GNSS velocity noise and a seventh for the heading noise leave
+    # the first five (and every run without them) as they were
+    streams = np.random.SeedSequence(int(seed)).spawn(7)
     if path_seed is not None:
         streams[0] = np.random.SeedSequence(int(path_seed)).spawn(5)[0]
-    rng_path, rng_imu, rng_wheel, rng_slip, rng_gnss, rng_gnss_velocity = (
+    rng_path, rng_imu, rng_wheel, rng_slip, rng_gnss, rng_gnss_velocity, rng_heading = (
         np.random.Generator(np.random.PCG64(s)) for s in streams
     )
     path = GroundPath.random(config, rng_path)
@@ -1062,6 +1085,19 @@ def simulate_run(config: SimConfig, seed: int, *, path_seed: int | None = None) 
             sigma=_tensor(np.broadcast_to(velocity_sigma, (len(t_g), 3))),
             mask=torch.ones((1, len(t_g)), dtype=torch.bool),
         )
+    gnss_heading = None
+    if config.gnss_heading:
+        heading_noise = rng_heading.normal(0.0, config.gnss_heading_sigma_rad, n_g)
+        baseline = np.einsum(
+            "nij,j->ni", g_state.rotation, np.asarray(config.gnss_heading_baseline_m, np.float64)
+        )
+        azimuth = np.arctan2(baseline[:, 0], baseline[:, 1]) + heading_noise[keep]
+        gnss_heading = GnssHeading(
+            t=_tensor(t_g),
+            heading=_tensor(np.mod(azimuth, 2.0 * math.pi)),
+            sigma=_tensor(np.full(len(t_g), config.gnss_heading_sigma_rad)),
+            mask=torch.ones((1, len(t_g)), dtype=torch.bool),
+        )
 
     # assemble -------------------------------------------------------------------------------
     slip_intervals = np.array([[ep.t_start, ep.t_end] for ep in episodes]).reshape(-1, 2)
@@ -1126,6 +1162,7 @@ def simulate_run(config: SimConfig, seed: int, *, path_seed: int | None = None) 
         wheel=wheel,
         gnss=gnss,
         gnss_velocity=gnss_velocity,
+        gnss_heading=gnss_heading,
         ground_truth=ground_truth,
         labels={"slip": _tensor(slip_intervals), "gnss_outage": _tensor(outages)},
         meta=meta,

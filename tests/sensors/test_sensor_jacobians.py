@@ -14,6 +14,7 @@ import torch
 from msf_torch.geometry import so3
 from msf_torch.sensors import (
     body_velocity_residual,
+    gnss_heading_residual,
     gnss_residual,
     gnss_velocity_residual,
     nonholonomic_residual,
@@ -74,6 +75,11 @@ def _inputs(batch: int, seed: int):
     extra["pose_rotation"] = state.rotation @ so3.exp(
         0.5 * torch.randn(batch, 3, generator=gen, dtype=DTYPE)
     )
+    # a heading within ~0.3 rad of the baseline's azimuth: the residual stays off its wrap
+    baseline_world = (state.rotation @ extra["lever"][..., None])[..., 0]
+    extra["heading"] = torch.atan2(baseline_world[:, 0], baseline_world[:, 1]) + 0.3 * torch.randn(
+        batch, generator=gen, dtype=DTYPE
+    )
     return state, extra
 
 
@@ -97,13 +103,23 @@ def _residuals(x: dict):
         "gnss_velocity": lambda s: gnss_velocity_residual(
             s.velocity, s.rotation, x["gyro"], s.gyro_bias, x["lever"], x["measured3"]
         ),
+        "gnss_heading": lambda s: gnss_heading_residual(s.rotation, x["lever"], x["heading"]),
         "pose": lambda s: pose_residual(
             s.position, s.rotation, x["measured_position"], x["pose_rotation"]
         ),
     }
 
 
-NAMES = ["wheel", "body_velocity", "nonholonomic", "zero_velocity", "gnss", "gnss_velocity", "pose"]
+NAMES = [
+    "wheel",
+    "body_velocity",
+    "nonholonomic",
+    "zero_velocity",
+    "gnss",
+    "gnss_velocity",
+    "gnss_heading",
+    "pose",
+]
 DIMS = {
     "wheel": 4,
     "body_velocity": 3,
@@ -111,6 +127,7 @@ DIMS = {
     "zero_velocity": 3,
     "gnss": 3,
     "gnss_velocity": 3,
+    "gnss_heading": 1,
     "pose": 6,
 }
 
@@ -239,3 +256,31 @@ def test_jacobians_broadcast_shared_lever_arm():
         r2, j2 = fn(lever.expand(10, 3))
         torch.testing.assert_close(r1, r2, rtol=0, atol=0)
         torch.testing.assert_close(j1, j2, rtol=0, atol=0)
+
+
+def test_gnss_heading_closed_form_and_wrap():
+    """A body yawed by ``a`` (ENU, counter-clockwise from east) with its secondary antenna
+    straight ahead reads the azimuth ``pi/2 - a`` clockwise from north; a baseline to the
+    left reads 90 degrees less; residuals wrap across north; a vertical baseline is inert."""
+    yaw = torch.tensor([0.0, 0.4, 2.0, -2.9], dtype=DTYPE)
+    rotation = so3.exp(torch.stack((0 * yaw, 0 * yaw, yaw), -1))
+    ahead = torch.tensor([1.5, 0.0, 0.0], dtype=DTYPE)
+    left = torch.tensor([0.0, 0.8, 0.0], dtype=DTYPE)
+    azimuth = torch.pi / 2 - yaw
+    r, jac = gnss_heading_residual(rotation, ahead, azimuth)
+    torch.testing.assert_close(r[:, 0], torch.zeros_like(yaw), rtol=0, atol=1e-12)
+    # a yaw error of +d (right perturbation about body z = world up when level) turns the
+    # azimuth by -d: the Jacobian's yaw column is -1, roll / pitch do not move it
+    torch.testing.assert_close(jac[:, 0, 6:9], torch.tensor([[0.0, 0.0, -1.0]] * 4, dtype=DTYPE))
+    r, _ = gnss_heading_residual(rotation, left, azimuth - torch.pi / 2)
+    torch.testing.assert_close(r[:, 0], torch.zeros_like(yaw), rtol=0, atol=1e-12)
+    # heading 359 deg measured, 1 deg predicted: +2 deg, not -358
+    north = so3.exp(torch.tensor([[0.0, 0.0, torch.pi / 2 - 0.5 * torch.pi / 90]], dtype=DTYPE))
+    r, _ = gnss_heading_residual(
+        north, ahead, torch.tensor([2 * torch.pi - torch.pi / 180], dtype=DTYPE)
+    )
+    torch.testing.assert_close(r[0, 0], torch.tensor(torch.pi / 90, dtype=DTYPE))
+    r, jac = gnss_heading_residual(
+        rotation[:1], torch.tensor([0.0, 0.0, 1.0], dtype=DTYPE), azimuth
+    )
+    assert float(r.abs().max()) == 0.0 and float(jac.abs().max()) == 0.0

@@ -1,0 +1,187 @@
+"""Dual-antenna GNSS heading in the front end on simulated runs
+(``SimConfig(gnss_heading=True)``): the yaw it pins (initial and filtered), the filter's
+consistency with it, the wrap at north, the gate, and the initial yaw from a heading
+(closed form).
+
+The residual's Jacobian is checked in ``tests/sensors/test_sensor_jacobians.py``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from msf_torch import batch_sequences, load_sequence_config
+from msf_torch.frontend.config import EskfConfig
+from msf_torch.frontend.eskf import run_eskf
+from msf_torch.frontend.init import antenna_heading_yaw, initial_state
+from msf_torch.geometry import so3
+from msf_torch.sim import SimConfig, simulate_run
+from msf_torch.types import GnssHeading
+
+SEEDS = range(210, 216)
+CHI2_95_9DOF = 16.919  # scipy.stats.chi2.ppf(0.95, 9)
+
+
+@pytest.fixture(scope="module")
+def runs():
+    return [simulate_run(SimConfig(duration_s=40.0, gnss_heading=True), seed=s) for s in SEEDS]
+
+
+def _run(seqs, cfg=None):
+    cfg = cfg or load_sequence_config(seqs[0].meta)
+    with torch.no_grad():
+        return run_eskf(batch_sequences(seqs), cfg)
+
+
+def _errors(result, runs, b: int):
+    """Times (E,), [dp, dv, dtheta] errors (E, 9) against the simulated truth and the
+    (E, 9, 9) covariance at the real epochs of sequence b."""
+    keep = result.mask[b]
+    t = result.t[b, keep]
+    truth = runs[b].truth
+    j = torch.searchsorted(truth.t[0], t).clamp(max=truth.t.shape[1] - 1)
+    assert float((truth.t[0, j] - t).abs().max()) < 1e-9
+    error = torch.cat(
+        (
+            result.position[b, keep] - truth.position[0, j],
+            result.velocity[b, keep] - truth.velocity[0, j],
+            so3.log(truth.rotation[0, j].mT @ result.rotation[b, keep]),
+        ),
+        -1,
+    )
+    return t, error, result.covariance[b, keep][:, :9, :9]
+
+
+def test_heading_pins_the_yaw_and_the_filter_stays_consistent(runs):
+    plain = _run([dataclasses.replace(r.sequence, gnss_heading=None) for r in runs])
+    aided = _run([r.sequence for r in runs])
+    total = sum(r.sequence.gnss_heading.length for r in runs)
+    assert int(aided.accepted["gnss_heading"].sum()) >= 0.95 * total
+    yaw = {}
+    for name, result in (("plain", plain), ("aided", aided)):
+        values = []
+        for b in range(len(runs)):
+            _, error, _ = _errors(result, runs, b)
+            values.append(float(error[:, 8].abs().median()))
+        yaw[name] = float(np.median(values))
+    # a 0.005-rad heading every second against the GNSS track's and the NHC's yaw
+    assert yaw["aided"] < 0.006 and yaw["aided"] < 0.3 * yaw["plain"], yaw
+    inside = []
+    for b in range(len(runs)):
+        t, error, cov = _errors(aided, runs, b)
+        nees = (error[:, None, :] @ torch.linalg.solve(cov, error[..., None]))[:, 0, 0]
+        inside.append((nees[t > 5.0] < CHI2_95_9DOF).double())
+    assert float(torch.cat(inside).mean()) >= 0.9
+    nis = aided.nis["gnss_heading"][aided.accepted["gnss_heading"]]
+    assert 0.6 < float(nis.mean()) < 1.6  # one row: mean NIS 1
+
+
+def test_headings_a_turn_apart_give_the_same_estimate(runs):
+    """``h`` and ``h + 2 pi`` are one direction: adding whole turns to the headings (and
+    crossing north) changes nothing; without the wrap the residuals would be ~6.3 rad."""
+    seq = runs[0].sequence
+    heading = seq.gnss_heading
+    turns = torch.tensor([-2.0, 1.0, 0.0, 3.0], dtype=heading.heading.dtype)
+    shifted = (
+        heading.heading
+        + 2 * math.pi * turns.repeat(heading.length // 4 + 1)[None, : heading.length]
+    )
+    moved = dataclasses.replace(seq, gnss_heading=dataclasses.replace(heading, heading=shifted))
+    first, second = _run([seq]), _run([moved])
+    torch.testing.assert_close(second.position, first.position, rtol=0, atol=1e-9)
+    torch.testing.assert_close(second.rotation, first.rotation, rtol=0, atol=1e-9)
+
+
+def test_a_wrong_heading_is_gated_and_the_baseline_direction_counts(runs):
+    seq = runs[1].sequence
+    heading = seq.gnss_heading
+    values = heading.heading.clone()
+    values[0, 20] += 0.5  # 29 degrees off, 100 sigma
+    bad = dataclasses.replace(seq, gnss_heading=dataclasses.replace(heading, heading=values))
+    result = _run([bad])
+    at = torch.isclose(result.t[0], heading.t[0, 20])
+    assert bool(result.present["gnss_heading"][0, at].all())
+    assert not bool(result.accepted["gnss_heading"][0, at].any())
+    # the same headings read as from antennas mounted left-right (baseline +y) put the yaw
+    # 90 degrees off the GNSS track's: the initialisation says so
+    cfg = load_sequence_config(seq.meta).replace(gnss_heading_baseline_m=[0.0, 1.0, 0.0])
+    with pytest.warns(UserWarning, match=r"-(8[5-9]|9[0-5])\.\d degrees from the GNSS track's"):
+        initial_state(seq, cfg)
+
+
+def _level_drive(yaw0: float, rate: float, roll: float):
+    """A vehicle rolled by ``roll`` turning about its own z at ``rate`` from yaw ``yaw0``:
+    IMU at 100 Hz, the exact headings of a baseline (0.3, 0.9, 0.2) m from t = 2 s."""
+    imu_t = np.arange(0.0, 5.0, 0.01)
+    gyro = np.tile([0.0, 0.0, rate], (imu_t.size, 1))
+    baseline = np.array([0.3, 0.9, 0.2])
+    t_h = np.arange(2.0, 5.0, 0.5)
+    tilt = so3.exp(torch.tensor([roll, 0.0, 0.0], dtype=torch.float64)).numpy()
+    headings = []
+    for t in t_h:
+        yaw = so3.exp(torch.tensor([0.0, 0.0, yaw0], dtype=torch.float64)).numpy()
+        spin = so3.exp(torch.tensor([0.0, 0.0, rate * t], dtype=torch.float64)).numpy()
+        world = yaw @ tilt @ spin @ baseline
+        headings.append(math.atan2(world[0], world[1]) % (2 * math.pi))
+    heading = {"t": t_h, "heading": np.array(headings), "sigma": np.full(t_h.size, np.nan)}
+    return heading, imu_t, gyro, tilt, baseline
+
+
+def test_initial_yaw_is_the_heading_carried_back_by_the_gyro():
+    """Closed form: the yaw that turns the tilted baseline to the first heading, minus the
+    gyro's turn since the first IMU sample (no motion needed), and its variance: the
+    heading's (config default for a NaN sigma) plus the bias prior and angle random walk
+    over the 2 s carried back."""
+    heading, imu_t, gyro, tilt, baseline = _level_drive(2.8, 0.0, 0.0)
+    cfg = EskfConfig(gnss_heading_baseline_m=list(baseline))
+    yaw, variance = antenna_heading_yaw(heading, imu_t, gyro, tilt, cfg)
+    assert yaw == pytest.approx(2.8, abs=1e-12)
+    expected = (
+        cfg.gnss_heading_sigma_rad**2
+        + (cfg.init_gyro_bias_sigma_radps * 2.0) ** 2
+        + cfg.gyro_noise_density**2 * 2.0
+    )
+    assert variance == pytest.approx(expected, rel=1e-12)
+    # a turning vehicle: the heading at 2 s is 0.6 rad later than the start
+    heading, imu_t, gyro, tilt, baseline = _level_drive(-1.1, 0.3, 0.0)
+    yaw, _ = antenna_heading_yaw(heading, imu_t, gyro, tilt, cfg)
+    assert yaw == pytest.approx(-1.1, abs=1e-9)
+    # on a level vehicle, a baseline pointing straight up has no heading
+    up = EskfConfig(gnss_heading_baseline_m=[0.0, 0.0, 1.0])
+    assert antenna_heading_yaw(heading, imu_t, gyro, np.eye(3), up) is None
+
+
+def test_heading_gives_the_initial_yaw_before_any_motion(runs):
+    """Without wheels and with the first fixes withheld, the track gives no heading for
+    seconds; the first dual-antenna heading sets the yaw to within its sigma."""
+    errors, ratios = [], []
+    for run in runs:
+        seq = dataclasses.replace(run.sequence, wheel=None)
+        cfg = load_sequence_config(seq.meta)
+        state, cov = initial_state(seq, cfg)
+        yaw_error = float(so3.log(run.truth.rotation[0, 0].mT @ state.rotation[0])[2])
+        errors.append(abs(yaw_error))
+        ratios.append(yaw_error / float(cov[0, 8, 8].sqrt()))
+        assert float(cov[0, 8, 8].sqrt()) < 0.02
+    assert max(errors) < 0.03 and max(abs(r) for r in ratios) < 3.0
+
+
+def test_guard_drops_nonfinite_headings_and_fills_missing_sigmas(runs):
+    seq = runs[2].sequence
+    heading = seq.gnss_heading
+    values, sigma = heading.heading.clone(), heading.sigma.clone()
+    values[0, 5] = float("nan")
+    sigma[0, 6:] = float("nan")  # default 0.01 rad
+    broken = dataclasses.replace(
+        seq, gnss_heading=GnssHeading(heading.t, values, sigma, heading.mask)
+    )
+    result = _run([broken])
+    assert int(result.dropped_samples["gnss_heading"][0]) == 1
+    # the heading at t = 0 sets the initial yaw; the filter's epochs start after it
+    assert int(result.present["gnss_heading"].sum()) == heading.length - 2
+    assert torch.isfinite(result.position).all()
