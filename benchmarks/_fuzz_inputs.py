@@ -233,6 +233,14 @@ def _native_arrays(rng: np.random.Generator) -> dict[str, np.ndarray]:
         "gnss_velocity/velocity": velocity,
         "gnss_velocity/sigma": rng.uniform(0.02, 0.5, (n_v, 3)),
     }
+    n_h = int(rng.integers(0, 5))
+    heading_sigma = rng.uniform(0.001, 0.1, n_h)
+    heading_sigma[rng.random(n_h) < 0.3] = np.nan  # not given: the configured default
+    out |= {
+        "gnss_heading/t": _times(rng, n_h, step=0.1),
+        "gnss_heading/heading": rng.uniform(-10.0, 10.0, n_h),  # any angle: the filter wraps
+        "gnss_heading/sigma": heading_sigma,
+    }
     for prefix in ("poses", "poses/vo"):
         n_p = int(rng.integers(0, 5))
         a = rng.normal(size=(n_p, 6, 6))
@@ -273,6 +281,12 @@ def _native_folder(rng: np.random.Generator) -> dict[str, str]:
             ["t", "vx", "vy", "vz", "sigma_vx", "sigma_vy", "sigma_vz"],
             np.column_stack(
                 (a["gnss_velocity/t"], a["gnss_velocity/velocity"], a["gnss_velocity/sigma"])
+            ),
+        ),
+        "gnss_heading.csv": _csv(
+            ["t", "heading", "sigma_heading"],
+            np.column_stack(
+                (a["gnss_heading/t"], a["gnss_heading/heading"], a["gnss_heading/sigma"])
             ),
         ),
         "ground_truth.csv": _csv(

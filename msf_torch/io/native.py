@@ -23,6 +23,12 @@ file                 columns
                      from the receiver's Doppler or its speed and course over ground;
                      ``vz`` may be ``nan`` (horizontal only, e.g. NMEA RMC / VTG): the up
                      component is then not fused
+``gnss_heading.csv`` ``t, heading`` [``, sigma_heading``] (s, rad, rad): a dual-antenna
+                     receiver's heading, the azimuth of the baseline from the primary to
+                     the secondary antenna clockwise from true north (any value: the
+                     filter wraps it; ``msf ubx`` and ``msf nmea`` write [0, 2 pi));
+                     ``sigma_heading`` may be ``nan`` (the estimator's configured
+                     ``gnss_heading_sigma_rad`` applies)
 ``poses.csv``        ``t, x, y, z, qw, qx, qy, qz`` then the uncertainty, one of:
                      nothing (covariance unknown: NaN);
                      6 standard deviations ``sigma_x, sigma_y, sigma_z, sigma_roll,
@@ -60,6 +66,7 @@ Arrays keyed ``<stream>/<field>``, float64, N samples per stream:
 ``gnss/t`` (N,), ``gnss/position`` (N, 3), optional ``gnss/sigma`` (N, 3);
 ``gnss_velocity/t`` (N,), ``gnss_velocity/velocity`` (N, 3) (up may be NaN), optional
 ``gnss_velocity/sigma`` (N, 3);
+``gnss_heading/t``, ``gnss_heading/heading`` (N,) (rad), optional ``gnss_heading/sigma`` (N,);
 ``poses/t`` (N,), ``poses/position`` (N, 3), ``poses/quaternion`` (N, 4) ``[w,x,y,z]``,
 optional ``poses/covariance`` (N, 6, 6);
 ``poses/<name>/t``, ``poses/<name>/position``, ``poses/<name>/quaternion``, optional
@@ -102,6 +109,8 @@ __all__ = [
     "GNSS_SIGMA_COLUMNS",
     "GNSS_VELOCITY_COLUMNS",
     "GNSS_VELOCITY_SIGMA_COLUMNS",
+    "GNSS_HEADING_COLUMNS",
+    "GNSS_HEADING_SIGMA_COLUMNS",
     "POSE_COLUMNS",
     "POSE_SIGMA_COLUMNS",
     "POSE_COVARIANCE_COLUMNS",
@@ -139,6 +148,7 @@ from msf_torch.io.atomic import atomic_save_npz, atomic_write
 from msf_torch.io.errors import DataError
 from msf_torch.types import (
     GnssFixes,
+    GnssHeading,
     GnssVelocity,
     ImuSamples,
     PoseMeasurements,
@@ -153,6 +163,8 @@ GNSS_COLUMNS = ["t", "x", "y", "z"]
 GNSS_SIGMA_COLUMNS = ["sigma_x", "sigma_y", "sigma_z"]
 GNSS_VELOCITY_COLUMNS = ["t", "vx", "vy", "vz"]
 GNSS_VELOCITY_SIGMA_COLUMNS = ["sigma_vx", "sigma_vy", "sigma_vz"]
+GNSS_HEADING_COLUMNS = ["t", "heading"]
+GNSS_HEADING_SIGMA_COLUMNS = ["sigma_heading"]
 POSE_COLUMNS = ["t", "x", "y", "z", "qw", "qx", "qy", "qz"]
 POSE_SIGMA_COLUMNS = ["sigma_x", "sigma_y", "sigma_z", "sigma_roll", "sigma_pitch", "sigma_yaw"]
 POSE_COVARIANCE_COLUMNS = [f"c{i}{j}" for i in range(6) for j in range(i, 6)]
@@ -163,6 +175,7 @@ TABLE_FILES = {
     "wheel": "wheel.csv",
     "gnss": "gnss.csv",
     "gnss_velocity": "gnss_velocity.csv",
+    "gnss_heading": "gnss_heading.csv",
     "poses": "poses.csv",
     "ground_truth": "ground_truth.csv",
 }
@@ -242,6 +255,7 @@ _KINDS: dict[str, type] = {
     "wheel": WheelSamples,
     "gnss": GnssFixes,
     "gnss_velocity": GnssVelocity,
+    "gnss_heading": GnssHeading,
     "poses": PoseMeasurements,
     "ground_truth": Trajectory,
 }
@@ -252,13 +266,20 @@ _NPZ_FIELDS: dict[str, dict[str, tuple[int, ...]]] = {
     "wheel": {"t": (), "left_speed": (), "right_speed": ()},
     "gnss": {"t": (), "position": (3,), "sigma": (3,)},
     "gnss_velocity": {"t": (), "velocity": (3,), "sigma": (3,)},
+    "gnss_heading": {"t": (), "heading": (), "sigma": ()},
     "poses": {"t": (), "position": (3,), "quaternion": (4,), "covariance": (6, 6)},
     "ground_truth": {"t": (), "position": (3,), "quaternion": (4,)},
 }
-_OPTIONAL = {("gnss", "sigma"), ("gnss_velocity", "sigma"), ("poses", "covariance")}
+_OPTIONAL = {
+    ("gnss", "sigma"),
+    ("gnss_velocity", "sigma"),
+    ("gnss_heading", "sigma"),
+    ("poses", "covariance"),
+}
 _NAN_OK = {
     "gnss": ("sigma",),
     "gnss_velocity": ("sigma", "velocity_up"),
+    "gnss_heading": ("sigma",),
     "poses": ("covariance",),
 }
 _QUAT_STREAMS = ("poses", "ground_truth")
@@ -379,6 +400,13 @@ def _arrays_from_table(stream: str, table: Table) -> dict[str, np.ndarray]:
     if stream == "gnss_velocity":
         columns, sigmas = GNSS_VELOCITY_COLUMNS, GNSS_VELOCITY_SIGMA_COLUMNS
         return _vector_and_sigmas(table, columns, sigmas, "velocity")
+    if stream == "gnss_heading":
+        extra = _tables.check_columns(table, GNSS_HEADING_COLUMNS, [[GNSS_HEADING_SIGMA_COLUMNS]])
+        d = table.floats(GNSS_HEADING_COLUMNS + extra)
+        if extra:
+            _check_sigmas(table, d, GNSS_HEADING_SIGMA_COLUMNS, 2)
+        sigma = d[:, 2] if extra else np.full(d.shape[0], np.nan)
+        return {"t": d[:, 0], "heading": d[:, 1], "sigma": sigma}
     if stream == "poses":
         extra = _tables.check_columns(
             table, POSE_COLUMNS, [[POSE_SIGMA_COLUMNS, POSE_COVARIANCE_COLUMNS]]
@@ -909,6 +937,12 @@ def _table_for(stream: str, a: dict[str, np.ndarray]) -> tuple[list[str], np.nda
         return GNSS_VELOCITY_COLUMNS + GNSS_VELOCITY_SIGMA_COLUMNS, np.hstack(
             (t, a["velocity"], a["sigma"])
         )
+    if stream == "gnss_heading":
+        if np.isnan(a["sigma"]).all():
+            return GNSS_HEADING_COLUMNS, np.hstack((t, a["heading"][:, None]))
+        return GNSS_HEADING_COLUMNS + GNSS_HEADING_SIGMA_COLUMNS, np.hstack(
+            (t, a["heading"][:, None], a["sigma"][:, None])
+        )
     base = np.hstack((t, a["position"], a["quaternion"]))
     if stream == "poses" and not np.isnan(a["covariance"]).all():
         rows, cols = np.triu_indices(6)
@@ -920,7 +954,8 @@ def _table_for(stream: str, a: dict[str, np.ndarray]) -> tuple[list[str], np.nda
 
 def write_stream_csv(path: str | os.PathLike[str], name: str, stream: Any) -> Path:
     """Write one B = 1 stream as its native CSV table (``imu``, ``wheel``, ``gnss``,
-    ``poses``, ``ground_truth``; the columns of :data:`TABLE_FILES`'s table), atomically.
+    ``gnss_velocity``, ``gnss_heading``, ``poses``, ``ground_truth``; the columns of
+    :data:`TABLE_FILES`'s table), atomically.
 
     Only real samples (mask True) are written, numbers as shortest exact ``repr``; GNSS
     sigma and pose covariance columns only when some value is given (not NaN).

@@ -9,7 +9,12 @@ import pytest
 import torch
 
 from msf_torch.io import DataError, load_sequence, read_native, write_native
-from msf_torch.io.native import IMU_COLUMNS, POSE_COLUMNS, POSE_SIGMA_COLUMNS
+from msf_torch.io.native import (
+    IMU_COLUMNS,
+    POSE_COLUMNS,
+    POSE_SIGMA_COLUMNS,
+    write_stream_csv,
+)
 
 IMU_HEADER = ",".join(IMU_COLUMNS) + "\n"
 
@@ -240,9 +245,8 @@ def test_unknown_csv_files_warn_once_and_are_ignored(tmp_path):
     message = str(caught[0].message)
     assert message.startswith(
         f"{folder}: ignored CSV files with names a native folder does not use: gps.csv, "
-        "poses_a b.csv (recognised: imu.csv, wheel.csv, gnss.csv, gnss_velocity.csv, poses.csv, "
-        "ground_truth.csv, "
-        "poses_<name>.csv, labels.csv, meta.json)"
+        "poses_a b.csv (recognised: imu.csv, wheel.csv, gnss.csv, gnss_velocity.csv, "
+        "gnss_heading.csv, poses.csv, ground_truth.csv, poses_<name>.csv, labels.csv, meta.json)"
     )
     assert seq.gnss is None and seq.imu.length == 2
 
@@ -347,3 +351,59 @@ def test_gnss_velocity_table_round_trips_with_an_unmeasured_up_component(tmp_pat
     with pytest.raises(DataError) as info:
         read_native(folder)
     assert (info.value.line, info.value.field) == (2, "sigma_vy")
+
+
+def test_gnss_heading_table_round_trips_with_default_sigmas(tmp_path):
+    """gnss_heading.csv: any angle kept as given (the filter wraps it), a NaN sigma means the
+    configured default, a NaN heading or an inf sigma drops the row, a negative sigma names
+    its line; CSV, npz and write_stream_csv give back the same stream."""
+    folder = tmp_path / "run"
+    _write(folder, "imu.csv", IMU_HEADER + _imu_rows([0.0, 0.5, 1.0, 1.5, 2.0]))
+    rows = [
+        "heading,t,sigma_heading",  # any column order
+        "0.25,0.5,0.01",
+        "7.5,1.0,nan",  # beyond 2 pi, no sigma: kept as it is
+        "nan,1.5,0.01",  # no heading: not a measurement
+        "-0.5,2.0,inf",  # inf is never "not given"
+        "-0.5,2.0,0.02",  # the same time again: a duplicate
+    ]
+    _write(folder, "gnss_heading.csv", "\n".join(rows) + "\n")
+    seq = read_native(folder)
+    heading = seq.gnss_heading
+    assert seq.meta["dropped_nonfinite"]["gnss_heading"] == 2
+    assert seq.meta["dropped_lines"]["gnss_heading"] == [4, 5]
+    assert seq.meta["dropped_duplicates"]["gnss_heading"] == 0
+    assert heading.t.tolist() == [[0.5, 1.0, 2.0]] and heading.heading.shape == (1, 3)
+    assert heading.heading.tolist() == [[0.25, 7.5, -0.5]]
+    assert heading.sigma[0, 0] == 0.01 and bool(heading.sigma[0, 1].isnan())
+    for target in (tmp_path / "copy", tmp_path / "copy.npz"):
+        back = read_native(write_native(seq, target)).gnss_heading
+        for name in ("t", "heading", "sigma", "mask"):
+            assert torch.equal(
+                getattr(back, name).nan_to_num(7.0), getattr(heading, name).nan_to_num(7.0)
+            )
+    assert (tmp_path / "copy" / "gnss_heading.csv").read_text().splitlines()[0] == (
+        "t,heading,sigma_heading"
+    )
+    no_sigma = dataclasses.replace(heading, sigma=torch.full_like(heading.sigma, float("nan")))
+    table = write_stream_csv(tmp_path / "copy" / "gnss_heading.csv", "gnss_heading", no_sigma)
+    assert table.read_text() == "t,heading\n0.5,0.25\n1.0,7.5\n2.0,-0.5\n"
+    assert bool(read_native(tmp_path / "copy").gnss_heading.sigma.isnan().all())
+    npz = dict(np.load(tmp_path / "copy.npz"))
+    assert npz["gnss_heading/heading"].shape == (3,) and npz["gnss_heading/sigma"].shape == (3,)
+    del npz["gnss_heading/sigma"]  # optional
+    np.savez(tmp_path / "bare.npz", **npz)
+    assert bool(read_native(tmp_path / "bare.npz").gnss_heading.sigma.isnan().all())
+    npz["gnss_heading/heading"] = np.zeros((3, 1))
+    np.savez(tmp_path / "bad.npz", **npz)
+    with pytest.raises(DataError) as info:
+        read_native(tmp_path / "bad.npz")
+    assert info.value.field == "gnss_heading/heading" and "expected (3,)" in info.value.problem
+    _write(folder, "gnss_heading.csv", "t,heading,sigma_heading\n0.5,1.0,0.1\n1.0,1.0,-0.1\n")
+    with pytest.raises(DataError) as info:
+        read_native(folder)
+    assert (info.value.line, info.value.field) == (3, "sigma_heading")
+    _write(folder, "gnss_heading.csv", "t,heading,sigma\n0.5,1.0,0.1\n")
+    with pytest.raises(DataError) as info:
+        read_native(folder)
+    assert (info.value.line, info.value.field) == (1, "sigma")
