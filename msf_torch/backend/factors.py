@@ -20,6 +20,7 @@ __all__ = [
     "NavStatePriorFactor",
     "GnssFactor",
     "GnssVelocityFactor",
+    "GnssHeadingFactor",
     "ZeroVelocityFactor",
     "NonholonomicFactor",
     "BetweenFactor",
@@ -42,7 +43,7 @@ from msf_torch.backend.variables import VariableKind, unpack_nav_state, unpack_p
 from msf_torch.geometry import so3
 from msf_torch.geometry.conventions import IDX_P, IDX_THETA
 from msf_torch.sensors.camera import reprojection_residual
-from msf_torch.sensors.gnss import gnss_residual, gnss_velocity_residual
+from msf_torch.sensors.gnss import gnss_heading_residual, gnss_residual, gnss_velocity_residual
 from msf_torch.sensors.imu import Preintegrated, preintegration_residual
 from msf_torch.sensors.plane import plane_residual
 from msf_torch.sensors.pose import pose_residual, relative_pose_residual
@@ -377,6 +378,50 @@ class GnssVelocityFactor(_PointVelocityFactor):
             self.measured.expand_as(velocity),
         )
         return r, [jac]
+
+
+class GnssHeadingFactor(_Unary):
+    """Dual-antenna GNSS heading ``r = wrap(azimuth(R b) - z)`` (1,) rad, the azimuth of the
+    baseline ``b`` (body frame) clockwise from north
+    (:func:`msf_torch.sensors.gnss.gnss_heading_residual`).
+
+    Args:
+        group, index: variables (F,) (``nav_state`` or ``pose``). measured: (B|1, F)
+        heading, rad. covariance: (B|1, F, 1, 1) rad^2. baseline: (3,) primary ->
+        secondary antenna, body frame (only its direction counts). kernel: robust kernel
+        (:mod:`msf_torch.backend.robust`), or None for plain least squares.
+    """
+
+    batched = ("measured",)
+
+    def __init__(
+        self,
+        group: str,
+        index: torch.Tensor,
+        measured: torch.Tensor,
+        covariance: torch.Tensor,
+        baseline: torch.Tensor,
+        kernel: RobustKernel | None = None,
+    ) -> None:
+        super().__init__(group, index, covariance, kernel)
+        self.measured = measured
+        self.baseline = baseline
+
+    def residual(self, values: list[torch.Tensor]) -> torch.Tensor:
+        """Residuals (B, F, 1), rad."""
+        return self.residual_and_jacobians(values, None)[0]
+
+    def residual_and_jacobians(
+        self, values: list[torch.Tensor], kinds: list[VariableKind] | None
+    ) -> tuple[torch.Tensor, list[torch.Tensor]]:
+        """Residuals (B, F, 1) rad and the Jacobian (B, F, 1, D) w.r.t. the variable's
+        tangent (D = 15 or 6); ``kinds`` is not read (``self.kinds``)."""
+        kind = self.kinds[0]
+        _, rotation = pose_of(kind, values[0])
+        r, jac = gnss_heading_residual(
+            rotation, self.baseline, self.measured.expand(rotation.shape[:-2])
+        )
+        return r, [_for_kind(jac, kind)]
 
 
 class _Binary(Factor):

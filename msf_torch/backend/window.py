@@ -198,6 +198,8 @@ class SmootherConfig:
             variable of the run (full batch only; needs ``wheel``).
         gnss_velocity: GNSS velocities (``Sequence.gnss_velocity``) at their keyframes, under
             the GNSS fixes' kernel.
+        gnss_heading: dual-antenna GNSS headings (``Sequence.gnss_heading``) at their
+            keyframes, under the GNSS fixes' kernel.
         nhc: non-holonomic constraint at keyframes where the front end applied it.
         zero_velocity: zero velocity at keyframes the front end found stationary.
         plane: planar motion between consecutive keyframes (ground vehicles).
@@ -230,6 +232,7 @@ class SmootherConfig:
     wheel: bool = True
     calibrate_wheels: bool = False
     gnss_velocity: bool = True
+    gnss_heading: bool = True
     nhc: bool = True
     zero_velocity: bool = True
     plane: bool = False
@@ -286,7 +289,15 @@ class SmootherConfig:
                 raise bad(key, "a positive number")
             if math.isnan(value) or value <= 0:
                 raise bad(key, "a positive number")
-        switches = ("wheel", "calibrate_wheels", "gnss_velocity", "nhc", "zero_velocity", "plane")
+        switches = (
+            "wheel",
+            "calibrate_wheels",
+            "gnss_velocity",
+            "gnss_heading",
+            "nhc",
+            "zero_velocity",
+            "plane",
+        )
         for key in (*switches, "covariance"):
             if not isinstance(getattr(self, key), bool):
                 raise bad(key, "true or false")
@@ -400,6 +411,8 @@ class KeyframeGraph:
         gnss_lever_arm (3,) m, gnss_kernel: robust kernel or None (also on the velocities).
         gnss_velocity_index (V,), gnss_velocity (1, V, 3) m/s (0 on an axis not given),
         gnss_velocity_gyro (1, V, 3) rad/s, gnss_velocity_covariance (1, V, 3, 3) (m/s)^2.
+        gnss_heading_index (H,), gnss_heading (1, H) rad, gnss_heading_covariance
+        (1, H, 1, 1) rad^2, gnss_heading_baseline (3,) m.
         wheel_index (W,) intervals, wheel_increment (1, W, 3) [m, m, rad],
         wheel_covariance (1, W, 3, 3), wheel_lever_arm (3,) m.
         nhc_index (N,), nhc_gyro (1, N, 3) rad/s, nhc_covariance (1, N, 2, 2),
@@ -430,6 +443,10 @@ class KeyframeGraph:
     gnss_velocity: torch.Tensor
     gnss_velocity_gyro: torch.Tensor
     gnss_velocity_covariance: torch.Tensor
+    gnss_heading_index: torch.Tensor
+    gnss_heading: torch.Tensor
+    gnss_heading_covariance: torch.Tensor
+    gnss_heading_baseline: torch.Tensor
     wheel_index: torch.Tensor
     wheel_increment: torch.Tensor
     wheel_covariance: torch.Tensor
@@ -561,6 +578,18 @@ class KeyframeGraph:
                     self.gnss_velocity_gyro[:, keep],
                     self.gnss_velocity_covariance[:, keep],
                     self.gnss_lever_arm,
+                    self.gnss_kernel,
+                )
+            )
+        keep, i = unary(self.gnss_heading_index)
+        if i.numel():
+            out.append(
+                F.GnssHeadingFactor(
+                    _GROUP,
+                    i,
+                    self.gnss_heading[:, keep],
+                    self.gnss_heading_covariance[:, keep],
+                    self.gnss_heading_baseline,
                     self.gnss_kernel,
                 )
             )
@@ -727,8 +756,9 @@ def build_graph(
         raise ValueError(f"the smoothers take one sequence (B = 1), got B = {seq.batch_size}")
     dtype, device = frontend.t.dtype, frontend.t.device
     force = frontend.present["gnss"] & frontend.mask
-    if smoother.gnss_velocity and "gnss_velocity" in frontend.present:
-        force = force | (frontend.present["gnss_velocity"] & frontend.mask)
+    for stream in ("gnss_velocity", "gnss_heading"):
+        if getattr(smoother, stream) and stream in frontend.present:
+            force = force | (frontend.present[stream] & frontend.mask)
     keyframes = select_keyframes(
         frontend.t, frontend.position, frontend.rotation, frontend.mask, smoother.keyframes(), force
     )
@@ -793,6 +823,11 @@ def build_graph(
     gnss_velocity = torch.where(unmeasured, 0.0, gnss_velocity)
     velocity_sigma = torch.where(unmeasured, UNMEASURED_SIGMA, velocity_sigma)
     gnss_velocity_covariance = torch.diag_embed(velocity_sigma**2)
+    heading_stream = seq.gnss_heading if smoother.gnss_heading else None
+    gnss_heading_index, gnss_heading, heading_sigma = _at_keyframes(
+        heading_stream, "heading", t, tol, [cfg.gnss_heading_sigma_rad], vector=False
+    )
+    gnss_heading_covariance = (heading_sigma**2)[..., None, None]
 
     # wheels
     wheel_index = torch.zeros(0, dtype=torch.long, device=device)
@@ -857,6 +892,10 @@ def build_graph(
         gnss_velocity=gnss_velocity,
         gnss_velocity_gyro=gnss_velocity_gyro,
         gnss_velocity_covariance=gnss_velocity_covariance,
+        gnss_heading_index=gnss_heading_index,
+        gnss_heading=gnss_heading,
+        gnss_heading_covariance=gnss_heading_covariance,
+        gnss_heading_baseline=arm(cfg.gnss_heading_baseline_m),
         wheel_index=wheel_index,
         wheel_increment=wheel_increment,
         wheel_covariance=wheel_covariance,
@@ -875,14 +914,20 @@ def build_graph(
 
 
 def _at_keyframes(
-    stream, field: str, t: torch.Tensor, tol: float, default_sigma: list[float]
+    stream,
+    field: str,
+    t: torch.Tensor,
+    tol: float,
+    default_sigma: list[float],
+    vector: bool = True,
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """A GNSS stream's samples at keyframe times ``t`` (K,) s (within ``tol``): keyframe
-    indices (G,), the ``field`` values (1, G, 3) and sigmas (1, G, 3), a sigma that is not
-    finite and positive replaced by ``default_sigma`` (as the front end reads them)."""
+    indices (G,), the ``field`` values (1, G, 3) and sigmas (1, G, 3) ((1, G) each for a
+    scalar stream, ``vector=False``), a sigma that is not finite and positive replaced by
+    ``default_sigma`` (as the front end reads them)."""
     dtype, device = t.dtype, t.device
     if stream is None or not bool(stream.mask.any()):
-        empty = torch.zeros(1, 0, 3, dtype=dtype, device=device)
+        empty = torch.zeros(1, 0, *((3,) if vector else ()), dtype=dtype, device=device)
         return torch.zeros(0, dtype=torch.long, device=device), empty, empty.clone()
     keep = stream.mask[0]
     times = stream.t[0, keep]

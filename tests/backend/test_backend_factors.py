@@ -14,7 +14,13 @@ from msf_torch.backend import factors as F
 from msf_torch.backend.preintegration import ImuIntervals, imu_covariance, preintegrate_imu
 from msf_torch.backend.problem import Problem
 from msf_torch.backend.robust import RobustKernel
-from msf_torch.backend.variables import POINT, pack_nav_state, pack_pose, unpack_nav_state
+from msf_torch.backend.variables import (
+    POINT,
+    pack_nav_state,
+    pack_pose,
+    unpack_nav_state,
+    unpack_pose,
+)
 from msf_torch.geometry import so3
 from msf_torch.geometry.conventions import gravity_world
 from msf_torch.sensors.imu import ImuNoise
@@ -115,7 +121,22 @@ def test_unary_pose_factor_jacobians(kind):
         _spd(gen, 2, 3),
         lever_arm=torch.tensor([-0.3, 0.0, -0.2], dtype=DTYPE),
     )
-    problem = Problem({"x": (kind, values)}, [prior, gnss, plane, wheel])
+    # headings within ~0.3 rad of each variable's baseline azimuth (off the residual's wrap)
+    baseline = torch.tensor([0.4, 0.9, -0.3], dtype=DTYPE)
+    if kind == "nav_state":
+        rotation = unpack_nav_state(values[:, index])[2]
+    else:
+        rotation = unpack_pose(values[:, index])[1]
+    world = (rotation @ baseline[:, None])[..., 0]
+    measured = torch.atan2(world[..., 0], world[..., 1])
+    heading = F.GnssHeadingFactor(
+        "x",
+        index,
+        measured + 0.3 * torch.randn(B, 3, generator=gen, dtype=DTYPE),
+        torch.full((1, 3, 1, 1), 0.01**2, dtype=DTYPE),
+        baseline,
+    )
+    problem = Problem({"x": (kind, values)}, [prior, gnss, plane, wheel, heading])
     for factor in problem.factors:
         _check_jacobians(problem, factor)
 
