@@ -44,15 +44,22 @@ def python_in(tmp_path):
 @pytest.fixture(scope="module")
 def every_stream_drive():
     """A 20-s simulated drive holding every stream the front end fuses (wheels with a slip
-    episode, GNSS fixes and velocities, visual and LiDAR odometry under a weather schedule)
-    with the IMU samples inside 9..12 s dropped, and its settings (source-fault detector on)."""
+    episode, GNSS fixes, velocities and dual-antenna headings, visual and LiDAR odometry
+    under a weather schedule) with the IMU samples inside 9..12 s dropped, and its settings
+    (source-fault detector on)."""
     import dataclasses
 
     from msf_torch.frontend.config import EskfConfig, config_for_sequence
     from msf_torch.sim import SimConfig, simulate_run
     from msf_torch.sim.weather import WeatherSchedule, apply_weather
 
-    sim = SimConfig(duration_s=20.0, gnss_velocity=True, slip_episodes=1, gnss_outage_count=0)
+    sim = SimConfig(
+        duration_s=20.0,
+        gnss_velocity=True,
+        gnss_heading=True,
+        slip_episodes=1,
+        gnss_outage_count=0,
+    )
     wet = apply_weather(simulate_run(sim, seed=5), WeatherSchedule.random(20.0, seed=2), seed=3)
     seq = wet.sequence
     keep = (seq.imu.t[0] <= 9.0) | (seq.imu.t[0] >= 12.0)

@@ -704,7 +704,8 @@ class WeatherRun:
 
     Attributes:
         sequence: shallow copy of ``truth.sequence`` (unchanged streams share tensors) with
-            GNSS degraded, ``poses`` the chosen source (or None), ``pose_sources`` both
+            GNSS degraded (velocities and headings, when the run has them, removed in
+            the new urban outages with the fixes), ``poses`` the chosen source (or None), ``pose_sources`` both
             sources (the same tensors as :attr:`pose_sources`), labels extended with
             ``"weather:<c>"``, ``"env:corridor"``, ``"env:urban"`` and the merged
             ``"gnss_outage"``, and ``meta["weather"]``.
@@ -1010,6 +1011,13 @@ def apply_weather(
         sigma=torch.from_numpy(sigma[keep])[None],
         mask=old.mask[:, keep],
     )
+    # an urban outage takes the receiver's velocities and headings with its fixes
+    receiver = {}
+    for name in ("gnss_velocity", "gnss_heading"):
+        stream = getattr(run.sequence, name)
+        if stream is not None:
+            outside = torch.from_numpy(~_inside(stream.t[0].numpy(), new_outages))
+            receiver[name] = stream.map(lambda x, k=outside: x[:, k])
 
     # sequence ---------------------------------------------------------------------------
     old_outages = run.sequence.labels["gnss_outage"][0].numpy()
@@ -1037,6 +1045,7 @@ def apply_weather(
     sequence = dataclasses.replace(
         run.sequence,
         gnss=degraded_gnss,
+        **receiver,
         poses=sources[pose_source] if pose_source else None,
         labels=labels,
         meta=meta,

@@ -376,6 +376,28 @@ def test_urban_outages_are_poisson_and_remove_fixes(run):
         assert 5.0 <= start and end <= 55.0
 
 
+def test_urban_outages_take_the_receivers_velocities_and_headings():
+    """A receiver that loses its fixes in an urban outage loses its Doppler velocities and
+    dual-antenna headings too; outside the outages they are the run's own samples."""
+    run = simulate_run(SimConfig(duration_s=60.0, gnss_velocity=True, gnss_heading=True), seed=9)
+    model = GnssModel(urban_outage_rate_per_min=6.0, urban_outage_mean_s=3.0)
+    out = apply_weather(
+        run,
+        WeatherSchedule.constant("sunny", 60.0),
+        0,
+        environment=Environment(urban_s=((5.0, 55.0),)),
+        gnss=model,
+    )
+    fixes = out.sequence.gnss.t[0]
+    for name in ("gnss_velocity", "gnss_heading"):
+        stream, before = getattr(out.sequence, name), getattr(run.sequence, name)
+        torch.testing.assert_close(stream.t, fixes[None])  # the fixes' epochs, no others
+        kept = torch.isin(before.t[0], fixes)
+        for key, value in stream.tensors().items():
+            torch.testing.assert_close(value, getattr(before, key)[:, kept])
+    assert fixes.numel() < run.sequence.gnss.length
+
+
 def test_wheel_slip_rate_and_ratio_distribution():
     wheel = WheelModel()
     for mu in (0.2, 0.5, 0.8):
