@@ -688,7 +688,8 @@ def _nmea_line(body: str, checksum: bool) -> str:
 def _build_nmea(rng: np.random.Generator) -> tuple[dict[str, Any], str]:
     """An NMEA 0183 log like a u-blox or NovAtel serial capture: GGA fixes at 1 or 5 Hz
     anywhere on the globe, GSTs for some, RMC or ZDA dates (or none), RMC speeds and courses
-    (stationary, invalid, dead reckoning, before NMEA 2.3), VTGs, GSV/GSA/PUBX noise,
+    (stationary, invalid, dead reckoning, before NMEA 2.3), VTGs, HDT / THS headings (empty,
+    360, every THS mode), GSV/GSA/PUBX noise,
     no-fix GGAs, a second talker's GGA of the same epoch, checksums on all, none or some
     lines, receive stamps before a comma or a space (or none), a midnight rollover in one
     log of three."""
@@ -740,6 +741,12 @@ def _build_nmea(rng: np.random.Generator) -> tuple[dict[str, Any], str]:
             )
         elif date_kind == "ZDA" and rng.random() < 0.5:
             lines.append((t, f"{talker}ZDA,{hms},{clock:%d,%m,%Y},00,00"))
+        if rng.random() < 0.4:  # a dual-antenna heading of this epoch
+            degrees = str(rng.choice((f"{rng.uniform(0, 360):.3f}", "", "360.0", "0")))
+            if rng.random() < 0.5:
+                lines.append((t, f"{talker}HDT,{degrees},T"))
+            else:
+                lines.append((t, f"{talker}THS,{degrees},{rng.choice(list('AAAEMSV'))}"))
         if rng.random() < 0.5:
             lines.append((t, str(rng.choice(_NMEA_NOISE))))
     text = []
@@ -764,7 +771,9 @@ def _ubx_frame(cls: int, ident: int, payload: bytes) -> bytes:
 def _build_ubx(rng: np.random.Generator) -> tuple[dict[str, Any], str]:
     """A u-blox UBX log: NAV-PVT frames at 1-10 Hz anywhere on the globe (fix types 0-5,
     valid flags mostly set, RTK carrier states, 92- or 84-byte payloads), NAV-STATUS and
-    RXM-RAWX-like frames between, NMEA text now and then, a leap-second :60 in some."""
+    RXM-RAWX-like frames between, NMEA text now and then, a leap-second :60 in some;
+    NAV-RELPOSNED after most (version 1 with random flags, version 0, an iTOW of no
+    NAV-PVT)."""
     n = int(rng.integers(1, 12))
     start = 1_500_000_000 + int(rng.integers(0, 300_000_000))
     step_ns = int(rng.choice((100_000_000, 200_000_000, 1_000_000_000)))
@@ -793,6 +802,21 @@ def _build_ubx(rng: np.random.Generator) -> tuple[dict[str, Any], str]:
         payload = struct.pack("<IHBBBBBBIiBBBBiiiiIIiiiiiIIH", *fields)
         payload += bytes(6) if rng.random() < 0.2 else bytes(14)
         chunks.append(_ubx_frame(0x01, 0x07, payload))
+        if rng.random() < 0.7:
+            itow = fields[0] if rng.random() < 0.9 else int(rng.integers(0, 604_800_000))
+            flags = int(rng.choice((0x127, 0x12F, 0x13F, 0x107, 0x027, 0))) | (
+                int(rng.integers(0, 3)) << 3
+            )
+            relposned = struct.pack(
+                "<BBHIiiiii4xbbbbIIIII4xI",
+                1, 0, 0, itow, *[int(v) for v in rng.integers(-300, 300, 4)],
+                int(rng.integers(-18_000_000, 36_000_000)), 0, 0, 0, 0,
+                *[int(v) for v in rng.integers(0, 500, 4)],
+                int(rng.choice((0, int(rng.integers(1, 2_000_000))))), flags,
+            )  # fmt: skip
+            if rng.random() < 0.15:  # the M8P layout: no heading
+                relposned = bytes((0, 0, 0, 0)) + relposned[4:20] + bytes(20)
+            chunks.append(_ubx_frame(0x01, 0x3C, relposned))
         if rng.random() < 0.3:
             chunks.append(_ubx_frame(0x01, 0x03, bytes(int(v) for v in rng.integers(0, 256, 16))))
         if rng.random() < 0.2:
@@ -829,6 +853,14 @@ def _check_ubx(log: UbxLog) -> str | None:
         return "a negative sigma"
     if any(v < 0 for v in log.counts.values()) or log.counts["kept"] != n:
         return "a negative count or counts['kept'] != N"
+    problem = _check_headings(log.counts, log.heading_t, log.heading_rad, log.heading_offsets)
+    if problem:
+        return problem
+    sigma = log.heading_sigma_rad[~np.isnan(log.heading_sigma_rad)]
+    if log.heading_sigma_rad.shape != log.heading_t.shape or not (sigma > 0).all():
+        return "heading_sigma_rad not (H,) positive or NaN"
+    if not np.isfinite(sigma).all():
+        return "an infinite heading sigma"
     if n:
         gnss, _ = log.to_gnss()
         if not _finite(gnss.position) or gnss.t.shape != (1, n):
@@ -1034,6 +1066,21 @@ def _check_range_run(run: RangeRun) -> str | None:
     return None
 
 
+def _check_headings(
+    counts: dict[str, int], t: np.ndarray, heading: np.ndarray, where: np.ndarray
+) -> str | None:
+    """The NMEA / UBX promises on headings: H = counts["heading_kept"] of each, times finite
+    and increasing, angles in [0, 2 pi), and the stream they give."""
+    h = counts["heading_kept"]
+    if t.shape != (h,) or heading.shape != (h,) or where.shape != (h,):
+        return "heading_t, heading_rad or their lines / offsets not (H,) = counts['heading_kept']"
+    if not (np.isfinite(t).all() and (np.diff(t) > 0).all()):
+        return "heading_t not finite and strictly increasing"
+    if not ((heading >= 0) & (heading < 2 * np.pi)).all():
+        return "a heading outside [0, 2 pi)"
+    return None
+
+
 def _check_nmea(log: NmeaLog) -> str | None:
     n = len(log)
     columns = ("t", "latitude_deg", "longitude_deg", "altitude_m", "quality", "satellites")
@@ -1069,6 +1116,9 @@ def _check_nmea(log: NmeaLog) -> str | None:
         return "a velocity east / north that is not finite"
     if not (np.isfinite(log.velocity_t).all() and (np.diff(log.velocity_t) > 0).all()):
         return "velocity_t not finite and strictly increasing"
+    problem = _check_headings(log.counts, log.heading_t, log.heading_rad, log.heading_lines)
+    if problem:
+        return problem
     if n:
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")

@@ -327,13 +327,14 @@ def build_parser() -> argparse.ArgumentParser:
 
     nm = sub.add_parser(
         "nmea",
-        help="convert an NMEA 0183 GNSS log (GGA, GST, RMC, VTG, ZDA) to a native gnss.csv "
-        "and gnss_velocity.csv",
+        help="convert an NMEA 0183 GNSS log (GGA, GST, RMC, VTG, ZDA, HDT, THS) to a native "
+        "gnss.csv, gnss_velocity.csv and gnss_heading.csv",
     )
     _receiver_arguments(
         nm,
         "NMEA log: one sentence per line, optional stamps",
         "the RMC / VTG speed and course over ground",
+        "the HDT / THS dual-antenna headings",
     )
     nm.add_argument(
         "--time",
@@ -353,11 +354,14 @@ def build_parser() -> argparse.ArgumentParser:
 
     ub = sub.add_parser(
         "ubx",
-        help="convert a u-blox UBX binary log (NAV-PVT) to a native gnss.csv and "
-        "gnss_velocity.csv with the receiver's accuracy estimates",
+        help="convert a u-blox UBX binary log (NAV-PVT, NAV-RELPOSNED) to a native gnss.csv, "
+        "gnss_velocity.csv and gnss_heading.csv with the receiver's accuracy estimates",
     )
     _receiver_arguments(
-        ub, "UBX binary log (other messages are skipped)", "the NAV-PVT Doppler velocities"
+        ub,
+        "UBX binary log (other messages are skipped)",
+        "the NAV-PVT Doppler velocities",
+        "the NAV-RELPOSNED moving-baseline headings",
     )
     ub.add_argument(
         "--fix-types",
@@ -425,9 +429,12 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def _receiver_arguments(parser: argparse.ArgumentParser, log_help: str, velocities: str) -> None:
+def _receiver_arguments(
+    parser: argparse.ArgumentParser, log_help: str, velocities: str, headings: str
+) -> None:
     """The arguments ``msf nmea`` and ``msf ubx`` share: the log, ``--out``, ``--origin``,
-    ``--t0`` and ``--no-velocity`` (``velocities``: what ``gnss_velocity.csv`` holds)."""
+    ``--t0``, ``--no-velocity`` and ``--no-heading`` (``velocities``, ``headings``: what
+    ``gnss_velocity.csv`` and ``gnss_heading.csv`` hold)."""
     parser.add_argument("log", type=Path, help=log_help)
     parser.add_argument(
         "--out", type=Path, required=True, help="CSV to write, normally FOLDER/gnss.csv"
@@ -448,6 +455,12 @@ def _receiver_arguments(parser: argparse.ArgumentParser, log_help: str, velociti
         action="store_true",
         help=f"do not write {velocities} as gnss_velocity.csv next to --out (written by "
         "default when the log has them)",
+    )
+    parser.add_argument(
+        "--no-heading",
+        action="store_true",
+        help=f"do not write {headings} as gnss_heading.csv next to --out (written by default "
+        "when the log has them; the baseline goes in the run config: gnss_heading_baseline_m)",
     )
 
 
@@ -1120,7 +1133,8 @@ def _cmd_ranges(args) -> dict[str, Any]:
 
 
 def _cmd_nmea(args) -> dict[str, Any]:
-    """``msf nmea LOG --out FOLDER/gnss.csv``: GGA fixes and RMC / VTG velocities."""
+    """``msf nmea LOG --out FOLDER/gnss.csv``: GGA fixes, RMC / VTG velocities and HDT / THS
+    headings."""
     import numpy as np
 
     from msf_torch.io.errors import DataError
@@ -1130,7 +1144,9 @@ def _cmd_nmea(args) -> dict[str, Any]:
     if len(log) == 0:
         raise DataError(args.log, f"no fix kept (counts: {log.counts})")
     unix = log.time_source == "receive" or log.dated
-    summary = _write_receiver_folder(args, log, log.velocity_t.size > 0, unix)
+    summary = _write_receiver_folder(
+        args, log, log.velocity_t.size > 0, log.heading_t.size > 0, unix
+    )
     given = np.isfinite(log.sigma_enu).all(axis=1)
     return {
         "log": str(args.log),
@@ -1138,6 +1154,7 @@ def _cmd_nmea(args) -> dict[str, Any]:
         "fixes": len(log),
         "fixes_with_sigma": int(given.sum()),
         "velocities": int(log.velocity_t.size),
+        "headings": int(log.heading_t.size),
         "counts": log.counts,
         "time_source": log.time_source,
         "median_sigma_enu_m": np.median(log.sigma_enu[given], axis=0).tolist()
@@ -1148,7 +1165,8 @@ def _cmd_nmea(args) -> dict[str, Any]:
 
 
 def _cmd_ubx(args) -> dict[str, Any]:
-    """``msf ubx LOG --out FOLDER/gnss.csv``: NAV-PVT fixes and velocities with sigmas."""
+    """``msf ubx LOG --out FOLDER/gnss.csv``: NAV-PVT fixes and velocities and NAV-RELPOSNED
+    headings, with sigmas."""
     import numpy as np
 
     from msf_torch.io.errors import DataError
@@ -1157,26 +1175,31 @@ def _cmd_ubx(args) -> dict[str, Any]:
     log = read_ubx(args.log, fix_types=args.fix_types)
     if len(log) == 0:
         raise DataError(args.log, f"no NAV-PVT solution kept (counts: {log.counts})")
-    summary = _write_receiver_folder(args, log, True, True)
+    summary = _write_receiver_folder(args, log, True, log.heading_t.size > 0, True)
+    heading_sigma = log.heading_sigma_rad[np.isfinite(log.heading_sigma_rad)]
     return {
         "log": str(args.log),
         **summary,
         "fixes": len(log),
         "velocities": len(log),
+        "headings": int(log.heading_t.size),
         "counts": log.counts,
         "rtk_fixed": int((log.carrier == 2).sum()),
         "rtk_float": int((log.carrier == 1).sum()),
         "median_sigma_enu_m": np.median(log.sigma_enu, axis=0).tolist(),
         "median_speed_sigma_mps": float(np.median(log.velocity_sigma[:, 0])),
+        "median_heading_sigma_rad": float(np.median(heading_sigma)) if heading_sigma.size else None,
     }
 
 
-def _write_receiver_folder(args, log, has_velocities: bool, unix_times: bool) -> dict[str, Any]:
-    """Write a receiver log's ``gnss.csv`` (``args.out``) and ``gnss_velocity.csv`` beside
-    it, and its ``gnss_origin`` / ``time_origin_ns`` into the folder's ``meta.json``
-    (``msf nmea``, ``msf ubx``). ``log`` has ``to_gnss(origin, t0)`` and
-    ``to_gnss_velocity(t0)``; ``unix_times``: its times are UNIX seconds. Returns the
-    summary's entries about what was written."""
+def _write_receiver_folder(
+    args, log, has_velocities: bool, has_headings: bool, unix_times: bool
+) -> dict[str, Any]:
+    """Write a receiver log's ``gnss.csv`` (``args.out``), ``gnss_velocity.csv`` and
+    ``gnss_heading.csv`` beside it, and its ``gnss_origin`` / ``time_origin_ns`` into the
+    folder's ``meta.json`` (``msf nmea``, ``msf ubx``). ``log`` has ``to_gnss(origin, t0)``,
+    ``to_gnss_velocity(t0)`` and ``to_gnss_heading(t0)``; ``unix_times``: its times are UNIX
+    seconds. Returns the summary's entries about what was written."""
     from msf_torch.io.native import (
         store_gnss_origin,
         store_time_origin,
@@ -1201,16 +1224,20 @@ def _write_receiver_folder(args, log, has_velocities: bool, unix_times: bool) ->
         )
     folder.mkdir(parents=True, exist_ok=True)
     out = write_stream_csv(args.out, "gnss", gnss)
-    velocity_out = folder / "gnss_velocity.csv"
-    velocity_written = None
-    if not args.no_velocity and has_velocities:
-        velocity = log.to_gnss_velocity(t0=args.t0)
-        velocity_written = str(write_stream_csv(velocity_out, "gnss_velocity", velocity))
-    elif velocity_out.exists():
-        warnings.warn(
-            f"{velocity_out} (not from this conversion) is left as it is: msf run reads it",
-            stacklevel=2,
-        )
+    written: dict[str, str | None] = {}
+    for name, wanted, stream in (
+        ("velocity", not args.no_velocity and has_velocities, log.to_gnss_velocity),
+        ("heading", not args.no_heading and has_headings, log.to_gnss_heading),
+    ):
+        table = folder / f"gnss_{name}.csv"
+        written[name] = None
+        if wanted:
+            written[name] = str(write_stream_csv(table, f"gnss_{name}", stream(t0=args.t0)))
+        elif table.exists():
+            warnings.warn(
+                f"{table} (not from this conversion) is left as it is: msf run reads it",
+                stacklevel=2,
+            )
     meta = store_gnss_origin(folder, origin)
     # the folder's t = 0 in UNIX ns, when the fix times are UNIX times (dated UTC, or the
     # logging host's receive stamps): GPX exports get UTC times from it
@@ -1227,7 +1254,8 @@ def _write_receiver_folder(args, log, has_velocities: bool, unix_times: bool) ->
     t = gnss.t[0].numpy()
     return {
         "out": str(out),
-        "velocity_out": velocity_written,
+        "velocity_out": written["velocity"],
+        "heading_out": written["heading"],
         "origin": list(origin),
         "origin_from": origin_from,
         "time_origin_ns": time_origin,

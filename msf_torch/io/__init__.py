@@ -26,10 +26,12 @@ The 2-D reader also reads landmark SLAM files (``ODOMETRY``, ``VERTEX_XY``, ``BR
 Odometry + anchor-range runs (UWB, radio beacons) are read from CSV files by
 :func:`read_range_run` and from the gtsam wheel's Plaza runs by :func:`load_plaza` into a
 :class:`RangeRun`. NMEA 0183 GNSS logs (GGA fixes with GST sigmas, RMC/ZDA dates, RMC / VTG
-speed and course) are read by :func:`read_nmea` into an :class:`NmeaLog`, u-blox UBX logs
-(NAV-PVT) by :func:`read_ubx` into a :class:`UbxLog`; their fixes go to local ENU metres and
-a native ``gnss.csv`` (:func:`write_gnss_csv`; ``msf nmea``, ``msf ubx``) with the velocities
-in ``gnss_velocity.csv``, whose folder keeps the ENU origin in ``meta.json``; with it,
+speed and course, HDT / THS dual-antenna headings) are read by :func:`read_nmea` into an
+:class:`NmeaLog`, u-blox UBX logs (NAV-PVT, NAV-RELPOSNED moving-baseline headings) by
+:func:`read_ubx` into a :class:`UbxLog`; their fixes go to local ENU metres and a native
+``gnss.csv`` (:func:`write_gnss_csv`; ``msf nmea``, ``msf ubx``) with the velocities in
+``gnss_velocity.csv`` and the headings in ``gnss_heading.csv``, whose folder keeps the ENU
+origin in ``meta.json``; with it,
 trajectories go on the map as GeoJSON, KML and GPX (:func:`write_geojson`, :func:`write_kml`,
 :func:`write_gpx`; ``msf run --export geojson,kml,gpx``).
 """

@@ -1,6 +1,7 @@
 """NMEA 0183 GNSS logs (u-blox, Septentrio, NovAtel serial logs; ``nmea_msgs/Sentence``
-dumps) -> GNSS fixes in local ENU metres (:class:`~msf_torch.types.GnssFixes`) and the
-horizontal velocity over ground in m/s (:class:`~msf_torch.types.GnssVelocity`).
+dumps) -> GNSS fixes in local ENU metres (:class:`~msf_torch.types.GnssFixes`), the
+horizontal velocity over ground in m/s (:class:`~msf_torch.types.GnssVelocity`) and a
+dual-antenna receiver's heading in rad (:class:`~msf_torch.types.GnssHeading`).
 
 Lines
     One sentence per line, ``$<address>,<field>,...[*hh]``, optionally after a receive
@@ -32,6 +33,8 @@ Sentences read
       status) and VTG (course true + ``T``, course magnetic + ``M``, speed in knots + ``N``,
       speed in km/h + ``K``, mode indicator) give the velocity over ground, section
       Velocities.
+    * HDT (heading in degrees true + ``T``) and THS (heading in degrees true, mode indicator)
+      give the heading, section Headings.
     * Any other sentence (GSV, GSA, GLL, proprietary ``$P...``) is counted by its type and
       skipped.
 
@@ -66,6 +69,25 @@ Velocities
       epoch, so it is not warned about); a velocity at or before the time of the previous
       epoch's is counted in ``velocity_duplicate`` (warned).
 
+Headings
+    A dual-antenna receiver (Septentrio, NovAtel, u-blox moving base, Trimble) writes the
+    azimuth of the baseline from its primary to its secondary antenna, degrees clockwise
+    from true north, as HDT or THS; it becomes rad in [0, 2 pi). NMEA gives no heading
+    accuracy: ``sigma`` is NaN (the estimator's configured ``gnss_heading_sigma_rad``
+    applies). The angle is from the north at the antenna, like a course (Velocities).
+
+    * THS mode ``A`` (autonomous) is kept; ``V`` (not valid) is skipped
+      (``heading_invalid``); ``E`` (estimated, dead reckoning), ``M`` (manual input) and
+      ``S`` (simulator) measure nothing (``heading_mode_not_kept``). HDT has no mode: a
+      receiver without a heading leaves the field empty.
+    * An empty heading is skipped (``heading_empty``).
+    * Times as VTG's: neither sentence has a time field, so a heading belongs to the epoch of
+      the latest UTC time read on an earlier line (``heading_untimed`` when there is none, or
+      after a no-fix GGA); with ``time="receive"`` it has its own line's receive stamp.
+    * One heading per epoch: an HDT and a THS of the same UTC epoch give the first in the file
+      (the later one counted in ``heading_same_epoch``, not warned); a heading at or before
+      the time of the previous epoch's is counted in ``heading_duplicate`` (warned).
+
 Rules
     * A checksum ``*hh`` is verified when present. A mismatch (or an unreadable ``*hh``)
       skips the line, counted in ``bad_checksum``: one corrupted serial byte does not make
@@ -77,7 +99,7 @@ Rules
       ``altitude_unit``, ``geoid_separation``, ``separation_unit``, ``sigma_latitude``,
       ``sigma_longitude``, ``sigma_altitude``, ``date``, ``receive_time``, ``status``,
       ``mode``, ``speed_knots``, ``speed_kmh``, ``course``, ``course_unit``,
-      ``speed_knots_unit``, ``speed_kmh_unit``).
+      ``speed_knots_unit``, ``speed_kmh_unit``, ``heading``, ``heading_unit``).
     * The receiver's "no fix" forms -- quality 0, or empty latitude and longitude -- are
       skipped and counted (``no_fix``); so are fixes whose quality code is not in
       ``qualities`` (``quality_not_kept``). The quality is the GGA code (1 GPS, 2 DGPS,
@@ -88,12 +110,14 @@ Rules
       latest RMC/ZDA; fixes before the first date get that date back-filled, and a time of
       day more than 12 h below the previous one rolls to the next day. Without any date the
       times are seconds since 00:00 UTC of the first day (still rolling over; warned).
-      ``time="receive"`` uses the receive timestamps (DataError at a kept GGA, or an RMC /
-      VTG giving a velocity, without one). ``time="auto"`` (default) uses them when every
-      kept GGA and every such RMC / VTG has one, else UTC.
+      ``time="receive"`` uses the receive timestamps (DataError at a kept GGA, an RMC /
+      VTG giving a velocity or an HDT / THS giving a heading, without one). ``time="auto"``
+      (default) uses them when every kept GGA and every such RMC / VTG / HDT / THS has one,
+      else UTC.
     * Fixes must not go back in time (DataError naming the line); a fix at exactly the time of
       the previous one (a second talker's GGA of the same epoch) is dropped
-      (``duplicate_time``). Velocities likewise (``velocity_duplicate``).
+      (``duplicate_time``). Velocities and headings likewise (``velocity_duplicate``,
+      ``heading_duplicate``).
     * One warning lists whatever was skipped.
 
 Units: degrees (WGS-84), metres, seconds.
@@ -104,9 +128,11 @@ Example:
     >>> write_gnss_csv("run/gnss.csv", gnss)  # doctest: +SKIP
     >>> velocity = log.to_gnss_velocity(t0=log.t[0])  # doctest: +SKIP
     >>> write_stream_csv("run/gnss_velocity.csv", "gnss_velocity", velocity)  # doctest: +SKIP
+    >>> heading = log.to_gnss_heading(t0=log.t[0])  # doctest: +SKIP
 
 On the command line: ``msf nmea drive.nmea --out run/gnss.csv`` (also writes
-``run/gnss_velocity.csv`` when the log has velocities).
+``run/gnss_velocity.csv`` and ``run/gnss_heading.csv`` when the log has velocities and
+headings).
 """
 
 from __future__ import annotations
@@ -116,6 +142,7 @@ __all__ = [
     "TIME_SOURCES",
     "NmeaLog",
     "geodetic_fixes",
+    "heading_stream",
     "read_nmea",
     "velocity_stream",
     "write_gnss_csv",
@@ -137,7 +164,7 @@ from msf_torch.io import _tables
 from msf_torch.io.errors import DataError
 from msf_torch.io.geodesy import geodetic_to_enu
 from msf_torch.io.native import write_stream_csv
-from msf_torch.types import GnssFixes, GnssVelocity
+from msf_torch.types import GnssFixes, GnssHeading, GnssVelocity
 
 DEFAULT_QUALITIES = (1, 2, 3, 4, 5)
 """GGA quality codes kept by default: the measured fixes (GPS, DGPS, PPS, RTK fixed, RTK
@@ -184,8 +211,17 @@ _OUTCOMES = (
     "velocity_untimed",
     "velocity_same_epoch",
     "velocity_duplicate",
+    "heading_kept",
+    "heading_invalid",
+    "heading_mode_not_kept",
+    "heading_empty",
+    "heading_untimed",
+    "heading_same_epoch",
+    "heading_duplicate",
 )
-_SENTENCES_READ = ("GGA", "GST", "RMC", "ZDA", "VTG")
+_NOT_WARNED = ("kept", "velocity_kept", "velocity_same_epoch", "heading_kept", "heading_same_epoch")
+_SENTENCES_READ = ("GGA", "GST", "RMC", "ZDA", "VTG", "HDT", "THS")
+_THS_MODES = frozenset("AEMSV")  # autonomous, estimated, manual, simulator, not valid
 _MODES_KEPT = frozenset("ADFPR")  # autonomous, differential, RTK float, precise, RTK fixed
 _MODES_NOT_KEPT = frozenset("EMS")  # dead reckoning, manual input, simulator
 _KNOT_M = 1852.0  # metres per international nautical mile
@@ -196,8 +232,8 @@ _EPOCH_ORDINAL = datetime.date(1970, 1, 1).toordinal()
 
 @dataclass
 class NmeaLog:
-    """The kept GGA fixes and RMC / VTG velocities of an NMEA log, in file order (module
-    docstring for the rules).
+    """The kept GGA fixes, RMC / VTG velocities and HDT / THS headings of an NMEA log, in
+    file order (module docstring for the rules).
 
     Attributes:
         t: (N,) s float64, from ``time_source``.
@@ -216,7 +252,9 @@ class NmeaLog:
             with no kept GGA of their time), ``velocity_kept``, ``velocity_invalid``,
             ``velocity_mode_not_kept``, ``velocity_empty``, ``velocity_no_course``,
             ``velocity_untimed``, ``velocity_same_epoch``, ``velocity_duplicate`` (module
-            docstring, Velocities), and
+            docstring, Velocities), ``heading_kept``, ``heading_invalid``,
+            ``heading_mode_not_kept``, ``heading_empty``, ``heading_untimed``,
+            ``heading_same_epoch``, ``heading_duplicate`` (Headings), and
             per sentence type read (upper case: ``GGA``, ``GST``, ``GSV``, ``PUBX``, ...).
         source: the path read.
         geoid_separation_missing: True when some kept fix had an empty geoid separation
@@ -226,6 +264,9 @@ class NmeaLog:
         velocity_enu: (M, 3) m/s ``[east, north, up]`` over ground; up is NaN (not
             measured).
         velocity_lines: (M,) int64 1-based line of each velocity's RMC or VTG.
+        heading_t: (H,) s float64 of the kept headings, on the clock of :attr:`t`.
+        heading_rad: (H,) clockwise from true north, rad in [0, 2 pi).
+        heading_lines: (H,) int64 1-based line of each heading's HDT or THS.
     """
 
     t: np.ndarray
@@ -245,6 +286,9 @@ class NmeaLog:
     velocity_t: np.ndarray
     velocity_enu: np.ndarray
     velocity_lines: np.ndarray
+    heading_t: np.ndarray
+    heading_rad: np.ndarray
+    heading_lines: np.ndarray
 
     def __len__(self) -> int:
         """Number of kept fixes N."""
@@ -292,6 +336,13 @@ class NmeaLog:
         """
         sigma = np.full(self.velocity_enu.shape, np.nan)
         return velocity_stream(self.velocity_t - float(t0), self.velocity_enu, sigma)
+
+    def to_gnss_heading(self, t0: float = 0.0) -> GnssHeading:
+        """The headings as a B = 1 stream: ``t`` (1, H) s (:attr:`heading_t` minus ``t0``),
+        ``heading`` (1, H) rad = :attr:`heading_rad`, ``sigma`` (1, H) all NaN (NMEA gives
+        none: the estimator's default applies), float64, all-True mask; H may be 0."""
+        sigma = np.full(self.heading_rad.shape, np.nan)
+        return heading_stream(self.heading_t - float(t0), self.heading_rad, sigma)
 
 
 def geodetic_fixes(
@@ -341,6 +392,18 @@ def velocity_stream(t: np.ndarray, velocity_enu: np.ndarray, sigma: np.ndarray) 
         t=torch.as_tensor(t, dtype=torch.float64).reshape(1, m),
         velocity=torch.tensor(velocity_enu, dtype=torch.float64).reshape(1, m, 3),
         sigma=torch.tensor(sigma, dtype=torch.float64).reshape(1, m, 3),
+        mask=torch.ones((1, m), dtype=torch.bool),
+    )
+
+
+def heading_stream(t: np.ndarray, heading_rad: np.ndarray, sigma_rad: np.ndarray) -> GnssHeading:
+    """Receiver headings as a B = 1 stream (NMEA, UBX readers): ``t`` (M,) s,
+    ``heading_rad`` (M,) clockwise from true north, ``sigma_rad`` (M,) (NaN: not given)."""
+    m = int(t.shape[0])
+    return GnssHeading(
+        t=torch.as_tensor(t, dtype=torch.float64).reshape(1, m),
+        heading=torch.tensor(heading_rad, dtype=torch.float64).reshape(1, m),
+        sigma=torch.tensor(sigma_rad, dtype=torch.float64).reshape(1, m),
         mask=torch.ones((1, m), dtype=torch.bool),
     )
 
@@ -397,6 +460,18 @@ class _Velocity:
     north: float  # m/s
 
 
+@dataclass
+class _Heading:
+    """One HDT / THS heading as read (before timing); fields as :class:`_Fix`."""
+
+    line: int
+    tod: tuple[int, float]
+    rolls: int
+    date_index: int
+    stamp: float | None
+    heading: float  # rad clockwise from true north, [0, 2 pi)
+
+
 class _Reader:
     """Line-by-line state of :func:`read_nmea`."""
 
@@ -407,6 +482,7 @@ class _Reader:
         self.bad_lines: list[int] = []
         self.fixes: list[_Fix] = []
         self.velocities: list[_Velocity] = []
+        self.headings: list[_Heading] = []
         # GST sigmas by time of day (ms): [(line, [east, north, up])]
         self.gst_sigmas: dict[int, list[tuple[int, list[float]]]] = {}
         # (roll count, day number) of each date sentence, in order
@@ -617,13 +693,14 @@ class _Reader:
             raise self.error(line, field, f"must not be negative, got {_tables.shown(text)}")
         return value * unit_m / 3600.0
 
-    def course(self, line: int, text: str) -> float | None:
-        """Course over ground, degrees true in [0, 360]; None when empty."""
+    def course(self, line: int, text: str, field: str = "course") -> float | None:
+        """Course over ground (or a heading: ``field``), degrees true in [0, 360]; None when
+        empty."""
         if not text:
             return None
-        value = self.number(line, "course", text)
+        value = self.number(line, field, text)
         if not 0.0 <= value <= 360.0:
-            raise self.error(line, "course", f"not in [0, 360] degrees: {_tables.shown(text)}")
+            raise self.error(line, field, f"not in [0, 360] degrees: {_tables.shown(text)}")
         return value
 
     def velocity(
@@ -659,6 +736,44 @@ class _Reader:
                     stamp=stamp,
                     east=speed * math.sin(heading),
                     north=speed * math.cos(heading),
+                )
+            )
+            return
+        self.counts[skipped] += 1
+
+    def hdt(self, line: int, f: list[str], stamp: float | None) -> None:
+        if len(f) > 1 and f[1] not in ("T", ""):
+            raise self.error(line, "heading_unit", f"expected T, got {_tables.shown(f[1])}")
+        self.heading(line, "A", f[0] if f else "", stamp)
+
+    def ths(self, line: int, f: list[str], stamp: float | None) -> None:
+        mode = f[1] if len(f) > 1 else ""
+        if mode not in _THS_MODES:
+            raise self.error(line, "mode", f"expected one of A E M S V, got {_tables.shown(mode)}")
+        self.heading(line, mode, f[0], stamp)
+
+    def heading(self, line: int, mode: str, text: str, stamp: float | None) -> None:
+        """Keep, or count as skipped, one heading of THS ``mode`` (HDT: ``"A"``) and degrees
+        ``text`` (module docstring, Headings)."""
+        degrees = self.course(line, text, "heading")
+        if mode == "V":
+            skipped = "heading_invalid"
+        elif mode != "A":
+            skipped = "heading_mode_not_kept"
+        elif degrees is None:
+            skipped = "heading_empty"
+        elif self.clock is None:
+            skipped = "heading_untimed"
+        else:
+            self.see_time(self.clock)
+            self.headings.append(
+                _Heading(
+                    line=line,
+                    tod=self.clock,
+                    rolls=self.rolls,
+                    date_index=len(self.dates) - 1,
+                    stamp=stamp,
+                    heading=math.radians(degrees) % (2.0 * math.pi),
                 )
             )
             return
@@ -714,6 +829,10 @@ class _Reader:
             self.vtg(number, fields[1:], stamp)
         elif kind == "ZDA":
             self.zda(number, fields[1:])
+        elif kind == "HDT":
+            self.hdt(number, fields[1:], stamp)
+        elif kind == "THS":
+            self.ths(number, fields[1:], stamp)
 
 
 def _read_text(path: str) -> str:
@@ -729,9 +848,9 @@ def _read_text(path: str) -> str:
 
 
 def _utc_times(
-    dates: list[tuple[int, int]], records: Sequence[_Fix] | Sequence[_Velocity]
+    dates: list[tuple[int, int]], records: Sequence[_Fix] | Sequence[_Velocity] | Sequence[_Heading]
 ) -> np.ndarray:
-    """UNIX seconds (N,) of fixes or velocities from their time of day, the latest date
+    """UNIX seconds (N,) of fixes, velocities or headings from their time of day, the latest date
     before them (the first date for those before it) and the rollovers since; without a
     date, seconds since 00:00 UTC of the first day."""
     seconds = np.empty(len(records))
@@ -816,27 +935,30 @@ def read_nmea(
     if counts.get("GGA", 0) == 0:
         found = ", ".join(f"{k} {v}" for k, v in counts.items() if v) or "nothing"
         raise DataError(spath, f"no GGA sentence in this file (found: {found})")
-    fixes, velocities = reader.fixes, reader.velocities
+    fixes, velocities, headings = reader.fixes, reader.velocities, reader.headings
     stamps = [fix.stamp for fix in fixes]
-    velocity_stamps = [v.stamp for v in velocities]
-    if time == "receive" or (time == "auto" and fixes and None not in stamps + velocity_stamps):
-        for record in sorted((*fixes, *velocities), key=lambda r: r.line):
+    others = [r.stamp for r in (*velocities, *headings)]
+    if time == "receive" or (time == "auto" and fixes and None not in stamps + others):
+        for record in sorted((*fixes, *velocities, *headings), key=lambda r: r.line):
             if record.stamp is None:
                 raise DataError(
                     spath,
-                    "time='receive' needs a receive timestamp before every GGA sentence and "
-                    "every RMC / VTG that gives a velocity",
+                    "time='receive' needs a receive timestamp before every GGA sentence, "
+                    "every RMC / VTG that gives a velocity and every HDT / THS that gives a "
+                    "heading",
                     line=record.line,
                     field="receive_time",
                 )
         source, time_field = "receive", "receive_time"
         t = np.array(stamps, dtype=np.float64)
-        velocity_t = np.array(velocity_stamps, dtype=np.float64)
+        velocity_t = np.array([v.stamp for v in velocities], dtype=np.float64)
+        heading_t = np.array([h.stamp for h in headings], dtype=np.float64)
     else:
         source, time_field = "utc", "utc_time"
         t = _utc_times(reader.dates, fixes)
         velocity_t = _utc_times(reader.dates, velocities)
-        if (fixes or velocities) and not reader.dates:
+        heading_t = _utc_times(reader.dates, headings)
+        if (fixes or velocities or headings) and not reader.dates:
             warnings.warn(
                 f"{spath}: no RMC or ZDA date; times are seconds since 00:00 UTC of the first day",
                 stacklevel=2,
@@ -845,15 +967,8 @@ def read_nmea(
     keep = _forward(spath, t, np.array([fix.line for fix in fixes]), time_field)
     counts["duplicate_time"] = int((~keep).sum())
     kept = [fix for fix, k in zip(fixes, keep, strict=True) if k]
-    # one velocity per UTC epoch (an RMC and a VTG of one epoch have two receive stamps)
-    utc = _utc_times(reader.dates, velocities)
-    epoch = np.concatenate(([True], utc[1:] != utc[:-1]))[: utc.shape[0]]
-    velocity_lines = np.array([v.line for v in velocities], dtype=np.int64)[epoch]
-    forward = _forward(spath, velocity_t[epoch], velocity_lines, time_field)
-    velocity_keep = np.flatnonzero(epoch)[forward]
-    counts["velocity_same_epoch"] = len(velocities) - int(epoch.sum())
-    counts["velocity_duplicate"] = int(epoch.sum()) - int(velocity_keep.shape[0])
-    counts["velocity_kept"] = int(velocity_keep.shape[0])
+    velocity_keep = _one_per_epoch(reader, "velocity", velocities, velocity_t, time_field)
+    heading_keep = _one_per_epoch(reader, "heading", headings, heading_t, time_field)
     counts["kept"] = len(kept)
     separation_missing = any(fix.separation_missing for fix in kept)
     _warn_skipped(spath, counts, reader.bad_lines)
@@ -888,15 +1003,42 @@ def read_nmea(
             [[velocities[i].east, velocities[i].north, math.nan] for i in velocity_keep],
             dtype=np.float64,
         ).reshape(-1, 3),
-        velocity_lines=velocity_lines[forward],
+        velocity_lines=np.array([velocities[i].line for i in velocity_keep], dtype=np.int64),
+        heading_t=heading_t[heading_keep],
+        heading_rad=np.array([headings[i].heading for i in heading_keep], dtype=np.float64),
+        heading_lines=np.array([headings[i].line for i in heading_keep], dtype=np.int64),
     )
+
+
+def _one_per_epoch(
+    reader: _Reader,
+    name: str,
+    records: Sequence[_Velocity] | Sequence[_Heading],
+    t: np.ndarray,
+    time_field: str,
+) -> np.ndarray:
+    """Indices into ``records`` (velocities or headings, ``name``) kept: the first of each
+    UTC epoch (an RMC and a VTG of one epoch have two receive stamps; ``<name>_same_epoch``),
+    then those later than the epoch before (``<name>_duplicate``); ``<name>_kept`` counted.
+
+    Raises:
+        DataError: a time before the previous epoch's, naming its line and ``time_field``.
+    """
+    utc = _utc_times(reader.dates, records)
+    epoch = np.concatenate(([True], utc[1:] != utc[:-1]))[: utc.shape[0]]
+    lines = np.array([r.line for r in records], dtype=np.int64)[epoch]
+    keep = np.flatnonzero(epoch)[_forward(reader.path, t[epoch], lines, time_field)]
+    reader.counts[f"{name}_same_epoch"] = len(records) - int(epoch.sum())
+    reader.counts[f"{name}_duplicate"] = int(epoch.sum()) - int(keep.shape[0])
+    reader.counts[f"{name}_kept"] = int(keep.shape[0])
+    return keep
 
 
 def _warn_skipped(path: str, counts: dict[str, int], bad_lines: list[int]) -> None:
     """One warning listing what was skipped (nothing when nothing was)."""
     parts = []
     for name in _OUTCOMES:
-        if counts[name] and name not in ("kept", "velocity_kept", "velocity_same_epoch"):
+        if counts[name] and name not in _NOT_WARNED:
             parts.append(f"{name} {counts[name]}")
         if name == "bad_checksum" and bad_lines:
             more = ", ..." if len(bad_lines) > 5 else ""

@@ -1,11 +1,14 @@
 """u-blox UBX binary logs: the receiver's navigation solution (UBX-NAV-PVT) as GNSS fixes and
-velocities, with the receiver's own accuracy estimates.
+velocities, and a moving-baseline receiver's heading (UBX-NAV-RELPOSNED), with the
+receiver's own accuracy estimates.
 
 A u-blox receiver (M8, F9, X20; ``ubxtool`` / u-center / ``str2str`` recordings, a ROS
 driver's raw dump) writes UBX frames: sync ``0xB5 0x62``, class, id, a little-endian
 16-bit payload length, the payload and a two-byte Fletcher checksum over class..payload.
-Only NAV-PVT (class 0x01, id 0x07; 92 bytes, or 84 from protocol versions before 15) is
-read; every other frame, and NMEA or RTCM text between frames, is counted and skipped.
+NAV-PVT (class 0x01, id 0x07; 92 bytes, or 84 from protocol versions before 15) and
+NAV-RELPOSNED (class 0x01, id 0x3C; version 0x01, 64 bytes: F9P; version 0x00, 40 bytes:
+M8P) are read; every other frame, and NMEA or RTCM text between frames, is counted and
+skipped.
 
 From each NAV-PVT:
 
@@ -24,23 +27,45 @@ From each NAV-PVT:
 A latitude beyond 90 deg or a longitude beyond 180 deg in a frame whose checksum holds is
 skipped (``out_of_range``).
 
+From each NAV-RELPOSNED (the rover's vector from its reference antenna to its own; with a
+moving base on the vehicle, the dual-antenna baseline from the primary (base) to the
+secondary (rover) antenna, :class:`~msf_torch.types.GnssHeading`):
+
+* heading: ``relPosHeading`` (1e-5 deg clockwise from true north, turned into rad in
+  [0, 2 pi)) with sigma ``accHeading`` (1e-5 deg, as rad; 0, an accuracy not computed, is
+  NaN: the estimator's configured ``gnss_heading_sigma_rad`` applies), when ``flags`` has
+  ``gnssFixOK`` (bit 0), ``relPosValid`` (bit 2) and ``relPosHeadingValid`` (bit 8); else
+  skipped (``heading_invalid``);
+* only in moving-base mode (``isMoving``, bit 5): a rover of a fixed base station reports
+  the azimuth from the station to itself, which is not the vehicle's heading
+  (``heading_fixed_base``);
+* version 0x00 (M8P) has no ``relPosHeading``: counted in ``heading_no_field`` and skipped;
+* time: the frame carries only ``iTOW`` (ms of the GPS week); it gets the UTC time of the
+  NAV-PVT of the same ``iTOW`` (the same navigation epoch; the nearest such frame in the
+  file) whose time is valid, whether or not that fix is kept. Without one it is skipped
+  (``heading_untimed``); repeated or backwards times keep the first
+  (``heading_duplicate``).
+
 Rules: a frame whose checksum fails is skipped (``bad_checksum``) and the scan resumes at
 the next sync pair; a frame cut off by the end of the file is counted (``truncated``); a
 NAV-PVT of the wrong length is a DataError naming its byte offset (``field``: the length);
 repeated or backwards times keep the first (``duplicate_time``). One warning lists what was
-skipped. Times must be increasing after that.
+skipped. Times must be increasing after that. A NAV-RELPOSNED whose version and length are
+not 0x00 / 40 or 0x01 / 64 is a DataError naming its byte offset.
 
 Example:
     >>> from msf_torch.io.ubx import read_ubx  # doctest: +SKIP
     >>> log = read_ubx("drive.ubx")  # doctest: +SKIP
     >>> gnss, origin = log.to_gnss()  # doctest: +SKIP
+    >>> heading = log.to_gnss_heading()  # doctest: +SKIP
 """
 
 from __future__ import annotations
 
-__all__ = ["NAV_PVT", "UbxLog", "read_ubx"]
+__all__ = ["NAV_PVT", "NAV_RELPOSNED", "UbxLog", "read_ubx"]
 
 import calendar
+import math
 import struct
 import warnings
 from collections import Counter
@@ -51,15 +76,25 @@ from pathlib import Path
 import numpy as np
 
 from msf_torch.io.errors import DataError
-from msf_torch.io.nmea import geodetic_fixes, velocity_stream
-from msf_torch.types import GnssFixes, GnssVelocity
+from msf_torch.io.nmea import geodetic_fixes, heading_stream, velocity_stream
+from msf_torch.types import GnssFixes, GnssHeading, GnssVelocity
 
 NAV_PVT = (0x01, 0x07)
 """UBX class and id of the navigation position-velocity-time solution."""
+NAV_RELPOSNED = (0x01, 0x3C)
+"""UBX class and id of the relative position (RTK baseline) solution."""
 
 _SYNC = b"\xb5\x62"
 _PVT = struct.Struct("<IHBBBBBBIiBBBBiiiiIIiiiiiIIH")  # the first 78 bytes (all versions)
 _PVT_LENGTHS = (84, 92)
+# version 0x01: version, reserved, refStationId, iTOW, relPosN/E/D, relPosLength,
+# relPosHeading, 4 reserved, relPosHPN/E/D/Length, accN/E/D, accLength, accHeading,
+# 4 reserved, flags
+_RELPOSNED = struct.Struct("<BBHIiiiii4xbbbbIIIII4xI")
+_RELPOSNED_LENGTHS = {0: 40, 1: 64}  # version -> payload bytes
+_GNSS_FIX_OK, _REL_POS_VALID, _IS_MOVING, _HEADING_VALID = 1 << 0, 1 << 2, 1 << 5, 1 << 8
+_HEADING_NEEDS = _GNSS_FIX_OK | _REL_POS_VALID | _HEADING_VALID
+_DEG = math.pi / 180.0
 DEFAULT_FIX_TYPES = (3, 4)
 _OUTCOMES = (
     "kept",
@@ -70,7 +105,14 @@ _OUTCOMES = (
     "time_invalid",
     "out_of_range",
     "duplicate_time",
+    "heading_kept",
+    "heading_invalid",
+    "heading_fixed_base",
+    "heading_no_field",
+    "heading_untimed",
+    "heading_duplicate",
 )
+_REASONS = {"heading_no_field": " (NAV-RELPOSNED version 0, M8P, has no relPosHeading)"}
 
 
 @dataclass
@@ -86,10 +128,16 @@ class UbxLog:
         fix_type, satellites, carrier: (N,) int64 ``fixType``, ``numSV``, carrier solution.
         offsets: (N,) int64 byte offset of each kept frame.
         counts: the outcomes (``kept``, ``bad_checksum``, ``truncated``, ``no_fix``,
-            ``fix_type_not_kept``, ``time_invalid``, ``out_of_range``, ``duplicate_time``)
-            and per message
-            read, ``"CLASS-ID"`` in hex (``"01-07"`` for NAV-PVT), plus ``not_ubx_bytes``.
+            ``fix_type_not_kept``, ``time_invalid``, ``out_of_range``, ``duplicate_time``;
+            for NAV-RELPOSNED ``heading_kept``, ``heading_invalid``, ``heading_fixed_base``,
+            ``heading_no_field``, ``heading_untimed``, ``heading_duplicate``) and per
+            message read, ``"CLASS-ID"`` in hex (``"01-07"`` for NAV-PVT, ``"01-3C"`` for
+            NAV-RELPOSNED), plus ``not_ubx_bytes``.
         source: the path read.
+        heading_t: (M,) UNIX seconds (UTC) of the kept NAV-RELPOSNED headings.
+        heading_rad: (M,) ``relPosHeading``, rad clockwise from true north in [0, 2 pi).
+        heading_sigma_rad: (M,) ``accHeading``, rad; NaN where the receiver gave 0.
+        heading_offsets: (M,) int64 byte offset of each kept NAV-RELPOSNED.
     """
 
     t: np.ndarray
@@ -105,6 +153,10 @@ class UbxLog:
     offsets: np.ndarray
     counts: dict[str, int]
     source: str
+    heading_t: np.ndarray
+    heading_rad: np.ndarray
+    heading_sigma_rad: np.ndarray
+    heading_offsets: np.ndarray
 
     def __len__(self) -> int:
         """Number of kept solutions N."""
@@ -132,6 +184,11 @@ class UbxLog:
     def to_gnss_velocity(self, t0: float = 0.0) -> GnssVelocity:
         """The velocities as a B = 1 stream (ENU m/s, sigmas ``sAcc``), times minus ``t0``."""
         return velocity_stream(self.t - float(t0), self.velocity_enu, self.velocity_sigma)
+
+    def to_gnss_heading(self, t0: float = 0.0) -> GnssHeading:
+        """The headings as a B = 1 stream: ``t`` (1, M) s (:attr:`heading_t` minus ``t0``),
+        ``heading`` (1, M) rad, ``sigma`` (1, M) rad (NaN: not given); M may be 0."""
+        return heading_stream(self.heading_t - float(t0), self.heading_rad, self.heading_sigma_rad)
 
 
 def _checksum(frame: bytes) -> bytes:
@@ -204,7 +261,14 @@ def read_ubx(path: str | Path, fix_types: Collection[int] = DEFAULT_FIX_TYPES) -
             f"(bad checksums {counts['bad_checksum']}, cut off {counts['truncated']})",
         )
     rows = []
+    epochs: dict[int, list[tuple[int, float]]] = {}  # iTOW -> [(offset, UNIX s)] of NAV-PVTs
+    headings: list[tuple[int, int, float, float]] = []  # (offset, iTOW, rad, sigma rad)
     for offset, cls, ident, payload in frames:
+        if (cls, ident) == NAV_RELPOSNED:
+            heading = _relposned(spath, offset, payload, counts)
+            if heading is not None:
+                headings.append((offset, *heading))
+            continue
         if (cls, ident) != NAV_PVT:
             continue
         if len(payload) not in _PVT_LENGTHS:
@@ -214,26 +278,30 @@ def read_ubx(path: str | Path, fix_types: Collection[int] = DEFAULT_FIX_TYPES) -
                 field="length",
             )
         (
-            _itow, year, month, day, hour, minute, second, valid, _tacc, nano, fix_type,
+            itow, year, month, day, hour, minute, second, valid, _tacc, nano, fix_type,
             flags, _flags2, satellites, lon, lat, height, _hmsl, h_acc, v_acc, vel_n, vel_e,
             vel_d, _gspeed, _head, s_acc, _head_acc, _pdop,
         ) = _PVT.unpack_from(payload)  # fmt: skip
+        stamp = None
+        if (valid & 0x03) == 0x03 and 1 <= month <= 12 and 1 <= day <= 31:
+            whole = calendar.timegm((year, month, day, hour, minute, second, 0, 0, 0))
+            stamp = whole + nano * 1e-9
+            epochs.setdefault(itow, []).append((offset, stamp))
         if not flags & 0x01 or fix_type == 0:
             counts["no_fix"] += 1
             continue
         if fix_type not in fix_types:
             counts["fix_type_not_kept"] += 1
             continue
-        if (valid & 0x03) != 0x03 or not (1 <= month <= 12 and 1 <= day <= 31):
+        if stamp is None:
             counts["time_invalid"] += 1
             continue
         if abs(lat) > 900_000_000 or abs(lon) > 1_800_000_000:
             counts["out_of_range"] += 1
             continue
-        whole = calendar.timegm((year, month, day, hour, minute, second, 0, 0, 0))
         rows.append(
             (
-                whole + nano * 1e-9,
+                stamp,
                 lat * 1e-7,
                 lon * 1e-7,
                 height * 1e-3,
@@ -257,7 +325,12 @@ def read_ubx(path: str | Path, fix_types: Collection[int] = DEFAULT_FIX_TYPES) -
     counts["duplicate_time"] = int((~keep).sum())
     table = table[keep]
     counts["kept"] = int(table.shape[0])
-    skipped = [f"{name} {counts[name]}" for name in _OUTCOMES[1:] if counts[name]]
+    heading_table = _timed_headings(headings, epochs, counts)
+    skipped = [
+        f"{name} {counts[name]}{_REASONS.get(name, '')}"
+        for name in _OUTCOMES[1:]
+        if counts[name] and name != "heading_kept"
+    ]
     if skipped:
         warnings.warn(f"{spath}: skipped " + "; ".join(skipped), stacklevel=2)
     integers = table[:, 10:14].astype(np.int64)
@@ -275,4 +348,66 @@ def read_ubx(path: str | Path, fix_types: Collection[int] = DEFAULT_FIX_TYPES) -
         offsets=integers[:, 3],
         counts=dict(counts),
         source=spath,
+        heading_t=heading_table[:, 0],
+        heading_rad=heading_table[:, 1],
+        heading_sigma_rad=heading_table[:, 2],
+        heading_offsets=heading_table[:, 3].astype(np.int64),
     )
+
+
+def _relposned(
+    path: str, offset: int, payload: bytes, counts: Counter
+) -> tuple[int, float, float] | None:
+    """``(iTOW, heading rad in [0, 2 pi), sigma rad or NaN)`` of one NAV-RELPOSNED, or None
+    (counted) when it gives no heading (module docstring).
+
+    Raises:
+        DataError: a version / length pair other than 0x00 / 40 and 0x01 / 64.
+    """
+    version = payload[0] if payload else None
+    if _RELPOSNED_LENGTHS.get(version) != len(payload):
+        raise DataError(
+            path,
+            f"NAV-RELPOSNED at byte {offset} has version {version} and a {len(payload)}-byte "
+            "payload, expected version 0 with 40 bytes or version 1 with 64",
+            field="length",
+        )
+    if version == 0:
+        counts["heading_no_field"] += 1
+        return None
+    fields = _RELPOSNED.unpack(payload)
+    itow, heading, acc_heading, flags = fields[3], fields[8], fields[17], fields[18]
+    if flags & _HEADING_NEEDS != _HEADING_NEEDS:
+        counts["heading_invalid"] += 1
+        return None
+    if not flags & _IS_MOVING:
+        counts["heading_fixed_base"] += 1
+        return None
+    sigma = acc_heading * 1e-5 * _DEG if acc_heading > 0 else math.nan
+    return itow, (heading * 1e-5 * _DEG) % (2.0 * math.pi), sigma
+
+
+def _timed_headings(
+    headings: list[tuple[int, int, float, float]],
+    epochs: dict[int, list[tuple[int, float]]],
+    counts: Counter,
+) -> np.ndarray:
+    """(M, 4) ``[UNIX s, heading rad, sigma rad, byte offset]`` of the headings that get the
+    time of a NAV-PVT of their ``iTOW`` (the nearest in the file), first of repeated or
+    backwards times; the rest counted (``heading_untimed``, ``heading_duplicate``)."""
+    rows = []
+    for offset, itow, heading, sigma in headings:
+        candidates = epochs.get(itow)
+        if not candidates:
+            counts["heading_untimed"] += 1
+            continue
+        _, stamp = min(candidates, key=lambda c: abs(c[0] - offset))
+        rows.append((stamp, heading, sigma, offset))
+    table = np.array(rows, dtype=np.float64).reshape(-1, 4)
+    keep = np.ones(table.shape[0], dtype=bool)
+    if table.shape[0]:
+        latest = np.maximum.accumulate(table[:, 0])
+        keep[1:] = table[1:, 0] > latest[:-1]
+    counts["heading_duplicate"] = int((~keep).sum())
+    counts["heading_kept"] = int(keep.sum())
+    return table[keep]

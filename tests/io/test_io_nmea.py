@@ -1,7 +1,8 @@
 """NMEA 0183 logs (msf_torch.io.nmea, ``msf nmea``): a generated log with known geodetic
 points, times across midnight, GST sigmas, RMC / VTG velocities, a corrupted line, a no-fix
 GGA and sentences that are skipped; pynmea2 as the independent reference for every GGA and
-for speeds and courses; velocities against closed forms; bad input."""
+for speeds, courses and HDT headings; velocities and headings against closed forms; bad
+input."""
 
 from __future__ import annotations
 
@@ -772,3 +773,167 @@ def test_cli_writes_gnss_velocity_csv_unless_told_not_to(generated, tmp_path, ca
     bare = tmp_path / "bare" / "gnss.csv"
     assert main(["nmea", str(plain), "--out", str(bare)]) == 0
     assert json.loads(capsys.readouterr().out.strip().splitlines()[-1])["velocities"] == 1
+
+
+def test_hdt_and_ths_headings_take_the_epoch_of_the_time_before_them(tmp_path):
+    """HDT and THS degrees true -> rad in [0, 2 pi) at the UTC time read before them (as VTG);
+    one heading per epoch; THS modes other than A, empty fields and untimed ones counted."""
+    truth = _truth()
+    lines = [
+        _sentence("GNHDT,45.0,T"),  # 1: no UTC time before it: untimed
+        _gga(0, truth),
+        _sentence("GNHDT,90.0,T"),  # 3: kept at epoch 0
+        _sentence("GNTHS,91.0,A"),  # 4: epoch 0 again: same epoch, not warned
+        _gga(1, truth),
+        _sentence("GNTHS,359.5,A"),  # 6: kept at epoch 1
+        _gga(2, truth),
+        _sentence("GNTHS,10.0,E"),  # dead reckoning
+        _sentence("GNTHS,12.0,M"),  # manual input
+        _sentence("GNTHS,,V"),  # not valid
+        _sentence("GNHDT,,T"),  # empty: no heading this epoch
+        _sentence("GPHDT,360.0,T"),  # 12: kept at epoch 2, as 0 rad
+        _sentence("GPGGA,235943.50,,,,,0,00,99.99,,,,,,"),  # no fix: the clock is lost
+        _sentence("GNHDT,5.0,T"),  # untimed
+        _rmc(3),
+    ]
+    with pytest.warns(UserWarning) as record:
+        log = read_nmea(_write(tmp_path, lines))
+    text = " ".join(str(w.message) for w in record)
+    np.testing.assert_array_equal(log.heading_t, truth["t"][:3])
+    np.testing.assert_array_equal(log.heading_lines, [3, 6, 12])
+    np.testing.assert_allclose(
+        log.heading_rad, [math.pi / 2, math.radians(359.5), 0.0], rtol=0, atol=1e-15
+    )
+    expected = {
+        "heading_kept": 3,
+        "heading_untimed": 2,
+        "heading_same_epoch": 1,
+        "heading_duplicate": 0,
+        "heading_mode_not_kept": 2,
+        "heading_invalid": 1,
+        "heading_empty": 1,
+        "HDT": 5,
+        "THS": 5,
+    }
+    assert {name: log.counts[name] for name in expected} == expected
+    for name, count in expected.items():
+        warned = (
+            count
+            and name.startswith("heading")
+            and name
+            not in (
+                "heading_kept",
+                "heading_same_epoch",
+            )
+        )
+        assert (f"{name} {count}" in text) == bool(warned), name
+    assert "other sentences" not in text  # HDT and THS are read
+    assert log.velocity_t.size == 1 and len(log) == 3  # the rest of the log is unchanged
+
+    heading = log.to_gnss_heading(t0=START_UNIX)
+    assert heading.heading.dtype == torch.float64 and heading.heading.shape == (1, 3)
+    np.testing.assert_array_equal(heading.t[0].numpy(), [0.5, 1.5, 2.5])
+    np.testing.assert_array_equal(heading.heading[0].numpy(), log.heading_rad)
+    assert torch.isnan(heading.sigma).all() and heading.mask.all()
+
+
+@pytest.mark.parametrize("degrees", ["0.5", "123.456", "271.75"])
+def test_hdt_heading_equals_pynmea2(tmp_path, degrees):
+    pynmea2 = pytest.importorskip("pynmea2")
+    hdt = _sentence(f"GPHDT,{degrees},T")
+    log = read_nmea(
+        _write(tmp_path, [_sentence("GPZDA,235940.50,18,10,2021,00,00"), _gga(0, _truth()), hdt])
+    )
+    expected = math.radians(float(pynmea2.parse(hdt, check=True).heading))
+    assert log.heading_rad.tolist() == [expected]
+
+
+def test_headings_on_the_receive_clock(tmp_path):
+    """time='receive': each heading has its own line's stamp; auto falls back to UTC when a
+    heading line has none, and time='receive' then names it."""
+    truth = _truth()
+    lines = [
+        f"100.00,{_gga(0, truth)}",
+        f"100.02,{_sentence('GNHDT,10.0,T')}",
+        f"101.00,{_gga(1, truth)}",
+        f"101.03,{_sentence('GNTHS,20.0,A')}",
+    ]
+    log = read_nmea(_write(tmp_path, lines))
+    assert log.time_source == "receive"
+    np.testing.assert_array_equal(log.heading_t, [100.02, 101.03])
+    lines[3] = lines[3].split(",", 1)[1]  # the THS without its stamp
+    path = _write(tmp_path, lines)
+    with pytest.warns(UserWarning, match="no RMC or ZDA date"):
+        utc = read_nmea(path)
+    assert utc.time_source == "utc"
+    np.testing.assert_array_equal(utc.heading_t, utc.t)
+    with pytest.raises(DataError) as err:
+        read_nmea(path, time="receive")
+    assert (err.value.line, err.value.field) == (4, "receive_time")
+
+
+@pytest.mark.parametrize(
+    ("sentence", "field"),
+    [
+        ("GNHDT,10.0,M", "heading_unit"),
+        ("GNHDT,1O.0,T", "heading"),
+        ("GNHDT,-1.0,T", "heading"),
+        ("GNTHS,360.5,A", "heading"),
+        ("GNTHS,10.0,Q", "mode"),
+        ("GNTHS,10.0", "mode"),
+    ],
+)
+def test_malformed_heading_sentences_name_line_and_field(tmp_path, sentence, field):
+    lines = [_gga(0, _truth()), _sentence(sentence)]
+    with pytest.raises(DataError) as err:
+        read_nmea(_write(tmp_path, lines))
+    assert (err.value.line, err.value.field) == (2, field)
+
+
+def test_cli_writes_gnss_heading_csv_unless_told_not_to(tmp_path, capsys):
+    truth = _truth()
+    lines = []
+    for k in range(4):
+        lines += [_gga(k, truth), _sentence(f"GNHDT,{10.0 * k + 5.0},T")]
+    path = _write(tmp_path, [*lines, _rmc(3)])
+    out = tmp_path / "run" / "gnss.csv"
+    assert main(["nmea", str(path), "--out", str(out), "--t0", str(START_UNIX)]) == 0
+    summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    heading_csv = out.parent / "gnss_heading.csv"
+    assert summary["headings"] == 4 and summary["heading_out"] == str(heading_csv)
+    assert heading_csv.read_text().splitlines()[0] == "t,heading"
+    (out.parent / "imu.csv").write_text(
+        "t,gyro_x,gyro_y,gyro_z,accel_x,accel_y,accel_z\n0,0,0,0,0,0,9.81\n1,0,0,0,0,0,9.81\n"
+    )
+    heading = read_native(out.parent).gnss_heading
+    np.testing.assert_array_equal(heading.t[0].numpy(), [0.5, 1.5, 2.5, 3.5])
+    np.testing.assert_allclose(
+        heading.heading[0].numpy(), np.radians([5.0, 15.0, 25.0, 35.0]), rtol=0, atol=1e-15
+    )
+    assert torch.isnan(heading.sigma).all()
+    # --no-heading writes none, and names a file of an earlier conversion left there
+    assert main(["nmea", str(path), "--out", str(out), "--no-heading"]) == 0
+    captured = capsys.readouterr()
+    assert f"{heading_csv} (not from this conversion) is left as it is" in captured.err
+    assert json.loads(captured.out.strip().splitlines()[-1])["heading_out"] is None
+    other = tmp_path / "other" / "gnss.csv"
+    assert main(["nmea", str(path), "--out", str(other), "--no-heading"]) == 0
+    assert not (other.parent / "gnss_heading.csv").exists()
+    # a log without HDT / THS writes no heading table
+    plain = _write(tmp_path, [_gga(k, truth) for k in range(3)], name="plain.nmea")
+    bare = tmp_path / "bare" / "gnss.csv"
+    assert main(["nmea", str(plain), "--out", str(bare)]) == 0
+    summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert summary["headings"] == 0 and summary["heading_out"] is None
+    assert not (bare.parent / "gnss_heading.csv").exists()
+
+
+def test_fuzzer_hdt_without_any_field_is_an_empty_heading(tmp_path):
+    """Fuzzer finds: ``$GNHDT`` with its fields dropped raised IndexError."""
+    truth = _truth()
+    with pytest.warns(UserWarning, match="heading_empty 1"):
+        log = read_nmea(_write(tmp_path, [_gga(0, truth), _sentence("GNHDT")]))
+    assert log.heading_t.size == 0 and log.counts["HDT"] == 1
+    with pytest.raises(DataError) as err:
+        read_nmea(_write(tmp_path, [_gga(0, truth), _sentence("GNTHS")]))
+    assert (err.value.line, err.value.field) == (2, "mode")
