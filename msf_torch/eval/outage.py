@@ -25,7 +25,8 @@ from msf_torch.types import GnssFixes, Sequence, Trajectory
 
 def split_gnss_outage(seq: Sequence, start_s: float, end_s: float) -> tuple[Sequence, GnssFixes]:
     """Withhold GNSS fixes with ``start_s <= t - t_first <= end_s`` (B = 1); the GNSS
-    velocities of that window go too (an outage takes the receiver's whole output).
+    velocities and dual-antenna headings of that window go too (an outage takes the
+    receiver's whole output).
 
     Args:
         seq: one sequence with GNSS.
@@ -51,12 +52,14 @@ def split_gnss_outage(seq: Sequence, start_s: float, end_s: float) -> tuple[Sequ
         )
     kept = seq.gnss.map(lambda x: x[:, ~inside])
     withheld = seq.gnss.map(lambda x: x[:, inside])
-    velocity = seq.gnss_velocity
-    if velocity is not None:
-        rel = velocity.t[0] - seq.start_time[0]
-        inside_v = (rel >= start_s) & (rel <= end_s)
-        velocity = velocity.map(lambda x: x[:, ~inside_v])
-    return dataclasses.replace(seq, gnss=kept, gnss_velocity=velocity), withheld
+    receiver = {}
+    for name in ("gnss_velocity", "gnss_heading"):
+        stream = getattr(seq, name)
+        if stream is not None:
+            rel = stream.t[0] - seq.start_time[0]
+            outside = ~((rel >= start_s) & (rel <= end_s))
+            receiver[name] = stream.map(lambda x, k=outside: x[:, k])
+    return dataclasses.replace(seq, gnss=kept, **receiver), withheld
 
 
 def interpolate_positions(estimate: Trajectory, times: torch.Tensor) -> torch.Tensor:

@@ -705,10 +705,10 @@ class WeatherRun:
     Attributes:
         sequence: shallow copy of ``truth.sequence`` (unchanged streams share tensors) with
             GNSS degraded (velocities and headings, when the run has them, removed in
-            the new urban outages with the fixes), ``poses`` the chosen source (or None), ``pose_sources`` both
-            sources (the same tensors as :attr:`pose_sources`), labels extended with
-            ``"weather:<c>"``, ``"env:corridor"``, ``"env:urban"`` and the merged
-            ``"gnss_outage"``, and ``meta["weather"]``.
+            the new urban outages with the fixes), ``poses`` the chosen source (or None),
+            ``pose_sources`` both sources (the same tensors as :attr:`pose_sources`),
+            labels extended with ``"weather:<c>"``, ``"env:corridor"``, ``"env:urban"``
+            and the merged ``"gnss_outage"``, and ``meta["weather"]``.
         pose_sources: ``"vo"`` and ``"lidar"`` streams (B = 1), dropped samples masked False
             and zero-filled.
         source_truth: per source, counts, drift and white noise (:class:`PoseSourceTruth`).

@@ -68,12 +68,15 @@ def test_split_gnss_outage_partitions_the_fixes():
     assert kept.gnss_velocity is None
 
 
-def test_split_gnss_outage_withholds_the_velocities_too():
-    seq = simulate_run(SimConfig(duration_s=30.0, gnss_velocity=True), seed=4).sequence
+def test_split_gnss_outage_withholds_the_velocities_and_headings_too():
+    seq = simulate_run(
+        SimConfig(duration_s=30.0, gnss_velocity=True, gnss_heading=True), seed=4
+    ).sequence
     kept, withheld = split_gnss_outage(seq, 10.0, 19.5)
-    rel = kept.gnss_velocity.t[0] - seq.start_time[0]
-    assert not bool(((rel >= 10.0) & (rel <= 19.5)).any())
-    assert kept.gnss_velocity.length == seq.gnss_velocity.length - 10 == 21
+    for name in ("gnss_velocity", "gnss_heading"):
+        rel = getattr(kept, name).t[0] - seq.start_time[0]
+        assert not bool(((rel >= 10.0) & (rel <= 19.5)).any())
+        assert getattr(kept, name).length == getattr(seq, name).length - 10 == 21
     assert int(withheld.mask.sum()) == 10
 
 
