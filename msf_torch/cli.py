@@ -211,6 +211,12 @@ def build_parser() -> argparse.ArgumentParser:
         "Doppler-like, sigma 0.05 m/s horizontal, 0.1 m/s up)",
     )
     sim.add_argument(
+        "--gnss-heading",
+        action="store_true",
+        help="also write a dual-antenna GNSS heading at the fix times (gnss_heading.csv: "
+        "the body x axis's azimuth clockwise from north, sigma 0.005 rad)",
+    )
+    sim.add_argument(
         "--weather",
         action="store_true",
         help="apply a random weather schedule (labels weather:<condition>; VO and LiDAR "
@@ -868,7 +874,9 @@ def _cmd_simulate(args) -> dict[str, Any]:
         slip_episodes=slip_episodes,
         gnss_outage_count=args.gnss_outages,
     )
-    config = dataclasses.replace(config, gnss_velocity=args.gnss_velocity)
+    config = dataclasses.replace(
+        config, gnss_velocity=args.gnss_velocity, gnss_heading=args.gnss_heading
+    )
     summary: dict[str, Any] = {"out": None, "duration_s": args.duration, "seed": args.seed}
     schedule = None
     if args.weather:
@@ -903,6 +911,8 @@ def _cmd_simulate(args) -> dict[str, Any]:
     summary["imu_samples"] = int(sequence.imu.mask.sum())
     if sequence.gnss_velocity is not None:
         summary["gnss_velocities"] = int(sequence.gnss_velocity.mask.sum())
+    if sequence.gnss_heading is not None:
+        summary["gnss_headings"] = int(sequence.gnss_heading.mask.sum())
     summary["slip_episodes"] = [
         [round(e.t_start, 3), round(e.t_end, 3), e.kind] for e in run.slip_episodes
     ]

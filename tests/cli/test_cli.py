@@ -204,6 +204,18 @@ def test_simulated_gnss_velocities_are_written_and_fused(tmp_path, capsys):
     assert counts["present"] == 12 and counts["accepted"] == 12  # t = 0 is the start
 
 
+def test_simulated_gnss_headings_are_written_and_fused(tmp_path, capsys):
+    path, out = tmp_path / "h", tmp_path / "out"
+    args = ["simulate", "--duration", "12", "--seed", "3", "--gnss-heading"]
+    assert main([*args, "--gnss-outages", "0", "--slip-episodes", "0", "--out", str(path)]) == 0
+    assert _last_json(capsys)["gnss_headings"] == 13
+    header = (path / "gnss_heading.csv").read_text().splitlines()[0]
+    assert header == "t,heading,sigma_heading"
+    assert main(["run", str(path), "--out", str(out), "--no-plot", "--no-learned"]) == 0
+    counts = _last_json(capsys)["measurements"]["gnss_heading"]
+    assert counts["present"] == 12 and counts["accepted"] == 12  # t = 0 sets the start
+
+
 def test_diagnostics_of_a_run_without_pose_sources_has_no_source_columns(short_run, tmp_path):
     _, path = short_run
     assert main(["run", str(path), "--out", str(tmp_path), "--no-plot", "--no-learned"]) == 0
