@@ -15,6 +15,8 @@ kind         message types                                         becomes
 ``gnss``     ``sensor_msgs/NavSatFix``                             ``Sequence.gnss`` (ENU)
 ``gnss_velocity`` ``geometry_msgs/TwistWithCovarianceStamped``,    ``Sequence.gnss_velocity``
              ``TwistStamped`` (the antenna's velocity, ENU)        (ENU)
+``gnss_heading`` ``sensor_msgs/Imu`` (orientation only: a dual-      ``Sequence.gnss_heading``
+             antenna receiver's baseline heading)
 ``wheels``   ``sensor_msgs/JointState`` (wheel joint velocities    ``Sequence.wheel``
              or positions),
              ``geometry_msgs/TwistStamped``,
@@ -73,6 +75,27 @@ GNSS velocity
     lever arm to both, so with ``frames`` the two sensors must sit in the same place
     (DataError otherwise); a ``gnss_velocity`` sensor without a ``gnss`` one gives the lever
     arm itself.
+GNSS heading
+    A dual-antenna (moving-baseline) receiver's heading as ROS drivers publish it: a
+    ``sensor_msgs/Imu`` with only the orientation filled, the yaw in ENU (counter-clockwise
+    from east, REP-103) of the baseline from the primary to the secondary antenna. u-blox's
+    ``ublox_gps`` (``navheading``, from NAV-RELPOSNED; KumarRobotics/ublox,
+    ``ublox_gps/src/hp_pos_rec_product.cpp``, ``HpPosRecProduct::callbackNavRelPosNed``)
+    sets ``yaw = pi/2 - relPosHeading`` with roll = pitch = 0 and puts ``accHeading^2``
+    (rad^2) in ``orientation_covariance[8]`` when the heading is flagged valid, 1000
+    otherwise (1000 also on the roll and pitch entries); it stamps the message with the
+    ROS clock when it arrives, not with the receiver's time. The reader inverts that:
+    ``heading = pi/2 - yaw`` wrapped to [0, 2 pi), clockwise from true north
+    (``GnssHeading``), where ``yaw = atan2(R[1, 0], R[0, 0])`` is the azimuth of the
+    quaternion's x axis from east (so a tilted quaternion gives the heading of its x axis
+    projected on the level plane). The sigma is the square root of the yaw variance
+    ``orientation_covariance[8]`` (rad^2) when it is > 0 and ``use_message_covariance``
+    (default true); otherwise NaN, i.e. the estimator's ``gnss_heading_sigma_rad``. A
+    message with ``orientation_covariance[0] == -1`` (ROS: "no orientation estimate") is
+    skipped and counted in ``meta["skipped_messages"]``. The message's frame places the
+    primary antenna only (``meta["extrinsics"]``); its axes are not applied to the
+    heading. Which body direction the baseline has is ``gnss_heading_baseline_m`` (a robot
+    YAML derives it from the two antenna frames).
 Pose covariance
     ROS orders a pose covariance ``[x, y, z, rot x, rot y, rot z]`` with both blocks about
     the parent (world) axes; msf_torch's is ``[dp (world), dtheta (body)]``
@@ -123,6 +146,7 @@ __all__ = [
 ]
 
 import contextlib
+import math
 import os
 import shutil
 import tempfile
@@ -148,6 +172,7 @@ from msf_torch.io.geodesy import enu_to_geodetic, geodetic_to_enu
 from msf_torch.robot.frames import FrameTree, inverse_transform
 from msf_torch.types import (
     GnssFixes,
+    GnssHeading,
     GnssVelocity,
     ImuSamples,
     PoseMeasurements,
@@ -156,7 +181,17 @@ from msf_torch.types import (
     WheelSamples,
 )
 
-SENSOR_KINDS = ("imu", "gnss", "gnss_velocity", "wheels", "pose", "joints", "image", "laser_scan")
+SENSOR_KINDS = (
+    "imu",
+    "gnss",
+    "gnss_velocity",
+    "gnss_heading",
+    "wheels",
+    "pose",
+    "joints",
+    "image",
+    "laser_scan",
+)
 """Sensor kinds a topic can be mapped to."""
 
 MESSAGE_TYPES: dict[str, tuple[str, ...]] = {
@@ -166,6 +201,7 @@ MESSAGE_TYPES: dict[str, tuple[str, ...]] = {
         "geometry_msgs/msg/TwistWithCovarianceStamped",
         "geometry_msgs/msg/TwistStamped",
     ),
+    "gnss_heading": ("sensor_msgs/msg/Imu",),
     "wheels": (
         "sensor_msgs/msg/JointState",
         "geometry_msgs/msg/TwistStamped",
@@ -204,7 +240,8 @@ class SensorTopic:
             ``child_frame_id``; the body frame for ``PoseStamped`` / ``PoseWithCovariance``).
         stamp: ``"header"`` or ``"bag"`` (the recording time).
         time_offset_s: added to every time of this sensor, s.
-        use_message_covariance: GNSS, GNSS velocity, pose: take the message's covariance.
+        use_message_covariance: GNSS, GNSS velocity, GNSS heading, pose: take the message's
+            covariance.
         min_fix_status: GNSS: lowest ``NavSatStatus.status`` kept (-1 keeps all).
         fuse: fused components (None: all); see the module docstring.
         left_joints, right_joints: wheels from JointState: the joints of each side.
@@ -250,9 +287,9 @@ class BagLayout:
     """Which topics to read and how (the ``sensors`` and ``frames`` of a robot YAML).
 
     Attributes:
-        sensors: the topics to read; at most one each of gnss, gnss_velocity and wheels,
-            one pose sensor with role ``poses`` and one with ``ground_truth``; exactly one
-            imu.
+        sensors: the topics to read; at most one each of gnss, gnss_velocity, gnss_heading
+            and wheels, one pose sensor with role ``poses`` and one with ``ground_truth``;
+            exactly one imu.
         frames: the robot's frames, or None (every sensor at the body origin and axes).
         body_frame: the estimator's body axes (origin at the IMU); None: the IMU's frame.
         joint_values: fixed values (rad or m) of movable joints, by name.
@@ -274,7 +311,7 @@ class BagLayout:
         kinds = [s.kind for s in self.sensors]
         if kinds.count("imu") != 1:
             raise ValueError(f"a bag layout needs exactly one imu sensor, got {kinds.count('imu')}")
-        for single in ("gnss", "gnss_velocity", "wheels", "joints"):
+        for single in ("gnss", "gnss_velocity", "gnss_heading", "wheels", "joints"):
             names = [s.name for s in self.sensors if s.kind == single]
             if len(names) > 1:
                 raise ValueError(f"the estimator takes one {single} sensor, got {names}")
@@ -426,6 +463,14 @@ def _extract(
             linear = [_vec(m.twist.twist.linear) for m in messages]
             cov = np.array([m.twist.covariance for m in messages]).reshape(-1, 36)[:, [0, 7, 14]]
         return {"velocity": np.array(linear).reshape(-1, 3), "cov": cov}, keep
+    if spec.kind == "gnss_heading":
+        cov = np.array([m.orientation_covariance for m in messages]).reshape(-1, 9)
+        keep = [i for i in keep if cov[i, 0] != -1.0]  # ROS: no orientation estimate
+        quat = [_quat_xyzw(messages[i].orientation) for i in keep]
+        return {
+            "quaternion_xyzw": np.array(quat, dtype=np.float64).reshape(-1, 4),
+            "yaw_variance": cov[keep, 8],
+        }, keep
     if spec.kind == "pose":
         pose_of = {
             "nav_msgs/msg/Odometry": lambda m: m.pose.pose,
@@ -648,12 +693,12 @@ def read_rosbag(path: str | os.PathLike[str], layout: BagLayout, sort: bool = Fa
 
     Returns:
         a :class:`~msf_torch.types.Sequence`: ``imu`` and, when mapped, ``wheel``, ``gnss``,
-        ``gnss_velocity``, ``poses``, ``ground_truth`` and named ``pose_sources``, in the
-        body frame (module
-        docstring); ``names == [bag stem]``; ``meta`` with ``source``, ``format``
-        (``"rosbag1"`` / ``"rosbag2"``), ``time_origin_ns``, ``body_frame``,
-        ``imu_frame``, ``body_imu_rotation`` (3x3, the IMU's axes in the body frame),
-        ``topics``, ``extrinsics``, ``gnss_origin``, ``references`` and the cleaning counts.
+        ``gnss_velocity``, ``gnss_heading``, ``poses``, ``ground_truth`` and named
+        ``pose_sources``, in the body frame (module docstring); ``names == [bag stem]``;
+        ``meta`` with ``source``, ``format`` (``"rosbag1"`` / ``"rosbag2"``),
+        ``time_origin_ns``, ``body_frame``, ``imu_frame``, ``body_imu_rotation`` (3x3, the
+        IMU's axes in the body frame), ``topics``, ``extrinsics``, ``gnss_origin``,
+        ``references`` and the cleaning counts.
 
     Raises:
         DataError: naming the bag and the sensor key (a missing topic, a wrong message
@@ -717,6 +762,9 @@ def read_rosbag(path: str | os.PathLike[str], layout: BagLayout, sort: bool = Fa
             meta["extrinsics"][name] = frames.body_from(r).tolist()
         elif spec.kind == "gnss_velocity":
             streams["gnss_velocity"] = _gnss_velocity_stream(r, t, clean)
+            meta["extrinsics"][name] = frames.body_from(r).tolist()
+        elif spec.kind == "gnss_heading":
+            streams["gnss_heading"] = _gnss_heading_stream(r, t, clean, bag)
             meta["extrinsics"][name] = frames.body_from(r).tolist()
         elif spec.kind == "wheels":
             streams["wheel"] = _wheel_stream(r, t, layout, clean, bag)
@@ -811,6 +859,28 @@ def _gnss_velocity_stream(r: _Raw, t: np.ndarray, clean) -> GnssVelocity:
     up = arrays.pop("velocity_up")
     arrays["velocity"] = np.concatenate((arrays["velocity"], up[:, None]), axis=1)
     return _tables.stream_from_arrays(GnssVelocity, arrays)
+
+
+def _gnss_heading_stream(r: _Raw, t: np.ndarray, clean, bag: Path) -> GnssHeading:
+    """Baseline headings (N,) clockwise from north in [0, 2 pi), rad, and sigmas (N,) rad
+    from ``sensor_msgs/Imu`` orientations (module docstring)."""
+    spec = r.spec
+    quat_xyzw = r.fields["quaternion_xyzw"]
+    _tables.check_quaternions(
+        str(bag), quat_xyzw, field_prefix=f"{spec.topic}:", name="orientation"
+    )
+    finite = np.isfinite(quat_xyzw).all(axis=1)
+    unit_xyzw = _tables.normalise_quaternions(np.where(finite[:, None], quat_xyzw, [0, 0, 0, 1.0]))
+    rot = quat_to_matrix(xyzw_to_wxyz(torch.as_tensor(unit_xyzw))).numpy()
+    yaw = np.arctan2(rot[:, 1, 0], rot[:, 0, 0])  # the x axis' ENU azimuth from east
+    heading = np.where(finite, np.mod(0.5 * np.pi - yaw, 2.0 * np.pi), np.nan)
+    heading = np.where(heading >= 2.0 * np.pi, 0.0, heading)  # mod rounded up to 2 pi
+    variance = r.fields["yaw_variance"]
+    known = np.isfinite(variance) & (variance > 0)
+    use = spec.use_message_covariance
+    sigma = np.where(known & use, np.sqrt(np.where(known, variance, 1.0)), np.nan)
+    arrays = clean("gnss_heading", {"t": t, "heading": heading, "sigma": sigma}, nan_ok=("sigma",))
+    return _tables.stream_from_arrays(GnssHeading, arrays)
 
 
 def _check_one_antenna(layout: BagLayout, meta: dict[str, Any], bag: Path) -> None:
@@ -1110,6 +1180,35 @@ def _messages_for(
                     ),
                 )
             )
+    elif spec.kind == "gnss_heading":
+        if seq.gnss_heading is None:
+            return out
+        s = seq.gnss_heading.compact()
+        half_yaw = 0.5 * (0.5 * np.pi - _np(s.heading[0]))  # ENU yaw = pi/2 - heading
+        sigma = _np(s.sigma[0])
+        stamps = _stamps(_np(s.t[0]), origin_ns, spec.time_offset_s)
+        imu = m.types["sensor_msgs/msg/Imu"]
+        not_given = np.zeros(9)
+        not_given[0] = -1.0
+        for k, stamp in enumerate(stamps.tolist()):
+            cov = np.zeros(9)
+            cov[[0, 4]] = 1000.0  # roll and pitch not measured (as ublox_gps writes)
+            cov[8] = sigma[k] ** 2 if np.isfinite(sigma[k]) else 0.0
+            quat = [0.0, 0.0, math.sin(half_yaw[k]), math.cos(half_yaw[k])]
+            out.append(
+                (
+                    stamp,
+                    imu(
+                        header=m.header(stamp, frame),
+                        orientation=m.quaternion(quat),
+                        orientation_covariance=cov,
+                        angular_velocity=m.vector([0.0] * 3),
+                        angular_velocity_covariance=not_given.copy(),
+                        linear_acceleration=m.vector([0.0] * 3),
+                        linear_acceleration_covariance=not_given.copy(),
+                    ),
+                )
+            )
     elif spec.kind == "wheels":
         if seq.wheel is None:
             return out
@@ -1194,6 +1293,7 @@ _WRITE_TYPES = {
     "imu": "sensor_msgs/msg/Imu",
     "gnss": "sensor_msgs/msg/NavSatFix",
     "gnss_velocity": "geometry_msgs/msg/TwistWithCovarianceStamped",
+    "gnss_heading": "sensor_msgs/msg/Imu",
     "pose": "nav_msgs/msg/Odometry",
 }
 
@@ -1213,7 +1313,10 @@ def write_rosbag(
     Each sensor of ``layout`` becomes its topic: imu -> ``Imu``; gnss -> ``NavSatFix``
     about ``gnss_origin`` (diagonal covariance from the sigmas, UNKNOWN when NaN);
     gnss_velocity -> ``TwistWithCovarianceStamped`` (the ENU velocity, NaN up kept; the
-    linear covariance diagonal from the sigmas, 0 where NaN; angular -1); wheels
+    linear covariance diagonal from the sigmas, 0 where NaN; angular -1); gnss_heading
+    -> ``Imu`` with only the orientation (yaw ``pi/2 - heading`` about the vertical, the yaw
+    variance ``sigma^2`` in ``orientation_covariance[8]``, 0 where NaN, roll and pitch 1000;
+    the rates and accelerations -1, "not provided"); wheels
     -> ``JointState`` velocities (rim speed / radius per joint) when the sensor names
     joints, else ``TwistStamped``; pose (each role) -> ``Odometry`` of the sensor frame
     with the covariance in ROS order. Data are turned from the body frame into each

@@ -18,13 +18,16 @@ Top-level keys
 ``time``
     ``origin_ns``: ``first`` (default: the earliest stamp read) or an integer in ns.
 ``sensors`` (required; a mapping name -> sensor)
-    Every sensor: ``type`` (imu | gnss | gnss_velocity | wheels | pose | joints | image |
-    laser_scan),
+    Every sensor: ``type`` (imu | gnss | gnss_velocity | gnss_heading | wheels | pose |
+    joints | image | laser_scan),
     ``topic``, ``enabled`` (default true), ``frame`` (default: from the messages),
     ``stamp`` (header | bag), ``time_offset_s`` (0). Per type (see
     :mod:`msf_torch.io.rosbag` for what they do): gnss ``origin`` (first | [lat_deg,
     lon_deg, alt_m]), ``use_message_covariance`` (true), ``min_fix_status`` (0), ``fuse``
-    (subset of [x, y, z]); gnss_velocity ``use_message_covariance`` (true); wheels
+    (subset of [x, y, z]); gnss_velocity ``use_message_covariance`` (true); gnss_heading
+    (a dual-antenna heading as ``sensor_msgs/Imu``; its frame is the primary antenna's)
+    ``use_message_covariance`` (true), ``baseline`` (``{secondary_frame: FRAME}``: the
+    secondary antenna's frame; needs ``frames``); wheels
     ``left_joints``, ``right_joints``, ``wheel_radius_m``
     (a number or [left, right]) for JointState, ``fuse`` (subset of [speed, yaw_rate],
     default [speed]); pose ``role`` (pose_source | poses | ground_truth),
@@ -51,8 +54,11 @@ Derived estimator settings
 With ``frames``, :meth:`RobotConfig.eskf_config` sets ``gnss_lever_arm_m`` and
 ``wheel_lever_arm_m`` from the extrinsics the bag reader computed, and
 ``wheel_track_m`` from the URDF (the distance, along the body y axis, between the left and
-right wheel joints' frames) unless ``estimator`` gives it. Setting a derived key in
-``estimator`` as well is an error that names both. The wheels' ``fuse`` sets
+right wheel joints' frames) unless ``estimator`` gives it. A gnss_heading sensor with
+``baseline`` sets ``gnss_heading_baseline_m``: the secondary antenna frame's position minus
+the primary's (the sensor's frame), in the body axes, m; without ``baseline``,
+``estimator.gnss_heading_baseline_m`` applies. Setting a derived key in ``estimator`` as well
+is an error that names both. The wheels' ``fuse`` sets
 ``wheel_yaw_rate_update``; the calibration switches set ``calibrate_wheels``,
 ``calibrate_time_offsets``, ``calibrate_gnss_lever_arm``, ``calibrate_pose_extrinsics`` and
 ``calibrate_imu_body_rotation``.
@@ -104,6 +110,7 @@ _PER_KIND = {
         "calibrate_lever_arm",
     ),
     "gnss_velocity": ("use_message_covariance",),
+    "gnss_heading": ("use_message_covariance", "baseline"),
     "wheels": ("left_joints", "right_joints", "wheel_radius_m", "fuse", "calibrate"),
     "pose": (
         "role",
@@ -118,7 +125,6 @@ _PER_KIND = {
     "image": (),
     "laser_scan": (),
 }
-_DERIVED = ("gnss_lever_arm_m", "wheel_lever_arm_m", "wheel_track_m")
 
 
 class _Checker:
@@ -198,6 +204,8 @@ class RobotConfig:
             ``"pose:<source name>"``.
         calibrate_extrinsics: sensors with an extrinsic-calibration switch on: ``"imu"``,
             ``"gnss"``, ``"pose:<source name>"``.
+        heading_secondary_frame: the gnss_heading sensor's ``baseline.secondary_frame``
+            (the secondary antenna's frame), or None.
     """
 
     path: Path | None
@@ -208,6 +216,7 @@ class RobotConfig:
     disabled: tuple[str, ...] = ()
     calibrate: tuple[str, ...] = ()
     calibrate_extrinsics: tuple[str, ...] = ()
+    heading_secondary_frame: str | None = None
     _lines: dict[tuple, int] = field(default_factory=dict, repr=False)
 
     @property
@@ -241,6 +250,38 @@ class RobotConfig:
             return sum(ys) / len(ys)
 
         return abs(mean_y(wheels.left_joints) - mean_y(wheels.right_joints))
+
+    def _from_imu(self, frame: str) -> torch.Tensor:
+        """Position (3,) of ``frame`` from the IMU in the body axes, m (the frame's joints
+        at ``frames.joints.values``)."""
+        tree = self.layout.frames
+        imu = self.layout.sensor("imu")
+        body = self.layout.body_frame or imu.frame
+        values = {
+            j: self.layout.joint_values[j]
+            for j in tree.joints_between(body, frame)
+            if j in self.layout.joint_values
+        }
+        position = tree.transform(body, frame, values or None)[:3, 3]
+        return position - tree.transform(body, imu.frame)[:3, 3]
+
+    def _heading_baseline(self, primary: torch.Tensor) -> list[float]:
+        """``gnss_heading_baseline_m`` (3,) m: the secondary antenna frame's position minus
+        the primary's (``primary`` (3,) m: the heading sensor's, from the IMU in the body
+        axes), in the body axes.
+
+        Raises:
+            DataError: the baseline has no horizontal part (it would give no heading).
+        """
+        heading = self.layout.sensor("gnss_heading")
+        baseline = self._from_imu(self.heading_secondary_frame) - primary
+        if float(torch.linalg.vector_norm(baseline[:2])) < 1e-3:
+            raise self._fail(
+                ("sensors", heading.name, "baseline", "secondary_frame"),
+                f"the antennas' baseline {baseline.tolist()} m (body frame) has no horizontal "
+                "part (x, y under 1 mm): it gives no heading",
+            )
+        return baseline.tolist()
 
     def eskf_config(
         self, meta: Mapping[str, Any] | None = None, overrides: Mapping[str, Any] | None = None
@@ -279,6 +320,19 @@ class RobotConfig:
             track = self._wheel_track_from_urdf()
             if track is not None and "wheel_track_m" not in values:
                 derived["wheel_track_m"] = track
+        heading = self.layout.sensor("gnss_heading")
+        if heading is not None and self.heading_secondary_frame is not None:
+            if "gnss_heading_baseline_m" in values:
+                raise self._fail(
+                    ("estimator", "gnss_heading_baseline_m"),
+                    f"is also given by sensors.{heading.name}.baseline.secondary_frame (the "
+                    "antenna frames); set it in one place",
+                )
+            if heading.name in extrinsics:
+                primary = [row[3] for row in extrinsics[heading.name][:3]]
+                derived["gnss_heading_baseline_m"] = self._heading_baseline(
+                    torch.tensor(primary, dtype=torch.float64)
+                )
         if self.layout.frames is not None:
             for key, sensor in (
                 ("gnss_lever_arm_m", antenna),
@@ -333,9 +387,9 @@ class RobotConfig:
         and no joint moves as its pose in ``frames.body`` (``xyz`` m from the body frame's
         origin, ``quaternion_wxyz``); ``derived`` gives the estimator settings the frames
         set: ``gnss_lever_arm_m`` and ``wheel_lever_arm_m`` (from the IMU, the estimator's
-        body origin, in the body axes), ``wheel_track_m`` (URDF) and
-        ``wheel_yaw_rate_update`` (the wheels' ``fuse``) where they differ from the
-        defaults.
+        body origin, in the body axes), ``gnss_heading_baseline_m`` (the two antenna
+        frames), ``wheel_track_m`` (URDF) and ``wheel_yaw_rate_update`` (the wheels'
+        ``fuse``) where they differ from the defaults.
         """
         layout = self.layout
         out: dict[str, Any] = {
@@ -379,7 +433,12 @@ class RobotConfig:
             derived = self.eskf_config({"extrinsics": from_imu})
             # the antenna: the gnss sensor, else a gnss_velocity sensor alone
             antenna = layout.sensor("gnss") or layout.sensor("gnss_velocity")
-            placed = {"gnss_lever_arm_m": antenna, "wheel_lever_arm_m": layout.sensor("wheels")}
+            heading = layout.sensor("gnss_heading") if self.heading_secondary_frame else None
+            placed = {
+                "gnss_lever_arm_m": antenna,
+                "wheel_lever_arm_m": layout.sensor("wheels"),
+                "gnss_heading_baseline_m": heading,
+            }
             out["derived"] = {
                 key: getattr(derived, key)
                 for key, sensor in placed.items()
@@ -490,6 +549,7 @@ def load_robot_config(path: str | os.PathLike[str]) -> RobotConfig:
     wheel_fuse = None
     calibrate: list[str] = []
     calibrate_extrinsics: list[str] = []
+    secondary_frame = None
     for sensor_name, body_value in sensors_section.items():
         keys = ("sensors", str(sensor_name))
         if not isinstance(body_value, dict):
@@ -623,6 +683,8 @@ def load_robot_config(path: str | os.PathLike[str]) -> RobotConfig:
         elif kind == "imu":
             if check.boolean(spec.get("calibrate_rotation", False), (*keys, "calibrate_rotation")):
                 calibrate_extrinsics.append("imu")
+        elif kind == "gnss_heading" and "baseline" in spec:
+            secondary_frame = _secondary_frame(check, spec["baseline"], (*keys, "baseline"), tree)
         try:
             sensors.append(SensorTopic(**fields))
         except ValueError as err:
@@ -657,12 +719,27 @@ def load_robot_config(path: str | os.PathLike[str]) -> RobotConfig:
                 "missing: with frames, the imu sensor names its frame",
             )
         reference = body or imu.frame
-        for sensor in layout.sensors:
-            if sensor.frame is not None and tree.root(sensor.frame) != tree.root(reference):
+        placed = [(s.frame, ("sensors", s.name, "frame")) for s in layout.sensors if s.frame]
+        heading = layout.sensor("gnss_heading")
+        if secondary_frame is not None and heading is not None:
+            placed.append(
+                (secondary_frame, ("sensors", heading.name, "baseline", "secondary_frame"))
+            )
+            moving = [
+                j for j in tree.joints_between(reference, secondary_frame) if j not in joint_values
+            ]
+            if moving:
                 raise check.fail(
-                    ("sensors", sensor.name, "frame"),
-                    f"frame {sensor.frame!r} is not connected to the body frame {reference!r}: "
-                    f"its tree starts at {tree.root(sensor.frame)!r}, the body's at "
+                    placed[-1][1],
+                    f"frame {secondary_frame!r} moves with joint(s) {moving}: give their values "
+                    "(frames.joints.values); an antenna baseline is static",
+                )
+        for frame, where in placed:
+            if tree.root(frame) != tree.root(reference):
+                raise check.fail(
+                    where,
+                    f"frame {frame!r} is not connected to the body frame {reference!r}: "
+                    f"its tree starts at {tree.root(frame)!r}, the body's at "
                     f"{tree.root(reference)!r} (check the parents in frames.transforms)",
                 )
     config = RobotConfig(
@@ -674,11 +751,41 @@ def load_robot_config(path: str | os.PathLike[str]) -> RobotConfig:
         disabled=tuple(disabled),
         calibrate=tuple(calibrate),
         calibrate_extrinsics=tuple(calibrate_extrinsics),
+        heading_secondary_frame=secondary_frame,
         _lines=check.lines,
     )
     if tree is not None:
         config.eskf_config(None)
+        heading = layout.sensor("gnss_heading")
+        if secondary_frame is not None and heading.frame is not None:
+            # the baseline now when the primary antenna's frame is named and static
+            reference = body or imu.frame
+            frames = (heading.frame, imu.frame)
+            joints = [j for f in frames for j in tree.joints_between(reference, f)]
+            if all(j in joint_values for j in joints):
+                config._heading_baseline(config._from_imu(heading.frame))
     return config
+
+
+def _secondary_frame(check: _Checker, value: Any, keys: tuple, tree: FrameTree | None) -> str:
+    """The ``secondary_frame`` of a gnss_heading sensor's ``baseline`` mapping (a frame
+    of ``tree``, which must exist)."""
+    baseline = check.mapping(value, keys, ("secondary_frame",))
+    if "secondary_frame" not in baseline:
+        raise check.fail((*keys, "secondary_frame"), "missing: the secondary antenna's frame")
+    frame = check.string(baseline["secondary_frame"], (*keys, "secondary_frame"))
+    if tree is None:
+        raise check.fail(
+            (*keys, "secondary_frame"),
+            "needs the robot's frames (frames.urdf or frames.transforms); without them set "
+            "estimator.gnss_heading_baseline_m",
+        )
+    if frame not in tree.frames:
+        raise check.fail(
+            (*keys, "secondary_frame"),
+            f"unknown frame {frame!r} (known: {', '.join(tree.frames)})",
+        )
+    return frame
 
 
 def _frames(check: _Checker, section: dict[str, Any], folder: Path) -> FrameTree | None:
