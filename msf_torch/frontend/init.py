@@ -220,10 +220,12 @@ def antenna_heading_yaw(
 ) -> tuple[float, float] | None:
     """Heading at the first IMU sample from a dual-antenna GNSS heading.
 
-    The first heading within ``cfg.init_max_track_s`` of the first IMU sample gives the yaw
-    that turns the tilted baseline ``tilt @ cfg.gnss_heading_baseline_m`` to the measured
-    azimuth (clockwise from north), carried back to the first IMU sample by the gyro's
-    heading change. It needs no motion: a vehicle standing still is aligned at once.
+    Of the headings within ``cfg.init_max_track_s`` of the first IMU sample, the one whose
+    yaw carried back has the smallest variance (usually the first; not one a driver marks
+    invalid with a huge sigma) gives the yaw that turns the tilted baseline
+    ``tilt @ cfg.gnss_heading_baseline_m`` to the measured azimuth (clockwise from north),
+    carried back to the first IMU sample by the gyro's heading change. It needs no motion:
+    a vehicle standing still is aligned at once.
 
     Args:
         heading: the ``GnssHeading`` fields ``t`` (M,) s, ``heading`` (M,) rad, ``sigma``
@@ -242,13 +244,17 @@ def antenna_heading_yaw(
     level = tilt @ np.asarray(cfg.gnss_heading_baseline_m, dtype=np.float64)
     if not usable.any() or math.hypot(level[0], level[1]) < 1e-6 * np.linalg.norm(level):
         return None
-    k = int(np.argmax(usable))
+    sigma = np.where(
+        np.isfinite(heading["sigma"]) & (heading["sigma"] > 0),
+        heading["sigma"],
+        cfg.gnss_heading_sigma_rad,
+    )
+    total = sigma**2 + _carry_variance(heading["t"] - imu_t[0], cfg)
+    k = int(np.argmin(np.where(usable, total, np.inf)))
     turned, variance = _carried_back(imu_t, gyro, tilt, float(heading["t"][k]), cfg)
-    sigma = float(heading["sigma"][k])
-    sigma = sigma if math.isfinite(sigma) and sigma > 0 else cfg.gnss_heading_sigma_rad
     # azimuth (clockwise from north) = pi / 2 - (yaw + the level baseline's ENU angle)
     yaw = math.pi / 2 - float(heading["heading"][k]) - math.atan2(level[1], level[0]) - turned
-    return math.atan2(math.sin(yaw), math.cos(yaw)), sigma**2 + variance
+    return math.atan2(math.sin(yaw), math.cos(yaw)), float(sigma[k]) ** 2 + variance
 
 
 def _check_antenna_heading(
@@ -282,10 +288,14 @@ def _carried_back(
     dt = np.diff(np.append(imu_t[inside], t))
     rate = gyro[inside] - np.asarray(cfg.init_gyro_bias_radps)
     turned = float(((rate @ tilt.T)[:, 2] * dt).sum())
-    elapsed = t - imu_t[0]
-    variance = (cfg.init_gyro_bias_sigma_radps * elapsed) ** 2
-    variance += cfg.gyro_noise_density**2 * elapsed
-    return turned, variance
+    return turned, float(_carry_variance(np.asarray(t - imu_t[0]), cfg))
+
+
+def _carry_variance(elapsed: np.ndarray, cfg: EskfConfig) -> np.ndarray:
+    """Variance (rad^2) a heading gains when carried back by the gyro over ``elapsed``
+    seconds (any shape): the gyro bias prior times the seconds, squared, plus the angle
+    random walk."""
+    return (cfg.init_gyro_bias_sigma_radps * elapsed) ** 2 + cfg.gyro_noise_density**2 * elapsed
 
 
 def _rpy_numpy(roll: float, pitch: float, yaw: float) -> np.ndarray:

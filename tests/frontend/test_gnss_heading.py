@@ -151,6 +151,13 @@ def test_initial_yaw_is_the_heading_carried_back_by_the_gyro():
     heading, imu_t, gyro, tilt, baseline = _level_drive(-1.1, 0.3, 0.0)
     yaw, _ = antenna_heading_yaw(heading, imu_t, gyro, tilt, cfg)
     assert yaw == pytest.approx(-1.1, abs=1e-9)
+    # a first heading a driver marks invalid (sigma 31.6 rad, the ublox ROS driver's
+    # variance 1000) is passed over for the next valid one
+    heading, imu_t, gyro, tilt, baseline = _level_drive(0.4, 0.3, 0.0)
+    heading["sigma"][0] = math.sqrt(1000.0)
+    heading["heading"][0] += 1.0
+    yaw, variance = antenna_heading_yaw(heading, imu_t, gyro, tilt, cfg)
+    assert yaw == pytest.approx(0.4, abs=1e-9) and variance < 1e-3
     # on a level vehicle, a baseline pointing straight up has no heading
     up = EskfConfig(gnss_heading_baseline_m=[0.0, 0.0, 1.0])
     assert antenna_heading_yaw(heading, imu_t, gyro, np.eye(3), up) is None
