@@ -1,5 +1,6 @@
-"""Shared helpers for Jacobian tests of error-state measurement models: a random batch of
-navigation states, the conventions' perturbation and central differences."""
+"""Shared helpers for tests of error-state measurement models: a random batch of
+navigation states, the conventions' perturbation and central differences; a filter run's
+navigation errors against a simulated truth."""
 
 from __future__ import annotations
 
@@ -46,3 +47,26 @@ def central_differences(fn, size: int, batch: int) -> torch.Tensor:
         step[:, k] = EPS
         cols.append((fn(step) - fn(-step)) / (2 * EPS))
     return torch.stack(cols, -1)
+
+
+CHI2_95_9DOF = 16.919  # scipy.stats.chi2.ppf(0.95, 9)
+
+
+def navigation_errors(result, runs, b: int):
+    """Times (E,) s, ``[dp, dv, dtheta]`` errors (E, 9) of sequence ``b`` of an
+    ``EskfResult`` against ``runs[b].truth`` (a simulated run), and the filter's (E, 9, 9)
+    covariance, at the real epochs (every one an IMU sample of the truth)."""
+    keep = result.mask[b]
+    t = result.t[b, keep]
+    truth = runs[b].truth
+    j = torch.searchsorted(truth.t[0], t).clamp(max=truth.t.shape[1] - 1)
+    assert float((truth.t[0, j] - t).abs().max()) < 1e-9
+    error = torch.cat(
+        (
+            result.position[b, keep] - truth.position[0, j],
+            result.velocity[b, keep] - truth.velocity[0, j],
+            so3.log(truth.rotation[0, j].mT @ result.rotation[b, keep]),
+        ),
+        -1,
+    )
+    return t, error, result.covariance[b, keep][:, :9, :9]

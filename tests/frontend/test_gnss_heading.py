@@ -14,6 +14,7 @@ import math
 import numpy as np
 import pytest
 import torch
+from error_state_checks import CHI2_95_9DOF, navigation_errors
 
 from msf_torch import batch_sequences, load_sequence_config
 from msf_torch.frontend.config import EskfConfig
@@ -24,7 +25,6 @@ from msf_torch.sim import SimConfig, simulate_run
 from msf_torch.types import GnssHeading
 
 SEEDS = range(210, 216)
-CHI2_95_9DOF = 16.919  # scipy.stats.chi2.ppf(0.95, 9)
 
 
 @pytest.fixture(scope="module")
@@ -38,25 +38,6 @@ def _run(seqs, cfg=None):
         return run_eskf(batch_sequences(seqs), cfg)
 
 
-def _errors(result, runs, b: int):
-    """Times (E,), [dp, dv, dtheta] errors (E, 9) against the simulated truth and the
-    (E, 9, 9) covariance at the real epochs of sequence b."""
-    keep = result.mask[b]
-    t = result.t[b, keep]
-    truth = runs[b].truth
-    j = torch.searchsorted(truth.t[0], t).clamp(max=truth.t.shape[1] - 1)
-    assert float((truth.t[0, j] - t).abs().max()) < 1e-9
-    error = torch.cat(
-        (
-            result.position[b, keep] - truth.position[0, j],
-            result.velocity[b, keep] - truth.velocity[0, j],
-            so3.log(truth.rotation[0, j].mT @ result.rotation[b, keep]),
-        ),
-        -1,
-    )
-    return t, error, result.covariance[b, keep][:, :9, :9]
-
-
 def test_heading_pins_the_yaw_and_the_filter_stays_consistent(runs):
     plain = _run([dataclasses.replace(r.sequence, gnss_heading=None) for r in runs])
     aided = _run([r.sequence for r in runs])
@@ -66,14 +47,14 @@ def test_heading_pins_the_yaw_and_the_filter_stays_consistent(runs):
     for name, result in (("plain", plain), ("aided", aided)):
         values = []
         for b in range(len(runs)):
-            _, error, _ = _errors(result, runs, b)
+            _, error, _ = navigation_errors(result, runs, b)
             values.append(float(error[:, 8].abs().median()))
         yaw[name] = float(np.median(values))
     # a 0.005-rad heading every second against the GNSS track's and the NHC's yaw
     assert yaw["aided"] < 0.006 and yaw["aided"] < 0.3 * yaw["plain"], yaw
     inside = []
     for b in range(len(runs)):
-        t, error, cov = _errors(aided, runs, b)
+        t, error, cov = navigation_errors(aided, runs, b)
         nees = (error[:, None, :] @ torch.linalg.solve(cov, error[..., None]))[:, 0, 0]
         inside.append((nees[t > 5.0] < CHI2_95_9DOF).double())
     assert float(torch.cat(inside).mean()) >= 0.9

@@ -13,6 +13,7 @@ import dataclasses
 import numpy as np
 import pytest
 import torch
+from error_state_checks import CHI2_95_9DOF, navigation_errors
 
 from msf_torch import batch_sequences, load_sequence_config
 from msf_torch.eval.metrics import ate
@@ -23,7 +24,6 @@ from msf_torch.geometry import so3
 from msf_torch.sim import SimConfig, simulate_run
 
 SEEDS = range(200, 208)
-CHI2_95_9DOF = 16.919  # scipy.stats.chi2.ppf(0.95, 9)
 
 
 @pytest.fixture(scope="module")
@@ -41,25 +41,6 @@ def _run(runs, with_velocity: bool, cfg=None):
         return run_eskf(batch_sequences(seqs), cfg)
 
 
-def _errors(result, runs, b: int):
-    """(E, 9) [dp, dv, dtheta] error against the simulated truth and (E, 9, 9) covariance
-    at the real epochs of sequence b, and their times."""
-    keep = result.mask[b]
-    t = result.t[b, keep]
-    truth = runs[b].truth
-    j = torch.searchsorted(truth.t[0], t).clamp(max=truth.t.shape[1] - 1)
-    assert float((truth.t[0, j] - t).abs().max()) < 1e-9  # every epoch is an IMU sample
-    error = torch.cat(
-        (
-            result.position[b, keep] - truth.position[0, j],
-            result.velocity[b, keep] - truth.velocity[0, j],
-            so3.log(truth.rotation[0, j].mT @ result.rotation[b, keep]),
-        ),
-        -1,
-    )
-    return t, error, result.covariance[b, keep][:, :9, :9]
-
-
 def test_velocities_pin_the_heading_and_the_filter_stays_consistent(runs):
     plain, aided = _run(runs, False), _run(runs, True)
     assert int(aided.accepted["gnss_velocity"].sum()) >= 0.95 * sum(
@@ -70,7 +51,7 @@ def test_velocities_pin_the_heading_and_the_filter_stays_consistent(runs):
         for name, result in (("plain", plain), ("aided", aided)):
             values = []
             for b in range(len(runs)):
-                t, error, _ = _errors(result, runs, b)
+                t, error, _ = navigation_errors(result, runs, b)
                 values.append(abs(float(error[int(torch.searchsorted(t, when)), 8])))
             yaw[name] = float(np.median(values))
         # the velocity's direction is the course: half the heading error or less
@@ -79,7 +60,7 @@ def test_velocities_pin_the_heading_and_the_filter_stays_consistent(runs):
     # after the first 5 s (alignment)
     inside = []
     for b in range(len(runs)):
-        t, error, cov = _errors(aided, runs, b)
+        t, error, cov = navigation_errors(aided, runs, b)
         nees = (error[:, None, :] @ torch.linalg.solve(cov, error[..., None]))[:, 0, 0]
         inside.append((nees[t > 5.0] < CHI2_95_9DOF).double())
     assert float(torch.cat(inside).mean()) >= 0.9
