@@ -112,14 +112,17 @@ def peer_inputs(seq: Sequence, outage: tuple[float, float]) -> dict[str, Any]:
     """Keyword inputs of ``run_gtsam_kitti`` from a simulated B = 1 Sequence.
 
     The state times are the simulator's whole 1-Hz GNSS grid (``k / gnss_rate_hz``); the
-    times inside the outage get NaN fixes and velocities (unused by the peer: no truth can
-    leak in), and they must be exactly the missing ones.
+    times inside the outage get NaN fixes, velocities and headings (unused by the peer: no
+    truth can leak in), and they must be exactly the missing ones.
 
     Returns:
         dict with ``imu_t`` (N,), ``imu_acc`` / ``imu_gyro`` (N, 3), ``gps_t`` (M,),
-        ``gps_xyz`` (M, 3) m, ``gps_velocity`` (M, 3) m/s, ``gps_velocity_sigma`` (M, 3),
-        ``gps_sigma`` (3,) m, ``meta`` (GTSAM noise keys from ``meta["sensor"]["imu_noise"]``),
-        ``gravity`` and ``init_bias_sigmas``.
+        ``gps_xyz`` (M, 3) m, ``gps_velocity`` (M, 3) m/s and ``gps_velocity_sigma``
+        (M, 3) (both None when the sequence has no velocities), ``gps_sigma`` (3,) m,
+        ``meta`` (GTSAM noise keys from ``meta["sensor"]["imu_noise"]``), ``gravity`` and
+        ``init_bias_sigmas``; when the sequence has dual-antenna headings also
+        ``gps_heading`` (M,) rad, ``gps_heading_sigma`` (M,) rad and ``heading_baseline``
+        (3,) (the simulator's ``gnss_heading_baseline_m``).
     """
     sim = seq.meta["sim"]
     sensor = seq.meta["sensor"]
@@ -139,12 +142,26 @@ def peer_inputs(seq: Sequence, outage: tuple[float, float]) -> dict[str, Any]:
         raise ValueError("the missing GNSS times are not the outage's")
     xyz = np.full((n_grid, 3), np.nan)
     xyz[index] = seq.gnss.position[0, seq.gnss.mask[0]].numpy()
-    vel = np.full((n_grid, 3), np.nan)
-    vel_sigma = np.full((n_grid, 3), np.nan)
+    vel = vel_sigma = None
     gv = seq.gnss_velocity
-    vel_index = np.rint(gv.t[0, gv.mask[0]].numpy() * rate).astype(int)
-    vel[vel_index] = gv.velocity[0, gv.mask[0]].numpy()
-    vel_sigma[vel_index] = gv.sigma[0, gv.mask[0]].numpy()
+    if gv is not None:
+        vel = np.full((n_grid, 3), np.nan)
+        vel_sigma = np.full((n_grid, 3), np.nan)
+        vel_index = np.rint(gv.t[0, gv.mask[0]].numpy() * rate).astype(int)
+        vel[vel_index] = gv.velocity[0, gv.mask[0]].numpy()
+        vel_sigma[vel_index] = gv.sigma[0, gv.mask[0]].numpy()
+    heading: dict[str, Any] = {}
+    gh = seq.gnss_heading
+    if gh is not None:
+        head_t = gh.t[0, gh.mask[0]].numpy()
+        head_index = np.rint(head_t * rate).astype(int)
+        if not np.allclose(grid[head_index], head_t, rtol=0.0, atol=1e-9):
+            raise ValueError("GNSS headings off the simulator's 1/gnss_rate_hz grid")
+        heading["gps_heading"] = np.full(n_grid, np.nan)
+        heading["gps_heading_sigma"] = np.full(n_grid, np.nan)
+        heading["gps_heading"][head_index] = gh.heading[0, gh.mask[0]].numpy()
+        heading["gps_heading_sigma"][head_index] = gh.sigma[0, gh.mask[0]].numpy()
+        heading["heading_baseline"] = np.asarray(sim["gnss_heading_baseline_m"], dtype=float)
     imu_m = seq.imu.mask[0]
     return {
         "imu_t": seq.imu.t[0, imu_m].numpy(),
@@ -166,6 +183,7 @@ def peer_inputs(seq: Sequence, outage: tuple[float, float]) -> dict[str, Any]:
         },
         "gravity": STANDARD_GRAVITY,
         "init_bias_sigmas": (noise["accel_bias_sigma0"], noise["gyro_bias_sigma0"]),
+        **heading,
     }
 
 
@@ -251,11 +269,13 @@ def run_seed(seed: int, sim_cfg: SimConfig, repeats: int) -> dict[str, Any]:
     return row
 
 
-def medians(rows: list[dict[str, Any]], column: str) -> dict[str, float]:
-    """Median over runs of each metric (and wall time) of one column."""
-    out = {k: statistics.median(r[column][k] for r in rows) for k in (*METRICS, "wall_s")}
+def medians(
+    rows: list[dict[str, Any]], column: str, metrics: tuple[str, ...] = METRICS
+) -> dict[str, float]:
+    """Median over runs of each of ``metrics`` (and wall time) of one column."""
+    out = {k: statistics.median(r[column][k] for r in rows) for k in (*metrics, "wall_s")}
     if "smoothed" in rows[0][column]:
-        keys = [k for k in (*METRICS, "wall_s") if k in rows[0][column]["smoothed"]]
+        keys = [k for k in (*metrics, "wall_s") if k in rows[0][column]["smoothed"]]
         out["smoothed"] = {
             k: statistics.median(r[column]["smoothed"][k] for r in rows) for k in keys
         }

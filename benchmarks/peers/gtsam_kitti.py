@@ -70,6 +70,16 @@ Deviations from the example (deliberate):
    at every state whose fix is used (the first one included). That is the antenna's
    velocity only with a zero lever arm (no ``R (w x l)`` term here), which the caller
    must ensure. A fix (or velocity) with a non-finite entry is not used.
+10. Optional, off by default: ``gps_heading``, a dual-antenna (moving-baseline) GNSS
+    heading at each GPS time: the azimuth, clockwise from north, of the antenna baseline
+    ``heading_baseline`` (body frame; default body x), as ``msf_torch.sensors.gnss``
+    models it. Each state whose time has a finite heading (and sigma) and lies outside
+    ``outage`` gets one ``gtsam.CustomFactor`` on ``X(i)`` (:func:`heading_factor`;
+    Gaussian, no robust kernel, like the GPS factors; independent of ``gps_skip``). With
+    ``init_from_gps`` and a heading at the first state, the initial rotation *value* is
+    the level rotation whose baseline has that azimuth (it replaces the course of the
+    first velocity or displacement; the initial velocity value is still theirs; the
+    rotation prior keeps zero precision).
 
 States created during the warm-up have no causal "filter" estimate: they get the value
 from the first update (a small batch that already sees up to ``warmup_intervals`` fixes
@@ -78,6 +88,7 @@ into their future) and are flagged ``causal=False`` in the result.
 
 from __future__ import annotations
 
+import math
 import time
 from typing import Any
 
@@ -119,6 +130,59 @@ def make_imu_params(
     return params
 
 
+def heading_error(
+    rotation: np.ndarray, baseline: np.ndarray, heading: float
+) -> tuple[float, np.ndarray]:
+    """Heading residual and its Jacobian on Pose3's tangent space.
+
+    ``u = R b`` (ENU); ``r = wrap(atan2(u_e, u_n) - heading)`` in (-pi, pi]. Pose3's
+    tangent is ``[w, v]`` (rotation first) with ``R <- R Exp(w)``, so ``du = -R [b]x w``
+    and ``dr/dw = [u_n, -u_e, 0] / (u_e^2 + u_n^2) (-R [b]x)``; ``dr/dv = 0``. Undefined
+    where ``u`` points straight up or down (no azimuth).
+
+    Args:
+        rotation: (3, 3) body -> world (ENU).
+        baseline: (3,) primary -> secondary antenna, body frame, m (direction only).
+        heading: measured azimuth clockwise from north, rad.
+
+    Returns:
+        (residual rad, Jacobian (1, 6) rad per unit tangent).
+    """
+    east, north, _ = rotation @ baseline
+    residual = math.pi - (math.pi - (math.atan2(east, north) - heading)) % (2.0 * math.pi)
+    d_azimuth = np.array([north, -east, 0.0]) / (east**2 + north**2)
+    bx, by, bz = baseline
+    hat = np.array([[0.0, -bz, by], [bz, 0.0, -bx], [-by, bx, 0.0]])
+    jac = np.zeros((1, 6))
+    jac[0, :3] = -(d_azimuth @ rotation @ hat)
+    return residual, jac
+
+
+def heading_factor(
+    key: int, heading: float, sigma: float, baseline: np.ndarray
+) -> gtsam.CustomFactor:
+    """A dual-antenna GNSS heading factor on the Pose3 at ``key`` (:func:`heading_error`)
+    with a 1-D Gaussian noise of ``sigma`` rad."""
+
+    def error(
+        this: gtsam.CustomFactor, values: gtsam.Values, jacobians: list[np.ndarray] | None
+    ) -> np.ndarray:
+        rotation = values.atPose3(this.keys()[0]).rotation().matrix()
+        residual, jac = heading_error(rotation, baseline, heading)
+        if jacobians is not None:
+            jacobians[0] = jac
+        return np.array([residual])
+
+    noise = gtsam.noiseModel.Isotropic.Sigma(1, float(sigma))
+    return gtsam.CustomFactor(noise, [key], error)
+
+
+def level_yaw_for_heading(heading: float, baseline: np.ndarray) -> float:
+    """Yaw (rad, counter-clockwise from east about up) of the level rotation whose
+    baseline (3,) body frame has the azimuth ``heading`` (rad clockwise from north)."""
+    return math.pi / 2.0 - heading - math.atan2(baseline[1], baseline[0])
+
+
 def run_gtsam_kitti(
     imu_t: np.ndarray,
     imu_acc: np.ndarray,
@@ -137,6 +201,9 @@ def run_gtsam_kitti(
     init_bias_sigmas: tuple[float, float] = INIT_BIAS_SIGMAS,
     gps_velocity: np.ndarray | None = None,
     gps_velocity_sigma: np.ndarray | None = None,
+    gps_heading: np.ndarray | None = None,
+    gps_heading_sigma: float | np.ndarray | None = None,
+    heading_baseline: np.ndarray | None = None,
 ) -> dict[str, Any]:
     """Run the GTSAM CombinedImuFactor + GPSFactor ISAM2 pipeline.
 
@@ -168,14 +235,23 @@ def run_gtsam_kitti(
             in its sigmas) is skipped.
         gps_velocity_sigma: (3,) or (M, 3) per-axis sigmas of ``gps_velocity``, m/s
             (required with it).
+        gps_heading: (M,) dual-antenna heading at each GPS time, rad clockwise from north
+            (module doc, item 10), or None (no heading factors). A non-finite row (or
+            sigma) has none.
+        gps_heading_sigma: scalar or (M,) sigma of ``gps_heading``, rad (required with it).
+        heading_baseline: (3,) primary -> secondary antenna in the body frame (default
+            ``[1, 0, 0]``, the body's x axis); it must have a horizontal part.
 
     Returns:
         dict with ``t`` (M',) state times (``gps_t[first_gps_index:]``),
         ``filter_position`` (M', 3) newest-state position right after the update that
-        added it, ``smoothed_position`` (M', 3) final ISAM2 estimate, ``gps_used`` (M',)
-        bool, ``causal`` (M',) bool (False for warm-up states), ``wall_s`` (graph
-        building + ISAM2 updates + estimate extraction; input reading excluded),
-        ``n_states``, ``n_updates``, ``outage``, ``first_gps_index``.
+        added it, ``smoothed_position`` (M', 3) final ISAM2 estimate,
+        ``filter_rotation`` / ``smoothed_rotation`` (M', 3, 3) the same for the
+        body -> world rotation, ``gps_used`` (M',) bool, ``heading_used`` (M',) bool (a
+        heading factor at the state), ``causal`` (M',) bool (False for warm-up states),
+        ``wall_s`` (graph building + ISAM2 updates + estimate extraction; input reading
+        excluded), ``n_states``, ``n_factors`` (in the final graph), ``n_updates``,
+        ``outage``, ``first_gps_index``.
     """
     imu_t = np.asarray(imu_t, dtype=float)
     imu_acc = np.asarray(imu_acc, dtype=float)
@@ -198,6 +274,17 @@ def run_gtsam_kitti(
         if gps_velocity_sigma is None:
             raise ValueError("gps_velocity needs gps_velocity_sigma")
         vel_sigma = np.broadcast_to(np.asarray(gps_velocity_sigma, dtype=float), gps_xyz.shape)
+    baseline = np.array([1.0, 0.0, 0.0] if heading_baseline is None else heading_baseline, float)
+    if baseline.shape != (3,) or math.hypot(baseline[0], baseline[1]) < 1e-9:
+        raise ValueError(f"heading_baseline must be (3,) with a horizontal part, got {baseline}")
+    head_sigma = None
+    if gps_heading is not None:
+        gps_heading = np.asarray(gps_heading, dtype=float)
+        if gps_heading.shape != gps_t.shape:
+            raise ValueError(f"gps_heading has shape {gps_heading.shape}, expected {gps_t.shape}")
+        if gps_heading_sigma is None:
+            raise ValueError("gps_heading needs gps_heading_sigma")
+        head_sigma = np.broadcast_to(np.asarray(gps_heading_sigma, dtype=float), gps_t.shape)
 
     imu_dt = np.empty_like(imu_t)
     imu_dt[1:] = np.diff(imu_t)
@@ -206,7 +293,9 @@ def run_gtsam_kitti(
     first = first_gps_index
     n_states = len(gps_t) - first
     filter_pos = np.full((n_states, 3), np.nan)
+    filter_rot = np.full((n_states, 3, 3), np.nan)
     gps_used = np.zeros(n_states, dtype=bool)
+    heading_used = np.zeros(n_states, dtype=bool)
     causal = np.zeros(n_states, dtype=bool)
     warmup_end = first + warmup_intervals  # first update once i > warmup_end
 
@@ -244,6 +333,22 @@ def run_gtsam_kitti(
             new_factors.push_back(gtsam.PriorFactorVector(V(i), v_meas, noise))
         return v_meas
 
+    def heading_at(i: int) -> float | None:
+        """The heading measured at GPS time ``i`` if one is given, finite (its sigma too)
+        and outside the outage."""
+        if gps_heading is None or in_outage(gps_t[i]):
+            return None
+        if not (np.isfinite(gps_heading[i]) and np.isfinite(head_sigma[i])):
+            return None
+        return float(gps_heading[i])
+
+    def add_heading_factor(i: int) -> None:
+        """Put the heading factor of GPS time ``i`` (if any) on ``X(i)``."""
+        z = heading_at(i)
+        if z is not None:
+            new_factors.push_back(heading_factor(X(i), z, head_sigma[i], baseline))
+            heading_used[i - first] = True
+
     isam_params = gtsam.ISAM2Params()
     isam_params.setFactorization(factorization)
     isam_params.relinearizeSkip = 10
@@ -262,6 +367,9 @@ def run_gtsam_kitti(
         if v_first is not None:
             vel = v_first.copy()
             yaw = float(np.arctan2(vel[1], vel[0]))
+        z_first = heading_at(first)
+        if z_first is not None:
+            yaw = level_yaw_for_heading(z_first, baseline)
         pose = gtsam.Pose3(gtsam.Rot3.Yaw(yaw), gps_xyz[first])
     bias = gtsam.imuBias.ConstantBias()
     new_values.insert(X(first), pose)
@@ -271,6 +379,7 @@ def run_gtsam_kitti(
     new_factors.addPriorVector(V(first), vel, noise_init_v)
     new_factors.addPriorConstantBias(B(first), bias, noise_init_b)
     add_velocity_prior(first)
+    add_heading_factor(first)
     gps_used[0] = True  # the initial position prior is centred on this fix
 
     j = int(np.searchsorted(imu_t, gps_t[first], side="left"))
@@ -295,6 +404,7 @@ def run_gtsam_kitti(
             v_meas = add_velocity_prior(i)
             if v_meas is not None:
                 vel = v_meas.copy()
+        add_heading_factor(i)
         new_values.insert(X(i), pose)
         new_values.insert(V(i), vel)
         new_values.insert(B(i), bias)
@@ -308,27 +418,38 @@ def run_gtsam_kitti(
             vel = isam.calculateEstimateVector(V(i))
             bias = isam.calculateEstimateConstantBias(B(i))
             filter_pos[i - first] = pose.translation()
+            filter_rot[i - first] = pose.rotation().matrix()
             causal[i - first] = True
             if n_updates == 1:  # warm-up states: their value at the first update
                 for k in range(first, i):
-                    filter_pos[k - first] = isam.calculateEstimatePose3(X(k)).translation()
+                    warm = isam.calculateEstimatePose3(X(k))
+                    filter_pos[k - first] = warm.translation()
+                    filter_rot[k - first] = warm.rotation().matrix()
 
     if new_values.size() > 0:  # too few GPS times to leave the warm-up
         isam.update(new_factors, new_values)
         n_updates += 1
     result = isam.calculateEstimate()
-    smoothed = np.array([result.atPose3(X(i)).translation() for i in range(first, len(gps_t))])
-    filter_pos[np.isnan(filter_pos[:, 0])] = smoothed[np.isnan(filter_pos[:, 0])]
+    poses = [result.atPose3(X(i)) for i in range(first, len(gps_t))]
+    smoothed = np.array([p.translation() for p in poses])
+    smoothed_rot = np.array([p.rotation().matrix() for p in poses])
+    unset = np.isnan(filter_pos[:, 0])
+    filter_pos[unset] = smoothed[unset]
+    filter_rot[unset] = smoothed_rot[unset]
     wall_s = time.perf_counter() - start
 
     return {
         "t": gps_t[first:].copy(),
         "filter_position": filter_pos,
         "smoothed_position": smoothed,
+        "filter_rotation": filter_rot,
+        "smoothed_rotation": smoothed_rot,
         "gps_used": gps_used,
+        "heading_used": heading_used,
         "causal": causal,
         "wall_s": wall_s,
         "n_states": n_states,
+        "n_factors": isam.getFactorsUnsafe().size(),
         "n_updates": n_updates,
         "outage": None if outage is None else (float(outage[0]), float(outage[1])),
         "first_gps_index": first,
