@@ -1,5 +1,5 @@
 """IMU + wheels + GNSS through a GNSS outage with wheel slip: our ESKF vs robot_localization's
-EKF (numpy rewrite), on simulated runs.
+EKF (numpy rewrite), on simulated runs; with and without a dual-antenna GNSS heading.
 
 What it measures
     N simulated wheeled runs (``msf_torch.sim.simulate_run``, seeds ``seed0 .. seed0+N-1``,
@@ -37,7 +37,25 @@ What it measures
       on the IMU (``imu0`` roll, pitch, yaw: the simulated truth plus white noise of 0.5,
       0.5 and 2 deg, :data:`AHRS_SIGMA_RAD`), how robots with such an IMU feed it.
 
-    Scoring, the same for all: each estimate (ours at its epochs, the peer at its
+    Both with a dual-antenna (moving-baseline) GNSS heading, the same runs simulated again
+    with ``SimConfig(gnss_heading=True)``: a heading at every fix (none in the outage),
+    baseline = body x, sigma 0.005 rad. Its noise has its own random stream, so the IMU,
+    wheel, GNSS, truth and label streams are the runs' above bit for bit (checked on every
+    run: a difference raises), and the columns above are built from the runs without the
+    heading stream, as before:
+
+    * ``ours_heading``: ``run_eskf(seq, load_sequence_config(seq.meta))`` on the run with
+      its ``Sequence.gnss_heading`` (fused as a wrapped 1-row azimuth residual; the initial
+      yaw from the first heading);
+    * ``peer_heading``: the peer as configured (start state = ours_heading's initial
+      state), plus the headings as robot_localization users feed a dual-antenna receiver: a
+      second IMU-type input ``imu1`` with only yaw enabled (the u-blox driver's
+      ``navheading``), yaw = pi / 2 - azimuth (ENU; exact for a body-x baseline at any
+      roll and pitch) with variance sigma^2, at the fix stamps.
+
+    ``wins_ours_heading`` counts the runs where ``ours_heading`` beats ``peer_heading``.
+
+    Scoring, the same for all columns: each estimate (ours at its epochs, the peer at its
     measurement stamps) is linearly interpolated at the simulator's 200-Hz truth samples
     (``msf_torch.eval.outage.interpolate_positions``); ``rmse_m`` is the 3-D position RMSE
     over the run, ``outage_max_error_m`` and ``outage_rmse_m`` those inside the outage
@@ -57,7 +75,12 @@ Why the peer drifts
     with estimated biases, so the wheel and GNSS updates observe its roll and pitch through
     gravity; the peer's model has neither. Where a robot's IMU reports orientation (an AHRS,
     or ``imu_filter_madgwick`` in front), the peer fuses it: ``peer_ahrs`` shows it with a
-    simulated AHRS that ours does not get.
+    simulated AHRS that ours does not get. A dual-antenna heading fixes only the yaw: on the
+    test seeds 300-309 ``peer_heading``'s yaw error before the outage (RMS, after its first
+    quarter) is 0.25-1.3 deg (the peer's 6.9-16 deg) and 0.04-1.6 deg at its start, while
+    roll and pitch stay 4-30 deg RMS off; on seed 302 the fixes then pull the roll further
+    (-57 deg at the outage start, -28 deg without headings) and its outage max error grows
+    from 5.8 to 13.6 m.
 
 How to run
     OMP_NUM_THREADS=1 .venv/bin/python benchmarks/robot_localization.py        # ~7 min
@@ -84,7 +107,9 @@ Options
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import itertools
+import math
 import statistics
 import sys
 import time
@@ -109,6 +134,10 @@ from msf_torch.types import Sequence, Trajectory  # noqa: E402
 
 METRICS = ("rmse_m", "outage_max_error_m", "outage_rmse_m")
 PEERS = ("peer", "peer_default_init", "peer_tuned", "peer_2d", "peer_ahrs")
+HEADING_COLUMNS = ("ours_heading", "peer_heading")
+"""Columns of the runs with dual-antenna headings: ours, then the peer it is scored against."""
+SHARED_STREAMS = ("imu", "wheel", "gnss", "gnss_velocity", "poses", "ground_truth")
+"""Streams that switching the simulator's headings on must leave as they are."""
 AHRS_SIGMA_RAD = np.radians([0.5, 0.5, 2.0])
 """1-sigma of the simulated AHRS orientation fed to ``peer_ahrs``: roll, pitch, yaw, rad
 (a MEMS AHRS's typical 0.5 deg level and 2 deg magnetic heading)."""
@@ -195,6 +224,65 @@ def peer_trajectory(out: dict[str, Any]) -> Trajectory:
     )
 
 
+def heading_inputs(seq: Sequence, cfg: EskfConfig) -> dict[str, np.ndarray]:
+    """``run_rl_ekf``'s yaw-only input (``imu1``) from a B = 1 sequence's dual-antenna
+    headings: ENU yaw = pi / 2 - azimuth (the baseline, ours' ``gnss_heading_baseline_m``,
+    must be the body x axis: then exact at any roll and pitch), variance = sigma^2 (a NaN
+    sigma: ours' ``gnss_heading_sigma_rad``).
+
+    Returns:
+        dict with ``heading_t`` (H,) s, ``heading_yaw`` (H,) rad and ``heading_variance``
+        (H,) rad^2.
+    """
+    bx, by, bz = cfg.gnss_heading_baseline_m
+    if not (bx > 0.0 and by == 0.0 and bz == 0.0):
+        raise ValueError(f"the baseline must be the body x axis, got {[bx, by, bz]}")
+    heading = seq.gnss_heading
+    keep = heading.mask[0]
+    sigma = heading.sigma[0, keep].numpy()
+    sigma = np.where(np.isnan(sigma), cfg.gnss_heading_sigma_rad, sigma)
+    return {
+        "heading_t": heading.t[0, keep].numpy(),
+        "heading_yaw": 0.5 * math.pi - heading.heading[0, keep].numpy(),
+        "heading_variance": sigma**2,
+    }
+
+
+def check_only_heading_added(plain: Sequence, with_heading: Sequence, seed: int) -> None:
+    """Raise RuntimeError unless ``with_heading`` is the run ``plain`` plus a heading stream:
+    every stream of :data:`SHARED_STREAMS`, the labels and the sensor / slip metadata the
+    same, bit for bit (NaN equal to NaN)."""
+
+    def same(a: torch.Tensor, b: torch.Tensor) -> bool:
+        if a.shape != b.shape or a.dtype != b.dtype:
+            return False
+        if not a.is_floating_point():
+            return torch.equal(a, b)
+        return bool(((a == b) | (a.isnan() & b.isnan())).all())
+
+    if with_heading.gnss_heading is None:
+        raise RuntimeError(f"seed {seed}: the run with headings has no heading stream")
+    differ = []
+    for name in SHARED_STREAMS:
+        a, b = getattr(plain, name), getattr(with_heading, name)
+        if (a is None) != (b is None) or (
+            a is not None
+            and not all(same(getattr(a, f.name), getattr(b, f.name)) for f in dataclasses.fields(a))
+        ):
+            differ.append(name)
+    if plain.labels.keys() != with_heading.labels.keys() or not all(
+        same(v, with_heading.labels[k]) for k, v in plain.labels.items()
+    ):
+        differ.append("labels")
+    for key in ("sensor", "slip_episodes", "truth"):
+        if plain.meta.get(key) != with_heading.meta.get(key):
+            differ.append(f"meta[{key!r}]")
+    if differ:
+        raise RuntimeError(
+            f"seed {seed}: switching the simulator's headings on changed {', '.join(differ)}"
+        )
+
+
 def simulate(sim_cfg: SimConfig, seed: int) -> tuple[Sequence, tuple[float, float]]:
     """One simulated run and its single outage ``(start, end)``, s."""
     seq = simulate_run(sim_cfg, seed=seed).sequence
@@ -255,8 +343,13 @@ def tune_peer(
 
 
 def run_seed(seed: int, sim_cfg: SimConfig, tuned: dict[str, Any]) -> dict[str, Any]:
-    """Ours and every peer column on one run: ``{column: metrics + wall time}``."""
+    """Ours and every peer column on one run, then :data:`HEADING_COLUMNS` on the same run
+    simulated with dual-antenna headings: ``{column: metrics + wall time}``."""
     seq, outage = simulate(sim_cfg, seed)
+    seq_heading, outage_heading = simulate(dataclasses.replace(sim_cfg, gnss_heading=True), seed)
+    check_only_heading_added(seq, seq_heading, seed)
+    if outage_heading != outage:
+        raise RuntimeError(f"seed {seed}: the outage moved with headings on")
     cfg = load_sequence_config(seq.meta)
     row: dict[str, Any] = {"seed": seed, "outage_s": list(outage)}
     start = time.perf_counter()
@@ -270,6 +363,19 @@ def run_seed(seed: int, sim_cfg: SimConfig, tuned: dict[str, Any]) -> dict[str, 
     row["peer_tuned"] = run_peer(seq, arrays, outage, **tuned_options(**tuned))
     row["peer_2d"] = run_peer(seq, arrays, outage, two_d_mode=True)
     row["peer_ahrs"] = run_peer(seq, arrays, outage, **ahrs_orientation(seq, seed))
+    cfg_heading = load_sequence_config(seq_heading.meta)
+    start = time.perf_counter()
+    with torch.no_grad():
+        result = run_eskf(seq_heading, cfg_heading)
+    wall = time.perf_counter() - start
+    row["ours_heading"] = {
+        **score(result.trajectory(), seq_heading.ground_truth, outage),
+        "wall_s": wall,
+    }
+    arrays_heading = peer_inputs(seq_heading, cfg_heading)
+    row["peer_heading"] = run_peer(
+        seq_heading, arrays_heading, outage, **heading_inputs(seq_heading, cfg_heading)
+    )
     return row
 
 
@@ -336,7 +442,7 @@ def main(argv: list[str] | None = None) -> int:
             + " | ".join(
                 f"{name} rmse {row[name]['rmse_m']:.2f} m outage max "
                 f"{row[name]['outage_max_error_m']:.2f} m"
-                for name in ("ours", *PEERS)
+                for name in ("ours", *PEERS, *HEADING_COLUMNS)
             )
             + f" | wall: ours {row['ours']['wall_s']:.1f} s, peer (numpy rewrite, not the C++ "
             f"node) {row['peer']['wall_s_numpy']:.1f} s"
@@ -346,12 +452,17 @@ def main(argv: list[str] | None = None) -> int:
         keys = [k for k in (*METRICS, "wall_s", "wall_s_numpy") if k in rows[0][column]]
         return {k: statistics.median(r[column][k] for r in rows) for k in keys}
 
-    columns = {name: medians(name) for name in ("ours", *PEERS)}
+    columns = {name: medians(name) for name in ("ours", *PEERS, *HEADING_COLUMNS)}
     wins = {
         name: {metric: sum(r["ours"][metric] < r[name][metric] for r in rows) for metric in METRICS}
         for name in PEERS
     }
+    wins_heading = {
+        metric: sum(r["ours_heading"][metric] < r["peer_heading"][metric] for r in rows)
+        for metric in METRICS
+    }
     om, pm, tm = columns["ours"], columns["peer"], columns["peer_tuned"]
+    ohm, phm = columns["ours_heading"], columns["peer_heading"]
     record = {
         "benchmark": "robot_localization",
         "inputs": {
@@ -369,6 +480,11 @@ def main(argv: list[str] | None = None) -> int:
             "removed, odom0 twist vx vy vz vyaw, odom1 (GNSS) pose x y z; two_d_mode off; "
             "default process noise; start state = ours' initial state",
             "tuning": tuning,
+            "heading": "ours_heading / peer_heading: the same runs simulated with "
+            "SimConfig(gnss_heading=True) (a dual-antenna heading at every fix, none in the "
+            "outage, baseline body x, sigma 0.005 rad; the other streams checked identical); "
+            "ours fuses Sequence.gnss_heading, the peer gets it as imu1 yaw only "
+            "(yaw = pi/2 - azimuth, variance sigma^2), start state = ours' initial state",
             "statistic": "median over runs",
             "wall_time_note": "the peer's wall time is a numpy rewrite's, not the C++ node's: "
             "no ratio",
@@ -385,8 +501,14 @@ def main(argv: list[str] | None = None) -> int:
             "rmse_ours_over_peer_ahrs": om["rmse_m"] / columns["peer_ahrs"]["rmse_m"],
             "outage_max_ours_over_peer_ahrs": om["outage_max_error_m"]
             / columns["peer_ahrs"]["outage_max_error_m"],
+            "rmse_ours_heading_over_peer_heading": ohm["rmse_m"] / phm["rmse_m"],
+            "outage_max_ours_heading_over_peer_heading": ohm["outage_max_error_m"]
+            / phm["outage_max_error_m"],
+            "outage_rmse_ours_heading_over_peer_heading": ohm["outage_rmse_m"]
+            / phm["outage_rmse_m"],
         },
         "wins_ours": wins,
+        "wins_ours_heading": {"peer_heading": wins_heading},
         "accuracy": {name: {k: columns[name][k] for k in METRICS} for name in columns},
         "runs": rows,
         "machine": machine,

@@ -28,7 +28,8 @@ wrapped, a Mahalanobis gate ``d^2 < threshold^2`` (default: none, as robot_local
 Measurement variances below 1e-9 are raised to 1e-9, as ``Ekf::correct`` does.
 
 Measurements are processed in time order (stable: at one stamp the IMU angular velocity,
-the IMU acceleration, the wheel twist, then the GNSS pose), each predicting from the last
+the IMU acceleration, the wheel twist, the GNSS pose, then the GNSS heading; the node's
+queue orders equal stamps by arrival), each predicting from the last
 stamp to its own (no prediction when ``dt <= 0``), as ``FilterBase::processMeasurement``.
 The first measurement initialises the filter (its update-vector entries and their
 variances; the rest stays at the initial state), unless ``initial_state`` is given (the
@@ -48,7 +49,15 @@ Sensors as a wheeled robot's config has them (``ekf_template.yaml``, "Preparing 
   vyaw = (v_r - v_l) / track and vy = vz = 0 (a differential drive cannot move sideways or
   vertically), ``odom0_differential: false``;
 * ``odom1``: GNSS fixes as pose x, y, z (navsat_transform's ``odometry/gps``; the caller
-  gives ENU positions in the filter's world frame), variances from the fix sigmas.
+  gives ENU positions in the filter's world frame), variances from the fix sigmas;
+* ``imu1`` (optional): a dual-antenna GNSS heading as a second IMU-type input with only yaw
+  enabled (e.g. the u-blox driver's ``navheading`` sensor_msgs/Imu; ``imu1_config`` true
+  for yaw only, ``imu1_differential`` and ``imu1_relative`` false), at its own stamps.
+  ``RosFilter::preparePose`` with ``imu_data`` and an identity mounting passes the
+  message's yaw (ENU, counter-clockwise from east, one branch: here wrapped like the
+  state's angles) and the yaw entry of its orientation covariance through unchanged;
+  ``Ekf::correct`` then updates the yaw row alone with the innovation wrapped
+  (``clampRotation``), so a heading across +-pi pulls the short way round.
 
 ``two_d_mode`` (off by default) does what ``forceTwoD`` does to every measurement: z, roll,
 pitch, vz, vroll, vpitch, az measured as 0 with variance 1e-6.
@@ -287,12 +296,13 @@ class RlEkf:
             self.last_time = time
 
 
-IMU_POSE, IMU_TWIST, IMU_ACCEL, ODOM_TWIST, GNSS_POSE = range(5)
+IMU_POSE, IMU_TWIST, IMU_ACCEL, ODOM_TWIST, GNSS_POSE, GNSS_HEADING = range(6)
 _ODOM_INDEX = np.array([VX, VY, VZ, VYAW])
 _GYRO_INDEX = np.array([VROLL, VPITCH, VYAW])
 _ACCEL_INDEX = np.array([AX, AY, AZ])
 _POSE_INDEX = np.array([X, Y, Z])
 _ORIENTATION_INDEX = np.array([ROLL, PITCH, YAW])
+_YAW_INDEX = np.array([YAW])
 
 
 def run_rl_ekf(
@@ -316,6 +326,9 @@ def run_rl_ekf(
     rejection_threshold: float = math.inf,
     imu_rpy: np.ndarray | None = None,
     rpy_variance: np.ndarray | None = None,
+    heading_t: np.ndarray | None = None,
+    heading_yaw: np.ndarray | None = None,
+    heading_variance: np.ndarray | None = None,
 ) -> dict[str, Any]:
     """Run the robot_localization EKF over IMU, wheel and GNSS streams (one run).
 
@@ -339,6 +352,12 @@ def run_rl_ekf(
             its rates (robot_localization's order within an IMU message); None: the IMU
             reports no orientation (orientation covariance -1).
         rpy_variance: (3,) variances of ``imu_rpy``, rad^2.
+        heading_t: (H,) s, stamps of a yaw-only orientation input (``imu1``: a dual-antenna
+            GNSS heading); None: no such input.
+        heading_yaw: (H,) its yaw, ENU (counter-clockwise from east), rad, any branch
+            (``pi / 2 - azimuth`` for a receiver whose baseline is the body x axis); rows
+            with a non-finite yaw or variance are skipped.
+        heading_variance: (H,) its variances, rad^2.
 
     Returns:
         dict with ``t`` (S,) the distinct measurement stamps, s; ``position`` (S, 3) m and
@@ -366,6 +385,20 @@ def run_rl_ekf(
     events += [(t, IMU_ACCEL, i) for i, t in enumerate(imu_t)]
     events += [(t, ODOM_TWIST, i) for i, t in enumerate(wheel_t)]
     events += [(t, GNSS_POSE, i) for i, t in enumerate(gnss_t) if np.all(np.isfinite(gnss_xyz[i]))]
+    given = [a is not None for a in (heading_t, heading_yaw, heading_variance)]
+    if any(given):
+        if not all(given):
+            raise ValueError("heading_t, heading_yaw and heading_variance go together")
+        heading_t = np.asarray(heading_t, float)
+        heading_yaw = np.asarray(heading_yaw, float)
+        heading_variance = np.asarray(heading_variance, float)
+        shapes = (heading_t.shape, heading_yaw.shape, heading_variance.shape)
+        if heading_t.ndim != 1 or len(set(shapes)) != 1:
+            raise ValueError(
+                f"heading_t, heading_yaw and heading_variance must be (H,) each, got {shapes}"
+            )
+        usable = np.isfinite(heading_yaw) & np.isfinite(heading_variance)
+        events += [(t, GNSS_HEADING, i) for i, t in enumerate(heading_t) if usable[i]]
     events.sort(key=lambda e: (e[0], e[1]))
     ekf = RlEkf(process_noise, two_d_mode)
     if initial_state is not None:
@@ -388,8 +421,11 @@ def run_rl_ekf(
             vl, vr = float(wheel_left[i]), float(wheel_right[i])
             z = np.array([0.5 * (vl + vr), 0.0, 0.0, (vr - vl) / wheel_track_m])
             ekf.process(t, _ODOM_INDEX, z, wheel_twist_variance, rejection_threshold)
-        else:
+        elif kind == GNSS_POSE:
             ekf.process(t, _POSE_INDEX, gnss_xyz[i], gnss_var[i], rejection_threshold)
+        else:
+            yaw = np.array([_wrap(float(heading_yaw[i]))])
+            ekf.process(t, _YAW_INDEX, yaw, heading_variance[i : i + 1], rejection_threshold)
         if k + 1 == len(events) or events[k + 1][0] != t:
             stamps.append(t)
             positions.append(ekf.state[X : Z + 1].copy())

@@ -1,6 +1,7 @@
 """The robot_localization EKF peer (``benchmarks/peers/rl_ekf.py``) and its benchmark
 (``benchmarks/robot_localization.py``): the predict Jacobian against finite differences,
-a noise-free straight drive tracked from the node's default zero start, and the
+a noise-free straight drive tracked from the node's default zero start, a yaw-only
+heading input (``imu1``) pulling a wrong yaw to truth (also across +-pi), and the
 benchmark's smoke run."""
 
 from __future__ import annotations
@@ -98,7 +99,13 @@ def test_smoke_run_json_line(capsys, one_torch_thread):
         best["scale"] == best["attitude_scale"] == 1.0
         and len(record["inputs"]["tuning"]["grid"]) == 2
     )
-    assert set(record["columns"]) == {"ours", *robot_localization.PEERS}
+    assert set(record["columns"]) == {
+        "ours",
+        *robot_localization.PEERS,
+        *robot_localization.HEADING_COLUMNS,
+    }
+    assert set(record["wins_ours_heading"]["peer_heading"]) == set(robot_localization.METRICS)
+    assert record["ratio"]["rmse_ours_heading_over_peer_heading"] > 0.0
     for name, figures in record["accuracy"].items():
         for metric in robot_localization.METRICS:
             assert math.isfinite(figures[metric]) and figures[metric] > 0.0, (name, metric)
@@ -106,3 +113,93 @@ def test_smoke_run_json_line(capsys, one_torch_thread):
     for row in record["runs"]:
         start, end = row["outage_s"]
         assert 10.0 <= start and end - start == pytest.approx(6.0)
+
+
+def _turning_drive(yaw0: float, yaw_rate: float, start_yaw: float, **options):
+    """1.5 m/s with a constant yaw rate (rad/s) from yaw ``yaw0``, level, exact IMU (the
+    centripetal acceleration included) / wheels / GNSS, the peer started at the true
+    position and speed with yaw ``start_yaw``; returns the output and the true yaw at its
+    stamps."""
+    speed, track, g = 1.5, 0.5, 9.80665
+    imu_t = np.arange(0.0, 30.0 + 1e-9, 0.01)
+    wheel_t = np.arange(0.04, 30.0 + 1e-9, 0.04)
+    gnss_t = np.arange(0.0, 30.0 + 1e-9, 1.0)
+    radius = speed / yaw_rate
+    yaw = yaw0 + yaw_rate * gnss_t
+    east = radius * (np.sin(yaw) - math.sin(yaw0))
+    north = -radius * (np.cos(yaw) - math.cos(yaw0))
+    gnss_xyz = np.stack((east, north, np.zeros_like(yaw)), -1)
+    start = np.zeros(STATE_SIZE)
+    start[5], start[6], start[11] = start_yaw, speed, yaw_rate
+    out = run_rl_ekf(
+        imu_t=imu_t,
+        imu_gyro=np.tile([0.0, 0.0, yaw_rate], (imu_t.size, 1)),
+        imu_accel=np.tile([0.0, speed * yaw_rate, g], (imu_t.size, 1)),
+        gyro_variance=np.full(3, 1e-6),
+        accel_variance=np.full(3, 1e-4),
+        wheel_t=wheel_t,
+        wheel_left=np.full(wheel_t.size, speed - 0.5 * track * yaw_rate),
+        wheel_right=np.full(wheel_t.size, speed + 0.5 * track * yaw_rate),
+        wheel_track_m=track,
+        wheel_twist_variance=np.full(4, 1e-4),
+        gnss_t=gnss_t,
+        gnss_xyz=gnss_xyz,
+        gnss_sigma=np.full(3, 0.5),
+        gravity=g,
+        initial_state=start,
+        **options,
+    )
+    return out, yaw0 + yaw_rate * out["t"]
+
+
+def _yaw_error(estimate: np.ndarray, truth: np.ndarray) -> np.ndarray:
+    """Wrapped estimate - truth, rad."""
+    return (estimate - truth + math.pi) % (2.0 * math.pi) - math.pi
+
+
+def test_yaw_only_heading_pulls_a_wrong_yaw_to_truth():
+    """A dual-antenna heading fused as a yaw-only input (``imu1``), at its own stamps off the
+    IMU's grid: the peer started 0.5 rad off in yaw on a turning drive has the true yaw
+    after the first heading; without the headings the error is still there."""
+    yaw0, rate = 0.6, 0.05
+    heading_t = np.arange(0.505, 30.0, 1.0)
+    headings = {
+        "heading_t": heading_t,
+        "heading_yaw": yaw0 + rate * heading_t,
+        "heading_variance": np.full(heading_t.size, 0.005**2),
+    }
+    out, truth = _turning_drive(yaw0, rate, yaw0 + 0.5, **headings)
+    without, truth_without = _turning_drive(yaw0, rate, yaw0 + 0.5)
+    assert set(np.round(heading_t, 6)) <= set(np.round(out["t"], 6))
+    after = out["t"] >= heading_t[0]
+    assert np.abs(_yaw_error(out["rpy"][after, 2], truth[after])).max() < 0.01
+    early = (without["t"] >= heading_t[0]) & (without["t"] < 2.0)
+    assert np.abs(_yaw_error(without["rpy"][early, 2], truth_without[early])).min() > 0.3
+    assert out["rejected"] == 0
+    with pytest.raises(ValueError, match="heading_t, heading_yaw and heading_variance"):
+        _turning_drive(yaw0, rate, yaw0, **{**headings, "heading_variance": None})
+    with pytest.raises(ValueError, match=r"must be \(H,\)"):
+        _turning_drive(yaw0, rate, yaw0, **{**headings, "heading_yaw": headings["heading_yaw"][1:]})
+
+
+def test_yaw_only_heading_across_pi_pulls_the_short_way():
+    """Driving through yaw = pi (the headings given unwrapped, beyond pi after 2 s), the peer
+    started 0.3 rad past the truth across the +-pi cut moves the short way: its wrapped
+    error never grows past the start's and shrinks to the truth. With heading variances
+    near the state's, an unwrapped innovation of ~2 pi - 0.3 swings the yaw ~3 rad the
+    wrong way (checked: max error 3.1 rad with the yaw innovation unwrapped)."""
+    yaw0, rate = math.pi - 0.2, 0.1
+    heading_t = np.arange(1.0, 30.0, 1.0)
+    true_heading = yaw0 + rate * heading_t  # beyond pi after 2 s: another branch
+    out, truth = _turning_drive(
+        yaw0,
+        rate,
+        yaw0 + 0.3 - 2.0 * math.pi,
+        heading_t=heading_t,
+        heading_yaw=true_heading,
+        heading_variance=np.full(heading_t.size, 0.06),
+    )
+    error = np.abs(_yaw_error(out["rpy"][:, 2], truth))
+    assert error.max() < 0.31, error.max()
+    assert error[out["t"] >= 20.0].max() < 0.02, error[out["t"] >= 20.0].max()
+    assert np.all(np.abs(out["rpy"][:, 2]) <= math.pi)
