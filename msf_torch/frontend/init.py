@@ -31,7 +31,13 @@ docs/frontend.md: it helps the NEES but keeps a stuck-gyro fault from being rese
 
 from __future__ import annotations
 
-__all__ = ["alignment_yaw_variance", "antenna_heading_yaw", "initial_state", "velocity_heading"]
+__all__ = [
+    "alignment_yaw_variance",
+    "antenna_heading_yaw",
+    "initial_state",
+    "segment_course_yaw",
+    "velocity_heading",
+]
 
 import math
 import warnings
@@ -257,6 +263,85 @@ def antenna_heading_yaw(
     return math.atan2(math.sin(yaw), math.cos(yaw)), float(sigma[k]) ** 2 + variance
 
 
+def segment_course_yaw(
+    gnss_t: np.ndarray,
+    gnss_xy: np.ndarray,
+    fix_sigma: np.ndarray,
+    imu_t: np.ndarray,
+    gyro: np.ndarray,
+    tilt: np.ndarray,
+    cfg: EskfConfig,
+) -> tuple[float, float] | None:
+    """Heading at the first IMU sample from the courses of a GNSS track's segments, with
+    the gyro's turns taken out (no wheels needed; the vehicle drives forwards along its x
+    axis, the non-holonomic assumption).
+
+    The fixes are cut into consecutive segments, each ending at the first fix at least
+    ``SEGMENT_SIGMAS`` times its two fixes' horizontal sigma from its start. On a turn of
+    constant rate and speed a segment's chord points along the mean heading over it, so
+    ``course_i - mean(turned)_i`` (``turned``: the gyro's heading change since the first
+    IMU sample) estimates the initial heading; their weighted circular mean is the yaw.
+    A turning, slow vehicle, whose track's overall course says nothing (a loop), is aligned
+    this way within seconds.
+
+    Args:
+        gnss_t: (M,) fix times, s; gnss_xy: (M, 2) east, north, m; fix_sigma: (M, 2) m.
+        imu_t: (N,) IMU times, s; gyro: (N, 3) raw rates, rad/s.
+        tilt: (3, 3) the initial roll-pitch rotation (body -> level frame).
+        cfg: the filter's config (bias prior, gyro noise).
+
+    Returns:
+        (yaw, variance) in rad (ENU, counter-clockwise from east) and rad^2, or None with
+        fewer than three segments. Each segment's variance: its end fixes' noise across
+        the chord over its length squared, plus a quarter of its gyro heading swing
+        squared (speed changes inside it); the variance is that of the weighted mean
+        (segments share end fixes: their independence is assumed) plus the carry-back
+        variance (:func:`_carry_variance`) at the segments' weighted mean time. Segments
+        more than 3 sigma off the first mean are dropped once.
+    """
+    dt = np.diff(imu_t, append=imu_t[-1])
+    rate = ((gyro - np.asarray(cfg.init_gyro_bias_radps)) @ tilt.T)[:, 2]
+    turned = np.concatenate(([0.0], np.cumsum(rate * dt)[:-1]))
+    courses, variances, times = [], [], []
+    start = 0
+    for end in range(1, len(gnss_t)):
+        chord = gnss_xy[end] - gnss_xy[start]
+        length = float(np.hypot(*chord))
+        reach = SEGMENT_SIGMAS * float(np.hypot(*fix_sigma[start]) + np.hypot(*fix_sigma[end]))
+        if length < reach:
+            continue
+        inside = (imu_t >= gnss_t[start]) & (imu_t <= gnss_t[end])
+        if inside.sum() < 2:
+            start = end
+            continue
+        course = math.atan2(chord[1], chord[0])
+        across = np.array([-math.sin(course), math.cos(course)])
+        noise = float(((fix_sigma[[start, end]] * across) ** 2).sum()) / length**2
+        swing = float(np.ptp(turned[inside]))
+        courses.append(course - float(turned[inside].mean()))
+        variances.append(noise + 0.25 * swing**2)
+        times.append(0.5 * (gnss_t[start] + gnss_t[end]) - imu_t[0])
+        start = end
+    if len(courses) < 3:
+        return None
+    course_, weight, time_ = np.array(courses), 1.0 / np.array(variances), np.array(times)
+    yaw = math.atan2((weight * np.sin(course_)).sum(), (weight * np.cos(course_)).sum())
+    off = np.abs(np.remainder(course_ - yaw + math.pi, 2.0 * math.pi) - math.pi)
+    keep = off <= 3.0 / np.sqrt(weight)
+    if keep.sum() < 3:
+        return None
+    course_, weight, time_ = course_[keep], weight[keep], time_[keep]
+    yaw = math.atan2((weight * np.sin(course_)).sum(), (weight * np.cos(course_)).sum())
+    mean_time = float((weight * time_).sum() / weight.sum())
+    return yaw, 1.0 / float(weight.sum()) + float(_carry_variance(np.asarray(mean_time), cfg))
+
+
+SEGMENT_SIGMAS = 5.0
+"""A track segment of :func:`segment_course_yaw` ends at the first fix this many times its
+two fixes' horizontal sigmas (summed) from its start: its course is then good to about
+0.3 rad from the fixes' noise."""
+
+
 def _check_antenna_heading(
     name: str, measured: tuple[float, float], yaw: float, yaw_sigma: float
 ) -> None:
@@ -409,6 +494,19 @@ def _one(
                     / max(float(dist[k]), 1e-9) ** 2
                     + swing**2
                 )
+                # the segments' courses less the gyro's turns, when that is better known
+                sig = gnss["sigma"][: last + 1, :2]
+                segments = segment_course_yaw(
+                    gnss["t"][: last + 1],
+                    gnss["position"][: last + 1, :2],
+                    np.where(np.isfinite(sig) & (sig > 0), sig, fallback),
+                    imu_t,
+                    read_imu("gyro", slice(None)),
+                    _rpy_numpy(roll, pitch, 0.0),
+                    cfg,
+                )
+                if segments is not None and segments[1] < model_var:
+                    yaw, model_var = segments
             if cfg.calibrate_imu_body_rotation:
                 # the track runs along the vehicle's x axis, the heading wanted is the IMU's:
                 # an IMU-to-vehicle yaw still to be calibrated adds its prior uncertainty

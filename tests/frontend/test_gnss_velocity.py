@@ -136,9 +136,10 @@ def test_velocities_give_the_initial_heading_without_wheels(runs):
             out.append(abs(yaw_error))
             if with_velocity:
                 ratios.append(yaw_error / float(cov[0, 8, 8].sqrt()))
-    # the first course over ground against the track's first 20 m (its course over the
-    # seconds of turning it took)
-    assert np.median(errors) < 0.05 and np.median(errors_track) > 0.15
+    # the first course over ground against the track's segment courses less the gyro's
+    # turns (measured: 0.023 vs 0.035 rad; the track's first 20 m, before
+    # frontend.init.segment_course_yaw, 0.20 rad)
+    assert np.median(errors) < 0.05 and np.median(errors) < np.median(errors_track)
     assert max(abs(r) for r in ratios) < 3.0
 
 
