@@ -6,9 +6,11 @@ sigma ``init_yaw_sigma_rad``); with GNSS and wheels, the 2-D rotation that best 
 wheel/gyro dead-reckoned path with the GNSS track up to ``init_min_gnss_distance_m`` from
 the first fix (2-D Kabsch on the centred tracks; the aligned dead-reckoning origin is the
 initial position); with GNSS only, the course of the first GNSS displacement of that
-length; else 0 with a heading sigma of ``init_yaw_sigma_unknown_rad`` (pi; the world frame
-then starts aligned with the body). A track that never gets that far but reaches a quarter
-of it is used up to its farthest fix. A GNSS heading's sigma is that of the estimate made
+length, or the GNSS track's segment courses less the gyro's turns
+(:func:`segment_course_yaw`) where that is better known; else 0 with a heading sigma of
+``init_yaw_sigma_unknown_rad`` (pi; the world frame then starts aligned with the body). A
+track that never gets that far but reaches a quarter of it is used up to its farthest fix.
+A GNSS heading's sigma is that of the estimate made
 (:func:`alignment_yaw_variance`: the fixes' noise over the track's spread, and the gyro
 bias and white noise bending the dead-reckoned track; for a course, the two fixes' noise
 across the baseline and the gyro's heading swing over it; plus the prior of an
