@@ -17,7 +17,11 @@ from 15 to ``15 + n`` entries, in this order:
   ``calibration_pose_lever_arm_m`` / ``calibration_pose_rotation_rad`` (default 0);
 * ``rotation_rad:imu_body:{x,y,z}`` (``calibrate_imu_body_rotation``): the rotation vehicle
   -> body (IMU) of the wheel and non-holonomic models, starts at
-  ``calibration_imu_body_rotation_rad``.
+  ``calibration_imu_body_rotation_rad``;
+* ``heading_offset_rad:gnss_heading`` (``calibrate_gnss_heading_offset``, runs with
+  dual-antenna headings): the turn about body z of the antenna baseline
+  (``sensors.calibration.heading_offset_residual``), starts at
+  ``calibration_gnss_heading_offset_rad``, prior sigma ``calibration_rotation_sigma_rad``.
 
 Each is a random walk (``calibration_*_rw_density``) with a Gaussian prior
 (``calibration_*_sigma``), additive error (``k = k_hat + dk``; the rotations: right error
@@ -81,6 +85,7 @@ class CalibrationLayout:
         pose_extrinsic_index: ``"pose:<name>"`` -> first column of its lever arm (3), then
             its mounting rotation (3).
         imu_body_index: first of the three IMU-to-vehicle rotation columns, or None.
+        heading_offset_index: the dual-antenna heading offset's column, or None.
         rotation_index: first columns of every rotation triplet (right error, composed on
             injection).
     """
@@ -95,6 +100,7 @@ class CalibrationLayout:
     pose_extrinsic_index: dict[str, int] = field(default_factory=dict)
     imu_body_index: int | None = None
     rotation_index: tuple[int, ...] = ()
+    heading_offset_index: int | None = None
 
     @classmethod
     def from_config(
@@ -168,6 +174,13 @@ class CalibrationLayout:
             imu_body = add(
                 "rotation_rad:imu_body", list(cfg.calibration_imu_body_rotation_rad), True
             )
+        heading_offset = None
+        if cfg.calibrate_gnss_heading_offset and "gnss_heading" in sensors:
+            heading_offset = len(names)
+            names.append("heading_offset_rad:gnss_heading")
+            initial.append(float(cfg.calibration_gnss_heading_offset_rad))
+            sigma.append(cfg.calibration_rotation_sigma_rad)
+            walk.append(cfg.calibration_rotation_rw_density)
         if not names:
             return None
 
@@ -185,6 +198,7 @@ class CalibrationLayout:
             extrinsic,
             imu_body,
             tuple(rotations),
+            heading_offset,
         )
 
     @property

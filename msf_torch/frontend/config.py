@@ -217,8 +217,12 @@ class EskfConfig:
     calibration_pose_rotation_rad: dict[str, list[float]] = field(default_factory=dict)
     calibrate_imu_body_rotation: bool = False
     calibration_imu_body_rotation_rad: list[float] = field(default_factory=lambda: [0.0] * 3)
+    # dual-antenna heading offset: the baseline gnss_heading_baseline_m turned about body z
+    # by this angle (rad; starts at calibration_gnss_heading_offset_rad)
+    calibrate_gnss_heading_offset: bool = False
+    calibration_gnss_heading_offset_rad: float = 0.0
     calibration_lever_arm_sigma_m: float = 0.3  # prior 1-sigma per axis
-    calibration_rotation_sigma_rad: float = 0.05  # prior 1-sigma per axis
+    calibration_rotation_sigma_rad: float = 0.05  # prior 1-sigma per axis (and the offset)
     calibration_lever_arm_rw_density: float = 1e-5  # m/sqrt(s)
     calibration_rotation_rw_density: float = 1e-6  # rad/sqrt(s)
     # a calibration state counts as observable on a run when its variance has fallen below

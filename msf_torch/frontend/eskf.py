@@ -131,6 +131,7 @@ from msf_torch.geometry.quaternion import matrix_to_quat
 from msf_torch.sensors.calibration import (
     calibrated_wheel_residual,
     gnss_lever_arm_jacobian,
+    heading_offset_residual,
     mounted_rate_residual,
     mounted_velocity_residual,
     shifted_body_velocity_residual,
@@ -1501,6 +1502,19 @@ def run_eskf(
                             gyro_end - state.gyro_bias
                         )
                     var = gnss_velocity_var[:, e]
+                elif name == "gnss_heading" and (
+                    calib is not None and calib.heading_offset_index is not None
+                ):
+                    col = calib.heading_offset_index
+                    r, h, h_offset = heading_offset_residual(
+                        state.rotation,
+                        heading_baseline,
+                        calib_value[:, col],
+                        sched.gnss_heading[:, e],
+                    )
+                    h_calib = torch.zeros(batch, 1, n_calib, dtype=dtype, device=device)
+                    h_calib[..., col : col + 1] = h_offset
+                    var = gnss_heading_var[:, e]
                 elif name == "gnss_heading":
                     r, h = gnss_heading_residual(
                         state.rotation, heading_baseline, sched.gnss_heading[:, e]

@@ -240,16 +240,26 @@ def antenna_heading_yaw(
             (M,) rad (NaN: ``cfg.gnss_heading_sigma_rad``).
         imu_t: (N,) IMU times, s; gyro: (N, 3) raw rates, rad/s.
         tilt: (3, 3) the initial roll-pitch rotation (body -> level frame).
-        cfg: the filter's config (baseline, default sigma, gyro noise, bias prior).
+        cfg: the filter's config (baseline, turned by the initial heading offset when that
+            is calibrated; default sigma, gyro noise, bias prior).
 
     Returns:
         (yaw, variance) in rad (ENU, counter-clockwise from east) and rad^2, or None when
         no heading lies in that span or the tilted baseline is vertical. The variance: the
         heading's, plus the gyro bias prior and angle random walk over the carried-back
-        seconds.
+        seconds, plus the offset's prior variance when it is calibrated.
     """
     usable = heading["t"] <= imu_t[0] + cfg.init_max_track_s
-    level = tilt @ np.asarray(cfg.gnss_heading_baseline_m, dtype=np.float64)
+    baseline = np.asarray(cfg.gnss_heading_baseline_m, dtype=np.float64)
+    offset = cfg.calibration_gnss_heading_offset_rad if cfg.calibrate_gnss_heading_offset else 0.0
+    turn = np.array(  # the baseline turned about body z by the offset being calibrated
+        [
+            [math.cos(offset), -math.sin(offset), 0.0],
+            [math.sin(offset), math.cos(offset), 0.0],
+            [0.0, 0.0, 1.0],
+        ]
+    )
+    level = tilt @ turn @ baseline
     if not usable.any() or math.hypot(level[0], level[1]) < 1e-6 * np.linalg.norm(level):
         return None
     sigma = np.where(
@@ -262,6 +272,8 @@ def antenna_heading_yaw(
     turned, variance = _carried_back(imu_t, gyro, tilt, float(heading["t"][k]), cfg)
     # azimuth (clockwise from north) = pi / 2 - (yaw + the level baseline's ENU angle)
     yaw = math.pi / 2 - float(heading["heading"][k]) - math.atan2(level[1], level[0]) - turned
+    if cfg.calibrate_gnss_heading_offset:  # the offset's prior uncertainty enters the yaw
+        variance += cfg.calibration_rotation_sigma_rad**2
     return math.atan2(math.sin(yaw), math.cos(yaw)), float(sigma[k]) ** 2 + variance
 
 

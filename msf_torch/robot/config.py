@@ -40,7 +40,8 @@ Top-level keys
     lever arm from the frames or ``estimator``), pose ``calibrate_extrinsics`` (role
     pose_source: lever arm and mounting rotation on top of the frames' transform, start at
     0), imu ``calibrate_rotation`` (the IMU's rotation against the vehicle axes of the wheel
-    and non-holonomic models).
+    and non-holonomic models), gnss_heading ``calibrate_offset`` (the antenna baseline's
+    turn about body z).
 ``estimator``
     Front-end settings: any key of :class:`~msf_torch.frontend.config.EskfConfig`
     (noise densities, sigmas, gating, initialisation, slip detection, ...).
@@ -60,8 +61,8 @@ the primary's (the sensor's frame), in the body axes, m; without ``baseline``,
 ``estimator.gnss_heading_baseline_m`` applies. Setting a derived key in ``estimator`` as well
 is an error that names both. The wheels' ``fuse`` sets
 ``wheel_yaw_rate_update``; the calibration switches set ``calibrate_wheels``,
-``calibrate_time_offsets``, ``calibrate_gnss_lever_arm``, ``calibrate_pose_extrinsics`` and
-``calibrate_imu_body_rotation``.
+``calibrate_time_offsets``, ``calibrate_gnss_lever_arm``, ``calibrate_pose_extrinsics``,
+``calibrate_imu_body_rotation`` and ``calibrate_gnss_heading_offset``.
 """
 
 from __future__ import annotations
@@ -110,7 +111,7 @@ _PER_KIND = {
         "calibrate_lever_arm",
     ),
     "gnss_velocity": ("use_message_covariance",),
-    "gnss_heading": ("use_message_covariance", "baseline"),
+    "gnss_heading": ("use_message_covariance", "baseline", "calibrate_offset"),
     "wheels": ("left_joints", "right_joints", "wheel_radius_m", "fuse", "calibrate"),
     "pose": (
         "role",
@@ -365,6 +366,7 @@ class RobotConfig:
                 "calibrate_gnss_lever_arm",
                 "calibrate_pose_extrinsics",
                 "calibrate_imu_body_rotation",
+                "calibrate_gnss_heading_offset",
             )
             for key in extrinsic_keys:
                 if key in values:
@@ -376,6 +378,7 @@ class RobotConfig:
             derived["calibrate_gnss_lever_arm"] = "gnss" in chosen
             derived["calibrate_pose_extrinsics"] = [k for k in chosen if k.startswith("pose:")]
             derived["calibrate_imu_body_rotation"] = "imu" in chosen
+            derived["calibrate_gnss_heading_offset"] = "gnss_heading" in chosen
         values.update(derived)
         values.update(overrides or {})
         return _eskf_config(values, self._fail)
@@ -683,8 +686,13 @@ def load_robot_config(path: str | os.PathLike[str]) -> RobotConfig:
         elif kind == "imu":
             if check.boolean(spec.get("calibrate_rotation", False), (*keys, "calibrate_rotation")):
                 calibrate_extrinsics.append("imu")
-        elif kind == "gnss_heading" and "baseline" in spec:
-            secondary_frame = _secondary_frame(check, spec["baseline"], (*keys, "baseline"), tree)
+        elif kind == "gnss_heading":
+            if "baseline" in spec:
+                secondary_frame = _secondary_frame(
+                    check, spec["baseline"], (*keys, "baseline"), tree
+                )
+            if check.boolean(spec.get("calibrate_offset", False), (*keys, "calibrate_offset")):
+                calibrate_extrinsics.append("gnss_heading")
         try:
             sensors.append(SensorTopic(**fields))
         except ValueError as err:

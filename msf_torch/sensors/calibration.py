@@ -39,6 +39,10 @@ Extrinsics (lever arms in the body = IMU frame, m; rotations with a right error
 * IMU-to-vehicle rotation ``V`` (vehicle -> body): the wheels and the non-holonomic
   constraint act along the vehicle's axes, ``V^T u`` and ``(V^T w)_z``
   (:func:`vehicle_frame_wheel_residual`, :func:`vehicle_frame_nonholonomic_residual`).
+* Dual-antenna heading offset ``delta`` (rad): the baseline is the configured one turned
+  about the body z axis, ``b' = Rz(delta) b`` (antennas mounted a few degrees off, or the
+  receiver's own heading offset); with ``u = R b'``, ``dr/ddelta = [u_n, -u_e, 0] /
+  (u_e^2 + u_n^2) R (e_z x b')`` (:func:`heading_offset_residual`; on level ground -1).
 
 Sign convention ``r = h(x) - z``; nav Jacobians w.r.t. ``[dp, dv, dtheta, db_g, db_a]``
 (``geometry.conventions``), calibration Jacobians as separate columns.
@@ -52,6 +56,7 @@ __all__ = [
     "shifted_body_velocity_residual",
     "shifted_mean_rate_residual",
     "gnss_lever_arm_jacobian",
+    "heading_offset_residual",
     "mounted_velocity_residual",
     "mounted_rate_residual",
     "vehicle_frame_wheel_residual",
@@ -63,7 +68,7 @@ import torch
 from msf_torch.geometry import so3
 from msf_torch.geometry.conventions import IDX_BG, IDX_THETA, IDX_V
 from msf_torch.sensors._jacobian import error_state_jacobian
-from msf_torch.sensors.gnss import gnss_residual, gnss_velocity_residual
+from msf_torch.sensors.gnss import gnss_heading_residual, gnss_residual, gnss_velocity_residual
 from msf_torch.sensors.pose import mean_rate_residual
 from msf_torch.sensors.wheel import body_velocity_residual, wheel_residual, wheel_speed_and_yaw_rate
 
@@ -236,6 +241,30 @@ def gnss_lever_arm_jacobian(
     """
     eye = so3.identity(rotation.dtype, rotation.device)
     return rotation @ (eye + time_offset[..., None, None] * so3.hat(gyro - gyro_bias))
+
+
+def heading_offset_residual(
+    rotation: torch.Tensor, baseline: torch.Tensor, offset: torch.Tensor, measured: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Dual-antenna heading residual with the baseline turned by ``offset`` about body z.
+
+    Args:
+        rotation: (..., 3, 3) body -> world. baseline: (3,) configured primary -> secondary
+            antenna, body frame. offset: (...,) ``delta``, rad. measured: (...,) azimuth
+            clockwise from north, rad.
+
+    Returns:
+        residual (..., 1) rad and nav Jacobian (..., 1, 15) of
+        :func:`msf_torch.sensors.gnss.gnss_heading_residual` at ``b' = Rz(delta) b``, and
+        ``dr/ddelta`` (..., 1, 1).
+    """
+    zeros = torch.zeros_like(offset)
+    turn = so3.exp(torch.stack((zeros, zeros, offset), -1))
+    turned = (turn @ baseline.expand(*offset.shape, 3)[..., None])[..., 0]
+    residual, jac = gnss_heading_residual(rotation, turned, measured)
+    # the azimuth row of the attitude Jacobian is d(az)/du (-R [b']x); (e_z x b') = -[b']x e_z
+    d_offset = jac[..., IDX_THETA][..., 2:3]
+    return residual, jac, d_offset
 
 
 def mounted_velocity_residual(

@@ -158,6 +158,22 @@ def test_without_baseline_the_estimator_key_applies(tmp_path: Path) -> None:
     assert robot.eskf_config({}).gnss_heading_baseline_m == [0.0, -1.0, 0.0]
 
 
+def test_calibrate_offset_switch(tmp_path: Path) -> None:
+    """gnss_heading ``calibrate_offset`` sets ``calibrate_gnss_heading_offset``; setting that
+    key in ``estimator`` as well is refused, naming it."""
+    text = (
+        "sensors:\n"
+        "  imu: {type: imu, topic: /imu}\n"
+        "  heading: {type: gnss_heading, topic: /navheading, calibrate_offset: true}\n"
+    )
+    path = tmp_path / "robot.yaml"
+    path.write_text(text)
+    assert load_robot_config(path).eskf_config({}).calibrate_gnss_heading_offset is True
+    path.write_text(text + "estimator:\n  calibrate_gnss_heading_offset: false\n")
+    with pytest.raises(DataError, match="calibrate_gnss_heading_offset"):
+        load_robot_config(path).eskf_config({})
+
+
 @pytest.mark.parametrize(
     ("old", "new", "key", "line_of", "message"),
     [

@@ -1,0 +1,68 @@
+"""Online calibration of a dual-antenna heading offset (``calibrate_gnss_heading_offset``:
+the antenna baseline turned about body z by an unknown angle): the residual's offset
+Jacobian against central differences, and simulated runs whose antennas sit 3 degrees off
+the configured baseline."""
+
+from __future__ import annotations
+
+import math
+
+import torch
+
+from msf_torch import load_sequence_config
+from msf_torch.frontend.eskf import run_eskf
+from msf_torch.geometry import so3
+from msf_torch.learning.module import truth_at
+from msf_torch.sensors.calibration import heading_offset_residual
+from msf_torch.sensors.gnss import gnss_heading_residual
+from msf_torch.sim import SimConfig, simulate_run
+
+DTYPE = torch.float64
+
+
+def test_offset_jacobian_matches_central_differences():
+    gen = torch.Generator().manual_seed(3)
+    rotation = so3.exp(0.6 * torch.randn(8, 3, generator=gen, dtype=DTYPE))
+    baseline = torch.tensor([0.8, -0.3, 0.2], dtype=DTYPE)
+    offset = 0.2 * torch.randn(8, generator=gen, dtype=DTYPE)
+    turned = (so3.exp(torch.stack((0 * offset, 0 * offset, offset), -1)) @ baseline)[..., None]
+    world = (rotation @ turned)[..., 0]
+    measured = torch.atan2(world[:, 0], world[:, 1]) + 0.1
+    residual, jac, d_offset = heading_offset_residual(rotation, baseline, offset, measured)
+    plain, plain_jac = gnss_heading_residual(rotation, turned[..., 0], measured)
+    torch.testing.assert_close(residual, plain, rtol=0, atol=1e-14)
+    torch.testing.assert_close(jac, plain_jac, rtol=0, atol=1e-14)
+    step = 1e-6
+    up = heading_offset_residual(rotation, baseline, offset + step, measured)[0]
+    down = heading_offset_residual(rotation, baseline, offset - step, measured)[0]
+    torch.testing.assert_close(d_offset[..., 0], (up - down) / (2 * step), rtol=0, atol=1e-8)
+
+
+def test_a_three_degree_offset_is_calibrated():
+    """Measured on seeds 1-3 (90 s, wheels + GNSS + headings): uncalibrated, the headings
+    pull the yaw 0.05 rad off (run RMSE 0.95-1.8 m); calibrated, the offset ends at
+    2.77-3.05 degrees and the yaw within 0.005 rad (RMSE 0.25-0.35 m)."""
+    offset = math.radians(3.0)
+    baseline = (math.cos(offset), math.sin(offset), 0.0)
+    for seed in (1, 3):
+        run = simulate_run(
+            SimConfig(duration_s=90.0, gnss_heading=True, gnss_heading_baseline_m=baseline),
+            seed=seed,
+        )
+        seq = run.sequence
+        yaw_error, rmse = {}, {}
+        for calibrate in (False, True):
+            cfg = load_sequence_config(seq.meta, calibrate_gnss_heading_offset=calibrate)
+            with torch.no_grad():
+                result = run_eskf(seq, cfg)
+            position, rotation = truth_at(seq.ground_truth, result.t)
+            yaw = so3.log(rotation.mT @ result.rotation)[0, :, 2]
+            yaw_error[calibrate] = float(yaw[result.t[0] > 20.0].abs().median())
+            rmse[calibrate] = float((result.position - position).norm(dim=-1).pow(2).mean().sqrt())
+        column = result.calibration_names.index("heading_offset_rad:gnss_heading")
+        estimate = float(result.calibration[0, -1, column])
+        sigma = float(result.calibration_covariance[0, -1, column, column].sqrt())
+        assert abs(estimate - offset) < 3.0 * sigma < math.radians(1.0), (estimate, sigma)
+        assert bool(result.calibration_observable["heading_offset_rad:gnss_heading"][0])
+        assert yaw_error[True] < 0.2 * yaw_error[False], yaw_error
+        assert rmse[True] < 0.5 * rmse[False], rmse
