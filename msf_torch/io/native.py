@@ -78,8 +78,9 @@ same JSON object as ``meta.json``. Unknown keys are an error.
 Rules on read (every format in ``msf_torch.io`` follows them)
 ------------------------------------------------------------
 * Malformed input raises :class:`~msf_torch.io.errors.DataError` naming the file, the
-  1-based line (CSV) and the column: a cell that is not a number, a row with the wrong
-  number of cells, a missing or unknown column, a zero quaternion, a negative sigma.
+  1-based line (CSV) or the sample (npz) and the column: a cell that is not a number, a
+  row with the wrong number of cells, a missing or unknown column, a zero quaternion, a
+  negative sigma.
 * A sample with NaN or inf in its time or values is dropped, counted in
   ``meta["dropped_nonfinite"][stream]``; the first few line numbers go to
   ``meta["dropped_lines"][stream]`` (CSV) or sample indices to
@@ -682,6 +683,15 @@ def _read_npz(path: Path, sort: bool) -> Sequence:
         for fname, trailing in fields.items():
             if fname not in arrays:
                 arrays[fname] = np.full((count, *trailing), np.nan)
+        negative = np.argwhere(arrays["sigma"] < 0) if "sigma" in arrays else ()
+        if len(negative):  # as the CSV reader refuses a negative sigma cell
+            index = tuple(int(i) for i in negative[0])
+            raise DataError(
+                path,
+                f"sample {index[0]}: a standard deviation must not be negative, got "
+                f"{float(arrays['sigma'][index])!r}",
+                field=f"{stream}/sigma",
+            )
         raw[stream] = arrays
         where[stream] = (spath, None, f"{stream}/")
     for key, value in contents.items():

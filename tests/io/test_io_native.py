@@ -316,6 +316,19 @@ def test_npz_schema_errors(tmp_path):
     path.write_bytes(b"not a zip")
     with pytest.raises(DataError, match="not a readable .npz"):
         read_native(path)
+    # a negative sigma is refused naming key and sample, as the CSV reader names the cell
+    imu = {"imu/t": np.arange(3.0), "imu/gyro": np.zeros((3, 3)), "imu/accel": np.zeros((3, 3))}
+    for stream, values in (
+        ("gnss", {"gnss/position": np.zeros((3, 3)), "gnss/sigma": np.full((3, 3), 0.5)}),
+        ("gnss_heading", {"gnss_heading/heading": np.zeros(3), "gnss_heading/sigma": np.ones(3)}),
+    ):
+        values[f"{stream}/sigma"][1] = np.nan  # "not given": fine
+        np.savez(path, **imu, **{f"{stream}/t": np.arange(3.0)}, **values)
+        assert read_native(path) is not None
+        values[f"{stream}/sigma"][2] = -0.1
+        np.savez(path, **imu, **{f"{stream}/t": np.arange(3.0)}, **values)
+        with pytest.raises(DataError, match=rf"field '{stream}/sigma': sample 2: .* negative"):
+            read_native(path)
 
 
 def test_gnss_velocity_table_round_trips_with_an_unmeasured_up_component(tmp_path):
