@@ -895,7 +895,7 @@ def build_graph(
         gnss_heading_index=gnss_heading_index,
         gnss_heading=gnss_heading,
         gnss_heading_covariance=gnss_heading_covariance,
-        gnss_heading_baseline=arm(cfg.gnss_heading_baseline_m),
+        gnss_heading_baseline=_heading_baseline(frontend, cfg, dtype, device),
         wheel_index=wheel_index,
         wheel_increment=wheel_increment,
         wheel_covariance=wheel_covariance,
@@ -940,6 +940,21 @@ def _at_keyframes(
     default = torch.tensor(default_sigma, dtype=dtype, device=device)
     sigma = torch.where(torch.isfinite(sigma) & (sigma > 0), sigma, default)
     return nearest[matched], values, sigma
+
+
+def _heading_baseline(
+    frontend: EskfResult, cfg: EskfConfig, dtype: torch.dtype, device: torch.device
+) -> torch.Tensor:
+    """The dual-antenna baseline (3,) m, body frame: ``cfg.gnss_heading_baseline_m``, turned
+    about body z by the front end's final heading-offset estimate when it calibrated one
+    (``calibrate_gnss_heading_offset``; the smoother holds it fixed)."""
+    baseline = torch.tensor(cfg.gnss_heading_baseline_m, dtype=dtype, device=device)
+    name = "heading_offset_rad:gnss_heading"
+    if frontend.calibration is None or name not in frontend.calibration_names:
+        return baseline
+    offset = frontend.calibration[0, -1, frontend.calibration_names.index(name)].to(dtype)
+    turn = so3.exp(torch.stack((torch.zeros_like(offset), torch.zeros_like(offset), offset)))
+    return turn @ baseline
 
 
 def _wheel_calibration_prior(

@@ -10,8 +10,10 @@ import math
 import torch
 
 from msf_torch import load_sequence_config
+from msf_torch.backend import window as W
 from msf_torch.frontend.eskf import run_eskf
 from msf_torch.geometry import so3
+from msf_torch.geometry.quaternion import quat_to_matrix
 from msf_torch.learning.module import truth_at
 from msf_torch.sensors.calibration import heading_offset_residual
 from msf_torch.sensors.gnss import gnss_heading_residual
@@ -66,3 +68,29 @@ def test_a_three_degree_offset_is_calibrated():
         assert bool(result.calibration_observable["heading_offset_rad:gnss_heading"][0])
         assert yaw_error[True] < 0.2 * yaw_error[False], yaw_error
         assert rmse[True] < 0.5 * rmse[False], rmse
+
+
+def test_the_smoother_takes_the_calibrated_baseline():
+    """After a front end that calibrated the offset, the smoothers' heading factors use the
+    baseline turned by its final estimate: the smoothed yaw keeps the front end's accuracy
+    (with the configured baseline it would be pulled 3 degrees off again)."""
+    offset = math.radians(3.0)
+    sim = SimConfig(
+        duration_s=60.0,
+        gnss_heading=True,
+        gnss_heading_baseline_m=(math.cos(offset), math.sin(offset), 0.0),
+    )
+    seq = simulate_run(sim, seed=2).sequence
+    cfg = load_sequence_config(seq.meta, calibrate_gnss_heading_offset=True)
+    smoother = W.SmootherConfig(covariance=False)
+    with torch.no_grad():
+        front = run_eskf(seq, cfg)
+        graph = W.build_graph(seq, front, cfg, smoother)
+        out = W.smooth(seq, front, cfg, smoother, "full")
+    column = front.calibration_names.index("heading_offset_rad:gnss_heading")
+    estimate = float(front.calibration[0, -1, column])
+    expected = torch.tensor([math.cos(estimate), math.sin(estimate), 0.0], dtype=DTYPE)
+    torch.testing.assert_close(graph.gnss_heading_baseline, expected, rtol=0, atol=1e-12)
+    _, rotation = truth_at(seq.ground_truth, out.output.t)
+    yaw = so3.log(rotation.mT @ quat_to_matrix(out.output.quaternion))[..., 2]
+    assert float(yaw.abs().median()) < 0.01
