@@ -399,14 +399,15 @@ class EskfConfig:
         if not (
             isinstance(names, list)
             and all(
-                isinstance(n, str) and (n == "gnss" or (n.startswith("pose:") and len(n) > 5))
+                isinstance(n, str)
+                and (n in ("gnss", "gnss_heading") or (n.startswith("pose:") and len(n) > 5))
                 for n in names
             )
             and len(set(names)) == len(names)
         ):
             raise ValueError(
-                f"config key 'calibrate_time_offsets' must be a list of distinct 'gnss' or "
-                f"'pose:<name>', got {names!r}"
+                f"config key 'calibrate_time_offsets' must be a list of distinct 'gnss', "
+                f"'gnss_heading' or 'pose:<name>', got {names!r}"
             )
         self._validate_extrinsic_calibration()
         offsets = self.calibration_time_offset_s

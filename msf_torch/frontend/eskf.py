@@ -131,11 +131,11 @@ from msf_torch.geometry.quaternion import matrix_to_quat
 from msf_torch.sensors.calibration import (
     calibrated_wheel_residual,
     gnss_lever_arm_jacobian,
-    heading_offset_residual,
     mounted_rate_residual,
     mounted_velocity_residual,
     shifted_body_velocity_residual,
     shifted_gnss_residual,
+    shifted_heading_residual,
     shifted_mean_rate_residual,
     vehicle_frame_nonholonomic_residual,
     vehicle_frame_wheel_residual,
@@ -1503,17 +1503,28 @@ def run_eskf(
                         )
                     var = gnss_velocity_var[:, e]
                 elif name == "gnss_heading" and (
-                    calib is not None and calib.heading_offset_index is not None
+                    calib is not None
+                    and (
+                        calib.heading_offset_index is not None
+                        or "gnss_heading" in calib.time_offset_index
+                    )
                 ):
-                    col = calib.heading_offset_index
-                    r, h, h_offset = heading_offset_residual(
+                    col_o = calib.heading_offset_index
+                    col_td = calib.time_offset_index.get("gnss_heading")
+                    r, h, h_offset, h_td = shifted_heading_residual(
                         state.rotation,
+                        gyro_end,
+                        state.gyro_bias,
                         heading_baseline,
-                        calib_value[:, col],
+                        zeros_b if col_o is None else calib_value[:, col_o],
+                        zeros_b if col_td is None else calib_value[:, col_td],
                         sched.gnss_heading[:, e],
                     )
                     h_calib = torch.zeros(batch, 1, n_calib, dtype=dtype, device=device)
-                    h_calib[..., col : col + 1] = h_offset
+                    if col_o is not None:
+                        h_calib[..., col_o : col_o + 1] = h_offset
+                    if col_td is not None:
+                        h_calib[..., col_td : col_td + 1] = h_td
                     var = gnss_heading_var[:, e]
                 elif name == "gnss_heading":
                     r, h = gnss_heading_residual(

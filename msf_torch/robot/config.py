@@ -41,7 +41,7 @@ Top-level keys
     pose_source: lever arm and mounting rotation on top of the frames' transform, start at
     0), imu ``calibrate_rotation`` (the IMU's rotation against the vehicle axes of the wheel
     and non-holonomic models), gnss_heading ``calibrate_offset`` (the antenna baseline's
-    turn about body z).
+    turn about body z) and ``calibrate_time_offset`` (its latency).
 ``estimator``
     Front-end settings: any key of :class:`~msf_torch.frontend.config.EskfConfig`
     (noise densities, sigmas, gating, initialisation, slip detection, ...).
@@ -111,7 +111,12 @@ _PER_KIND = {
         "calibrate_lever_arm",
     ),
     "gnss_velocity": ("use_message_covariance",),
-    "gnss_heading": ("use_message_covariance", "baseline", "calibrate_offset"),
+    "gnss_heading": (
+        "use_message_covariance",
+        "baseline",
+        "calibrate_offset",
+        "calibrate_time_offset",
+    ),
     "wheels": ("left_joints", "right_joints", "wheel_radius_m", "fuse", "calibrate"),
     "pose": (
         "role",
@@ -693,6 +698,10 @@ def load_robot_config(path: str | os.PathLike[str]) -> RobotConfig:
                 )
             if check.boolean(spec.get("calibrate_offset", False), (*keys, "calibrate_offset")):
                 calibrate_extrinsics.append("gnss_heading")
+            if check.boolean(
+                spec.get("calibrate_time_offset", False), (*keys, "calibrate_time_offset")
+            ):
+                calibrate.append("gnss_heading")
         try:
             sensors.append(SensorTopic(**fields))
         except ValueError as err:

@@ -43,6 +43,11 @@ Extrinsics (lever arms in the body = IMU frame, m; rotations with a right error
   about the body z axis, ``b' = Rz(delta) b`` (antennas mounted a few degrees off, or the
   receiver's own heading offset); with ``u = R b'``, ``dr/ddelta = [u_n, -u_e, 0] /
   (u_e^2 + u_n^2) R (e_z x b')`` (:func:`heading_offset_residual`; on level ground -1).
+  Its time offset: the azimuth moves at ``g . R (w x b')`` (``g = [u_n, -u_e, 0] /
+  (u_e^2 + u_n^2)``, ``w = gyro - b_g``), so ``h = azimuth + t_d g . R (w x b')``,
+  ``dh/dt_d = g . R (w x b')``, ``dh/db_g += t_d g . R [b']x``
+  (:func:`shifted_heading_residual`; the shift's dependence on the attitude and on
+  ``delta`` is neglected, second order: ``t_d`` times the rate times the error).
 
 Sign convention ``r = h(x) - z``; nav Jacobians w.r.t. ``[dp, dv, dtheta, db_g, db_a]``
 (``geometry.conventions``), calibration Jacobians as separate columns.
@@ -57,6 +62,7 @@ __all__ = [
     "shifted_mean_rate_residual",
     "gnss_lever_arm_jacobian",
     "heading_offset_residual",
+    "shifted_heading_residual",
     "mounted_velocity_residual",
     "mounted_rate_residual",
     "vehicle_frame_wheel_residual",
@@ -265,6 +271,46 @@ def heading_offset_residual(
     # the azimuth row of the attitude Jacobian is d(az)/du (-R [b']x); (e_z x b') = -[b']x e_z
     d_offset = jac[..., IDX_THETA][..., 2:3]
     return residual, jac, d_offset
+
+
+def shifted_heading_residual(
+    rotation: torch.Tensor,
+    gyro: torch.Tensor,
+    gyro_bias: torch.Tensor,
+    baseline: torch.Tensor,
+    offset: torch.Tensor,
+    time_offset: torch.Tensor,
+    measured: torch.Tensor,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Dual-antenna heading residual with the baseline turned by ``offset`` about body z and
+    the heading predicted ``time_offset`` later with the current body rate.
+
+    Args:
+        rotation: (..., 3, 3) body -> world. gyro, gyro_bias: (..., 3) rad/s. baseline: (3,)
+            configured antenna baseline, body frame. offset: (...,) rad. time_offset:
+            (...,) ``t_d``, s. measured: (...,) azimuth clockwise from north, rad.
+
+    Returns:
+        residual (..., 1) rad, nav Jacobian (..., 1, 15), ``dr/ddelta`` (..., 1, 1) and
+        ``dr/dt_d`` (..., 1, 1).
+    """
+    residual, jac, d_offset = heading_offset_residual(rotation, baseline, offset, measured)
+    zeros = torch.zeros_like(offset)
+    turn = so3.exp(torch.stack((zeros, zeros, offset), -1))
+    turned = (turn @ baseline.expand(*offset.shape, 3)[..., None])[..., 0]
+    world = (rotation @ turned[..., None])[..., 0]
+    east, north = world[..., 0], world[..., 1]
+    horizontal = east**2 + north**2
+    defined = horizontal > 1e-12 * (world**2).sum(-1).clamp_min(1e-300)
+    scale = torch.where(defined, 1.0 / torch.where(defined, horizontal, 1.0), 0.0)
+    gradient = torch.stack((north, -east, zeros), -1) * scale[..., None]  # d(azimuth)/du
+    rate = torch.linalg.cross(gyro - gyro_bias, turned)  # w x b'
+    azimuth_rate = (gradient * (rotation @ rate[..., None])[..., 0]).sum(-1)
+    d_bias = (gradient[..., None, :] @ rotation @ so3.hat(turned))[..., 0, :]
+    jac = jac.clone()
+    jac[..., 0, IDX_BG] = jac[..., 0, IDX_BG] + time_offset[..., None] * d_bias
+    residual = residual + (time_offset * azimuth_rate)[..., None]
+    return residual, jac, d_offset, azimuth_rate[..., None, None]
 
 
 def mounted_velocity_residual(

@@ -239,6 +239,8 @@ class SimConfig:
             (``Sequence.gnss_heading``).
         gnss_heading_sigma_rad: their 1-sigma noise, rad.
         gnss_heading_baseline_m: primary -> secondary antenna in the body frame, m.
+        gnss_heading_time_offset_s: a heading stamped ``t`` is the one at ``t + offset`` (s;
+            negative: the receiver's latency, stamps late), the filter's ``t_d`` convention.
         slip_episodes: number of slip episodes.
         slip_types: the types to use (subset of ``SLIP_TYPES``); all appear before any repeats.
         slip_duration_s: episode duration range (label interval, ramps included), s.
@@ -287,6 +289,7 @@ class SimConfig:
     gnss_heading: bool = False
     gnss_heading_sigma_rad: float = 0.005
     gnss_heading_baseline_m: tuple[float, float, float] = (1.0, 0.0, 0.0)
+    gnss_heading_time_offset_s: float = 0.0
     # slip
     slip_episodes: int = 0
     slip_types: tuple[str, ...] = SLIP_TYPES
@@ -1088,8 +1091,9 @@ def simulate_run(config: SimConfig, seed: int, *, path_seed: int | None = None) 
     gnss_heading = None
     if config.gnss_heading:
         heading_noise = rng_heading.normal(0.0, config.gnss_heading_sigma_rad, n_g)
+        taken = path.evaluate(np.clip(t_g + config.gnss_heading_time_offset_s, 0.0, None))
         baseline = np.einsum(
-            "nij,j->ni", g_state.rotation, np.asarray(config.gnss_heading_baseline_m, np.float64)
+            "nij,j->ni", taken.rotation, np.asarray(config.gnss_heading_baseline_m, np.float64)
         )
         azimuth = np.arctan2(baseline[:, 0], baseline[:, 1]) + heading_noise[keep]
         gnss_heading = GnssHeading(

@@ -169,6 +169,9 @@ def test_calibrate_offset_switch(tmp_path: Path) -> None:
     path = tmp_path / "robot.yaml"
     path.write_text(text)
     assert load_robot_config(path).eskf_config({}).calibrate_gnss_heading_offset is True
+    latency = text.replace("calibrate_offset: true", "calibrate_time_offset: true")
+    path.write_text(latency)
+    assert load_robot_config(path).eskf_config({}).calibrate_time_offsets == ["gnss_heading"]
     path.write_text(text + "estimator:\n  calibrate_gnss_heading_offset: false\n")
     with pytest.raises(DataError, match="calibrate_gnss_heading_offset"):
         load_robot_config(path).eskf_config({})
