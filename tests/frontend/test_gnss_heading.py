@@ -1,7 +1,8 @@
 """Dual-antenna GNSS heading in the front end on simulated runs
 (``SimConfig(gnss_heading=True)``): the yaw it pins (initial and filtered), the filter's
-consistency with it, the wrap at north, the gate, and the initial yaw from a heading
-(closed form).
+consistency with it, the wrap at north, the gate, the initial yaw from a heading
+(closed form), a batch with different heading counts against single runs, and
+``EskfStream`` pieces against the run in one piece.
 
 The residual's Jacobian is checked in ``tests/sensors/test_sensor_jacobians.py``.
 """
@@ -20,6 +21,7 @@ from msf_torch import batch_sequences, load_sequence_config
 from msf_torch.frontend.config import EskfConfig
 from msf_torch.frontend.eskf import run_eskf
 from msf_torch.frontend.init import antenna_heading_yaw, initial_state
+from msf_torch.frontend.stream import EskfStream, concat_results, time_slice
 from msf_torch.geometry import so3
 from msf_torch.sim import SimConfig, simulate_run
 from msf_torch.types import GnssHeading
@@ -173,3 +175,84 @@ def test_guard_drops_nonfinite_headings_and_fills_missing_sigmas(runs):
     # the heading at t = 0 sets the initial yaw; the filter's epochs start after it
     assert int(result.present["gnss_heading"].sum()) == heading.length - 2
     assert torch.isfinite(result.position).all()
+
+
+@pytest.fixture(scope="module")
+def mixed_batch():
+    """Three runs with different heading counts: wheels and 1-Hz headings with three of
+    them removed; no wheels and 2-Hz headings; no headings at all."""
+    a = simulate_run(SimConfig(duration_s=8.0, gnss_heading=True), seed=70).sequence
+    kept = torch.ones(a.gnss_heading.length, dtype=torch.bool)
+    kept[2:5] = False
+    a = dataclasses.replace(a, gnss_heading=a.gnss_heading.map(lambda x: x[:, kept]))
+    b = simulate_run(SimConfig(duration_s=12.0, gnss_heading=True, gnss_rate_hz=2.0), seed=71)
+    b = dataclasses.replace(b.sequence, wheel=None)
+    c = simulate_run(SimConfig(duration_s=10.0), seed=72).sequence
+    return [a, b, c]
+
+
+@pytest.mark.parametrize(
+    "cfg",
+    [
+        EskfConfig(),
+        EskfConfig(calibrate_gnss_heading_offset=True, adaptive_noise_sensors=["gnss_heading"]),
+    ],
+)
+def test_a_batch_with_different_heading_counts_equals_single_runs(mixed_batch, cfg):
+    """B = 3 (padding in the heading block of two runs) equals each run alone to 1e-9,
+    the heading block's presence and gate decisions included."""
+    with torch.no_grad():
+        batch = run_eskf(batch_sequences(mixed_batch), cfg)
+        singles = [run_eskf(seq, cfg) for seq in mixed_batch]
+    counts = [int(batch.present["gnss_heading"][b].sum()) for b in range(3)]
+    assert counts[0] > 0 and counts[1] > counts[0] and counts[2] == 0
+    for b, single in enumerate(singles):
+        n = single.t.shape[1]
+        for name in ("position", "velocity", "rotation", "gyro_bias", "covariance"):
+            difference = (getattr(single, name)[0] - getattr(batch, name)[b, :n]).abs().max()
+            assert float(difference) < 1e-9, (b, name, float(difference))
+        if counts[b]:
+            for table in ("present", "accepted"):
+                one = getattr(single, table)["gnss_heading"][0]
+                assert torch.equal(one, getattr(batch, table)["gnss_heading"][b, :n]), table
+
+
+HELD = {  # biases held: the pieces then equal the one run to round-off (test_stream.py)
+    "init_gyro_bias_sigma_radps": 0.0,
+    "init_accel_bias_sigma_mps2": 0.0,
+    "gyro_bias_rw_density": 0.0,
+    "accel_bias_rw_density": 0.0,
+}
+
+
+@pytest.mark.parametrize("ahead_s", [0.0, 0.3])
+def test_pieces_fuse_each_heading_once_as_the_run_in_one_piece(ahead_s):
+    """``EskfStream`` pieces ending on heading times (7 s, 11 s) and between them, the
+    headings (and other measurements) handed over with the piece or ``ahead_s`` before
+    the IMU reaches them: every heading after the first IMU sample is fused exactly once,
+    the gate decides as in one run, and the states agree to 1e-9."""
+    sim = SimConfig(duration_s=20.0, gnss_heading=True, gnss_velocity=True, gnss_outage_count=0)
+    seq = simulate_run(sim, seed=5).sequence
+    cfg = load_sequence_config(seq.meta).replace(**HELD)
+    bounds = [0.0, 2.37, 7.0, 7.004, 11.0, 16.5, 20.01]
+    pieces = []
+    for a, b in zip(bounds[:-1], bounds[1:], strict=True):
+        measured = time_slice(seq, a + ahead_s if a > 0 else 0.0, b + ahead_s)
+        pieces.append(dataclasses.replace(measured, imu=time_slice(seq, a, b).imu))
+    with torch.no_grad():
+        whole = run_eskf(seq, cfg)
+        stream = EskfStream(cfg, initial=initial_state(seq, cfg))
+        for piece in pieces:
+            stream.push(piece)
+        joined = concat_results(stream.results)
+    assert stream.late_samples == {}
+    fused = joined.t[0, joined.present["gnss_heading"][0]]
+    later = seq.gnss_heading.t[0][seq.gnss_heading.t[0] > 0.0]
+    assert fused.tolist() == later.tolist()  # each once, none lost at a boundary
+    assert int(joined.accepted["gnss_heading"].sum()) == int(whole.accepted["gnss_heading"].sum())
+    real = whole.t[0, whole.mask[0]]
+    index = torch.searchsorted(joined.t[0], real)
+    assert torch.equal(joined.t[0, index], real)
+    for name in ("position", "rotation", "covariance"):
+        difference = getattr(joined, name)[0, index] - getattr(whole, name)[0, whole.mask[0]]
+        assert float(difference.abs().max()) < 1e-9, (name, float(difference.abs().max()))
