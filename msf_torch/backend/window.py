@@ -159,6 +159,7 @@ from msf_torch.geometry import so3
 from msf_torch.geometry.conventions import gravity_world
 from msf_torch.geometry.quaternion import matrix_to_quat
 from msf_torch.io.yaml_files import did_you_mean, named_key, read_yaml
+from msf_torch.sensors.calibration import shifted_heading_residual
 from msf_torch.sensors.imu import Preintegrated, propagate_nominal
 from msf_torch.sensors.imu_gaps import gap_walk_scale, interpolated_imu_samples
 from msf_torch.types import Sequence, Trajectory
@@ -854,6 +855,10 @@ def build_graph(
         nhc_index = torch.nonzero(frontend.present["nhc"][0, epoch]).squeeze(-1)
     held = (torch.searchsorted(imu_t, t + cfg.time_tolerance_s, right=True) - 1).clamp_min(0)
     nhc_gyro = gyro[held][nhc_index][None]
+    heading_baseline = _heading_baseline(frontend, cfg, dtype, device)
+    gnss_heading = _heading_at_keyframes(
+        frontend, epoch, gnss_heading_index, gnss_heading, gyro[held], heading_baseline
+    )
     gnss_velocity_gyro = gyro[held][gnss_velocity_index][None]
     nhc_covariance = (cfg.nhc_sigma_mps**2 * torch.eye(2, dtype=dtype, device=device)).expand(
         1, nhc_index.numel(), 2, 2
@@ -895,7 +900,7 @@ def build_graph(
         gnss_heading_index=gnss_heading_index,
         gnss_heading=gnss_heading,
         gnss_heading_covariance=gnss_heading_covariance,
-        gnss_heading_baseline=_heading_baseline(frontend, cfg, dtype, device),
+        gnss_heading_baseline=heading_baseline,
         wheel_index=wheel_index,
         wheel_increment=wheel_increment,
         wheel_covariance=wheel_covariance,
@@ -955,6 +960,37 @@ def _heading_baseline(
     offset = frontend.calibration[0, -1, frontend.calibration_names.index(name)].to(dtype)
     turn = so3.exp(torch.stack((torch.zeros_like(offset), torch.zeros_like(offset), offset)))
     return turn @ baseline
+
+
+def _heading_at_keyframes(
+    frontend: EskfResult,
+    epoch: torch.Tensor,
+    index: torch.Tensor,
+    heading: torch.Tensor,
+    gyro: torch.Tensor,
+    baseline: torch.Tensor,
+) -> torch.Tensor:
+    """Headings (1, H) rad at their keyframes' times: as measured, or, when the front end
+    calibrated the headings' time offset ``t_d`` (``calibrate_time_offsets:
+    [gnss_heading]``), less ``t_d`` times the azimuth rate of the baseline at the keyframe
+    (the front end's attitude and gyro bias there, the raw gyro ``gyro`` (K, 3) held at each
+    keyframe), as the front end predicts them (``sensors.calibration.shifted_heading_residual``)."""
+    name = "time_offset_s:gnss_heading"
+    if frontend.calibration is None or name not in frontend.calibration_names:
+        return heading
+    time_offset = frontend.calibration[0, -1, frontend.calibration_names.index(name)]
+    keyframe = epoch[index]
+    zeros = torch.zeros(index.numel(), dtype=heading.dtype, device=heading.device)
+    *_, azimuth_rate = shifted_heading_residual(
+        frontend.rotation[0, keyframe],
+        gyro[index],
+        frontend.gyro_bias[0, keyframe],
+        baseline,
+        zeros,
+        zeros,
+        heading[0],
+    )
+    return heading - time_offset.to(heading.dtype) * azimuth_rate[:, 0, 0][None]
 
 
 def _wheel_calibration_prior(
