@@ -75,7 +75,6 @@ Options
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import sys
 from pathlib import Path
@@ -86,12 +85,15 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
-from benchmarks._common import emit_json, log, machine_info, time_repeats  # noqa: E402
+from benchmarks._common import emit_json, time_repeats  # noqa: E402
 from benchmarks.gnss_velocity import (  # noqa: E402
     METRICS,
     NO_NHC,
     PEER_WARMUP_INTERVALS,
     medians,
+    outage_inputs,
+    outage_parser,
+    outage_runs,
     peer_inputs,
     score,
 )
@@ -255,41 +257,16 @@ def run_seed(seed: int, sim_cfg: SimConfig, repeats: int) -> dict[str, Any]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--seeds", type=int, default=10, help="number of simulated runs")
-    parser.add_argument("--seed0", type=int, default=100, help="first seed")
-    parser.add_argument("--duration-s", type=float, default=90.0, help="run length, s")
-    parser.add_argument("--outage-s", type=float, default=20.0, help="outage length, s")
-    parser.add_argument("--outage-after-s", type=float, default=40.0, help="earliest start")
+    parser = outage_parser(__doc__.split("\n\n")[0])
     parser.add_argument("--velocity", action="store_true", help="GNSS velocities too")
-    parser.add_argument("--repeats", type=int, default=1, help="timed repeats of each call")
     args = parser.parse_args(argv)
-    if args.seeds < 1:
-        parser.error("--seeds must be >= 1")
-    sim_cfg = SimConfig(
-        duration_s=args.duration_s,
-        gnss_heading=True,
-        gnss_velocity=args.velocity,
-        gnss_outage_count=1,
-        gnss_outage_duration_s=(args.outage_s, args.outage_s),
-        gnss_outage_margin_s=args.outage_after_s,
+    sim_cfg, rows, machine = outage_runs(
+        parser,
+        args,
+        {"gnss_heading": True, "gnss_velocity": args.velocity},
+        run_seed,
+        lambda m: f"yaw {m['yaw_rmse_deg']:.3f} deg max {m['outage_max_error_m']:.2f} m",
     )
-    if args.outage_after_s <= PEER_WARMUP_INTERVALS / sim_cfg.gnss_rate_hz:
-        parser.error("--outage-after-s must leave the peer's warm-up (20 GNSS intervals) first")
-    machine = machine_info()  # before our own load shows in the load average
-
-    rows = []
-    for seed in range(args.seed0, args.seed0 + args.seeds):
-        row = run_seed(seed, sim_cfg, args.repeats)
-        rows.append(row)
-        log(
-            f"seed {seed} outage {row['outage_s'][0]:.1f}-{row['outage_s'][1]:.1f} s | "
-            + " | ".join(
-                f"{name} yaw {row[name]['yaw_rmse_deg']:.3f} deg "
-                f"max {row[name]['outage_max_error_m']:.2f} m ({row[name]['wall_s']:.2f} s)"
-                for name in (*OURS, *PEERS)
-            )
-        )
 
     columns = {name: medians(rows, name, ALL_METRICS) for name in (*OURS, *PEERS)}
     om, pm = columns["ours"], columns["peer"]
@@ -297,24 +274,13 @@ def main(argv: list[str] | None = None) -> int:
     record = {
         "benchmark": "gnss_heading",
         "inputs": {
-            "simulator": "msf_torch.sim.simulate_run (wheeled, ADIS16470 IMU at 200 Hz)",
-            "seeds": [r["seed"] for r in rows],
-            "duration_s": args.duration_s,
-            "gnss_rate_hz": sim_cfg.gnss_rate_hz,
-            "gnss_sigma_m": [sim_cfg.gnss_sigma_horizontal_m] * 2 + [sim_cfg.gnss_sigma_vertical_m],
+            **outage_inputs(args, sim_cfg, rows),
             "gnss_heading_sigma_rad": sim_cfg.gnss_heading_sigma_rad,
             "gnss_heading_baseline_m": list(sim_cfg.gnss_heading_baseline_m),
             "gnss_velocity": args.velocity,
-            "outage_s": args.outage_s,
-            "outage_after_s": args.outage_after_s,
-            "outages": [r["outage_s"] for r in rows],
-            "ours_config": "load_sequence_config(seq.meta) (defaults + the simulator's noise)",
             "ours_columns": OURS,
             "peer": "GTSAM CombinedImuFactor + GPSFactor + CustomFactor headings, ISAM2 "
             "(benchmarks/peers/gtsam_kitti.py)",
-            "peer_warmup_intervals": PEER_WARMUP_INTERVALS,
-            "repeats": args.repeats,
-            "statistic": "median over runs",
         },
         "ours": om,
         "peer": pm,

@@ -66,6 +66,7 @@ import argparse
 import dataclasses
 import statistics
 import sys
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -282,63 +283,96 @@ def medians(
     return out
 
 
-def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+def outage_parser(description: str) -> argparse.ArgumentParser:
+    """The options of the simulated-outage benchmarks (this one, ``gnss_heading.py``):
+    seeds, run length, outage length and earliest start, timed repeats."""
+    parser = argparse.ArgumentParser(description=description)
     parser.add_argument("--seeds", type=int, default=10, help="number of simulated runs")
     parser.add_argument("--seed0", type=int, default=100, help="first seed")
     parser.add_argument("--duration-s", type=float, default=90.0, help="run length, s")
     parser.add_argument("--outage-s", type=float, default=20.0, help="outage length, s")
     parser.add_argument("--outage-after-s", type=float, default=40.0, help="earliest start")
     parser.add_argument("--repeats", type=int, default=1, help="timed repeats of each call")
-    args = parser.parse_args(argv)
+    return parser
+
+
+def outage_runs(
+    parser: argparse.ArgumentParser,
+    args: argparse.Namespace,
+    streams: dict[str, bool],
+    run_one: Callable[[int, SimConfig, int], dict[str, Any]],
+    line: Callable[[dict[str, Any]], str],
+) -> tuple[SimConfig, list[dict[str, Any]], dict[str, Any]]:
+    """Check the options, simulate and score every seed (``run_one(seed, sim_cfg,
+    repeats)``, one stderr line each: ``line(metrics)`` per column), and return the
+    simulator's config, the rows and the machine (read before the runs' own load)."""
     if args.seeds < 1:
         parser.error("--seeds must be >= 1")
     sim_cfg = SimConfig(
         duration_s=args.duration_s,
-        gnss_velocity=True,
         gnss_outage_count=1,
         gnss_outage_duration_s=(args.outage_s, args.outage_s),
         gnss_outage_margin_s=args.outage_after_s,
+        **streams,
     )
     if args.outage_after_s <= PEER_WARMUP_INTERVALS / sim_cfg.gnss_rate_hz:
         parser.error("--outage-after-s must leave the peer's warm-up (20 GNSS intervals) first")
     machine = machine_info()  # before our own load shows in the load average
-
     rows = []
     for seed in range(args.seed0, args.seed0 + args.seeds):
-        row = run_seed(seed, sim_cfg, args.repeats)
+        row = run_one(seed, sim_cfg, args.repeats)
         rows.append(row)
+        columns = [name for name in row if name not in ("seed", "outage_s")]
         log(
             f"seed {seed} outage {row['outage_s'][0]:.1f}-{row['outage_s'][1]:.1f} s | "
             + " | ".join(
-                f"{name} max {row[name]['outage_max_error_m']:.2f} m "
-                f"rmse {row[name]['rmse_m']:.2f} m ({row[name]['wall_s']:.2f} s)"
-                for name in (*OURS, *PEERS)
+                f"{name} {line(row[name])} ({row[name]['wall_s']:.2f} s)" for name in columns
             )
         )
+    return sim_cfg, rows, machine
 
+
+def outage_inputs(
+    args: argparse.Namespace, sim_cfg: SimConfig, rows: list[dict[str, Any]]
+) -> dict[str, Any]:
+    """The JSON line's ``inputs`` shared by the simulated-outage benchmarks."""
+    return {
+        "simulator": "msf_torch.sim.simulate_run (wheeled, ADIS16470 IMU at 200 Hz)",
+        "seeds": [r["seed"] for r in rows],
+        "duration_s": args.duration_s,
+        "gnss_rate_hz": sim_cfg.gnss_rate_hz,
+        "gnss_sigma_m": [sim_cfg.gnss_sigma_horizontal_m] * 2 + [sim_cfg.gnss_sigma_vertical_m],
+        "outage_s": args.outage_s,
+        "outage_after_s": args.outage_after_s,
+        "outages": [r["outage_s"] for r in rows],
+        "ours_config": "load_sequence_config(seq.meta) (defaults + the simulator's noise)",
+        "peer_warmup_intervals": PEER_WARMUP_INTERVALS,
+        "repeats": args.repeats,
+        "statistic": "median over runs",
+    }
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = outage_parser(__doc__.split("\n\n")[0])
+    args = parser.parse_args(argv)
+    sim_cfg, rows, machine = outage_runs(
+        parser,
+        args,
+        {"gnss_velocity": True},
+        run_seed,
+        lambda m: f"max {m['outage_max_error_m']:.2f} m rmse {m['rmse_m']:.2f} m",
+    )
     columns = {name: medians(rows, name) for name in (*OURS, *PEERS)}
     om, pm = columns["ours"], columns["peer"]
     on, pn = columns["ours_no_velocity"], columns["peer_no_velocity"]
     record = {
         "benchmark": "gnss_velocity",
         "inputs": {
-            "simulator": "msf_torch.sim.simulate_run (wheeled, ADIS16470 IMU at 200 Hz)",
-            "seeds": [r["seed"] for r in rows],
-            "duration_s": args.duration_s,
-            "gnss_rate_hz": sim_cfg.gnss_rate_hz,
-            "gnss_sigma_m": [sim_cfg.gnss_sigma_horizontal_m] * 2 + [sim_cfg.gnss_sigma_vertical_m],
+            **outage_inputs(args, sim_cfg, rows),
             "gnss_velocity_sigma_mps": list(sim_cfg.gnss_velocity_sigma_mps),
-            "outage_s": args.outage_s,
-            "outage_after_s": args.outage_after_s,
-            "outages": [r["outage_s"] for r in rows],
-            "ours_config": "load_sequence_config(seq.meta) (defaults + the simulator's noise)",
             "ours_columns": OURS,
             "peer": "GTSAM CombinedImuFactor + GPSFactor (+ PriorFactorVector velocities), "
             "ISAM2 (benchmarks/peers/gtsam_kitti.py)",
-            "peer_warmup_intervals": PEER_WARMUP_INTERVALS,
-            "repeats": args.repeats,
-            "statistic": "median over runs",
         },
         "ours": om,
         "peer": pm,
