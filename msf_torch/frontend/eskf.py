@@ -1089,6 +1089,9 @@ def run_eskf(
         device=device,
     )
     velocity_col = active.index("gnss_velocity") if "gnss_velocity" in active else None
+    # blocks that stay shut while another re-openable block vouches for the state: a burst
+    # of Doppler outliers, or of wrong dual-antenna headings, must not be let in
+    suspect_cols = [active.index(k) for k in ("gnss_velocity", "gnss_heading") if k in active]
     # a horizontal-only GNSS velocity (no up component) is gated with two degrees of freedom
     horizontal_only = sched.gnss_velocity_sigma[..., 2] >= UNMEASURED_SIGMA  # (B, E)
     two_dof = chi2_threshold(2, cfg.gate_probability)
@@ -1691,14 +1694,14 @@ def run_eskf(
                 )
             ok = here & (nis < gate)
             reopening = here & reopen & (guard.streak >= cfg.gate_reopen_after)
-            if velocity_col is not None:
-                # a GNSS velocity that disagrees while another re-openable block (a fix, a
-                # pose) passes its gate during its streak is the suspect: its gate stays
-                # shut (a burst of Doppler outliers must not be let in)
+            for col in suspect_cols:
+                # a GNSS velocity or heading that disagrees while another re-openable block
+                # (a fix, a pose) passes its gate during its streak is the suspect: its gate
+                # stays shut
                 calm = ok & reopen
-                others_calm = calm.sum(-1) - calm[:, velocity_col].long() > 0
-                suspect = guard.vouched[:, velocity_col] | others_calm
-                reopening[:, velocity_col] = reopening[:, velocity_col] & ~suspect
+                others_calm = calm.sum(-1) - calm[:, col].long() > 0
+                suspect = guard.vouched[:, col] | others_calm
+                reopening[:, col] = reopening[:, col] & ~suspect
             ok = ok | reopening
             if "wheel" in active and cfg.slip_detection:
                 wheel_col = active.index("wheel")
