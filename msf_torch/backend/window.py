@@ -153,6 +153,7 @@ from msf_torch.backend.variables import (
 from msf_torch.frontend.calibration import WHEEL_STATES
 from msf_torch.frontend.config import EskfConfig
 from msf_torch.frontend.eskf import EskfNoise, EskfResult, _intra_op_threads
+from msf_torch.frontend.guard import sanitize_sequence
 from msf_torch.frontend.keyframes import KeyframeConfig, select_keyframes
 from msf_torch.frontend.schedule import UNMEASURED_SIGMA, gap_lengths
 from msf_torch.geometry import so3
@@ -753,6 +754,7 @@ def build_graph(
     smoother = smoother or SmootherConfig()
     smoother.validate()
     cfg = smoother.apply_noise(cfg)
+    seq, _ = sanitize_sequence(seq)  # the samples the front end used (no NaN fix, heading)
     if seq.batch_size != 1 or frontend.t.shape[0] != 1:
         raise ValueError(f"the smoothers take one sequence (B = 1), got B = {seq.batch_size}")
     dtype, device = frontend.t.dtype, frontend.t.device
@@ -1562,6 +1564,7 @@ def smooth(
         )
     start = time.perf_counter()
     calibration, calibration_cov = None, None
+    seq, _ = sanitize_sequence(seq)  # as the front end read it (build_graph does too)
     with _intra_op_threads(1):  # small matrices: thread hand-offs cost more than they save
         graph = build_graph(seq, frontend, cfg, smoother)
         if mode == "full":

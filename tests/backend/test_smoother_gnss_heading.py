@@ -52,3 +52,29 @@ def test_headings_pin_the_smoothed_yaw():
         # ATE 0.212 / 0.201 m with, 0.238 / 0.210 m without
         assert yaw[True] < 0.3 * yaw[False], (seed, yaw)
         assert rmse[True] <= rmse[False], (seed, rmse)
+
+
+def test_a_nonfinite_measurement_is_left_out_as_in_the_front_end():
+    """A NaN heading or fix is dropped by the front end's input rule
+    (``frontend.guard.sanitize_sequence``); the smoothers read the same cleaned streams. They
+    read the raw ones: a NaN cost, LM running to its limit without converging, no error."""
+    seq = simulate_run(
+        SimConfig(duration_s=20.0, gnss_heading=True, gnss_outage_count=0), seed=5
+    ).sequence
+    heading = seq.gnss_heading.heading.clone()
+    heading[0, 7] = float("nan")
+    position = seq.gnss.position.clone()
+    position[0, 9, 0] = float("nan")
+    bad = dataclasses.replace(
+        seq,
+        gnss_heading=dataclasses.replace(seq.gnss_heading, heading=heading),
+        gnss=dataclasses.replace(seq.gnss, position=position),
+    )
+    cfg = load_sequence_config(bad.meta)
+    with torch.no_grad():
+        front = run_eskf(bad, cfg)
+        out = W.smooth(bad, front, cfg, W.SmootherConfig(covariance=False), "full")
+        graph = W.build_graph(bad, front, cfg, W.SmootherConfig(covariance=False))
+    assert graph.gnss_heading_index.numel() == seq.gnss_heading.length - 1
+    assert all(r.status == ["converged"] for r in out.lm)
+    assert bool(torch.isfinite(out.output.position).all()) and float(out.cost) < 1e3
