@@ -310,10 +310,11 @@ class EskfConfig:
             value = getattr(self, key)
             if len(value) != 3:
                 raise ValueError(f"config key '{key}' must have 3 entries, got {value!r}")
-        if math.hypot(*self.gnss_heading_baseline_m) < 1e-3:
+        if math.hypot(*self.gnss_heading_baseline_m[:2]) < 1e-3:
             raise ValueError(
-                "config key 'gnss_heading_baseline_m' must be a baseline direction (a vector "
-                f"longer than 1 mm), got {self.gnss_heading_baseline_m!r}"
+                "config key 'gnss_heading_baseline_m' must be a baseline direction with a "
+                "horizontal part longer than 1 mm (a vertical baseline has no heading), got "
+                f"{self.gnss_heading_baseline_m!r}"
             )
 
     def _validate_types(self) -> None:

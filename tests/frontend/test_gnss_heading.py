@@ -18,7 +18,7 @@ import torch
 from error_state_checks import CHI2_95_9DOF, navigation_errors
 
 from msf_torch import batch_sequences, load_sequence_config
-from msf_torch.frontend.config import EskfConfig
+from msf_torch.frontend.config import EskfConfig, load_config
 from msf_torch.frontend.eskf import run_eskf
 from msf_torch.frontend.init import antenna_heading_yaw, initial_state
 from msf_torch.frontend.stream import EskfStream, concat_results, time_slice
@@ -144,6 +144,9 @@ def test_initial_yaw_is_the_heading_carried_back_by_the_gyro():
     # on a level vehicle, a baseline pointing straight up has no heading
     up = EskfConfig(gnss_heading_baseline_m=[0.0, 0.0, 1.0])
     assert antenna_heading_yaw(heading, imu_t, gyro, np.eye(3), up) is None
+    # ... and a config saying so is refused when it is loaded
+    with pytest.raises(ValueError, match="gnss_heading_baseline_m.*horizontal part"):
+        load_config(gnss_heading_baseline_m=[0.0, 0.0, 1.0])
 
 
 def test_heading_gives_the_initial_yaw_before_any_motion(runs):
