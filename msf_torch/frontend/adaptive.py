@@ -375,6 +375,35 @@ class BlockAdaptation:
         """Whether any block is adapted."""
         return bool(self.noise_blocks or self.tracking_blocks)
 
+    def memory(self, carried: dict[str, dict] | None = None) -> dict[str, dict]:
+        """The adapted state now, for the next chunk of the run (``GateMemory.adaptation``):
+        ``{"r_hat": {block: (B, d, d)}, "r_count": {block: (B,)}, "v": ..., "v_count":
+        ...}``, this chunk's blocks and, from ``carried`` (the memory this chunk started
+        from), the blocks it did not measure, unchanged."""
+        out = {
+            "r_hat": dict(self._r_hat),
+            "r_count": dict(self._r_count),
+            "v": dict(self._v),
+            "v_count": dict(self._v_count),
+        }
+        for key, values in (carried or {}).items():
+            for name, value in values.items():
+                out[key].setdefault(name, value)
+        return out
+
+    def restore(self, memory: dict[str, dict] | None) -> None:
+        """Continue from a previous chunk's :meth:`memory` (its blocks that this chunk
+        adapts; the others stay as they start)."""
+        for key, mine in (
+            ("r_hat", self._r_hat),
+            ("r_count", self._r_count),
+            ("v", self._v),
+            ("v_count", self._v_count),
+        ):
+            for name, value in (memory or {}).get(key, {}).items():
+                if name in mine and value.shape == mine[name].shape:
+                    mine[name] = value.to(dtype=self._dtype, device=self._device).clone()
+
     def step(
         self,
         epoch: int,

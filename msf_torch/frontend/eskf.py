@@ -979,8 +979,8 @@ def run_eskf(
         initial: optional initial state (B, ...) and covariance (B, 15, 15) at each
             sequence's first IMU sample; default: ``frontend.init.initial_state``.
         gate_memory: the previous chunk's ``result.gate_memory`` when a run is filtered in
-            chunks (``initial`` its last state): rejection streaks and the wheel slip factor
-            carry over.
+            chunks (``initial`` its last state): rejection streaks, the wheel slip factor and
+            the adaptive noise's / strong tracking's state carry over.
         frame_memory: the previous chunk's ``result.frame_memory`` (drifting source frames):
             the offsets and their covariance with the state carry over.
         calibration_memory: the previous chunk's ``result.calibration_memory`` (online
@@ -1111,6 +1111,8 @@ def run_eskf(
         dtype,
         device,
     )
+    carried_adaptation = None if gate_memory is None else gate_memory.adaptation
+    adaptation.restore(carried_adaptation)
 
     def per_seq(x: torch.Tensor) -> torch.Tensor:
         return x.expand(batch) if x.dim() == 0 else x
@@ -1839,7 +1841,12 @@ def run_eskf(
                 covariances[..., 0:3, 0:3], full_covariances, block
             )
     result.gate_memory = dataclasses.replace(
-        guard.memory(), slip_factor=slip, last_wheel_time=last_wheel_t
+        guard.memory(),
+        slip_factor=slip,
+        last_wheel_time=last_wheel_t,
+        adaptation=adaptation.memory(carried_adaptation)
+        if adaptation.enabled or carried_adaptation
+        else None,
     )
     if calib is not None:
         result.calibration_memory = _calibration_memory(calib, result, full_covariances, frame_col)

@@ -238,6 +238,8 @@ class GateMemory:
             recovers at most ``slip_recovery_per_s`` from there), or None (1: no slip).
         last_wheel_time: (B,) s, the last wheel epoch's time (the start of the recovery), or
             None.
+        adaptation: the adaptive noise's and strong tracking's state
+            (``frontend.adaptive.BlockAdaptation.memory``), or None (nothing adapted yet).
     """
 
     streak: dict[str, torch.Tensor]
@@ -247,6 +249,7 @@ class GateMemory:
     episode: torch.Tensor
     slip_factor: torch.Tensor | None = None
     last_wheel_time: torch.Tensor | None = None
+    adaptation: dict[str, dict[str, torch.Tensor]] | None = None
 
 
 def reset_sigma_cap(

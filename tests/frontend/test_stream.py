@@ -79,6 +79,28 @@ def test_pieces_equal_the_run_in_one_piece(run, held):
     assert joined.gate_memory is not None and joined.fault_memory is not None
 
 
+@pytest.mark.parametrize(
+    "adaptive",
+    [
+        {"adaptive_noise_sensors": ["gnss", "gnss_velocity"]},
+        {"strong_tracking_sensors": ["gnss"]},
+    ],
+)
+def test_the_adaptive_noise_carries_over(run, adaptive):
+    """The adaptive noise's and strong tracking's state goes on from piece to piece
+    (``GateMemory.adaptation``), across a piece without GNSS (11.3-11.35 s) too. It restarted
+    in every piece: 0.25 m (adaptive GNSS) and 0.75 m (strong tracking) from the one run;
+    now 1.5e-6 and 4e-7 m (the pieces' extra epochs remain)."""
+    seq, cfg = run
+    cfg = cfg.replace(**HELD, **adaptive)
+    with torch.no_grad():
+        whole = run_eskf(seq, cfg)
+        pieces = [time_slice(seq, a, b) for a, b in zip(BOUNDS[:-1], BOUNDS[1:], strict=True)]
+        _, joined = _streamed(seq, cfg, pieces)
+    assert joined.gate_memory.adaptation is not None
+    assert _largest_difference(joined, whole)["position"] < 1e-4
+
+
 def test_measurements_ahead_of_the_imu_wait_for_the_next_piece(run):
     """Each piece's measurements run 0.3 s past its IMU (a receiver ahead of the IMU
     driver): they are fused when the IMU gets there, as in the one run."""
