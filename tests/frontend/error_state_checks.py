@@ -70,3 +70,14 @@ def navigation_errors(result, runs, b: int):
         -1,
     )
     return t, error, result.covariance[b, keep][:, :9, :9]
+
+
+def nees_inside_fraction(result, runs, after_s: float = 5.0) -> float:
+    """Fraction of the epochs after ``after_s`` (s) of every sequence of ``result`` whose
+    position, velocity and attitude NEES lies below the 95 % chi-square bound (9 dof)."""
+    inside = []
+    for b in range(len(runs)):
+        t, error, cov = navigation_errors(result, runs, b)
+        nees = (error[:, None, :] @ torch.linalg.solve(cov, error[..., None]))[:, 0, 0]
+        inside.append((nees[t > after_s] < CHI2_95_9DOF).double())
+    return float(torch.cat(inside).mean())
