@@ -74,7 +74,12 @@ import torch
 from msf_torch.geometry import so3
 from msf_torch.geometry.conventions import IDX_BG, IDX_THETA, IDX_V
 from msf_torch.sensors._jacobian import error_state_jacobian
-from msf_torch.sensors.gnss import gnss_heading_residual, gnss_residual, gnss_velocity_residual
+from msf_torch.sensors.gnss import (
+    azimuth_and_gradient,
+    gnss_heading_residual,
+    gnss_residual,
+    gnss_velocity_residual,
+)
 from msf_torch.sensors.pose import mean_rate_residual
 from msf_torch.sensors.wheel import body_velocity_residual, wheel_residual, wheel_speed_and_yaw_rate
 
@@ -298,12 +303,7 @@ def shifted_heading_residual(
     zeros = torch.zeros_like(offset)
     turn = so3.exp(torch.stack((zeros, zeros, offset), -1))
     turned = (turn @ baseline.expand(*offset.shape, 3)[..., None])[..., 0]
-    world = (rotation @ turned[..., None])[..., 0]
-    east, north = world[..., 0], world[..., 1]
-    horizontal = east**2 + north**2
-    defined = horizontal > 1e-12 * (world**2).sum(-1).clamp_min(1e-300)
-    scale = torch.where(defined, 1.0 / torch.where(defined, horizontal, 1.0), 0.0)
-    gradient = torch.stack((north, -east, zeros), -1) * scale[..., None]  # d(azimuth)/du
+    _, gradient, _ = azimuth_and_gradient((rotation @ turned[..., None])[..., 0])
     rate = torch.linalg.cross(gyro - gyro_bias, turned)  # w x b'
     azimuth_rate = (gradient * (rotation @ rate[..., None])[..., 0]).sum(-1)
     d_bias = (gradient[..., None, :] @ rotation @ so3.hat(turned))[..., 0, :]

@@ -19,7 +19,12 @@ baseline points straight up or down (``u_e = u_n = 0``).
 
 from __future__ import annotations
 
-__all__ = ["gnss_heading_residual", "gnss_residual", "gnss_velocity_residual"]
+__all__ = [
+    "azimuth_and_gradient",
+    "gnss_heading_residual",
+    "gnss_residual",
+    "gnss_velocity_residual",
+]
 
 import torch
 
@@ -90,6 +95,28 @@ def gnss_velocity_residual(
     return residual, jac
 
 
+def azimuth_and_gradient(
+    world: torch.Tensor,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Azimuth clockwise from north of world (ENU) vectors and its gradient.
+
+    Args:
+        world: (..., 3) vectors, e.g. an antenna baseline ``R b``.
+
+    Returns:
+        azimuth (...,) rad ``atan2(e, n)``, gradient (..., 3) ``[n, -e, 0] / (e^2 + n^2)``,
+        and defined (...,) bool: the vector has a horizontal part (where it has none the
+        gradient is 0).
+    """
+    east, north = world[..., 0], world[..., 1]
+    horizontal = east**2 + north**2
+    defined = horizontal > 1e-12 * (world**2).sum(-1).clamp_min(1e-300)
+    safe = torch.where(defined, horizontal, torch.ones_like(horizontal))
+    gradient = torch.stack((north, -east, torch.zeros_like(east)), -1) / safe[..., None]
+    gradient = torch.where(defined[..., None], gradient, torch.zeros_like(gradient))
+    return torch.atan2(east, north), gradient, defined
+
+
 def gnss_heading_residual(
     rotation: torch.Tensor, baseline: torch.Tensor, measured: torch.Tensor
 ) -> tuple[torch.Tensor, torch.Tensor]:
@@ -108,15 +135,8 @@ def gnss_heading_residual(
     """
     arm = baseline.expand(*rotation.shape[:-2], 3)
     world = (rotation @ arm[..., None]).squeeze(-1)
-    east, north = world[..., 0], world[..., 1]
-    horizontal = east**2 + north**2
-    defined = horizontal > 1e-12 * (world**2).sum(-1).clamp_min(1e-300)
-    safe = torch.where(defined, horizontal, torch.ones_like(horizontal))
-    residual = torch.where(
-        defined, wrap_angle(torch.atan2(east, north) - measured), torch.zeros_like(east)
-    )
-    d_azimuth = torch.stack((north, -east, torch.zeros_like(east)), -1) / safe[..., None]
-    d_azimuth = torch.where(defined[..., None], d_azimuth, torch.zeros_like(d_azimuth))
+    azimuth, d_azimuth, defined = azimuth_and_gradient(world)
+    residual = torch.where(defined, wrap_angle(azimuth - measured), torch.zeros_like(azimuth))
     jac = error_state_jacobian(
         1,
         [(IDX_THETA, -(d_azimuth[..., None, :] @ rotation @ so3.hat(arm)))],
