@@ -15,9 +15,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from bag_messages import header_msg, store_for
 from rosbags.rosbag1 import Writer as Writer1
 from rosbags.rosbag2 import Writer as Writer2
-from rosbags.typesys import Stores, get_typestore
 
 from msf_torch.frontend.config import EskfConfig
 from msf_torch.frontend.eskf import run_eskf
@@ -139,22 +139,9 @@ def test_bag_gives_the_native_trajectory(
 # --------------------------------------------------------------------------- hand-made bags
 
 
-def _store(version: int):
-    return get_typestore(Stores.ROS1_NOETIC if version == 1 else Stores.ROS2_HUMBLE)
-
-
-def _header(store, stamp_ns: int, frame: str):
-    sec, nsec = divmod(stamp_ns, 1_000_000_000)
-    time = store.types["builtin_interfaces/msg/Time"](sec=sec, nanosec=nsec)
-    header = store.types["std_msgs/msg/Header"]
-    if "seq" in header.__dataclass_fields__:
-        return header(seq=0, stamp=time, frame_id=frame)
-    return header(stamp=time, frame_id=frame)
-
-
 def _write_bag(path: Path, version: int, topics: dict[str, tuple[str, list]]) -> Path:
     """``topics``: topic -> (msgtype, [(stamp_ns, message), ...])."""
-    store = _store(version)
+    store = store_for(version)
     writer = Writer1(path) if version == 1 else Writer2(path, version=9)
     serialize = store.serialize_ros1 if version == 1 else store.serialize_cdr
     with writer:
@@ -182,7 +169,7 @@ def _pose_msg(store, position, rot: np.ndarray):
 def _imu_msg(store, stamp, frame, gyro, accel):
     zeros = np.zeros(9)
     return store.types["sensor_msgs/msg/Imu"](
-        header=_header(store, stamp, frame),
+        header=header_msg(store, stamp, frame),
         orientation=store.types["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=0.0, w=1.0),
         orientation_covariance=np.r_[-1.0, np.zeros(8)],
         angular_velocity=_v3(store, gyro),
@@ -201,7 +188,7 @@ def _still_imu(store, t0: int, frame: str, count: int, gravity: float) -> list:
 
 def _fix_msg(store, stamp, frame, lat, lon, alt, status=0, cov=None):
     return store.types["sensor_msgs/msg/NavSatFix"](
-        header=_header(store, stamp, frame),
+        header=header_msg(store, stamp, frame),
         status=store.types["sensor_msgs/msg/NavSatStatus"](status=status, service=1),
         latitude=lat,
         longitude=lon,
@@ -269,7 +256,7 @@ def _enu_reference(lat, lon, alt, origin) -> np.ndarray:
 
 def _robot_bag(path: Path, version: int) -> tuple[Path, dict]:
     """IMU (rotated frame), GNSS, wheels (JointState), camera pose with covariance, image."""
-    store = _store(version)
+    store = store_for(version)
     t0 = 1_600_000_000_000_000_000
     gyro, accel = np.array([0.01, -0.02, 0.3]), np.array([0.2, -0.1, 9.81])
     imu = [
@@ -297,7 +284,7 @@ def _robot_bag(path: Path, version: int) -> tuple[Path, dict]:
             (
                 stamp,
                 state(
-                    header=_header(store, stamp, "base_link"),
+                    header=header_msg(store, stamp, "base_link"),
                     name=names,
                     position=np.zeros(5),
                     velocity=rates,
@@ -310,7 +297,7 @@ def _robot_bag(path: Path, version: int) -> tuple[Path, dict]:
         (
             stamp,
             state(
-                header=_header(store, stamp, "base_link"),
+                header=header_msg(store, stamp, "base_link"),
                 name=["arm"],
                 position=np.zeros(1),
                 velocity=np.ones(1),
@@ -327,7 +314,7 @@ def _robot_bag(path: Path, version: int) -> tuple[Path, dict]:
         (
             t0 + 50_000_000,
             pose(
-                header=_header(store, t0 + 50_000_000, "map"),
+                header=header_msg(store, t0 + 50_000_000, "map"),
                 pose=with_cov(
                     pose=_pose_msg(store, cam_world[:3, 3], cam_world[:3, :3]),
                     covariance=ros_cov.reshape(36),
@@ -340,7 +327,7 @@ def _robot_bag(path: Path, version: int) -> tuple[Path, dict]:
         (
             t0 + 30_000_000 + k,
             image(
-                header=_header(store, t0 + 20_000_000 * k, "camera_link"),
+                header=header_msg(store, t0 + 20_000_000 * k, "camera_link"),
                 height=1,
                 width=2,
                 encoding="mono8",
@@ -496,7 +483,7 @@ def test_pan_camera_with_joint_states(tmp_path: Path) -> None:
         <origin xyz="0.05 0 0.1" rpy="-1.5707963267948966 0 -1.5707963267948966"/></joint>
     </robot>"""
     tree = FrameTree.from_urdf(urdf)
-    store = _store(2)
+    store = store_for(2)
     t0 = 1_000_000_000
     imu = _still_imu(store, t0, "base_link", 40, 9.8)
     state = store.types["sensor_msgs/msg/JointState"]
@@ -505,7 +492,7 @@ def test_pan_camera_with_joint_states(tmp_path: Path) -> None:
         (
             t0 + k * 100_000_000,
             state(
-                header=_header(store, t0 + k * 100_000_000, "base_link"),
+                header=header_msg(store, t0 + k * 100_000_000, "base_link"),
                 name=["pan"],
                 position=np.array([0.05 * k]),
                 velocity=np.zeros(1),
@@ -526,7 +513,7 @@ def test_pan_camera_with_joint_states(tmp_path: Path) -> None:
             (
                 stamp,
                 stamped(
-                    header=_header(store, stamp, "odom"),
+                    header=header_msg(store, stamp, "odom"),
                     pose=_pose_msg(store, cam_world[:3, 3], cam_world[:3, :3]),
                 ),
             )
@@ -568,7 +555,7 @@ def test_pan_camera_with_joint_states(tmp_path: Path) -> None:
 
 
 def test_twist_wheels_and_time_offset(tmp_path: Path) -> None:
-    store = _store(1)
+    store = store_for(1)
     t0 = 5_000_000_000
     imu = _still_imu(store, t0, "imu", 10, 9.8)
     twist = store.types["geometry_msgs/msg/TwistStamped"]
@@ -577,7 +564,7 @@ def test_twist_wheels_and_time_offset(tmp_path: Path) -> None:
         (
             t0 + 20_000_000,
             twist(
-                header=_header(store, t0 + 20_000_000, "base_link"),
+                header=header_msg(store, t0 + 20_000_000, "base_link"),
                 twist=tw(linear=_v3(store, [1.5, 0, 0]), angular=_v3(store, [0, 0, 0.4])),
             ),
         )
@@ -672,7 +659,7 @@ def test_odometry_rosbag2_reads_back_in_evo(native: Path, tmp_path: Path) -> Non
 def test_fix_without_altitude_is_a_horizontal_fix(tmp_path: Path) -> None:
     """NavSatFix altitude NaN means "no altitude available": east and north are kept, the
     up component is not fused, and the origin's altitude comes from the first fix with one."""
-    store = _store(2)
+    store = store_for(2)
     t0 = 1_650_000_000_000_000_000
     imu = _still_imu(store, t0, "imu", 40, 9.8)
     nan = float("nan")
@@ -712,7 +699,7 @@ def test_odometry_without_child_frame_needs_the_sensor_frame(tmp_path: Path) -> 
     """An Odometry's pose is that of its child_frame_id; header.frame_id is the parent. With
     the child left empty and no ``frame`` for the sensor, the reader asks for one (it used to
     take the parent frame and fail as an unknown frame)."""
-    store = _store(2)
+    store = store_for(2)
     t0 = 1_600_000_000_000_000_000
     imu = _still_imu(store, t0, "imu_link", 30, 9.81)
     odometry = store.types["nav_msgs/msg/Odometry"]
@@ -727,7 +714,7 @@ def test_odometry_without_child_frame_needs_the_sensor_frame(tmp_path: Path) -> 
         (
             t0 + k * 100_000_000,
             odometry(
-                header=_header(store, t0 + k * 100_000_000, "odom"),
+                header=header_msg(store, t0 + k * 100_000_000, "odom"),
                 child_frame_id="",
                 pose=with_cov(
                     pose=_pose_msg(store, [0.1 * k, 0.0, 0.0], np.eye(3)),
@@ -766,7 +753,7 @@ def test_odometry_without_child_frame_needs_the_sensor_frame(tmp_path: Path) -> 
 def test_wheel_joint_positions_only(tmp_path: Path, version: int) -> None:
     """A driver publishing wheel joint positions without velocities: the speeds are the mean
     rates between messages (midpoint stamps), times each side's radius."""
-    store = _store(version)
+    store = store_for(version)
     t0 = 1_600_000_000_000_000_000
     state = store.types["sensor_msgs/msg/JointState"]
     stamps = t0 + np.cumsum([0, 40, 45, 38, 41, 40]) * 1_000_000
@@ -777,7 +764,7 @@ def test_wheel_joint_positions_only(tmp_path: Path, version: int) -> None:
         (
             int(stamp),
             state(
-                header=_header(store, int(stamp), "base_link"),
+                header=header_msg(store, int(stamp), "base_link"),
                 name=list(angles),
                 position=np.array([angles[j][k] for j in angles]),
                 velocity=np.zeros(0),
@@ -834,7 +821,7 @@ def _twist_cov_msg(store, stamp, frame, linear, linear_cov):
         linear=_v3(store, linear), angular=_v3(store, [0.0, 0.0, 0.0])
     )
     return store.types["geometry_msgs/msg/TwistWithCovarianceStamped"](
-        header=_header(store, stamp, frame),
+        header=header_msg(store, stamp, frame),
         twist=store.types["geometry_msgs/msg/TwistWithCovariance"](
             twist=twist, covariance=cov.reshape(36)
         ),
@@ -846,7 +833,7 @@ def test_gnss_velocity_from_twist_messages(tmp_path: Path, version: int) -> None
     """TwistWithCovarianceStamped -> Sequence.gnss_velocity: the linear part as ENU m/s,
     sigma = sqrt(covariance diagonal), NaN where the diagonal is 0 or -1; a NaN up is kept as
     "not measured", a NaN east drops the message; TwistStamped has no sigma."""
-    store = _store(version)
+    store = store_for(version)
     t0 = 1_650_000_000_000_000_000
     step = 200_000_000
     nan = float("nan")
@@ -862,7 +849,7 @@ def test_gnss_velocity_from_twist_messages(tmp_path: Path, version: int) -> None
         for k, (v, c) in enumerate(rows)
     ]
     plain = store.types["geometry_msgs/msg/TwistStamped"](
-        header=_header(store, t0, "gps_link"),
+        header=header_msg(store, t0, "gps_link"),
         twist=store.types["geometry_msgs/msg/Twist"](
             linear=_v3(store, [0.5, 0.25, -0.125]), angular=_v3(store, [0.0, 0.0, 1.0])
         ),
@@ -951,7 +938,7 @@ def test_gnss_velocity_and_fixes_share_one_antenna(tmp_path: Path) -> None:
     frame (the estimator applies one lever arm); alone, it gives the GNSS lever arm."""
     from msf_torch.robot.config import load_robot_config
 
-    store = _store(2)
+    store = store_for(2)
     t0 = 1_650_000_000_000_000_000
     bag = _write_bag(
         tmp_path / "antenna",

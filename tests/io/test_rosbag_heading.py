@@ -16,9 +16,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from bag_messages import header_msg, store_for
 from rosbags.rosbag1 import Writer as Writer1
 from rosbags.rosbag2 import Writer as Writer2
-from rosbags.typesys import Stores, get_typestore
 from scipy.spatial.transform import Rotation
 
 from msf_torch.io import DataError
@@ -37,24 +37,11 @@ def _wrapped(a: torch.Tensor) -> torch.Tensor:
     return torch.remainder(a + math.pi, 2.0 * math.pi) - math.pi
 
 
-def _store(version: int):
-    return get_typestore(Stores.ROS1_NOETIC if version == 1 else Stores.ROS2_HUMBLE)
-
-
-def _header(store, stamp_ns: int, frame: str):
-    sec, nsec = divmod(stamp_ns, 1_000_000_000)
-    time = store.types["builtin_interfaces/msg/Time"](sec=sec, nanosec=nsec)
-    header = store.types["std_msgs/msg/Header"]
-    if "seq" in header.__dataclass_fields__:
-        return header(seq=0, stamp=time, frame_id=frame)
-    return header(stamp=time, frame_id=frame)
-
-
 def _imu_msg(store, stamp: int, frame: str, xyzw, orientation_cov, accel=(0.0, 0.0, 0.0)):
     vector = store.types["geometry_msgs/msg/Vector3"]
     x, y, z, w = (float(c) for c in xyzw)
     return store.types["sensor_msgs/msg/Imu"](
-        header=_header(store, stamp, frame),
+        header=header_msg(store, stamp, frame),
         orientation=store.types["geometry_msgs/msg/Quaternion"](x=x, y=y, z=z, w=w),
         orientation_covariance=np.asarray(orientation_cov, dtype=np.float64),
         angular_velocity=vector(x=0.0, y=0.0, z=0.0),
@@ -66,7 +53,7 @@ def _imu_msg(store, stamp: int, frame: str, xyzw, orientation_cov, accel=(0.0, 0
 
 def _write_bag(path: Path, version: int, topics: dict[str, list]) -> Path:
     """``topics``: topic -> [(stamp_ns, sensor_msgs/Imu message), ...]."""
-    store = _store(version)
+    store = store_for(version)
     writer = Writer1(path) if version == 1 else Writer2(path, version=9)
     serialize = store.serialize_ros1 if version == 1 else store.serialize_cdr
     with writer:
@@ -98,7 +85,7 @@ def test_headings_from_imu_orientations(tmp_path: Path, version: int) -> None:
     """Heading = the azimuth of the quaternion's x axis clockwise from north (a tilted one
     too), sigma = sqrt(orientation_covariance[8]) when > 0, else NaN; a message with
     orientation_covariance[0] == -1 is skipped and counted."""
-    store = _store(version)
+    store = store_for(version)
     step = 125_000_000
     tilted = Rotation.from_euler("ZYX", [-2.9, 0.3, -0.2])  # yaw, pitch, roll
     cov_small = np.r_[1e3, 0, 0, 0, 1e3, 0, 0, 0, 4e-4]
@@ -188,7 +175,7 @@ def test_heading_sensor_rules(tmp_path: Path) -> None:
     quaternion is an error naming the topic."""
     with pytest.raises(ValueError, match="one gnss_heading sensor"):
         BagLayout(sensors=(IMU, HEADING, dataclasses.replace(HEADING, name="second")))
-    store = _store(2)
+    store = store_for(2)
     bag = _write_bag(
         tmp_path / "zero",
         2,
@@ -202,7 +189,7 @@ def test_heading_sensor_rules(tmp_path: Path) -> None:
     assert "/ublox/navheading" in str(caught.value)
     heading_on_fixes = SensorTopic("heading", "gnss_heading", "/fix")
     fix = store.types["sensor_msgs/msg/NavSatFix"](
-        header=_header(store, T0, "gps"),
+        header=header_msg(store, T0, "gps"),
         status=store.types["sensor_msgs/msg/NavSatStatus"](status=0, service=1),
         latitude=47.0,
         longitude=8.0,
