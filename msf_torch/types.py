@@ -16,6 +16,7 @@ __all__ = [
     "GnssFixes",
     "GnssVelocity",
     "GnssHeading",
+    "Magnetometer",
     "PoseMeasurements",
     "Trajectory",
     "NavState",
@@ -202,6 +203,26 @@ class GnssHeading(_Stream):
 
 
 @dataclass
+class Magnetometer(_Stream):
+    """Three-axis magnetometer readings in the body (IMU) frame, as the sensor gives them
+    (before hard- and soft-iron correction, which ``EskfConfig`` applies).
+
+    Attributes:
+        t: (B, N) s.
+        field: (B, N, 3) magnetic flux density, microtesla (uT; 1 gauss = 100 uT, ROS
+            ``sensor_msgs/MagneticField`` carries tesla = 1e6 uT).
+        sigma: (B, N) per-axis standard deviation, uT; NaN where the file gave none (the
+            estimator's configured default applies).
+        mask: (B, N) bool.
+    """
+
+    t: torch.Tensor
+    field: torch.Tensor
+    sigma: torch.Tensor
+    mask: torch.Tensor
+
+
+@dataclass
 class PoseMeasurements(_Stream):
     """Pose measurements of the body in the world frame (visual / LiDAR odometry, priors).
 
@@ -263,7 +284,8 @@ class Sequence:
     Attributes:
         names: one name per sequence (length B).
         imu: IMU samples (required).
-        wheel, gnss, gnss_velocity, gnss_heading, poses: optional measurement streams.
+        wheel, gnss, gnss_velocity, gnss_heading, magnetometer, poses: optional
+            measurement streams.
         ground_truth: optional reference trajectory.
         labels: name -> (B, K, 2) intervals ``[t_start, t_end]`` in s, NaN-padded; e.g.
             ``"slip"`` or ``"weather:rain"``.
@@ -280,13 +302,23 @@ class Sequence:
     gnss: GnssFixes | None = None
     gnss_velocity: GnssVelocity | None = None
     gnss_heading: GnssHeading | None = None
+    magnetometer: Magnetometer | None = None
     poses: PoseMeasurements | None = None
     ground_truth: Trajectory | None = None
     labels: dict[str, torch.Tensor] = field(default_factory=dict)
     meta: dict[str, Any] = field(default_factory=dict)
     pose_sources: dict[str, PoseMeasurements] = field(default_factory=dict)
 
-    _STREAMS = ("imu", "wheel", "gnss", "gnss_velocity", "gnss_heading", "poses", "ground_truth")
+    _STREAMS = (
+        "imu",
+        "wheel",
+        "gnss",
+        "gnss_velocity",
+        "gnss_heading",
+        "magnetometer",
+        "poses",
+        "ground_truth",
+    )
 
     @property
     def batch_size(self) -> int:
@@ -389,8 +421,9 @@ def _empty_like_stream(kind: type, template) -> Any:
         "quaternion": (4,),
         "covariance": (6, 6),
         "heading": (),
+        "field": (3,),
     }
-    if kind is GnssHeading:
+    if kind in (GnssHeading, Magnetometer):
         shapes["sigma"] = ()
     out = {}
     for f in dataclasses.fields(kind):
@@ -417,6 +450,7 @@ def batch_sequences(sequences: list[Sequence]) -> Sequence:
         "gnss": GnssFixes,
         "gnss_velocity": GnssVelocity,
         "gnss_heading": GnssHeading,
+        "magnetometer": Magnetometer,
         "poses": PoseMeasurements,
         "ground_truth": Trajectory,
     }

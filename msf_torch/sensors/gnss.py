@@ -21,6 +21,7 @@ from __future__ import annotations
 
 __all__ = [
     "azimuth_and_gradient",
+    "azimuth_residual",
     "gnss_heading_residual",
     "gnss_residual",
     "gnss_velocity_residual",
@@ -117,6 +118,35 @@ def azimuth_and_gradient(
     return torch.atan2(east, north), gradient, defined
 
 
+def azimuth_residual(
+    rotation: torch.Tensor, body_vector: torch.Tensor, measured: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Residual (..., 1) rad and Jacobian (..., 1, 15) of the azimuth of a body-frame vector
+    seen in the world: ``wrap(azimuth(R v) - measured)``.
+
+    Args:
+        rotation: (..., 3, 3) body -> world (ENU).
+        body_vector: (..., 3) or (3,) the vector in the body frame (only its direction
+            matters): an antenna baseline, a magnetometer's corrected field.
+        measured: (...,) the azimuth it should have, clockwise from north, rad.
+
+    Returns:
+        ``wrap(psi - measured)`` in (-pi, pi] and its Jacobian (only the attitude columns
+        are non-zero, ``-g^T R [v]x`` with ``g`` the azimuth's gradient). A vector pointing
+        straight up or down has no azimuth: residual and Jacobian are then zero.
+    """
+    arm = body_vector.expand(*rotation.shape[:-2], 3)
+    world = (rotation @ arm[..., None]).squeeze(-1)
+    azimuth, d_azimuth, defined = azimuth_and_gradient(world)
+    residual = torch.where(defined, wrap_angle(azimuth - measured), torch.zeros_like(azimuth))
+    jac = error_state_jacobian(
+        1,
+        [(IDX_THETA, -(d_azimuth[..., None, :] @ rotation @ so3.hat(arm)))],
+        like=rotation,
+    )
+    return residual[..., None], jac
+
+
 def gnss_heading_residual(
     rotation: torch.Tensor, baseline: torch.Tensor, measured: torch.Tensor
 ) -> tuple[torch.Tensor, torch.Tensor]:
@@ -133,13 +163,4 @@ def gnss_heading_residual(
         columns are non-zero). A baseline pointing straight up or down has no azimuth:
         residual and Jacobian are then zero (the update does nothing).
     """
-    arm = baseline.expand(*rotation.shape[:-2], 3)
-    world = (rotation @ arm[..., None]).squeeze(-1)
-    azimuth, d_azimuth, defined = azimuth_and_gradient(world)
-    residual = torch.where(defined, wrap_angle(azimuth - measured), torch.zeros_like(azimuth))
-    jac = error_state_jacobian(
-        1,
-        [(IDX_THETA, -(d_azimuth[..., None, :] @ rotation @ so3.hat(arm)))],
-        like=rotation,
-    )
-    return residual[..., None], jac
+    return azimuth_residual(rotation, baseline, measured)

@@ -23,6 +23,7 @@ from msf_torch.sensors import (
     wheel_speed_and_yaw_rate,
     zero_velocity_residual,
 )
+from msf_torch.sensors.magnetometer import magnetometer_heading_residual
 
 DTYPE = torch.float64
 
@@ -80,6 +81,15 @@ def _inputs(batch: int, seed: int):
     extra["heading"] = torch.atan2(baseline_world[:, 0], baseline_world[:, 1]) + 0.3 * torch.randn(
         batch, generator=gen, dtype=DTYPE
     )
+    # an earth field (uT) with a strong vertical part, and a declination within ~0.3 rad of
+    # the azimuth it has in the world
+    extra["field"] = torch.tensor([18.0, 2.0, -40.0], dtype=DTYPE) + 3.0 * torch.randn(
+        batch, 3, generator=gen, dtype=DTYPE
+    )
+    field_world = (state.rotation @ extra["field"][..., None])[..., 0]
+    extra["declination"] = torch.atan2(field_world[:, 0], field_world[:, 1]) + 0.3 * torch.randn(
+        batch, generator=gen, dtype=DTYPE
+    )
     return state, extra
 
 
@@ -104,6 +114,9 @@ def _residuals(x: dict):
             s.velocity, s.rotation, x["gyro"], s.gyro_bias, x["lever"], x["measured3"]
         ),
         "gnss_heading": lambda s: gnss_heading_residual(s.rotation, x["lever"], x["heading"]),
+        "magnetometer": lambda s: magnetometer_heading_residual(
+            s.rotation, x["field"], x["declination"]
+        ),
         "pose": lambda s: pose_residual(
             s.position, s.rotation, x["measured_position"], x["pose_rotation"]
         ),
@@ -118,6 +131,7 @@ NAMES = [
     "gnss",
     "gnss_velocity",
     "gnss_heading",
+    "magnetometer",
     "pose",
 ]
 DIMS = {
@@ -128,6 +142,7 @@ DIMS = {
     "gnss": 3,
     "gnss_velocity": 3,
     "gnss_heading": 1,
+    "magnetometer": 1,
     "pose": 6,
 }
 
