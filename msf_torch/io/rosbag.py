@@ -17,6 +17,8 @@ kind         message types                                         becomes
              ``TwistStamped`` (the antenna's velocity, ENU)        (ENU)
 ``gnss_heading`` ``sensor_msgs/Imu`` (orientation only: a dual-      ``Sequence.gnss_heading``
              antenna receiver's baseline heading)
+``magnetometer`` ``sensor_msgs/MagneticField``                     ``Sequence.magnetometer``
+                                                                   (body axes, uT)
 ``wheels``   ``sensor_msgs/JointState`` (wheel joint velocities    ``Sequence.wheel``
              or positions),
              ``geometry_msgs/TwistStamped``,
@@ -96,6 +98,17 @@ GNSS heading
     primary antenna only (``meta["extrinsics"]``); its axes are not applied to the
     heading. Which body direction the baseline has is ``gnss_heading_baseline_m`` (a robot
     YAML derives it from the two antenna frames).
+Magnetometer
+    ``magnetic_field`` (tesla, in the sensor frame's axes) becomes microtesla (x 1e6)
+    turned into the body axes, ``f_body = R_body_sensor f_sensor`` (a free vector: no lever
+    arm; ``meta["extrinsics"]`` keeps ``T_body_sensor``). The sensor frame must not move
+    with a joint. The readings are not corrected: hard and soft iron are the estimator's
+    (``magnetometer_hard_iron_uT``, ``magnetometer_soft_iron``, body frame; a robot YAML
+    turns sensor-frame values into the body frame). The sigma per axis (uT) is ``1e6
+    sqrt(trace(C) / 3)`` of the ``magnetic_field_covariance`` ``C`` (3x3 row-major, T^2;
+    its trace does not change with the rotation) when all three diagonal entries are
+    positive and finite and ``use_message_covariance`` (default true); otherwise NaN (ROS:
+    an all-zero covariance is "unknown"), i.e. the estimator's ``magnetometer_sigma_uT``.
 Pose covariance
     ROS orders a pose covariance ``[x, y, z, rot x, rot y, rot z]`` with both blocks about
     the parent (world) axes; msf_torch's is ``[dp (world), dtheta (body)]``
@@ -175,6 +188,7 @@ from msf_torch.types import (
     GnssHeading,
     GnssVelocity,
     ImuSamples,
+    Magnetometer,
     PoseMeasurements,
     Sequence,
     Trajectory,
@@ -186,6 +200,7 @@ SENSOR_KINDS = (
     "gnss",
     "gnss_velocity",
     "gnss_heading",
+    "magnetometer",
     "wheels",
     "pose",
     "joints",
@@ -202,6 +217,7 @@ MESSAGE_TYPES: dict[str, tuple[str, ...]] = {
         "geometry_msgs/msg/TwistStamped",
     ),
     "gnss_heading": ("sensor_msgs/msg/Imu",),
+    "magnetometer": ("sensor_msgs/msg/MagneticField",),
     "wheels": (
         "sensor_msgs/msg/JointState",
         "geometry_msgs/msg/TwistStamped",
@@ -240,8 +256,8 @@ class SensorTopic:
             ``child_frame_id``; the body frame for ``PoseStamped`` / ``PoseWithCovariance``).
         stamp: ``"header"`` or ``"bag"`` (the recording time).
         time_offset_s: added to every time of this sensor, s.
-        use_message_covariance: GNSS, GNSS velocity, GNSS heading, pose: take the message's
-            covariance.
+        use_message_covariance: GNSS, GNSS velocity, GNSS heading, magnetometer, pose: take
+            the message's covariance.
         min_fix_status: GNSS: lowest ``NavSatStatus.status`` kept (-1 keeps all).
         fuse: fused components (None: all); see the module docstring.
         left_joints, right_joints: wheels from JointState: the joints of each side.
@@ -287,9 +303,9 @@ class BagLayout:
     """Which topics to read and how (the ``sensors`` and ``frames`` of a robot YAML).
 
     Attributes:
-        sensors: the topics to read; at most one each of gnss, gnss_velocity, gnss_heading
-            and wheels, one pose sensor with role ``poses`` and one with ``ground_truth``;
-            exactly one imu.
+        sensors: the topics to read; at most one each of gnss, gnss_velocity, gnss_heading,
+            magnetometer and wheels, one pose sensor with role ``poses`` and one with
+            ``ground_truth``; exactly one imu.
         frames: the robot's frames, or None (every sensor at the body origin and axes).
         body_frame: the estimator's body axes (origin at the IMU); None: the IMU's frame.
         joint_values: fixed values (rad or m) of movable joints, by name.
@@ -311,7 +327,7 @@ class BagLayout:
         kinds = [s.kind for s in self.sensors]
         if kinds.count("imu") != 1:
             raise ValueError(f"a bag layout needs exactly one imu sensor, got {kinds.count('imu')}")
-        for single in ("gnss", "gnss_velocity", "gnss_heading", "wheels", "joints"):
+        for single in ("gnss", "gnss_velocity", "gnss_heading", "magnetometer", "wheels", "joints"):
             names = [s.name for s in self.sensors if s.kind == single]
             if len(names) > 1:
                 raise ValueError(f"the estimator takes one {single} sensor, got {names}")
@@ -470,6 +486,12 @@ def _extract(
         return {
             "quaternion_xyzw": np.array(quat, dtype=np.float64).reshape(-1, 4),
             "yaw_variance": cov[keep, 8],
+        }, keep
+    if spec.kind == "magnetometer":
+        cov = np.array([m.magnetic_field_covariance for m in messages]).reshape(-1, 9)
+        return {
+            "field_tesla": np.array([_vec(m.magnetic_field) for m in messages]).reshape(-1, 3),
+            "cov_diagonal": cov[:, [0, 4, 8]],
         }, keep
     if spec.kind == "pose":
         pose_of = {
@@ -693,8 +715,8 @@ def read_rosbag(path: str | os.PathLike[str], layout: BagLayout, sort: bool = Fa
 
     Returns:
         a :class:`~msf_torch.types.Sequence`: ``imu`` and, when mapped, ``wheel``, ``gnss``,
-        ``gnss_velocity``, ``gnss_heading``, ``poses``, ``ground_truth`` and named
-        ``pose_sources``, in the body frame (module docstring); ``names == [bag stem]``;
+        ``gnss_velocity``, ``gnss_heading``, ``magnetometer``, ``poses``, ``ground_truth``
+        and named ``pose_sources``, in the body frame (module docstring); ``names == [bag stem]``;
         ``meta`` with ``source``, ``format`` (``"rosbag1"`` / ``"rosbag2"``),
         ``time_origin_ns``, ``body_frame``, ``imu_frame``, ``body_imu_rotation`` (3x3, the
         IMU's axes in the body frame), ``topics``, ``extrinsics``, ``gnss_origin``,
@@ -766,6 +788,10 @@ def read_rosbag(path: str | os.PathLike[str], layout: BagLayout, sort: bool = Fa
         elif spec.kind == "gnss_heading":
             streams["gnss_heading"] = _gnss_heading_stream(r, t, clean, bag)
             meta["extrinsics"][name] = frames.body_from(r).tolist()
+        elif spec.kind == "magnetometer":
+            body_sensor = frames.body_from(r)
+            streams["magnetometer"] = _magnetometer_stream(r, t, body_sensor[:3, :3], clean)
+            meta["extrinsics"][name] = body_sensor.tolist()
         elif spec.kind == "wheels":
             streams["wheel"] = _wheel_stream(r, t, layout, clean, bag)
             meta["extrinsics"][name] = frames.body_from(r).tolist()
@@ -881,6 +907,19 @@ def _gnss_heading_stream(r: _Raw, t: np.ndarray, clean, bag: Path) -> GnssHeadin
     sigma = np.where(known & use, np.sqrt(np.where(known, variance, 1.0)), np.nan)
     arrays = clean("gnss_heading", {"t": t, "heading": heading, "sigma": sigma}, nan_ok=("sigma",))
     return _tables.stream_from_arrays(GnssHeading, arrays)
+
+
+def _magnetometer_stream(r: _Raw, t: np.ndarray, rotation: torch.Tensor, clean) -> Magnetometer:
+    """Body-frame fields (N, 3) uT and per-axis sigmas (N,) uT from ``MagneticField``
+    messages (module docstring); ``rotation`` (3, 3) is ``R_body_sensor``."""
+    field = 1e6 * r.fields["field_tesla"] @ rotation.numpy().T
+    diagonal = r.fields["cov_diagonal"]
+    known = (np.isfinite(diagonal) & (diagonal > 0)).all(axis=1)
+    use = known & r.spec.use_message_covariance
+    mean = np.where(known[:, None], diagonal, 1.0).mean(axis=1)
+    sigma = np.where(use, 1e6 * np.sqrt(mean), np.nan)
+    arrays = clean("magnetometer", {"t": t, "field": field, "sigma": sigma}, nan_ok=("sigma",))
+    return _tables.stream_from_arrays(Magnetometer, arrays)
 
 
 def _check_one_antenna(layout: BagLayout, meta: dict[str, Any], bag: Path) -> None:
@@ -1209,6 +1248,27 @@ def _messages_for(
                     ),
                 )
             )
+    elif spec.kind == "magnetometer":
+        if seq.magnetometer is None:
+            return out
+        s = seq.magnetometer.compact()
+        rot = _np(body_from[spec.name][:3, :3])
+        tesla = 1e-6 * _np(s.field[0]) @ rot  # body -> sensor axes
+        sigma = _np(s.sigma[0])
+        stamps = _stamps(_np(s.t[0]), origin_ns, spec.time_offset_s)
+        magnetic = m.types["sensor_msgs/msg/MagneticField"]
+        for k, stamp in enumerate(stamps.tolist()):
+            variance = (1e-6 * sigma[k]) ** 2 if np.isfinite(sigma[k]) else 0.0
+            out.append(
+                (
+                    stamp,
+                    magnetic(
+                        header=m.header(stamp, frame),
+                        magnetic_field=m.vector(tesla[k]),
+                        magnetic_field_covariance=np.diag([variance] * 3).reshape(9),
+                    ),
+                )
+            )
     elif spec.kind == "wheels":
         if seq.wheel is None:
             return out
@@ -1294,6 +1354,7 @@ _WRITE_TYPES = {
     "gnss": "sensor_msgs/msg/NavSatFix",
     "gnss_velocity": "geometry_msgs/msg/TwistWithCovarianceStamped",
     "gnss_heading": "sensor_msgs/msg/Imu",
+    "magnetometer": "sensor_msgs/msg/MagneticField",
     "pose": "nav_msgs/msg/Odometry",
 }
 
@@ -1316,7 +1377,9 @@ def write_rosbag(
     linear covariance diagonal from the sigmas, 0 where NaN; angular -1); gnss_heading
     -> ``Imu`` with only the orientation (yaw ``pi/2 - heading`` about the vertical, the yaw
     variance ``sigma^2`` in ``orientation_covariance[8]``, 0 where NaN, roll and pitch 1000;
-    the rates and accelerations -1, "not provided"); wheels
+    the rates and accelerations -1, "not provided"); magnetometer -> ``MagneticField`` in
+    tesla in the sensor's axes (covariance ``diag(sigma^2)``, T^2, all zero where NaN:
+    "unknown"); wheels
     -> ``JointState`` velocities (rim speed / radius per joint) when the sensor names
     joints, else ``TwistStamped``; pose (each role) -> ``Odometry`` of the sensor frame
     with the covariance in ROS order. Data are turned from the body frame into each
