@@ -18,8 +18,8 @@ Top-level keys
 ``time``
     ``origin_ns``: ``first`` (default: the earliest stamp read) or an integer in ns.
 ``sensors`` (required; a mapping name -> sensor)
-    Every sensor: ``type`` (imu | gnss | gnss_velocity | gnss_heading | wheels | pose |
-    joints | image | laser_scan),
+    Every sensor: ``type`` (imu | gnss | gnss_velocity | gnss_heading | magnetometer |
+    wheels | pose | joints | image | laser_scan),
     ``topic``, ``enabled`` (default true), ``frame`` (default: from the messages),
     ``stamp`` (header | bag), ``time_offset_s`` (0). Per type (see
     :mod:`msf_torch.io.rosbag` for what they do): gnss ``origin`` (first | [lat_deg,
@@ -27,7 +27,10 @@ Top-level keys
     (subset of [x, y, z]); gnss_velocity ``use_message_covariance`` (true); gnss_heading
     (a dual-antenna heading as ``sensor_msgs/Imu``; its frame is the primary antenna's)
     ``use_message_covariance`` (true), ``baseline`` (``{secondary_frame: FRAME}``: the
-    secondary antenna's frame; needs ``frames``); wheels
+    secondary antenna's frame; needs ``frames``); magnetometer
+    (``sensor_msgs/MagneticField``) ``use_message_covariance`` (true), ``declination_deg``,
+    ``hard_iron_uT`` (3 numbers), ``soft_iron`` (9 numbers, row-major 3x3 ``W``; its
+    determinant must be positive), ``sigma_uT``; wheels
     ``left_joints``, ``right_joints``, ``wheel_radius_m``
     (a number or [left, right]) for JointState, ``fuse`` (subset of [speed, yaw_rate],
     default [speed]); pose ``role`` (pose_source | poses | ground_truth),
@@ -58,9 +61,15 @@ With ``frames``, :meth:`RobotConfig.eskf_config` sets ``gnss_lever_arm_m`` and
 right wheel joints' frames) unless ``estimator`` gives it. A gnss_heading sensor with
 ``baseline`` sets ``gnss_heading_baseline_m``: the secondary antenna frame's position minus
 the primary's (the sensor's frame), in the body axes, m; without ``baseline``,
-``estimator.gnss_heading_baseline_m`` applies. Setting a derived key in ``estimator`` as well
-is an error that names both. The wheels' ``fuse`` sets
-``wheel_yaw_rate_update``; the calibration switches set ``calibrate_wheels``,
+``estimator.gnss_heading_baseline_m`` applies. A magnetometer's ``declination_deg`` sets
+``magnetometer_declination_rad`` (in rad), ``sigma_uT`` ``magnetometer_sigma_uT``, and its
+``hard_iron_uT`` ``b`` and ``soft_iron`` ``W``, given in the sensor's own axes (as a fit on
+the sensor's readings gives them), set ``magnetometer_hard_iron_uT = R b`` and
+``magnetometer_soft_iron = R W R^T`` with ``R = R_body_sensor`` (the frame's rotation in the
+body axes; identity without ``frames``): the reader turns the readings ``m`` into the body
+axes, and ``R W R^T (R m - R b) = R W (m - b)``, the corrected field turned likewise.
+Setting a derived key in ``estimator`` as well is an error that names both. The wheels'
+``fuse`` sets ``wheel_yaw_rate_update``; the calibration switches set ``calibrate_wheels``,
 ``calibrate_time_offsets``, ``calibrate_gnss_lever_arm``, ``calibrate_pose_extrinsics``,
 ``calibrate_imu_body_rotation`` and ``calibrate_gnss_heading_offset``.
 """
@@ -117,6 +126,13 @@ _PER_KIND = {
         "calibrate_offset",
         "calibrate_time_offset",
     ),
+    "magnetometer": (
+        "use_message_covariance",
+        "declination_deg",
+        "hard_iron_uT",
+        "soft_iron",
+        "sigma_uT",
+    ),
     "wheels": ("left_joints", "right_joints", "wheel_radius_m", "fuse", "calibrate"),
     "pose": (
         "role",
@@ -131,6 +147,14 @@ _PER_KIND = {
     "image": (),
     "laser_scan": (),
 }
+
+_MAGNETOMETER_KEYS = {
+    "declination_deg": "magnetometer_declination_rad",
+    "hard_iron_uT": "magnetometer_hard_iron_uT",
+    "soft_iron": "magnetometer_soft_iron",
+    "sigma_uT": "magnetometer_sigma_uT",
+}
+"""A magnetometer's options and the EskfConfig keys they set (module docstring)."""
 
 
 class _Checker:
@@ -212,6 +236,9 @@ class RobotConfig:
             ``"gnss"``, ``"pose:<source name>"``.
         heading_secondary_frame: the gnss_heading sensor's ``baseline.secondary_frame``
             (the secondary antenna's frame), or None.
+        magnetometer: the magnetometer's options given (keys of ``_MAGNETOMETER_KEYS``) as
+            written: ``declination_deg`` deg, ``hard_iron_uT`` (3) uT and ``soft_iron`` (9)
+            in the sensor's axes, ``sigma_uT`` uT.
     """
 
     path: Path | None
@@ -223,6 +250,7 @@ class RobotConfig:
     calibrate: tuple[str, ...] = ()
     calibrate_extrinsics: tuple[str, ...] = ()
     heading_secondary_frame: str | None = None
+    magnetometer: dict[str, Any] = field(default_factory=dict)
     _lines: dict[tuple, int] = field(default_factory=dict, repr=False)
 
     @property
@@ -289,6 +317,44 @@ class RobotConfig:
             )
         return baseline.tolist()
 
+    def _magnetometer_settings(
+        self, values: Mapping[str, Any], extrinsics: Mapping[str, Any]
+    ) -> dict[str, Any]:
+        """EskfConfig keys from the magnetometer's options (module docstring). The hard and
+        soft iron are turned into the body axes with the sensor's rotation, known without
+        ``frames`` (identity) or from ``extrinsics`` (``T_body_sensor`` 4x4 by sensor name);
+        otherwise they are left out (a check of the file without a bag).
+
+        Raises:
+            DataError: a key also set in ``estimator`` (``values``).
+        """
+        sensor = self.layout.sensor("magnetometer")
+        out: dict[str, Any] = {}
+        if sensor is None:
+            return out
+        rotation = None
+        if self.layout.frames is None:
+            rotation = torch.eye(3, dtype=torch.float64)
+        elif sensor.name in extrinsics:
+            rotation = torch.tensor(extrinsics[sensor.name], dtype=torch.float64)[:3, :3]
+        for option, value in self.magnetometer.items():
+            key = _MAGNETOMETER_KEYS[option]
+            if key in values:
+                raise self._fail(
+                    ("estimator", key),
+                    f"is also given by sensors.{sensor.name}.{option}; set it in one place",
+                )
+            if option == "declination_deg":
+                out[key] = math.radians(value)
+            elif option == "sigma_uT":
+                out[key] = value
+            elif rotation is not None and option == "hard_iron_uT":
+                out[key] = (rotation @ torch.tensor(value, dtype=torch.float64)).tolist()
+            elif rotation is not None:
+                soft = torch.tensor(value, dtype=torch.float64).reshape(3, 3)
+                out[key] = (rotation @ soft @ rotation.mT).reshape(9).tolist()
+        return out
+
     def eskf_config(
         self, meta: Mapping[str, Any] | None = None, overrides: Mapping[str, Any] | None = None
     ) -> EskfConfig:
@@ -339,6 +405,7 @@ class RobotConfig:
                 derived["gnss_heading_baseline_m"] = self._heading_baseline(
                     torch.tensor(primary, dtype=torch.float64)
                 )
+        derived.update(self._magnetometer_settings(values, extrinsics))
         if self.layout.frames is not None:
             for key, sensor in (
                 ("gnss_lever_arm_m", antenna),
@@ -396,8 +463,9 @@ class RobotConfig:
         origin, ``quaternion_wxyz``); ``derived`` gives the estimator settings the frames
         set: ``gnss_lever_arm_m`` and ``wheel_lever_arm_m`` (from the IMU, the estimator's
         body origin, in the body axes), ``gnss_heading_baseline_m`` (the two antenna
-        frames), ``wheel_track_m`` (URDF) and ``wheel_yaw_rate_update`` (the wheels'
-        ``fuse``) where they differ from the defaults.
+        frames), the magnetometer's keys its options set (hard and soft iron in the body
+        axes; for a magnetometer whose frame the YAML names), ``wheel_track_m`` (URDF) and
+        ``wheel_yaw_rate_update`` (the wheels' ``fuse``) where they differ from the defaults.
         """
         layout = self.layout
         out: dict[str, Any] = {
@@ -446,6 +514,9 @@ class RobotConfig:
                 "gnss_lever_arm_m": antenna,
                 "wheel_lever_arm_m": layout.sensor("wheels"),
                 "gnss_heading_baseline_m": heading,
+            } | {
+                _MAGNETOMETER_KEYS[option]: layout.sensor("magnetometer")
+                for option in self.magnetometer
             }
             out["derived"] = {
                 key: getattr(derived, key)
@@ -558,6 +629,7 @@ def load_robot_config(path: str | os.PathLike[str]) -> RobotConfig:
     calibrate: list[str] = []
     calibrate_extrinsics: list[str] = []
     secondary_frame = None
+    magnetometer: dict[str, Any] = {}
     for sensor_name, body_value in sensors_section.items():
         keys = ("sensors", str(sensor_name))
         if not isinstance(body_value, dict):
@@ -691,6 +763,8 @@ def load_robot_config(path: str | os.PathLike[str]) -> RobotConfig:
         elif kind == "imu":
             if check.boolean(spec.get("calibrate_rotation", False), (*keys, "calibrate_rotation")):
                 calibrate_extrinsics.append("imu")
+        elif kind == "magnetometer":
+            magnetometer = _magnetometer_options(check, spec, keys)
         elif kind == "gnss_heading":
             if "baseline" in spec:
                 secondary_frame = _secondary_frame(
@@ -769,6 +843,7 @@ def load_robot_config(path: str | os.PathLike[str]) -> RobotConfig:
         calibrate=tuple(calibrate),
         calibrate_extrinsics=tuple(calibrate_extrinsics),
         heading_secondary_frame=secondary_frame,
+        magnetometer=magnetometer,
         _lines=check.lines,
     )
     if tree is not None:
@@ -782,6 +857,35 @@ def load_robot_config(path: str | os.PathLike[str]) -> RobotConfig:
             if all(j in joint_values for j in joints):
                 config._heading_baseline(config._from_imu(heading.frame))
     return config
+
+
+def _magnetometer_options(check: _Checker, spec: dict[str, Any], keys: tuple) -> dict[str, Any]:
+    """A magnetometer sensor's options given (keys of ``_MAGNETOMETER_KEYS``), checked:
+    ``declination_deg`` in [-180, 180], ``hard_iron_uT`` 3 numbers, ``soft_iron`` 9 numbers
+    (row-major) with a positive determinant, ``sigma_uT`` above 0."""
+    out: dict[str, Any] = {}
+    if "declination_deg" in spec:
+        declination = check.number(spec["declination_deg"], (*keys, "declination_deg"))
+        if abs(declination) > 180.0:
+            raise check.fail(
+                (*keys, "declination_deg"), f"must lie in [-180, 180] deg, got {declination}"
+            )
+        out["declination_deg"] = declination
+    if "hard_iron_uT" in spec:
+        out["hard_iron_uT"] = check.numbers(spec["hard_iron_uT"], (*keys, "hard_iron_uT"), 3)
+    if "soft_iron" in spec:
+        soft = check.numbers(spec["soft_iron"], (*keys, "soft_iron"), 9)
+        det = float(torch.linalg.det(torch.tensor(soft, dtype=torch.float64).reshape(3, 3)))
+        if not det > 0:
+            raise check.fail(
+                (*keys, "soft_iron"),
+                f"the 3x3 matrix (row-major) has determinant {det:.6g}; a soft-iron correction "
+                "has a positive one (a mirror or a singular matrix would corrupt the heading)",
+            )
+        out["soft_iron"] = soft
+    if "sigma_uT" in spec:
+        out["sigma_uT"] = check.number(spec["sigma_uT"], (*keys, "sigma_uT"), positive=True)
+    return out
 
 
 def _secondary_frame(check: _Checker, value: Any, keys: tuple, tree: FrameTree | None) -> str:
