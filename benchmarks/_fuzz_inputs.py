@@ -241,6 +241,14 @@ def _native_arrays(rng: np.random.Generator) -> dict[str, np.ndarray]:
         "gnss_heading/heading": rng.uniform(-10.0, 10.0, n_h),  # any angle: the filter wraps
         "gnss_heading/sigma": heading_sigma,
     }
+    n_m = int(rng.integers(0, 6))
+    field_sigma = rng.uniform(0.1, 2.0, n_m)
+    field_sigma[rng.random(n_m) < 0.3] = np.nan  # not given: the configured default
+    out |= {
+        "magnetometer/t": _times(rng, n_m, step=0.05),
+        "magnetometer/field": rng.normal(size=(n_m, 3)) * 40.0,  # uT, before calibration
+        "magnetometer/sigma": field_sigma,
+    }
     for prefix in ("poses", "poses/vo"):
         n_p = int(rng.integers(0, 5))
         a = rng.normal(size=(n_p, 6, 6))
@@ -287,6 +295,12 @@ def _native_folder(rng: np.random.Generator) -> dict[str, str]:
             ["t", "heading", "sigma_heading"],
             np.column_stack(
                 (a["gnss_heading/t"], a["gnss_heading/heading"], a["gnss_heading/sigma"])
+            ),
+        ),
+        "magnetometer.csv": _csv(
+            ["t", "mx", "my", "mz", "sigma"],
+            np.column_stack(
+                (a["magnetometer/t"], a["magnetometer/field"], a["magnetometer/sigma"])
             ),
         ),
         "ground_truth.csv": _csv(

@@ -29,6 +29,12 @@ file                 columns
                      filter wraps it; ``msf ubx`` and ``msf nmea`` write [0, 2 pi));
                      ``sigma_heading`` may be ``nan`` (the estimator's configured
                      ``gnss_heading_sigma_rad`` applies)
+``magnetometer.csv`` ``t, mx, my, mz`` [``, sigma``] (s, uT, uT): three-axis magnetometer
+                     readings in the body (IMU) frame as the sensor gives them, before
+                     hard- and soft-iron correction (microtesla: 1 gauss = 100 uT, a ROS
+                     ``sensor_msgs/MagneticField`` is in tesla = 1e6 uT); ``sigma`` is the
+                     per-axis standard deviation and may be ``nan`` (the estimator's
+                     configured ``magnetometer_sigma_uT`` applies)
 ``poses.csv``        ``t, x, y, z, qw, qx, qy, qz`` then the uncertainty, one of:
                      nothing (covariance unknown: NaN);
                      6 standard deviations ``sigma_x, sigma_y, sigma_z, sigma_roll,
@@ -67,6 +73,8 @@ Arrays keyed ``<stream>/<field>``, float64, N samples per stream:
 ``gnss_velocity/t`` (N,), ``gnss_velocity/velocity`` (N, 3) (up may be NaN), optional
 ``gnss_velocity/sigma`` (N, 3);
 ``gnss_heading/t``, ``gnss_heading/heading`` (N,) (rad), optional ``gnss_heading/sigma`` (N,);
+``magnetometer/t`` (N,), ``magnetometer/field`` (N, 3) (uT), optional ``magnetometer/sigma``
+(N,) (uT);
 ``poses/t`` (N,), ``poses/position`` (N, 3), ``poses/quaternion`` (N, 4) ``[w,x,y,z]``,
 optional ``poses/covariance`` (N, 6, 6);
 ``poses/<name>/t``, ``poses/<name>/position``, ``poses/<name>/quaternion``, optional
@@ -112,6 +120,8 @@ __all__ = [
     "GNSS_VELOCITY_SIGMA_COLUMNS",
     "GNSS_HEADING_COLUMNS",
     "GNSS_HEADING_SIGMA_COLUMNS",
+    "MAGNETOMETER_COLUMNS",
+    "MAGNETOMETER_SIGMA_COLUMNS",
     "POSE_COLUMNS",
     "POSE_SIGMA_COLUMNS",
     "POSE_COVARIANCE_COLUMNS",
@@ -152,6 +162,7 @@ from msf_torch.types import (
     GnssHeading,
     GnssVelocity,
     ImuSamples,
+    Magnetometer,
     PoseMeasurements,
     Sequence,
     Trajectory,
@@ -166,6 +177,8 @@ GNSS_VELOCITY_COLUMNS = ["t", "vx", "vy", "vz"]
 GNSS_VELOCITY_SIGMA_COLUMNS = ["sigma_vx", "sigma_vy", "sigma_vz"]
 GNSS_HEADING_COLUMNS = ["t", "heading"]
 GNSS_HEADING_SIGMA_COLUMNS = ["sigma_heading"]
+MAGNETOMETER_COLUMNS = ["t", "mx", "my", "mz"]
+MAGNETOMETER_SIGMA_COLUMNS = ["sigma"]
 POSE_COLUMNS = ["t", "x", "y", "z", "qw", "qx", "qy", "qz"]
 POSE_SIGMA_COLUMNS = ["sigma_x", "sigma_y", "sigma_z", "sigma_roll", "sigma_pitch", "sigma_yaw"]
 POSE_COVARIANCE_COLUMNS = [f"c{i}{j}" for i in range(6) for j in range(i, 6)]
@@ -177,6 +190,7 @@ TABLE_FILES = {
     "gnss": "gnss.csv",
     "gnss_velocity": "gnss_velocity.csv",
     "gnss_heading": "gnss_heading.csv",
+    "magnetometer": "magnetometer.csv",
     "poses": "poses.csv",
     "ground_truth": "ground_truth.csv",
 }
@@ -257,6 +271,7 @@ _KINDS: dict[str, type] = {
     "gnss": GnssFixes,
     "gnss_velocity": GnssVelocity,
     "gnss_heading": GnssHeading,
+    "magnetometer": Magnetometer,
     "poses": PoseMeasurements,
     "ground_truth": Trajectory,
 }
@@ -268,6 +283,7 @@ _NPZ_FIELDS: dict[str, dict[str, tuple[int, ...]]] = {
     "gnss": {"t": (), "position": (3,), "sigma": (3,)},
     "gnss_velocity": {"t": (), "velocity": (3,), "sigma": (3,)},
     "gnss_heading": {"t": (), "heading": (), "sigma": ()},
+    "magnetometer": {"t": (), "field": (3,), "sigma": ()},
     "poses": {"t": (), "position": (3,), "quaternion": (4,), "covariance": (6, 6)},
     "ground_truth": {"t": (), "position": (3,), "quaternion": (4,)},
 }
@@ -275,12 +291,14 @@ _OPTIONAL = {
     ("gnss", "sigma"),
     ("gnss_velocity", "sigma"),
     ("gnss_heading", "sigma"),
+    ("magnetometer", "sigma"),
     ("poses", "covariance"),
 }
 _NAN_OK = {
     "gnss": ("sigma",),
     "gnss_velocity": ("sigma", "velocity_up"),
     "gnss_heading": ("sigma",),
+    "magnetometer": ("sigma",),
     "poses": ("covariance",),
 }
 _QUAT_STREAMS = ("poses", "ground_truth")
@@ -408,6 +426,13 @@ def _arrays_from_table(stream: str, table: Table) -> dict[str, np.ndarray]:
             _check_sigmas(table, d, GNSS_HEADING_SIGMA_COLUMNS, 2)
         sigma = d[:, 2] if extra else np.full(d.shape[0], np.nan)
         return {"t": d[:, 0], "heading": d[:, 1], "sigma": sigma}
+    if stream == "magnetometer":
+        extra = _tables.check_columns(table, MAGNETOMETER_COLUMNS, [[MAGNETOMETER_SIGMA_COLUMNS]])
+        d = table.floats(MAGNETOMETER_COLUMNS + extra)
+        if extra:
+            _check_sigmas(table, d, MAGNETOMETER_SIGMA_COLUMNS, 4)
+        sigma = d[:, 4] if extra else np.full(d.shape[0], np.nan)
+        return {"t": d[:, 0], "field": d[:, 1:4], "sigma": sigma}
     if stream == "poses":
         extra = _tables.check_columns(
             table, POSE_COLUMNS, [[POSE_SIGMA_COLUMNS, POSE_COVARIANCE_COLUMNS]]
@@ -953,6 +978,12 @@ def _table_for(stream: str, a: dict[str, np.ndarray]) -> tuple[list[str], np.nda
         return GNSS_HEADING_COLUMNS + GNSS_HEADING_SIGMA_COLUMNS, np.hstack(
             (t, a["heading"][:, None], a["sigma"][:, None])
         )
+    if stream == "magnetometer":
+        if np.isnan(a["sigma"]).all():
+            return MAGNETOMETER_COLUMNS, np.hstack((t, a["field"]))
+        return MAGNETOMETER_COLUMNS + MAGNETOMETER_SIGMA_COLUMNS, np.hstack(
+            (t, a["field"], a["sigma"][:, None])
+        )
     base = np.hstack((t, a["position"], a["quaternion"]))
     if stream == "poses" and not np.isnan(a["covariance"]).all():
         rows, cols = np.triu_indices(6)
@@ -964,11 +995,11 @@ def _table_for(stream: str, a: dict[str, np.ndarray]) -> tuple[list[str], np.nda
 
 def write_stream_csv(path: str | os.PathLike[str], name: str, stream: Any) -> Path:
     """Write one B = 1 stream as its native CSV table (``imu``, ``wheel``, ``gnss``,
-    ``gnss_velocity``, ``gnss_heading``, ``poses``, ``ground_truth``; the columns of
-    :data:`TABLE_FILES`'s table), atomically.
+    ``gnss_velocity``, ``gnss_heading``, ``magnetometer``, ``poses``, ``ground_truth``; the
+    columns of :data:`TABLE_FILES`'s table), atomically.
 
-    Only real samples (mask True) are written, numbers as shortest exact ``repr``; GNSS
-    sigma and pose covariance columns only when some value is given (not NaN).
+    Only real samples (mask True) are written, numbers as shortest exact ``repr``; sigma
+    and pose covariance columns only when some value is given (not NaN).
 
     Args:
         path: the file to write (normally ``FOLDER/<table name>``); its folder must exist.

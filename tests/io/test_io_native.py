@@ -11,10 +11,12 @@ import torch
 from msf_torch.io import DataError, load_sequence, read_native, write_native
 from msf_torch.io.native import (
     IMU_COLUMNS,
+    MAGNETOMETER_COLUMNS,
     POSE_COLUMNS,
     POSE_SIGMA_COLUMNS,
     write_stream_csv,
 )
+from msf_torch.types import Magnetometer
 
 IMU_HEADER = ",".join(IMU_COLUMNS) + "\n"
 
@@ -246,7 +248,8 @@ def test_unknown_csv_files_warn_once_and_are_ignored(tmp_path):
     assert message.startswith(
         f"{folder}: ignored CSV files with names a native folder does not use: gps.csv, "
         "poses_a b.csv (recognised: imu.csv, wheel.csv, gnss.csv, gnss_velocity.csv, "
-        "gnss_heading.csv, poses.csv, ground_truth.csv, poses_<name>.csv, labels.csv, meta.json)"
+        "gnss_heading.csv, magnetometer.csv, poses.csv, ground_truth.csv, poses_<name>.csv, "
+        "labels.csv, meta.json)"
     )
     assert seq.gnss is None and seq.imu.length == 2
 
@@ -321,6 +324,7 @@ def test_npz_schema_errors(tmp_path):
     for stream, values in (
         ("gnss", {"gnss/position": np.zeros((3, 3)), "gnss/sigma": np.full((3, 3), 0.5)}),
         ("gnss_heading", {"gnss_heading/heading": np.zeros(3), "gnss_heading/sigma": np.ones(3)}),
+        ("magnetometer", {"magnetometer/field": np.ones((3, 3)), "magnetometer/sigma": np.ones(3)}),
     ):
         values[f"{stream}/sigma"][1] = np.nan  # "not given": fine
         np.savez(path, **imu, **{f"{stream}/t": np.arange(3.0)}, **values)
@@ -420,3 +424,94 @@ def test_gnss_heading_table_round_trips_with_default_sigmas(tmp_path):
     with pytest.raises(DataError) as info:
         read_native(folder)
     assert (info.value.line, info.value.field) == (1, "sigma")
+
+
+def test_magnetometer_table_round_trips_with_default_sigmas(tmp_path):
+    """magnetometer.csv (uT, body frame): a NaN sigma means the configured default, a NaN
+    field component or an inf sigma drops the row, a negative sigma names its line; CSV,
+    npz and write_stream_csv give back the same stream."""
+    folder = tmp_path / "run"
+    _write(folder, "imu.csv", IMU_HEADER + _imu_rows([0.0, 0.5, 1.0, 1.5, 2.0]))
+    rows = [
+        "mz,t,mx,sigma,my",  # any column order
+        "-41.5,0.5,22.25,0.4,3.125",
+        "-40.0,1.0,-12.5,nan,20.0",  # no sigma: the configured default
+        "-40.0,1.5,nan,0.4,20.0",  # no x component: not a measurement
+        "-39.5,2.0,1.0,inf,2.0",  # inf is never "not given"
+        "-39.0,2.5,1.5,0.3,2.5",
+    ]
+    _write(folder, "magnetometer.csv", "\n".join(rows) + "\n")
+    seq = read_native(folder)
+    mag = seq.magnetometer
+    assert isinstance(mag, Magnetometer)
+    assert seq.meta["dropped_nonfinite"]["magnetometer"] == 2
+    assert seq.meta["dropped_lines"]["magnetometer"] == [4, 5]
+    assert mag.t.tolist() == [[0.5, 1.0, 2.5]] and mag.sigma.shape == (1, 3)
+    assert mag.field[0].tolist() == [[22.25, 3.125, -41.5], [-12.5, 20.0, -40.0], [1.5, 2.5, -39.0]]
+    assert mag.sigma[0, 0] == 0.4 and bool(mag.sigma[0, 1].isnan())
+    for target in (tmp_path / "copy", tmp_path / "copy.npz"):
+        back = read_native(write_native(seq, target)).magnetometer
+        for name in ("t", "field", "sigma", "mask"):
+            assert torch.equal(
+                getattr(back, name).nan_to_num(7.0), getattr(mag, name).nan_to_num(7.0)
+            )
+    assert (tmp_path / "copy" / "magnetometer.csv").read_text().splitlines()[
+        0
+    ] == "t,mx,my,mz,sigma"
+    no_sigma = dataclasses.replace(mag, sigma=torch.full_like(mag.sigma, float("nan")))
+    table = write_stream_csv(tmp_path / "copy" / "magnetometer.csv", "magnetometer", no_sigma)
+    assert table.read_text().splitlines() == [
+        ",".join(MAGNETOMETER_COLUMNS),
+        "0.5,22.25,3.125,-41.5",
+        "1.0,-12.5,20.0,-40.0",
+        "2.5,1.5,2.5,-39.0",
+    ]
+    assert bool(read_native(tmp_path / "copy").magnetometer.sigma.isnan().all())
+    npz = dict(np.load(tmp_path / "copy.npz"))
+    assert npz["magnetometer/field"].shape == (3, 3) and npz["magnetometer/sigma"].shape == (3,)
+    del npz["magnetometer/sigma"]  # optional
+    np.savez(tmp_path / "bare.npz", **npz)
+    assert bool(read_native(tmp_path / "bare.npz").magnetometer.sigma.isnan().all())
+    npz["magnetometer/field"] = np.zeros(3)
+    np.savez(tmp_path / "bad.npz", **npz)
+    with pytest.raises(DataError) as info:
+        read_native(tmp_path / "bad.npz")
+    assert info.value.field == "magnetometer/field" and "expected (3, 3)" in info.value.problem
+    _write(folder, "magnetometer.csv", "t,mx,my,mz,sigma\n0.5,1,2,3,0.1\n1.0,1,2,3,-0.1\n")
+    with pytest.raises(DataError) as info:
+        read_native(folder)
+    assert (info.value.line, info.value.field) == (3, "sigma")
+    assert info.value.path == str(folder / "magnetometer.csv")
+    _write(folder, "magnetometer.csv", "t,mx,my,mz,sigma_x\n0.5,1.0,2.0,3.0,0.1\n")
+    with pytest.raises(DataError) as info:
+        read_native(folder)
+    assert (info.value.line, info.value.field) == (1, "sigma_x")
+    _write(folder, "magnetometer.csv", "t,mx,my,mz\n0.5,1.0,2.0\n")
+    with pytest.raises(DataError) as info:
+        read_native(folder)
+    assert info.value.line == 2
+
+
+@pytest.mark.parametrize("target", ["run.npz", "run"])
+def test_round_trip_with_a_magnetometer(tmp_path, sequence, target):
+    rng = np.random.default_rng(3)
+    n = 7
+    sigma = rng.uniform(0.1, 1.0, n)
+    sigma[2] = np.nan
+    mag = Magnetometer(
+        t=torch.as_tensor(100.0 + np.arange(n) / 9.0).unsqueeze(0),
+        field=torch.as_tensor(rng.normal(size=(n, 3)) * 30.0).unsqueeze(0),
+        sigma=torch.as_tensor(sigma).unsqueeze(0),
+        mask=torch.ones((1, n), dtype=torch.bool),
+    )
+    seq = dataclasses.replace(sequence, magnetometer=mag)
+    back = read_native(write_native(seq, tmp_path / target))
+    back.names = seq.names
+    assert_sequences_close(seq, back)  # quaternions re-normalised: 1e-16 off
+    for name in ("t", "field", "sigma", "mask"):  # the magnetometer exactly
+        got, want = getattr(back.magnetometer, name), getattr(mag, name)
+        assert torch.equal(got.nan_to_num(7.0), want.nan_to_num(7.0))
+    assert back.meta["dropped_nonfinite"]["magnetometer"] == 0
+    # a later write without the stream removes its table from the folder
+    write_native(sequence, tmp_path / target)
+    assert read_native(tmp_path / target).magnetometer is None
