@@ -1,5 +1,5 @@
 """Command line: ``msf run | eval | simulate | config | posegraph | ranges | nmea | encoders |
-lidar-map``.
+lidar-map | magcal``.
 
 Each command parses its arguments, calls the library and prints its result as one JSON
 line last. Errors in the input (a bad file, a bad config key) end with a one-line message
@@ -431,6 +431,36 @@ def build_parser() -> argparse.ArgumentParser:
         "--identity-guess",
         action="store_true",
         help="start PLICP from identity, not from the scans' wheel odometry",
+    )
+
+    mc = sub.add_parser(
+        "magcal",
+        help="fit the magnetometer's hard and soft iron to a sequence's readings (the sensor "
+        "turned through many orientations) and write the config keys",
+    )
+    mc.add_argument(
+        "sequence", help="recorded sequence with magnetometer readings (native .npz / folder)"
+    )
+    mc.add_argument(
+        "--format",
+        dest="fmt",
+        default=None,
+        help="native | npz | csv | euroc | kitti-raw | kitti-gtsam (default: detect)",
+    )
+    mc.add_argument(
+        "--model",
+        choices=("ellipsoid", "sphere"),
+        default="ellipsoid",
+        help="ellipsoid: hard and soft iron (needs tilted readings); sphere: hard iron only "
+        "(default: ellipsoid)",
+    )
+    mc.add_argument(
+        "--out",
+        type=Path,
+        default=None,
+        metavar="FILE.yaml",
+        help="write magnetometer_hard_iron_uT, magnetometer_soft_iron and "
+        "magnetometer_field_uT as a front-end config (for --config, or to copy into one)",
     )
     return parser
 
@@ -1332,6 +1362,64 @@ def _cmd_lidar_map(args) -> dict[str, Any]:
     return {"scans_file": str(path), **summary}
 
 
+def _cmd_magcal(args) -> dict[str, Any]:
+    """``msf magcal SEQUENCE``: the magnetometer calibration of a sequence's readings
+    (:func:`msf_torch.sensors.magnetometer_calibration.fit_magnetometer`)."""
+    import numpy as np
+    import torch
+
+    from msf_torch.io import load_sequence
+    from msf_torch.io.atomic import atomic_write
+    from msf_torch.io.errors import DataError
+    from msf_torch.sensors.magnetometer_calibration import fit_magnetometer
+
+    seq = load_sequence(args.sequence, fmt=args.fmt)
+    mag = seq.magnetometer
+    if mag is None or not bool(mag.mask.any()):
+        raise DataError(
+            args.sequence, "no magnetometer readings (native: magnetometer.csv or magnetometer/*)"
+        )
+    field = mag.field[0][mag.mask[0]].detach().to(device="cpu", dtype=torch.float64).numpy()
+    try:
+        cal = fit_magnetometer(field, model=args.model)
+    except ValueError as err:  # the library's advice in the command's words
+        raise ValueError(str(err).replace('model="sphere"', "--model sphere")) from None
+    if not 10.0 <= cal.field_uT <= 100.0:
+        warnings.warn(
+            f"the fitted field {cal.field_uT:.4g} uT is far from the earth's 25-65 uT: are the "
+            "readings in microtesla (1 gauss = 100 uT, 1 T = 1e6 uT)?",
+            stacklevel=2,
+        )
+    summary = {
+        "sequence": str(args.sequence),
+        "model": cal.model,
+        "hard_iron_uT": cal.hard_iron.tolist(),
+        "soft_iron": cal.soft_iron.reshape(-1).tolist(),
+        "field_uT": cal.field_uT,
+        "residual_rms_uT": cal.residual_rms_uT,
+        "raw_norm_std_uT": float(np.linalg.norm(field, axis=1).std()),
+        "corrected_norm_std_uT": float(np.linalg.norm(cal.correct(field), axis=1).std()),
+        "coverage": cal.coverage,
+        "samples": cal.samples,
+    }
+    if args.out is not None:
+
+        def numbers(values: list[float]) -> str:
+            return ", ".join(map(repr, values))
+
+        with atomic_write(args.out) as handle:
+            handle.write(
+                f"# msf magcal: {cal.model} fit of {cal.samples} magnetometer readings of "
+                f"{args.sequence}\n# coverage {cal.coverage:.3f}, residual RMS "
+                f"{cal.residual_rms_uT:.3f} uT; a front-end config (--config)\n"
+                f"magnetometer_hard_iron_uT: [{numbers(summary['hard_iron_uT'])}]\n"
+                f"magnetometer_soft_iron: [{numbers(summary['soft_iron'])}]\n"
+                f"magnetometer_field_uT: {cal.field_uT!r}\n"
+            )
+        summary["config_file"] = str(args.out)
+    return summary
+
+
 def main(argv: list[str] | None = None) -> int:
     """Entry point of the ``msf`` console script; returns the exit status."""
     from msf_torch.io.errors import DataError, MissingExtraError
@@ -1348,6 +1436,7 @@ def main(argv: list[str] | None = None) -> int:
         "ubx": _cmd_ubx,
         "encoders": _cmd_encoders,
         "config": _cmd_config,
+        "magcal": _cmd_magcal,
     }
     try:
         with warnings.catch_warnings():

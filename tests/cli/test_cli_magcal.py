@@ -1,0 +1,93 @@
+"""``msf magcal``: a native folder of magnetometer readings with known hard and soft iron;
+the fitted keys written as a front-end config; the errors a user meets."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from msf_torch.cli import main
+from msf_torch.frontend.config import load_config
+
+WORLD_FIELD = 48.0 * np.array([0.0, np.cos(np.radians(60.0)), -np.sin(np.radians(60.0))])
+HARD_IRON = np.array([21.5, -13.25, 8.0])
+SOFT_IRON = np.array([[1.08, 0.04, -0.02], [0.04, 0.95, 0.03], [-0.02, 0.03, 1.0]])
+
+
+def _last_json(text: str) -> dict:
+    return json.loads(text.strip().splitlines()[-1])
+
+
+def _folder(path, rotations: Rotation):
+    """A native folder: two IMU rows and magnetometer.csv (uT) of the field seen in
+    ``rotations`` through SOFT_IRON^-1 plus HARD_IRON, noiseless."""
+    path.mkdir()
+    (path / "imu.csv").write_text(
+        "t,gyro_x,gyro_y,gyro_z,accel_x,accel_y,accel_z\n0,0,0,0,0,0,9.81\n0.01,0,0,0,0,0,9.81\n"
+    )
+    body = rotations.inv().apply(WORLD_FIELD)
+    readings = body @ np.linalg.inv(SOFT_IRON).T + HARD_IRON
+    rows = [",".join(map(repr, (0.05 * k, *map(float, m)))) for k, m in enumerate(readings)]
+    (path / "magnetometer.csv").write_text("t,mx,my,mz\n" + "\n".join(rows) + "\n")
+    return path
+
+
+def test_magcal_fits_and_writes_config_keys(tmp_path, capsys):
+    folder = _folder(tmp_path / "turned", Rotation.random(120, random_state=5))
+    out = tmp_path / "mag.yaml"
+    assert main(["magcal", str(folder), "--out", str(out)]) == 0
+    summary = _last_json(capsys.readouterr().out)
+    scale = np.cbrt(np.linalg.det(SOFT_IRON))  # the fit's W has det 1
+    assert np.abs(np.array(summary["hard_iron_uT"]) - HARD_IRON).max() < 1e-9
+    assert np.abs(np.array(summary["soft_iron"]) - (SOFT_IRON / scale).ravel()).max() < 1e-9
+    assert summary["field_uT"] == pytest.approx(48.0 / scale, abs=1e-9)
+    assert summary["residual_rms_uT"] < 1e-9 and summary["corrected_norm_std_uT"] < 1e-9
+    assert summary["raw_norm_std_uT"] > 1.0
+    assert summary["samples"] == 120 and summary["model"] == "ellipsoid"
+    assert 0.7 < summary["coverage"] <= 1.0
+    assert summary["config_file"] == str(out)
+    cfg = load_config(out)  # the file is a valid --config
+    assert cfg.magnetometer_hard_iron_uT == summary["hard_iron_uT"]
+    assert cfg.magnetometer_soft_iron == summary["soft_iron"]
+    assert cfg.magnetometer_field_uT == summary["field_uT"]
+
+
+def test_magcal_on_a_robot_that_only_yaws(tmp_path, capsys):
+    yaw = Rotation.from_euler("z", np.linspace(0.0, 2 * np.pi, 90, endpoint=False)[:, None])
+    folder = _folder(tmp_path / "yawing", yaw)
+    assert main(["magcal", str(folder)]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("msf magcal: error: the readings span too little of the sphere")
+    assert err.rstrip().endswith("or fit the hard iron only with --model sphere")
+    assert main(["magcal", str(folder), "--model", "sphere"]) == 0
+    captured = capsys.readouterr()
+    assert captured.err.startswith("msf magcal: warning: magnetometer readings lie close to one")
+    summary = _last_json(captured.out)
+    assert summary["model"] == "sphere" and summary["soft_iron"] == np.eye(3).ravel().tolist()
+    assert summary["coverage"] < 1e-3
+
+
+def test_magcal_warns_on_readings_not_in_microtesla(tmp_path, capsys):
+    folder = _folder(tmp_path / "gauss", Rotation.random(60, random_state=7))
+    table = np.loadtxt(folder / "magnetometer.csv", delimiter=",", skiprows=1)
+    table[:, 1:] /= 100.0  # written in gauss
+    np.savetxt(folder / "magnetometer.csv", table, delimiter=",", header="t,mx,my,mz", comments="")
+    assert main(["magcal", str(folder)]) == 0
+    captured = capsys.readouterr()
+    assert captured.err.startswith("msf magcal: warning: the fitted field 0.4764 uT")
+    assert "1 gauss = 100 uT" in captured.err
+    assert _last_json(captured.out)["field_uT"] == pytest.approx(
+        0.48 / np.cbrt(np.linalg.det(SOFT_IRON))
+    )
+
+
+def test_magcal_without_readings(tmp_path, capsys):
+    folder = _folder(tmp_path / "none", Rotation.random(20, random_state=6))
+    (folder / "magnetometer.csv").unlink()
+    out = tmp_path / "never.yaml"
+    assert main(["magcal", str(folder), "--out", str(out)]) == 2
+    assert "no magnetometer readings" in capsys.readouterr().err
+    assert not out.exists()
