@@ -115,6 +115,35 @@ class EskfConfig:
     # default sigma (rad) where the data gives none
     gnss_heading_baseline_m: list[float] = field(default_factory=lambda: [1.0, 0.0, 0.0])
     gnss_heading_sigma_rad: float = 0.01
+    # magnetometer (Sequence.magnetometer), fused as a heading (sensors.magnetometer): the
+    # azimuth of the corrected field W (m - b) turned into the world must be the local
+    # declination (magnetic north's azimuth clockwise from true north, east positive, rad).
+    # Hard iron b (uT, body frame) and soft iron W (9 numbers, row-major 3 x 3) as
+    # `msf magcal` fits them; per-axis noise (uT) where the data gives none; a heading floor
+    # (rad, in quadrature) for the calibration's residual distortion; at most
+    # magnetometer_rate_hz readings fused per second (the first of each 1 / rate bin).
+    # Readings whose corrected magnitude departs from the local field's by more than the
+    # relative tolerance, or whose dip below the horizon (seen through the filter's
+    # attitude) departs from the local inclination by more than the dip tolerance (rad),
+    # are disturbed (steel, motors, currents) and not fused. The local field magnitude
+    # (uT) and inclination (rad, positive down): 0 = from each run (the median corrected
+    # magnitude; the median angle between the corrected field and the accelerometer),
+    # which a run filtered in pieces takes per piece; at the magnetic equator give 1e-3.
+    magnetometer_declination_rad: float = 0.0
+    magnetometer_hard_iron_uT: list[float] = field(default_factory=lambda: [0.0, 0.0, 0.0])
+    magnetometer_soft_iron: list[float] = field(
+        default_factory=lambda: [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0]
+    )
+    magnetometer_sigma_uT: float = 0.5
+    magnetometer_heading_floor_rad: float = 0.03
+    magnetometer_rate_hz: float = 2.0
+    magnetometer_field_uT: float = 0.0
+    magnetometer_field_tolerance: float = 0.1
+    magnetometer_inclination_rad: float = 0.0
+    magnetometer_dip_tolerance_rad: float = 0.1
+    # a reading whose change from the readings up to this many seconds before is not the
+    # gyro's turn is disturbed (frontend.schedule.rotation_inconsistent); 0 = no such test
+    magnetometer_consistency_s: float = 3.0
     # named pose sources (Sequence.pose_sources: VO, LiDAR odometry) fused as odometry: the
     # body-frame mean velocity between consecutive valid samples of a source (see
     # frontend.schedule); "auto" = every source present, a list = those names, [] = none
@@ -302,6 +331,7 @@ class EskfConfig:
             "gnss_sigma_m",
             "gnss_velocity_sigma_mps",
             "gnss_heading_baseline_m",
+            "magnetometer_hard_iron_uT",
             "init_gyro_bias_radps",
             "init_accel_bias_mps2",
             "imu_gap_gyro_rw_density",
@@ -316,6 +346,34 @@ class EskfConfig:
                 "horizontal part longer than 1 mm (a vertical baseline has no heading), got "
                 f"{self.gnss_heading_baseline_m!r}"
             )
+        self._validate_magnetometer()
+
+    def _validate_magnetometer(self) -> None:
+        """Raise ``ValueError`` naming the first bad magnetometer key."""
+        soft = self.magnetometer_soft_iron
+        if len(soft) != 9 or abs(_det3(soft)) < 1e-9:
+            raise ValueError(
+                "config key 'magnetometer_soft_iron' must be 9 numbers (a 3 x 3 matrix, row "
+                f"by row) with a non-zero determinant, got {soft!r}"
+            )
+        self._require_numbers(
+            (
+                "magnetometer_rate_hz",
+                "magnetometer_field_tolerance",
+                "magnetometer_dip_tolerance_rad",
+            ),
+            True,
+        )
+        if abs(self.magnetometer_inclination_rad) > math.pi / 2:
+            raise ValueError("config key 'magnetometer_inclination_rad' must lie in [-pi/2, pi/2]")
+        self._require_numbers(
+            (
+                "magnetometer_field_uT",
+                "magnetometer_heading_floor_rad",
+                "magnetometer_consistency_s",
+            ),
+            False,
+        )
 
     def _validate_types(self) -> None:
         """Raise ``ValueError`` naming the first key whose value does not have its field's
@@ -542,9 +600,21 @@ class EskfConfig:
 
     def _validate_adaptive(self) -> None:
         """Raise ``ValueError`` naming the first bad adaptive-noise key."""
-        blocks = ("wheel", "nhc", "zupt", "gnss", "gnss_velocity", "gnss_heading", "pose")
+        blocks = (
+            "wheel",
+            "nhc",
+            "zupt",
+            "gnss",
+            "gnss_velocity",
+            "gnss_heading",
+            "magnetometer",
+            "pose",
+        )
         for key, allowed in (
-            ("adaptive_noise_sensors", ("gnss", "gnss_velocity", "gnss_heading", "pose")),
+            (
+                "adaptive_noise_sensors",
+                ("gnss", "gnss_velocity", "gnss_heading", "magnetometer", "pose"),
+            ),
             ("strong_tracking_sensors", blocks),
         ):
             names = getattr(self, key)
@@ -711,3 +781,12 @@ def packaged_config(name: str) -> Path | None:
     """Path of the config shipped for a named dataset (``msf_torch/configs/NAME.yaml``), if any."""
     path = Path(__file__).resolve().parent.parent / "configs" / f"{name}.yaml"
     return path if path.is_file() else None
+
+
+def _det3(m: list[float]) -> float:
+    """Determinant of a 3 x 3 matrix given as 9 numbers, row by row."""
+    return (
+        m[0] * (m[4] * m[8] - m[5] * m[7])
+        - m[1] * (m[3] * m[8] - m[5] * m[6])
+        + m[2] * (m[3] * m[7] - m[4] * m[6])
+    )

@@ -143,6 +143,11 @@ from msf_torch.sensors.calibration import (
 from msf_torch.sensors.gnss import gnss_heading_residual, gnss_residual, gnss_velocity_residual
 from msf_torch.sensors.imu import ImuNoise, Preintegrated, preintegrate, propagate_nominal
 from msf_torch.sensors.imu_gaps import gap_walk_scale
+from msf_torch.sensors.magnetometer import (
+    field_dip,
+    magnetometer_heading_residual,
+    magnetometer_heading_variance,
+)
 from msf_torch.sensors.pose import (
     drifting_frame_offset,
     drifting_frame_pose_residual,
@@ -153,7 +158,16 @@ from msf_torch.sensors.vehicle import nonholonomic_residual, zero_velocity_resid
 from msf_torch.sensors.wheel import body_velocity_residual, wheel_residual
 from msf_torch.types import NavState, Sequence, Trajectory
 
-SENSORS = ("wheel", "nhc", "zupt", "gnss", "gnss_velocity", "gnss_heading", "pose")
+SENSORS = (
+    "wheel",
+    "nhc",
+    "zupt",
+    "gnss",
+    "gnss_velocity",
+    "gnss_heading",
+    "magnetometer",
+    "pose",
+)
 _DIMS = {
     "wheel": 4,
     "nhc": 2,
@@ -161,6 +175,7 @@ _DIMS = {
     "gnss": 3,
     "gnss_velocity": 3,
     "gnss_heading": 1,
+    "magnetometer": 1,
     "pose": 6,
 }
 _SOURCE_PREFIX = "pose:"  # result key of a pose source: "pose:vo", "pose:lidar"
@@ -1058,6 +1073,7 @@ def run_eskf(
         "gnss": sched.gnss_mask,
         "gnss_velocity": sched.gnss_velocity_mask,
         "gnss_heading": sched.gnss_heading_mask,
+        "magnetometer": sched.magnetometer_mask,
         "pose": sched.pose_mask,
     }
     source_col = {_SOURCE_PREFIX + n: s for s, n in enumerate(sched.source_names)}
@@ -1085,13 +1101,21 @@ def run_eskf(
         device=device,
     )
     reopen = torch.tensor(
-        [k in ("gnss", "gnss_velocity", "gnss_heading", "pose") or k in source_col for k in active],
+        [
+            k in ("gnss", "gnss_velocity", "gnss_heading", "magnetometer", "pose")
+            or k in source_col
+            for k in active
+        ],
         device=device,
     )
     velocity_col = active.index("gnss_velocity") if "gnss_velocity" in active else None
+    magnetometer_col = active.index("magnetometer") if "magnetometer" in active else None
     # blocks that stay shut while another re-openable block vouches for the state: a burst
-    # of Doppler outliers, or of wrong dual-antenna headings, must not be let in
-    suspect_cols = [active.index(k) for k in ("gnss_velocity", "gnss_heading") if k in active]
+    # of Doppler outliers, of wrong dual-antenna headings or of a magnetometer near steel
+    # must not be let in
+    suspect_cols = [
+        active.index(k) for k in ("gnss_velocity", "gnss_heading", "magnetometer") if k in active
+    ]
     # a horizontal-only GNSS velocity (no up component) is gated with two degrees of freedom
     horizontal_only = sched.gnss_velocity_sigma[..., 2] >= UNMEASURED_SIGMA  # (B, E)
     two_dof = chi2_threshold(2, cfg.gate_probability)
@@ -1536,6 +1560,20 @@ def run_eskf(
                         state.rotation, heading_baseline, sched.gnss_heading[:, e]
                     )
                     var = gnss_heading_var[:, e]
+                elif name == "magnetometer":
+                    field_body = sched.magnetometer_field[:, e]
+                    r, h = magnetometer_heading_residual(
+                        state.rotation, field_body, cfg.magnetometer_declination_rad
+                    )
+                    magnetometer_dip_ok = (
+                        field_dip(state.rotation, field_body) - sched.magnetometer_dip
+                    ).abs() <= cfg.magnetometer_dip_tolerance_rad
+                    var = magnetometer_heading_variance(
+                        state.rotation,
+                        field_body,
+                        sched.magnetometer_sigma[:, e],
+                        cfg.magnetometer_heading_floor_rad,
+                    )[:, None]
                 elif name == "pose":
                     r, h = pose_residual(
                         state.position,
@@ -1705,6 +1743,8 @@ def run_eskf(
                 suspect = guard.vouched[:, col] | others_calm
                 reopening[:, col] = reopening[:, col] & ~suspect
             ok = ok | reopening
+            if magnetometer_col is not None:  # a field tilted off the local dip is disturbed
+                ok[:, magnetometer_col] = ok[:, magnetometer_col] & magnetometer_dip_ok
             if "wheel" in active and cfg.slip_detection:
                 wheel_col = active.index("wheel")
                 ok[:, wheel_col] = ok[:, wheel_col] & (slip >= cfg.slip_skip_below)

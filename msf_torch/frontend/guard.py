@@ -103,7 +103,12 @@ DIVERGENCE_CODES = {
 
 _PSD_JITTER = 1e-9  # relative diagonal load of the semi-definiteness test
 # fields where a non-finite value means "use the default" (sigmas)
-_NAN_OK = {"gnss": ("sigma",), "gnss_velocity": ("sigma",), "gnss_heading": ("sigma",)}
+_NAN_OK = {
+    "gnss": ("sigma",),
+    "gnss_velocity": ("sigma",),
+    "gnss_heading": ("sigma",),
+    "magnetometer": ("sigma",),
+}
 # field -> leading entries that must be finite; the rest may be NaN ("not measured": a GNSS
 # velocity's up component), not inf
 _NAN_OK_TAIL = {"gnss_velocity": {"velocity": 2}}
@@ -154,14 +159,15 @@ def sanitize_sequence(seq: Sequence) -> tuple[Sequence, dict[str, torch.Tensor]]
     """Mask out the samples the filter must not use (module docstring: the input rule).
 
     Args:
-        seq: B sequences; the IMU, wheel, GNSS, GNSS velocity and heading, pose and
-            pose-source streams
+        seq: B sequences; the IMU, wheel, GNSS, GNSS velocity and heading, magnetometer,
+            pose and pose-source streams
             are checked (ground truth is left alone: the filter does not read it).
 
     Returns:
         (the cleaned sequence, stream -> (B,) int64 number of samples dropped). Streams are
         keyed as in ``EskfResult.present`` (``"imu"``, ``"wheel"``, ``"gnss"``,
-        ``"gnss_velocity"``, ``"gnss_heading"``, ``"pose"``, ``"pose:<name>"``). When
+        ``"gnss_velocity"``, ``"gnss_heading"``, ``"magnetometer"``, ``"pose"``,
+        ``"pose:<name>"``). When
         nothing is dropped the input's tensors come back unchanged in value.
     """
     streams = {
@@ -170,6 +176,7 @@ def sanitize_sequence(seq: Sequence) -> tuple[Sequence, dict[str, torch.Tensor]]
         "gnss": seq.gnss,
         "gnss_velocity": seq.gnss_velocity,
         "gnss_heading": seq.gnss_heading,
+        "magnetometer": seq.magnetometer,
         "pose": seq.poses,
     }
     streams |= {f"pose:{name}": s for name, s in seq.pose_sources.items()}
@@ -189,6 +196,7 @@ def sanitize_sequence(seq: Sequence) -> tuple[Sequence, dict[str, torch.Tensor]]
         gnss=cleaned.get("gnss"),
         gnss_velocity=cleaned.get("gnss_velocity"),
         gnss_heading=cleaned.get("gnss_heading"),
+        magnetometer=cleaned.get("magnetometer"),
         poses=cleaned.get("pose"),
         pose_sources=sources,
     )

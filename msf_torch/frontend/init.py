@@ -37,6 +37,7 @@ __all__ = [
     "alignment_yaw_variance",
     "antenna_heading_yaw",
     "initial_state",
+    "magnetometer_yaw",
     "segment_course_yaw",
     "velocity_heading",
 ]
@@ -49,6 +50,7 @@ import numpy as np
 import torch
 
 from msf_torch.frontend.config import EskfConfig
+from msf_torch.frontend.schedule import undisturbed_magnetometer
 from msf_torch.geometry import so3
 from msf_torch.geometry.conventions import ERROR_STATE_DIM
 from msf_torch.types import NavState, Sequence
@@ -277,6 +279,75 @@ def antenna_heading_yaw(
     return math.atan2(math.sin(yaw), math.cos(yaw)), float(sigma[k]) ** 2 + variance
 
 
+def magnetometer_yaw(
+    seq: Sequence,
+    b: int,
+    imu_t: np.ndarray,
+    gyro: np.ndarray,
+    roll: float,
+    pitch: float,
+    cfg: EskfConfig,
+) -> tuple[float, float] | None:
+    """Heading at the first IMU sample from the magnetometer (tilt-compensated compass).
+
+    The first undisturbed reading (:func:`~msf_torch.frontend.schedule.undisturbed_magnetometer`)
+    within ``cfg.init_max_track_s`` of the first IMU sample is corrected (hard and soft
+    iron), levelled with the accelerometer's roll and pitch, and the yaw that turns its
+    horizontal part to the declination is carried back to the first IMU sample by the
+    gyro's heading change. It needs no motion.
+
+    Args:
+        seq: the batch; b: the sequence.
+        imu_t: (N,) IMU times, s; gyro: (N, 3) raw rates, rad/s.
+        roll, pitch: the initial tilt, rad.
+        cfg: the filter's config (declination, iron, noise, floor, gyro and tilt priors).
+
+    Returns:
+        (yaw, variance) in rad (ENU, counter-clockwise from east) and rad^2, or None when
+        no undisturbed reading lies in that span or it has no horizontal part. The
+        variance: the reading's noise over its horizontal magnitude, the heading floor,
+        the tilt prior ``init_roll_pitch_sigma_rad`` through the field's vertical part
+        (a level error moves the levelled field's azimuth by up to ``tan(dip)`` times it),
+        and the gyro's over the carried-back seconds.
+    """
+    stream = seq.magnetometer
+    t = stream.t[b].detach().cpu().numpy()
+    usable = stream.mask[b].cpu().numpy() & (t > imu_t[0] - cfg.time_tolerance_s)
+    usable &= t <= imu_t[0] + cfg.init_max_track_s
+    index = np.flatnonzero(usable)
+    times, index = undisturbed_magnetometer(
+        stream, b, cfg, imu_t, gyro - np.asarray(cfg.init_gyro_bias_radps), t[index], index
+    )
+    if times.size == 0:
+        return None
+    k = int(index[0])
+    hard = np.asarray(cfg.magnetometer_hard_iron_uT, dtype=np.float64)
+    soft = np.reshape(np.asarray(cfg.magnetometer_soft_iron, dtype=np.float64), (3, 3))
+    field = soft @ (stream.field[b, k].detach().cpu().numpy() - hard)
+
+    def azimuth(roll_: float, pitch_: float) -> tuple[float, float]:
+        level = _rpy_numpy(roll_, pitch_, 0.0) @ field
+        return math.atan2(level[0], level[1]), math.hypot(level[0], level[1])
+
+    level_azimuth, horizontal = azimuth(roll, pitch)
+    if horizontal < 1e-6 * float(np.linalg.norm(field)):
+        return None
+    step = 1e-6
+    tilt_var = sum(
+        (math.remainder(azimuth(*angles)[0] - level_azimuth, 2.0 * math.pi) / step) ** 2
+        for angles in ((roll + step, pitch), (roll, pitch + step))
+    ) * (cfg.init_roll_pitch_sigma_rad**2)
+    sigma = float(stream.sigma[b, k])
+    if not (math.isfinite(sigma) and sigma > 0):
+        sigma = cfg.magnetometer_sigma_uT
+    sigma *= math.sqrt(float((soft**2).sum()) / 3.0)
+    turned, carry_var = _carried_back(imu_t, gyro, _rpy_numpy(roll, pitch, 0.0), float(t[k]), cfg)
+    # azimuth of the levelled field turned by yaw = level_azimuth - yaw = the declination
+    yaw = level_azimuth - cfg.magnetometer_declination_rad - turned
+    variance = (sigma / horizontal) ** 2 + cfg.magnetometer_heading_floor_rad**2
+    return math.atan2(math.sin(yaw), math.cos(yaw)), variance + tilt_var + carry_var
+
+
 def segment_course_yaw(
     gnss_t: np.ndarray,
     gnss_xy: np.ndarray,
@@ -356,22 +427,25 @@ two fixes' horizontal sigmas (summed) from its start: its course is then good to
 0.3 rad from the fixes' noise."""
 
 
-def _check_antenna_heading(
-    name: str, measured: tuple[float, float], yaw: float, yaw_sigma: float
+def _check_heading_source(
+    name: str,
+    source: str,
+    hint: str,
+    measured: tuple[float, float],
+    yaw: float,
+    yaw_sigma: float,
 ) -> None:
-    """Warn when the dual-antenna heading's yaw and the GNSS track's (or course's) differ
-    by more than 5 sigma of the two together: a wrong ``gnss_heading_baseline_m`` (antennas
-    mounted left-right, the receiver's heading offset) makes the filter trust the heading
-    and refuse the fixes."""
+    """Warn when a heading source's yaw and the one found before it (the GNSS track's or
+    course's, or another source's) differ by more than 5 sigma of the two together: a wrong
+    ``gnss_heading_baseline_m`` (antennas mounted left-right, the receiver's heading offset)
+    or magnetometer calibration makes the filter trust the heading and refuse the fixes."""
     difference = math.remainder(measured[0] - yaw, 2.0 * math.pi)
     sigma = math.sqrt(measured[1] + yaw_sigma**2)
     if abs(difference) > 5.0 * sigma:
         warnings.warn(
-            f"sequence '{name}': the dual-antenna GNSS heading gives a yaw "
-            f"{math.degrees(difference):+.1f} degrees from the GNSS track's "
-            f"({abs(difference) / sigma:.0f} sigma): check gnss_heading_baseline_m (the "
-            "primary -> secondary antenna direction in the body frame) and the receiver's "
-            "heading offset",
+            f"sequence '{name}': the {source} gives a yaw "
+            f"{math.degrees(difference):+.1f} degrees from the GNSS track's or the heading "
+            f"found before it ({abs(difference) / sigma:.0f} sigma): check {hint}",
             stacklevel=4,
         )
 
@@ -549,7 +623,30 @@ def _one(
             antenna_heading, imu_t, read_imu("gyro", slice(None)), tilt, cfg
         )
         if measured is not None and yaw_sigma < cfg.init_yaw_sigma_unknown_rad:
-            _check_antenna_heading(seq.names[b], measured, yaw, yaw_sigma)
+            _check_heading_source(
+                seq.names[b],
+                "dual-antenna GNSS heading",
+                "gnss_heading_baseline_m (the primary -> secondary antenna direction in the "
+                "body frame) and the receiver's heading offset",
+                measured,
+                yaw,
+                yaw_sigma,
+            )
+        if measured is not None and measured[1] < yaw_sigma**2:
+            yaw, yaw_sigma = measured[0], math.sqrt(measured[1])
+            track_yaw = False
+    if seq.magnetometer is not None:
+        measured = magnetometer_yaw(seq, b, imu_t, read_imu("gyro", slice(None)), roll, pitch, cfg)
+        if measured is not None and yaw_sigma < cfg.init_yaw_sigma_unknown_rad:
+            _check_heading_source(
+                seq.names[b],
+                "magnetometer",
+                "magnetometer_declination_rad, the hard- and soft-iron calibration and the "
+                "sensor's mounting",
+                measured,
+                yaw,
+                yaw_sigma,
+            )
         if measured is not None and measured[1] < yaw_sigma**2:
             yaw, yaw_sigma = measured[0], math.sqrt(measured[1])
             track_yaw = False

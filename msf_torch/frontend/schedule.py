@@ -43,20 +43,27 @@ __all__ = [
     "PairMemory",
     "Schedule",
     "build_schedule",
+    "disturbed_field",
+    "median_dip",
+    "rotation_inconsistent",
+    "undisturbed_magnetometer",
     "gap_lengths",
     "source_names",
 ]
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
 import torch
 
 from msf_torch.frontend.config import EskfConfig
+from msf_torch.frontend.gating import chi2_threshold
 from msf_torch.geometry import so3
 from msf_torch.geometry.quaternion import quat_to_matrix
 from msf_torch.sensors.imu_gaps import filled_stretches, interpolated_imu_samples
-from msf_torch.types import PoseMeasurements, Sequence
+from msf_torch.sensors.magnetometer import corrected_field
+from msf_torch.types import Magnetometer, PoseMeasurements, Sequence
 
 UNMEASURED_SIGMA = 1e6
 """Sigma (m/s) of a GNSS velocity axis the receiver did not give (NaN up component): its row
@@ -67,6 +74,7 @@ _MEASURED = (
     "gnss",
     "gnss_velocity",
     "gnss_heading",
+    "magnetometer",
     "pose",
 )  # streams matched to epoch ends
 
@@ -126,6 +134,16 @@ class Schedule:
         gnss_heading: (B, E) dual-antenna baseline azimuth clockwise from north, rad (0
             where absent); gnss_heading_sigma (B, E) rad (config default filled in);
             gnss_heading_mask (B, E).
+        magnetometer_field: (B, E, 3) hard- and soft-iron corrected field in the body
+            frame, uT (0 where absent); magnetometer_sigma (B, E) its per-axis noise, uT
+            (the config's default, carried through the soft-iron matrix, filled in);
+            magnetometer_mask (B, E). Fused readings: at most ``magnetometer_rate_hz`` per
+            second (the first undisturbed reading of each ``1 / rate`` bin of the clock),
+            none whose corrected magnitude departs from the local field's by more than
+            ``magnetometer_field_tolerance`` (:func:`disturbed_field`).
+        magnetometer_dip: (B,) the local field's inclination (dip below the horizon), rad:
+            ``magnetometer_inclination_rad``, or where that is 0 the run's median angle
+            between the corrected field and the accelerometer (:func:`median_dip`).
         pose_position (B, E, 3), pose_rotation (B, E, 3, 3), pose_covariance (B, E, 6, 6),
             pose_mask (B, E).
         source_names: the S fused pose sources, in this order along the S axes below.
@@ -168,6 +186,10 @@ class Schedule:
     gnss_heading: torch.Tensor
     gnss_heading_sigma: torch.Tensor
     gnss_heading_mask: torch.Tensor
+    magnetometer_field: torch.Tensor
+    magnetometer_sigma: torch.Tensor
+    magnetometer_mask: torch.Tensor
+    magnetometer_dip: torch.Tensor
     pose_position: torch.Tensor
     pose_rotation: torch.Tensor
     pose_covariance: torch.Tensor
@@ -233,6 +255,170 @@ def _fill_gaps(times: np.ndarray, max_step: float) -> np.ndarray:
     frac = np.arange(pieces.sum()) - np.repeat(np.cumsum(pieces) - pieces, pieces) + 1
     filled = starts + np.repeat(gaps / pieces, pieces) * frac
     return np.concatenate((times[:1], filled))
+
+
+def disturbed_field(
+    field: np.ndarray, cfg: EskfConfig, reference: np.ndarray | None = None
+) -> np.ndarray:
+    """Readings whose hard- and soft-iron corrected magnitude departs from the local field's
+    by more than ``cfg.magnetometer_field_tolerance`` (relative): near steel, motors or
+    currents the field is not the earth's, and its direction says nothing of the heading.
+
+    Args:
+        field: (N, 3) raw readings, uT.
+        cfg: the hard and soft iron, the local field magnitude ``magnetometer_field_uT``
+            (0: the median corrected magnitude of ``reference``) and the tolerance.
+        reference: (M, 3) raw readings the median is taken over (default ``field``).
+
+    Returns:
+        (N,) bool, True where disturbed.
+    """
+    hard = np.asarray(cfg.magnetometer_hard_iron_uT, dtype=np.float64)
+    soft = np.reshape(np.asarray(cfg.magnetometer_soft_iron, dtype=np.float64), (3, 3))
+    norm = np.linalg.norm((field - hard) @ soft.T, axis=-1)
+    local = cfg.magnetometer_field_uT
+    if local == 0.0:
+        ref = field if reference is None else reference
+        local = float(np.median(np.linalg.norm((ref - hard) @ soft.T, axis=-1))) if len(ref) else 0
+    return np.abs(norm - local) > cfg.magnetometer_field_tolerance * local
+
+
+def median_dip(field: np.ndarray, accel: np.ndarray, cfg: EskfConfig) -> float:
+    """The local field's inclination from a run: the median over readings of the field's
+    angle below the plane normal to the accelerometer (the accelerometer reads ``+g`` up
+    at rest; its motion part averages out of the median on a ground vehicle).
+
+    Args:
+        field: (M, 3) raw readings, uT; accel: (M, 3) the accelerometer at their times,
+            m/s^2.
+        cfg: the hard and soft iron.
+
+    Returns:
+        The dip, rad (positive: the field points below the horizon).
+    """
+    hard = np.asarray(cfg.magnetometer_hard_iron_uT, dtype=np.float64)
+    soft = np.reshape(np.asarray(cfg.magnetometer_soft_iron, dtype=np.float64), (3, 3))
+    corrected = (field - hard) @ soft.T
+    cosine = (corrected * accel).sum(-1) / (
+        np.linalg.norm(corrected, axis=-1) * np.linalg.norm(accel, axis=-1)
+    ).clip(1e-300)
+    return float(np.median(-np.arcsin(np.clip(cosine, -1.0, 1.0))))
+
+
+def undisturbed_magnetometer(
+    stream: Magnetometer,
+    b: int,
+    cfg: EskfConfig,
+    imu_t: np.ndarray,
+    gyro: np.ndarray,
+    times: np.ndarray,
+    index: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray]:
+    """The undisturbed magnetometer readings of sequence ``b`` among ``times`` (s) /
+    ``index`` (into the stream): in magnitude (:func:`disturbed_field`, the median over
+    all the sequence's readings) and turning with the gyro (:func:`rotation_inconsistent`).
+
+    Args:
+        stream: the ``Magnetometer`` stream (B, N).
+        b: the sequence.
+        cfg: the filter's config.
+        imu_t: (N_imu,) IMU times, s; gyro: (N_imu, 3) bias-corrected rates, rad/s.
+        times: (M,) candidate reading times, s (sorted); index: (M,) their indices.
+
+    Returns:
+        (times, index) of the readings kept.
+    """
+    if times.size == 0:
+        return times, index
+    valid = _np(stream.mask[b])
+    field = _np(stream.field[b])
+    keep = ~disturbed_field(field[index], cfg, field[valid])
+    times, index = times[keep], index[keep]
+    if cfg.magnetometer_consistency_s > 0 and times.size:
+        sigma = _np(stream.sigma[b])[index]
+        sigma = np.where(np.isfinite(sigma) & (sigma > 0), sigma, cfg.magnetometer_sigma_uT)
+        keep = ~rotation_inconsistent(
+            times, field[index], sigma, _gyro_integral(imu_t, gyro, times), cfg
+        )
+        times, index = times[keep], index[keep]
+    return times, index
+
+
+CONSISTENCY_LAGS = (1.0 / 6.0, 1.0 / 3.0, 2.0 / 3.0, 1.0)
+"""Lags of :func:`rotation_inconsistent`, as fractions of ``magnetometer_consistency_s``."""
+
+
+def rotation_inconsistent(
+    times: np.ndarray,
+    field: np.ndarray,
+    sigma: np.ndarray,
+    gyro_integral: np.ndarray,
+    cfg: EskfConfig,
+) -> np.ndarray:
+    """Readings whose change from earlier readings is not the body's turn: the earth's field
+    is fixed in the world, so between readings ``j`` and ``k`` the body-frame field turns
+    by the gyro's rotation, ``f_k = Exp(theta_jk)^T f_j``; a local disturbance (driving past
+    steel, a motor switching on) changes it otherwise, and no attitude is needed to see it.
+
+    Each reading is compared with the latest reading at least ``lag`` earlier, for each lag
+    of :data:`CONSISTENCY_LAGS` times ``magnetometer_consistency_s`` (a disturbance's
+    plateau is still compared with a reading from before it); it is inconsistent when, for
+    any lag, ``|f_k - Exp(theta)^T f_j|`` exceeds the gate's chi-square (3 dof,
+    ``gate_probability``) bound on the two readings' noise plus the gyro bias prior's
+    turn over the interval (``init_gyro_bias_sigma_radps`` times the interval times
+    ``|f_j|``). ``theta`` is the difference of the gyro's integral (a rotation vector: exact
+    for turns about one axis, as a ground vehicle's are to first order). A reading with no
+    reading at least the shortest lag before it in the sequence cannot be judged and counts
+    as inconsistent (the run's first readings; in a run filtered in pieces, each piece's:
+    a run that starts beside steel would otherwise set its heading from the disturbance).
+
+    Args:
+        times: (M,) s; field: (M, 3) raw readings, uT (corrected here with the config's
+            hard and soft iron); sigma: (M,) per-axis noise, uT.
+        gyro_integral: (M, 3) integral of the raw gyro from the run's start, rad.
+        cfg: hard and soft iron, ``magnetometer_consistency_s``, the gate probability and
+            the gyro bias prior.
+
+    Returns:
+        (M,) bool, True where inconsistent or not judged.
+    """
+    hard = np.asarray(cfg.magnetometer_hard_iron_uT, dtype=np.float64)
+    soft = np.reshape(np.asarray(cfg.magnetometer_soft_iron, dtype=np.float64), (3, 3))
+    corrected = (field - hard) @ soft.T
+    bound = math.sqrt(chi2_threshold(3, cfg.gate_probability))
+    bias = float(np.linalg.norm(cfg.init_gyro_bias_sigma_radps))
+    inconsistent = np.zeros(times.size, dtype=bool)
+    judged_once = np.zeros(times.size, dtype=bool)
+    for fraction in CONSISTENCY_LAGS:
+        j = np.searchsorted(times, times - fraction * cfg.magnetometer_consistency_s, "right") - 1
+        judged = j >= 0
+        judged_once |= judged
+        k = np.flatnonzero(judged)
+        j = j[judged]
+        turned = np.einsum(
+            "nji,nj->ni",
+            so3.exp(torch.from_numpy(gyro_integral[k] - gyro_integral[j])).numpy(),
+            corrected[j],
+        )
+        change = np.linalg.norm(corrected[k] - turned, axis=-1)
+        noise = bound * np.hypot(sigma[k], sigma[j]) * math.sqrt((soft**2).sum() / 3)
+        drift = bias * (times[k] - times[j]) * np.linalg.norm(corrected[j], axis=-1)
+        inconsistent[k] |= change > noise + drift
+    return inconsistent | ~judged_once
+
+
+def _corrected_magnetometer(
+    raw: torch.Tensor, sigma: torch.Tensor, cfg: EskfConfig
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Corrected field ``W (m - b)`` (B, E, 3) uT and its per-axis sigma (B, E) uT: the
+    reading's (config default where NaN or not above 0) times ``sqrt(trace(W W^T) / 3)``."""
+    hard = torch.as_tensor(cfg.magnetometer_hard_iron_uT, dtype=raw.dtype, device=raw.device)
+    soft = torch.as_tensor(cfg.magnetometer_soft_iron, dtype=raw.dtype, device=raw.device)
+    soft = soft.reshape(3, 3)
+    sigma = torch.where(
+        torch.isfinite(sigma) & (sigma > 0), sigma, cfg.magnetometer_sigma_uT
+    ) * torch.sqrt((soft**2).sum() / 3)
+    return corrected_field(raw, hard, soft), sigma
 
 
 def _match(times: np.ndarray, targets: np.ndarray, tol: float) -> np.ndarray:
@@ -464,6 +650,25 @@ def build_schedule(
         gnss_t, gnss_src = stream_times(seq.gnss)
         gvel_t, gvel_src = stream_times(seq.gnss_velocity)
         head_t, head_src = stream_times(seq.gnss_heading)
+        # undisturbed readings, then the first of each 1 / magnetometer_rate_hz bin of the
+        # clock (absolute time: a run filtered in pieces picks the same readings)
+        mag_t, mag_src = undisturbed_magnetometer(
+            seq.magnetometer,
+            b,
+            cfg,
+            imu_t,
+            _np(seq.imu.gyro[b])[imu_sel] - np.asarray(cfg.init_gyro_bias_radps),
+            *stream_times(seq.magnetometer),
+        )
+        first_in_bin = np.diff(np.floor(mag_t * cfg.magnetometer_rate_hz), prepend=-np.inf) > 0
+        mag_t, mag_src = mag_t[first_in_bin], mag_src[first_in_bin]
+        mag_dip = cfg.magnetometer_inclination_rad
+        if mag_t.size and mag_dip == 0.0:
+            mag_dip = median_dip(
+                _np(seq.magnetometer.field[b])[mag_src],
+                _np(seq.imu.accel[b])[imu_sel][np.searchsorted(imu_t, mag_t + tol) - 1],
+                cfg,
+            )
         pose_t, pose_src = stream_times(seq.poses)
         carried = [
             None if carried_all is None else tuple(x[b, s] for x in carried_all)
@@ -479,7 +684,7 @@ def build_schedule(
         use_nhc = cfg.nhc == "on" or (cfg.nhc == "auto" and wheel_t.size == 0)
         updates = _merge_times(
             np.concatenate(
-                (wheel_t, gnss_t, gvel_t, head_t, pose_t, *[p[0] for p in pairs], [t_last])
+                (wheel_t, gnss_t, gvel_t, head_t, mag_t, pose_t, *[p[0] for p in pairs], [t_last])
             ),
             tol,
         )
@@ -519,6 +724,7 @@ def build_schedule(
         gnss_idx = _match(gnss_t, updates, tol)
         gvel_idx = _match(gvel_t, updates, tol)
         head_idx = _match(head_t, updates, tol)
+        mag_idx = _match(mag_t, updates, tol)
         pose_idx = _match(pose_t, updates, tol)
         source_idx, memory_rows = [], []
         for n, p, c in zip(names, pairs, carried, strict=True):
@@ -565,6 +771,8 @@ def build_schedule(
                 gnss=(gnss_idx, gnss_src),
                 gnss_velocity=(gvel_idx, gvel_src),
                 gnss_heading=(head_idx, head_src),
+                magnetometer=(mag_idx, mag_src),
+                magnetometer_dip=mag_dip,
                 pose=(pose_idx, pose_src),
                 nhc=pseudo & use_nhc,
                 zupt=zupt,
@@ -680,6 +888,11 @@ def build_schedule(
         gnss_heading_sigma,
         cfg.gnss_heading_sigma_rad,
     )
+    magnetometer_field, magnetometer_sigma = _corrected_magnetometer(
+        take(seq.magnetometer, "field", "magnetometer", (3,)),
+        take(seq.magnetometer, "sigma", "magnetometer", ()),
+        cfg,
+    )
     pose_position = take(seq.poses, "position", "pose", (3,))
     if seq.poses is None or seq.poses.length == 0:
         pose_rotation = torch.eye(3, **f64).expand(batch, n_epochs, 3, 3).clone()
@@ -730,6 +943,10 @@ def build_schedule(
         gnss_heading=gnss_heading,
         gnss_heading_sigma=gnss_heading_sigma,
         gnss_heading_mask=masks["gnss_heading"],
+        magnetometer_field=magnetometer_field,
+        magnetometer_sigma=magnetometer_sigma,
+        magnetometer_mask=masks["magnetometer"],
+        magnetometer_dip=torch.as_tensor([p["magnetometer_dip"] for p in per_seq], **f64),
         pose_position=pose_position,
         pose_rotation=pose_rotation,
         pose_covariance=pose_covariance,

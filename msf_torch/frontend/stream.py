@@ -350,7 +350,7 @@ def _joined(first: Sequence, second: Sequence) -> Sequence:
     """``first``'s samples followed by ``second``'s, stream by stream (B = 1, compacted);
     labels, meta and ground truth from ``second``."""
     streams: dict[str, Any] = {}
-    for name in ("imu", "wheel", "gnss", "gnss_velocity", "gnss_heading", "poses"):
+    for name in ("imu", "wheel", "gnss", "gnss_velocity", "gnss_heading", "magnetometer", "poses"):
         a, b = getattr(first, name), getattr(second, name)
         streams[name] = _cat(a, b)
     names = dict.fromkeys([*first.pose_sources, *second.pose_sources])

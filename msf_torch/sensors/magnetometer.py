@@ -28,6 +28,7 @@ from __future__ import annotations
 
 __all__ = [
     "corrected_field",
+    "field_dip",
     "magnetometer_heading_residual",
     "magnetometer_heading_variance",
 ]
@@ -51,6 +52,20 @@ def corrected_field(
         (..., 3) the field in the body frame, uT.
     """
     return ((raw - hard_iron)[..., None, :] * soft_iron).sum(-1)
+
+
+def field_dip(rotation: torch.Tensor, field_body: torch.Tensor) -> torch.Tensor:
+    """Dip of the field below the horizon as the attitude sees it, (...,) rad.
+
+    Args:
+        rotation: (..., 3, 3) body -> world (ENU).
+        field_body: (..., 3) corrected field, uT.
+
+    Returns:
+        ``atan2(-u_z, |u_h|)`` of ``u = R f_b`` (positive: pointing below the horizon).
+    """
+    world = (rotation @ field_body[..., None]).squeeze(-1)
+    return torch.atan2(-world[..., 2], torch.linalg.vector_norm(world[..., :2], dim=-1))
 
 
 def magnetometer_heading_residual(

@@ -33,6 +33,10 @@ Sensors (conventions in :mod:`msf_torch.geometry.conventions`):
   With ``gnss_heading``, at the same times a dual-antenna heading: the azimuth of
   ``R @ gnss_heading_baseline_m`` clockwise from north plus Gaussian noise of
   ``gnss_heading_sigma_rad``, in [0, 2 pi) (``Sequence.gnss_heading``), none inside outages.
+* With ``magnetometer``, a three-axis magnetometer at ``magnetometer_rate_hz``
+  (``Sequence.magnetometer``): the earth's field seen in the body, soft- and hard-iron
+  distorted, with local anomalies along the route (:mod:`msf_torch.sim.magnetometer`;
+  label ``"magnetic_anomaly"``).
 
 Labels (``Sequence.labels``, (1, K, 2) intervals ``[t_start, t_end]`` in s): ``"slip"``
 (episode types in ``meta["sensor"]["slip_types"]``, details in ``meta["slip_episodes"]``) and
@@ -74,11 +78,13 @@ import torch
 
 from msf_torch.geometry.conventions import STANDARD_GRAVITY
 from msf_torch.geometry.quaternion import matrix_to_quat
+from msf_torch.sim.magnetometer import simulate_magnetometer
 from msf_torch.types import (
     GnssFixes,
     GnssHeading,
     GnssVelocity,
     ImuSamples,
+    Magnetometer,
     Sequence,
     Trajectory,
     WheelSamples,
@@ -241,6 +247,19 @@ class SimConfig:
         gnss_heading_baseline_m: primary -> secondary antenna in the body frame, m.
         gnss_heading_time_offset_s: a heading stamped ``t`` is the one at ``t + offset`` (s;
             negative: the receiver's latency, stamps late), the filter's ``t_d`` convention.
+        magnetometer: also emit magnetometer readings (``Sequence.magnetometer``;
+            :mod:`msf_torch.sim.magnetometer`).
+        magnetometer_rate_hz: their rate, Hz.
+        magnetometer_sigma_uT: per-axis white noise, uT.
+        magnetometer_field_uT, magnetometer_inclination_rad, magnetometer_declination_rad:
+            the local earth field: magnitude (uT), dip below the horizon (rad, positive
+            down) and magnetic north's azimuth clockwise from true north (rad).
+        magnetometer_hard_iron_uT: hard-iron offset ``b``, uT.
+        magnetometer_distortion: soft-iron distortion ``S`` (9 numbers, row by row); the
+            correction a filter needs is its inverse.
+        magnetometer_anomaly_count: number of local anomalies along the route.
+        magnetometer_anomaly_uT: range of their peak field, uT.
+        magnetometer_anomaly_radius_m: range of their radius, m.
         slip_episodes: number of slip episodes.
         slip_types: the types to use (subset of ``SLIP_TYPES``); all appear before any repeats.
         slip_duration_s: episode duration range (label interval, ramps included), s.
@@ -290,6 +309,18 @@ class SimConfig:
     gnss_heading_sigma_rad: float = 0.005
     gnss_heading_baseline_m: tuple[float, float, float] = (1.0, 0.0, 0.0)
     gnss_heading_time_offset_s: float = 0.0
+    # magnetometer
+    magnetometer: bool = False
+    magnetometer_rate_hz: float = 50.0
+    magnetometer_sigma_uT: float = 0.3
+    magnetometer_field_uT: float = 48.0
+    magnetometer_inclination_rad: float = 1.05
+    magnetometer_declination_rad: float = 0.0
+    magnetometer_hard_iron_uT: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    magnetometer_distortion: tuple[float, ...] = (1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0)
+    magnetometer_anomaly_count: int = 0
+    magnetometer_anomaly_uT: tuple[float, float] = (10.0, 40.0)
+    magnetometer_anomaly_radius_m: tuple[float, float] = (2.0, 5.0)
     # slip
     slip_episodes: int = 0
     slip_types: tuple[str, ...] = SLIP_TYPES
@@ -310,6 +341,9 @@ class SimConfig:
             "wheel_track_m",
             "wheel_radius_m",
             "mean_speed_mps",
+            "magnetometer_rate_hz",
+            "magnetometer_sigma_uT",
+            "magnetometer_field_uT",
         )
         for name in positive:
             if not getattr(self, name) > 0:
@@ -330,6 +364,7 @@ class SimConfig:
             "speed_components",
             "turn_components",
             "terrain_components",
+            "magnetometer_anomaly_count",
         )
         for name in non_negative:
             if getattr(self, name) < 0:
@@ -342,6 +377,8 @@ class SimConfig:
             "slip_duration_s",
             "slip_ratio",
             "lock_ratio",
+            "magnetometer_anomaly_uT",
+            "magnetometer_anomaly_radius_m",
         ):
             low, high = getattr(self, name)
             if not 0 <= low <= high:
@@ -388,6 +425,18 @@ class SimConfig:
             raise ValueError(
                 "SimConfig.gnss_heading_baseline_m must be 3 entries with a horizontal part, "
                 f"got {self.gnss_heading_baseline_m!r}"
+            )
+        if self.magnetometer_anomaly_radius_m[0] <= 0:
+            raise ValueError("SimConfig.magnetometer_anomaly_radius_m must be > 0")
+        if len(self.magnetometer_hard_iron_uT) != 3:
+            raise ValueError("SimConfig.magnetometer_hard_iron_uT must have 3 entries")
+        if (
+            len(self.magnetometer_distortion) != 9
+            or abs(np.linalg.det(np.reshape(self.magnetometer_distortion, (3, 3)))) < 1e-9
+        ):
+            raise ValueError(
+                "SimConfig.magnetometer_distortion must be 9 numbers (3 x 3, row by row) with "
+                f"a non-zero determinant, got {self.magnetometer_distortion!r}"
             )
         if len(self.gnss_lever_arm_m) != 3:
             raise ValueError(
@@ -999,12 +1048,13 @@ def simulate_run(config: SimConfig, seed: int, *, path_seed: int | None = None) 
         raise ValueError(
             f"simulate_run: path_seed must be a non-negative int or None, got {path_seed!r}"
         )
-    # a sixth stream for the GNSS velocity noise and a seventh for the heading noise leave
-    # the first five (and every run without them) as they were
-    streams = np.random.SeedSequence(int(seed)).spawn(7)
+    # a sixth stream for the GNSS velocity noise, a seventh for the heading noise and an
+    # eighth for the magnetometer leave the first five (and every run without them) as
+    # they were
+    streams = np.random.SeedSequence(int(seed)).spawn(8)
     if path_seed is not None:
         streams[0] = np.random.SeedSequence(int(path_seed)).spawn(5)[0]
-    rng_path, rng_imu, rng_wheel, rng_slip, rng_gnss, rng_gnss_velocity, rng_heading = (
+    rng_path, rng_imu, rng_wheel, rng_slip, rng_gnss, rng_gnss_velocity, rng_heading, rng_mag = (
         np.random.Generator(np.random.PCG64(s)) for s in streams
     )
     path = GroundPath.random(config, rng_path)
@@ -1103,6 +1153,21 @@ def simulate_run(config: SimConfig, seed: int, *, path_seed: int | None = None) 
             mask=torch.ones((1, len(t_g)), dtype=torch.bool),
         )
 
+    magnetometer = None
+    magnetometer_labels, magnetometer_meta = {}, {}
+    if config.magnetometer:
+        t_m, readings, anomaly_intervals, magnetometer_meta = simulate_magnetometer(
+            config, path, rng_mag
+        )
+        magnetometer = Magnetometer(
+            t=_tensor(t_m),
+            field=_tensor(readings),
+            sigma=_tensor(np.full(len(t_m), config.magnetometer_sigma_uT)),
+            mask=torch.ones((1, len(t_m)), dtype=torch.bool),
+        )
+        magnetometer_labels = {"magnetic_anomaly": _tensor(anomaly_intervals)}
+        magnetometer_meta = {"magnetometer": magnetometer_meta}
+
     # assemble -------------------------------------------------------------------------------
     slip_intervals = np.array([[ep.t_start, ep.t_end] for ep in episodes]).reshape(-1, 2)
     slip_mask = np.zeros(n_imu, dtype=bool)
@@ -1159,6 +1224,7 @@ def simulate_run(config: SimConfig, seed: int, *, path_seed: int | None = None) 
         },
         "slip_episodes": [ep.to_dict() for ep in episodes],
         "truth": {"wheel_scale_error": [float(x) for x in scale - 1.0]},
+        **magnetometer_meta,
     }
     sequence = Sequence(
         names=[f"sim_wheeled_seed{int(seed)}"],
@@ -1168,7 +1234,12 @@ def simulate_run(config: SimConfig, seed: int, *, path_seed: int | None = None) 
         gnss_velocity=gnss_velocity,
         gnss_heading=gnss_heading,
         ground_truth=ground_truth,
-        labels={"slip": _tensor(slip_intervals), "gnss_outage": _tensor(outages)},
+        magnetometer=magnetometer,
+        labels={
+            "slip": _tensor(slip_intervals),
+            "gnss_outage": _tensor(outages),
+            **magnetometer_labels,
+        },
         meta=meta,
     )
     sequence.check()

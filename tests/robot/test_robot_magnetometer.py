@@ -285,9 +285,10 @@ def test_msf_run_fuses_a_mounted_magnetometer(tmp_path: Path, capsys) -> None:
         runs[name] = (summary, _yaw_errors(out / "trajectory.tum", run.truth))
     summary, yaw = runs["sensor"]
     counts = summary["measurements"]["magnetometer"]
-    # estimator.magnetometer_rate_hz 10: one in five of the 50-Hz readings
-    assert counts["present"] == counts["accepted"] > 250, counts
-    assert float(yaw.median()) < 0.004, yaw
+    # estimator.magnetometer_rate_hz 2: one in 25 of the 50-Hz readings over 30 s (the
+    # first second's readings cannot yet be judged against the gyro)
+    assert counts["present"] == counts["accepted"] > 50, counts
+    assert float(yaw.median()) < 0.008, yaw
     assert "magnetometer" not in runs["off"][0]["measurements"]
     assert float(runs["off"][1].median()) > 2.0 * float(yaw.median())
     assert float(runs["body"][1].median()) > 0.5
