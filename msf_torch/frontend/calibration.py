@@ -21,7 +21,14 @@ from 15 to ``15 + n`` entries, in this order:
 * ``heading_offset_rad:gnss_heading`` (``calibrate_gnss_heading_offset``, runs with
   dual-antenna headings): the turn about body z of the antenna baseline
   (``sensors.calibration.heading_offset_residual``), starts at
-  ``calibration_gnss_heading_offset_rad``, prior sigma ``calibration_rotation_sigma_rad``.
+  ``calibration_gnss_heading_offset_rad``, prior sigma ``calibration_rotation_sigma_rad``;
+* ``declination_rad:magnetometer`` (``calibrate_magnetometer_declination``, runs with a
+  magnetometer): the azimuth of magnetic north the heading residual compares with
+  (``r = wrap(azimuth(R f) - D)``, ``dr/dD = -1``), starts at
+  ``magnetometer_declination_rad``, prior sigma
+  ``calibration_magnetometer_declination_sigma_rad``, walk
+  ``calibration_rotation_rw_density``. Observable wherever another heading reference
+  (GNSS track through motion, dual-antenna heading) is.
 
 Each is a random walk (``calibration_*_rw_density``) with a Gaussian prior
 (``calibration_*_sigma``), additive error (``k = k_hat + dk``; the rotations: right error
@@ -86,6 +93,7 @@ class CalibrationLayout:
             its mounting rotation (3).
         imu_body_index: first of the three IMU-to-vehicle rotation columns, or None.
         heading_offset_index: the dual-antenna heading offset's column, or None.
+        declination_index: the magnetometer declination's column, or None.
         rotation_index: first columns of every rotation triplet (right error, composed on
             injection).
     """
@@ -101,6 +109,7 @@ class CalibrationLayout:
     imu_body_index: int | None = None
     rotation_index: tuple[int, ...] = ()
     heading_offset_index: int | None = None
+    declination_index: int | None = None
 
     @classmethod
     def from_config(
@@ -181,6 +190,13 @@ class CalibrationLayout:
             initial.append(float(cfg.calibration_gnss_heading_offset_rad))
             sigma.append(cfg.calibration_rotation_sigma_rad)
             walk.append(cfg.calibration_rotation_rw_density)
+        declination = None
+        if cfg.calibrate_magnetometer_declination and "magnetometer" in sensors:
+            declination = len(names)
+            names.append("declination_rad:magnetometer")
+            initial.append(float(cfg.magnetometer_declination_rad))
+            sigma.append(cfg.calibration_magnetometer_declination_sigma_rad)
+            walk.append(cfg.calibration_rotation_rw_density)
         if not names:
             return None
 
@@ -199,6 +215,7 @@ class CalibrationLayout:
             imu_body,
             tuple(rotations),
             heading_offset,
+            declination,
         )
 
     @property

@@ -250,6 +250,11 @@ class EskfConfig:
     # by this angle (rad; starts at calibration_gnss_heading_offset_rad)
     calibrate_gnss_heading_offset: bool = False
     calibration_gnss_heading_offset_rad: float = 0.0
+    # magnetometer declination (the azimuth of magnetic north, plus the sensor's mounting yaw
+    # error, which acts alike on level ground): starts at magnetometer_declination_rad with
+    # this prior sigma (rad; a declination looked up for the site is known to ~0.01 rad)
+    calibrate_magnetometer_declination: bool = False
+    calibration_magnetometer_declination_sigma_rad: float = 0.3
     calibration_lever_arm_sigma_m: float = 0.3  # prior 1-sigma per axis
     calibration_rotation_sigma_rad: float = 0.05  # prior 1-sigma per axis (and the offset)
     calibration_lever_arm_rw_density: float = 1e-5  # m/sqrt(s)

@@ -1562,9 +1562,17 @@ def run_eskf(
                     var = gnss_heading_var[:, e]
                 elif name == "magnetometer":
                     field_body = sched.magnetometer_field[:, e]
+                    col_d = None if calib is None else calib.declination_index
                     r, h = magnetometer_heading_residual(
-                        state.rotation, field_body, cfg.magnetometer_declination_rad
+                        state.rotation,
+                        field_body,
+                        cfg.magnetometer_declination_rad
+                        if col_d is None
+                        else calib_value[:, col_d],
                     )
+                    if col_d is not None:  # r = wrap(azimuth - D): dr/dD = -1
+                        h_calib = torch.zeros(batch, 1, n_calib, dtype=dtype, device=device)
+                        h_calib[..., col_d] = -1.0
                     magnetometer_dip_ok = (
                         field_dip(state.rotation, field_body) - sched.magnetometer_dip
                     ).abs() <= cfg.magnetometer_dip_tolerance_rad

@@ -345,6 +345,8 @@ def magnetometer_yaw(
     # azimuth of the levelled field turned by yaw = level_azimuth - yaw = the declination
     yaw = level_azimuth - cfg.magnetometer_declination_rad - turned
     variance = (sigma / horizontal) ** 2 + cfg.magnetometer_heading_floor_rad**2
+    if cfg.calibrate_magnetometer_declination:  # the declination's prior enters the yaw
+        variance += cfg.calibration_magnetometer_declination_sigma_rad**2
     return math.atan2(math.sin(yaw), math.cos(yaw)), variance + tilt_var + carry_var
 
 

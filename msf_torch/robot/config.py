@@ -44,7 +44,9 @@ Top-level keys
     pose_source: lever arm and mounting rotation on top of the frames' transform, start at
     0), imu ``calibrate_rotation`` (the IMU's rotation against the vehicle axes of the wheel
     and non-holonomic models), gnss_heading ``calibrate_offset`` (the antenna baseline's
-    turn about body z) and ``calibrate_time_offset`` (its latency).
+    turn about body z) and ``calibrate_time_offset`` (its latency), magnetometer
+    ``calibrate_declination`` (the azimuth of magnetic north, starting at
+    ``declination_deg``).
 ``estimator``
     Front-end settings: any key of :class:`~msf_torch.frontend.config.EskfConfig`
     (noise densities, sigmas, gating, initialisation, slip detection, ...).
@@ -71,7 +73,8 @@ axes, and ``R W R^T (R m - R b) = R W (m - b)``, the corrected field turned like
 Setting a derived key in ``estimator`` as well is an error that names both. The wheels'
 ``fuse`` sets ``wheel_yaw_rate_update``; the calibration switches set ``calibrate_wheels``,
 ``calibrate_time_offsets``, ``calibrate_gnss_lever_arm``, ``calibrate_pose_extrinsics``,
-``calibrate_imu_body_rotation`` and ``calibrate_gnss_heading_offset``.
+``calibrate_imu_body_rotation``, ``calibrate_gnss_heading_offset`` and
+``calibrate_magnetometer_declination``.
 """
 
 from __future__ import annotations
@@ -132,6 +135,7 @@ _PER_KIND = {
         "hard_iron_uT",
         "soft_iron",
         "sigma_uT",
+        "calibrate_declination",
     ),
     "wheels": ("left_joints", "right_joints", "wheel_radius_m", "fuse", "calibrate"),
     "pose": (
@@ -439,6 +443,7 @@ class RobotConfig:
                 "calibrate_pose_extrinsics",
                 "calibrate_imu_body_rotation",
                 "calibrate_gnss_heading_offset",
+                "calibrate_magnetometer_declination",
             )
             for key in extrinsic_keys:
                 if key in values:
@@ -451,6 +456,7 @@ class RobotConfig:
             derived["calibrate_pose_extrinsics"] = [k for k in chosen if k.startswith("pose:")]
             derived["calibrate_imu_body_rotation"] = "imu" in chosen
             derived["calibrate_gnss_heading_offset"] = "gnss_heading" in chosen
+            derived["calibrate_magnetometer_declination"] = "magnetometer" in chosen
         values.update(derived)
         values.update(overrides or {})
         return _eskf_config(values, self._fail)
@@ -765,6 +771,10 @@ def load_robot_config(path: str | os.PathLike[str]) -> RobotConfig:
                 calibrate_extrinsics.append("imu")
         elif kind == "magnetometer":
             magnetometer = _magnetometer_options(check, spec, keys)
+            if check.boolean(
+                spec.get("calibrate_declination", False), (*keys, "calibrate_declination")
+            ):
+                calibrate_extrinsics.append("magnetometer")
         elif kind == "gnss_heading":
             if "baseline" in spec:
                 secondary_frame = _secondary_frame(

@@ -138,6 +138,26 @@ def test_without_frames_the_options_pass_as_written(tmp_path: Path) -> None:
     assert cfg.magnetometer_hard_iron_uT == [1.0, 2.0, 3.0]
     assert cfg.magnetometer_declination_rad == -0.1
     assert cfg.magnetometer_soft_iron == [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0]
+    assert cfg.calibrate_magnetometer_declination is False
+
+
+def test_calibrate_declination_switch(tmp_path: Path) -> None:
+    """calibrate_declination: true sets calibrate_magnetometer_declination; setting that
+    key in estimator as well is an error naming both places."""
+    text = (
+        "sensors:\n"
+        "  imu: {type: imu, topic: /imu}\n"
+        "  mag: {type: magnetometer, topic: /mag, declination_deg: 10,\n"
+        "        calibrate_declination: true}\n"
+    )
+    path = tmp_path / "robot.yaml"
+    path.write_text(text)
+    cfg = load_robot_config(path).eskf_config({})
+    assert cfg.calibrate_magnetometer_declination is True
+    assert cfg.magnetometer_declination_rad == pytest.approx(math.radians(10.0))
+    path.write_text(text + "estimator: {calibrate_magnetometer_declination: true}\n")
+    with pytest.raises(Exception, match="calibrate_magnetometer_declination"):
+        load_robot_config(path).eskf_config({})
 
 
 @pytest.mark.parametrize(
