@@ -18,6 +18,12 @@ has, whatever it does, with wide margins:
   1/m for tracks of 0.2-3 m; above 20 1/m (a 5 cm track) the gyro reads in deg/s (57x) or
   the wheel speeds are not in m/s. This catches deg/s on slowly turning robots, where the
   first gyro check cannot.
+* magnetometer (when the run has one): the median raw ``|m|`` lies within 5-1000 uT (the
+  earth's field is 25-65 uT, and hard iron near motors can add a few hundred; gauss reads
+  about 0.5, tesla about 5e-5, nanotesla about 5e4). Milligauss (250-650) passes: it is
+  10x the microtesla it should be, which the magnitude check of the front end does not
+  mind (it compares with the run's own median) but a configured
+  ``magnetometer_field_uT`` or hard iron does.
 
 A recording that fails a check is not usable as it is: the message says which stream, what
 was measured and the likely fix.
@@ -40,6 +46,7 @@ UNIT_LIMITS = {
     "accel_median_g": (0.5, 2.0),
     "gyro_p99_radps": 20.0,
     "yaw_per_wheel_difference_per_m": 20.0,
+    "magnetometer_median_uT": (5.0, 1000.0),
 }
 """The ranges :func:`unit_problems` accepts (module docstring)."""
 
@@ -99,7 +106,24 @@ def unit_problems(seq: Sequence) -> list[str]:
                     "difference (1 / track: 0.3-5 for a track of 0.2-3 m); the gyro in deg/s "
                     "(x 57)? multiply it by pi/180; else the wheel speeds are not in m/s"
                 )
+        field = _magnetometer_median(seq, b)
+        low_field, high_field = UNIT_LIMITS["magnetometer_median_uT"]
+        if field is not None and not low_field <= field <= high_field:
+            problems.append(
+                f"{prefix}the magnetometer's median |m| is {field:.4g} where the earth's field "
+                "is 25-65 uT; the estimator needs microtesla (in gauss? multiply by 100; in "
+                "tesla, as ROS sensor_msgs/MagneticField? by 1e6; in nanotesla? divide by 1000)"
+            )
     return problems
+
+
+def _magnetometer_median(seq: Sequence, b: int) -> float | None:
+    """Median raw magnitude of sequence ``b``'s magnetometer readings, or None without at
+    least 3."""
+    stream = seq.magnetometer
+    if stream is None or int(stream.mask[b].sum()) < 3:
+        return None
+    return float(stream.field[b, stream.mask[b]].norm(dim=-1).median())
 
 
 def _yaw_per_wheel_difference(seq: Sequence, b: int) -> float | None:

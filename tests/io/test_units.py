@@ -63,3 +63,22 @@ def test_msf_run_refuses_them(sample, tmp_path, capsys) -> None:
     assert main(["run", str(path), "--out", str(tmp_path / "out"), "--no-plot"]) == 2
     err = capsys.readouterr().err
     assert err.startswith(f"msf run: error: {path}: IMU samples are a median")
+
+
+def test_magnetometer_in_gauss_tesla_or_nanotesla_is_caught() -> None:
+    """A simulated magnetometer in uT passes (with 40 uT of hard iron too); the same
+    readings in gauss, tesla or nanotesla are each caught with the factor to apply."""
+    from msf_torch.sim import SimConfig, simulate_run
+
+    run = simulate_run(SimConfig(duration_s=10.0, magnetometer=True), 2)
+    seq = run.sequence
+
+    def scaled(factor, offset=0.0):
+        mag = dataclasses.replace(seq.magnetometer, field=seq.magnetometer.field * factor + offset)
+        return dataclasses.replace(seq, magnetometer=mag)
+
+    assert unit_problems(seq) == []
+    assert unit_problems(scaled(1.0, 40.0)) == []
+    for factor, hint in ((0.01, "gauss"), (1e-6, "tesla"), (1e3, "nanotesla")):
+        problems = unit_problems(scaled(factor))
+        assert len(problems) == 1 and "magnetometer" in problems[0] and hint in problems[0]
