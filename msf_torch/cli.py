@@ -453,7 +453,17 @@ def build_parser() -> argparse.ArgumentParser:
         "turned through many orientations) and write the config keys",
     )
     mc.add_argument(
-        "sequence", help="recorded sequence with magnetometer readings (native .npz / folder)"
+        "sequence",
+        help="recorded sequence with magnetometer readings (native .npz / folder, or a ROS "
+        "bag with --topics)",
+    )
+    mc.add_argument(
+        "--topics",
+        type=Path,
+        default=None,
+        metavar="ROBOT.yaml",
+        help="read SEQUENCE as a ROS bag with this robot config (its magnetometer sensor; the "
+        "readings turned into the body axes, so the fit is the front end's body-frame keys)",
     )
     mc.add_argument(
         "--format",
@@ -1395,7 +1405,15 @@ def _cmd_magcal(args) -> dict[str, Any]:
     from msf_torch.io.errors import DataError
     from msf_torch.sensors.magnetometer_calibration import fit_magnetometer
 
-    seq = load_sequence(args.sequence, fmt=args.fmt)
+    if args.topics is not None:
+        if args.fmt is not None:
+            raise ValueError("--format does not apply to a ROS bag read with --topics")
+        from msf_torch.io.rosbag import read_rosbag
+        from msf_torch.robot.config import load_robot_config
+
+        seq = read_rosbag(args.sequence, load_robot_config(args.topics).layout)
+    else:
+        seq = load_sequence(args.sequence, fmt=args.fmt)
     mag = seq.magnetometer
     if mag is None or not bool(mag.mask.any()):
         raise DataError(

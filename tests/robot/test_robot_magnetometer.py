@@ -312,3 +312,33 @@ def test_msf_run_fuses_a_mounted_magnetometer(tmp_path: Path, capsys) -> None:
     assert "magnetometer" not in runs["off"][0]["measurements"]
     assert float(runs["off"][1].median()) > 2.0 * float(yaw.median())
     assert float(runs["body"][1].median()) > 0.5
+
+
+def test_magcal_reads_a_bag_in_the_body_axes(tmp_path: Path, capsys) -> None:
+    """``msf magcal BAG --topics ROBOT.yaml``: readings of a sensor turned every way,
+    written in the mounted sensor's axes with a hard iron ``b`` there, come back in the body
+    axes, so the fitted hard iron is ``R b`` (the front end's body-frame key) and the
+    soft iron the identity."""
+    (tmp_path / "rover.urdf").write_text(URDF)
+    path = tmp_path / "robot.yaml"
+    path.write_text(ROBOT)
+    robot = load_robot_config(path)
+    gen = torch.Generator().manual_seed(5)
+    count = 400
+    attitudes = so3.exp(2.0 * torch.randn(count, 3, generator=gen, dtype=torch.float64))
+    earth = torch.tensor([20.0, 5.0, -42.0], dtype=torch.float64)
+    sensor = (attitudes.mT @ earth) + torch.tensor(HARD_IRON, dtype=torch.float64)
+    raw = _readings()
+    mag = Magnetometer(
+        t=torch.arange(count, dtype=torch.float64)[None] * 0.002,
+        field=(sensor @ torch.as_tensor(MOUNT).T)[None],  # what the reader gives: R m
+        sigma=torch.full((1, count), float("nan"), dtype=torch.float64),
+        mask=torch.ones(1, count, dtype=torch.bool),
+    )
+    raw = dataclasses.replace(raw, magnetometer=mag)
+    bag = write_rosbag(raw, tmp_path / "run", robot.layout, time_origin_ns=ORIGIN_NS)
+    assert main(["magcal", str(bag), "--topics", str(path), "--out", str(tmp_path / "m.yaml")]) == 0
+    summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    np.testing.assert_allclose(summary["hard_iron_uT"], MOUNT @ np.array(HARD_IRON), atol=1e-6)
+    np.testing.assert_allclose(summary["soft_iron"], np.eye(3).reshape(-1), atol=1e-6)
+    assert summary["field_uT"] == pytest.approx(float(earth.norm()), rel=1e-9)
