@@ -99,6 +99,7 @@ from msf_torch.eval.slip import slip_scores
 from msf_torch.frontend.config import EskfConfig
 from msf_torch.frontend.eskf import SENSORS, EskfResult, run_eskf
 from msf_torch.frontend.guard import DIVERGENCE_CODES, EstimationInterrupted
+from msf_torch.frontend.schedule import undisturbed_magnetometer
 from msf_torch.io.atomic import atomic_write
 from msf_torch.io.tum import write_tum
 from msf_torch.sensors.imu_gaps import filled_stretches, interpolated_imu_samples
@@ -550,6 +551,26 @@ def _header(seq: Sequence, result: EskfResult, wall: float) -> dict[str, Any]:
     }
 
 
+def _magnetometer_summary(seq: Sequence, cfg: EskfConfig) -> dict[str, int]:
+    """``magnetometer_readings`` of sequence 0 (B = 1) and how many of them the front end
+    leaves out as disturbed (``frontend.schedule.undisturbed_magnetometer``: magnitude
+    and gyro consistency; the dip test acts in the filter and counts as rejected); empty
+    without a magnetometer."""
+    stream = seq.magnetometer
+    if stream is None or not bool(stream.mask[0].any()):
+        return {}
+    keep = seq.imu.mask[0]
+    imu_t = seq.imu.t[0, keep].detach().cpu().numpy()
+    gyro = seq.imu.gyro[0, keep].detach().cpu().numpy() - np.asarray(cfg.init_gyro_bias_radps)
+    index = np.flatnonzero(stream.mask[0].cpu().numpy())
+    times = stream.t[0].detach().cpu().numpy()[index]
+    kept, _ = undisturbed_magnetometer(stream, 0, cfg, imu_t, gyro, times, index)
+    return {
+        "magnetometer_readings": int(index.size),
+        "magnetometer_disturbed": int(index.size - kept.size),
+    }
+
+
 def _score_and_write(
     seq: Sequence,
     result: EskfResult,
@@ -575,6 +596,7 @@ def _score_and_write(
     summary["imu_filled_stretches"] = _filled_summary(seq, cfg)
     summary.update(_fault_summary(result))
     summary.update(_calibration_summary(result))
+    summary.update(_magnetometer_summary(seq, cfg))
     scored = [("", estimate)] + ([] if smoothed is None else [("frontend_", _single(trajectory))])
     if seq.ground_truth is not None and bool(seq.ground_truth.mask.any()):
         for prefix, traj in scored:
