@@ -80,6 +80,19 @@ Deviations from the example (deliberate):
     the level rotation whose baseline has that azimuth (it replaces the course of the
     first velocity or displacement; the initial velocity value is still theirs; the
     rotation prior keeps zero precision).
+11. Optional, off by default: ``mag_field``, magnetometer readings at the GPS times,
+    already corrected for hard and soft iron (``W (m - b)``, body frame, uT), as GTSAM
+    users add a magnetometer: one ``gtsam.MagPoseFactorPose3`` on ``X(i)`` per state with
+    a finite reading, GTSAM's 3-D model ``R^T (scale * direction) + bias`` with the known
+    local field ``mag_world`` (ENU, uT: ``scale = |mag_world|``, ``direction`` its unit
+    vector) and ``bias = 0`` (the readings are corrected), isotropic ``mag_sigma`` uT per
+    axis, wrapped in ``gtsam.noiseModel.Robust`` when ``mag_robust`` (an
+    ``mEstimator``) is given. Used inside the outage too (the magnetometer does not stop
+    with the GNSS). With ``init_from_gps``, no heading and a reading at the first state,
+    the initial rotation *value* is the level rotation whose reading points at the
+    field's azimuth (the declination); the rotation prior keeps zero precision. The
+    initial velocity value (item 8) is the displacement to the next finite fix, so GPS
+    times without a fix (states between fixes) may follow the first one.
 
 States created during the warm-up have no causal "filter" estimate: they get the value
 from the first update (a small batch that already sees up to ``warmup_intervals`` fixes
@@ -204,6 +217,10 @@ def run_gtsam_kitti(
     gps_heading: np.ndarray | None = None,
     gps_heading_sigma: float | np.ndarray | None = None,
     heading_baseline: np.ndarray | None = None,
+    mag_field: np.ndarray | None = None,
+    mag_world: np.ndarray | None = None,
+    mag_sigma: float | None = None,
+    mag_robust: Any = None,
 ) -> dict[str, Any]:
     """Run the GTSAM CombinedImuFactor + GPSFactor ISAM2 pipeline.
 
@@ -241,6 +258,13 @@ def run_gtsam_kitti(
         gps_heading_sigma: scalar or (M,) sigma of ``gps_heading``, rad (required with it).
         heading_baseline: (3,) primary -> secondary antenna in the body frame (default
             ``[1, 0, 0]``, the body's x axis); it must have a horizontal part.
+        mag_field: (M, 3) corrected magnetometer reading at each GPS time, body frame, uT
+            (module doc, item 11), or None (no magnetometer factors). A non-finite row has
+            none.
+        mag_world: (3,) the local earth field, ENU, uT (required with ``mag_field``).
+        mag_sigma: per-axis sigma of ``mag_field``, uT (required with it).
+        mag_robust: a ``gtsam.noiseModel.mEstimator`` (e.g. ``Huber.Create(1.345)``) for
+            the magnetometer factors, or None (Gaussian).
 
     Returns:
         dict with ``t`` (M',) state times (``gps_t[first_gps_index:]``),
@@ -248,7 +272,8 @@ def run_gtsam_kitti(
         added it, ``smoothed_position`` (M', 3) final ISAM2 estimate,
         ``filter_rotation`` / ``smoothed_rotation`` (M', 3, 3) the same for the
         body -> world rotation, ``gps_used`` (M',) bool, ``heading_used`` (M',) bool (a
-        heading factor at the state), ``causal`` (M',) bool (False for warm-up states),
+        heading factor at the state), ``mag_used`` (M',) bool (a magnetometer factor),
+        ``causal`` (M',) bool (False for warm-up states),
         ``wall_s`` (graph building + ISAM2 updates + estimate extraction; input reading
         excluded), ``n_states``, ``n_factors`` (in the final graph), ``n_updates``,
         ``outage``, ``first_gps_index``.
@@ -285,6 +310,15 @@ def run_gtsam_kitti(
         if gps_heading_sigma is None:
             raise ValueError("gps_heading needs gps_heading_sigma")
         head_sigma = np.broadcast_to(np.asarray(gps_heading_sigma, dtype=float), gps_t.shape)
+    if mag_field is not None:
+        mag_field = np.asarray(mag_field, dtype=float)
+        if mag_field.shape != (len(gps_t), 3):
+            raise ValueError(f"mag_field has shape {mag_field.shape}, expected {(len(gps_t), 3)}")
+        if mag_world is None or mag_sigma is None:
+            raise ValueError("mag_field needs mag_world and mag_sigma")
+        mag_world = np.asarray(mag_world, dtype=float)
+        if mag_world.shape != (3,) or math.hypot(mag_world[0], mag_world[1]) < 1e-9:
+            raise ValueError(f"mag_world must be (3,) with a horizontal part, got {mag_world}")
 
     imu_dt = np.empty_like(imu_t)
     imu_dt[1:] = np.diff(imu_t)
@@ -296,6 +330,7 @@ def run_gtsam_kitti(
     filter_rot = np.full((n_states, 3, 3), np.nan)
     gps_used = np.zeros(n_states, dtype=bool)
     heading_used = np.zeros(n_states, dtype=bool)
+    mag_used = np.zeros(n_states, dtype=bool)
     causal = np.zeros(n_states, dtype=bool)
     warmup_end = first + warmup_intervals  # first update once i > warmup_end
 
@@ -349,6 +384,21 @@ def run_gtsam_kitti(
             new_factors.push_back(heading_factor(X(i), z, head_sigma[i], baseline))
             heading_used[i - first] = True
 
+    def add_mag_factor(i: int) -> None:
+        """Put the magnetometer factor of GPS time ``i`` (if any) on ``X(i)``."""
+        if mag_field is None or not np.all(np.isfinite(mag_field[i])):
+            return
+        scale = float(np.linalg.norm(mag_world))
+        noise = gtsam.noiseModel.Isotropic.Sigma(3, float(mag_sigma))
+        if mag_robust is not None:
+            noise = gtsam.noiseModel.Robust.Create(mag_robust, noise)
+        new_factors.push_back(
+            gtsam.MagPoseFactorPose3(
+                X(i), mag_field[i], scale, mag_world / scale, np.zeros(3), noise
+            )
+        )
+        mag_used[i - first] = True
+
     isam_params = gtsam.ISAM2Params()
     isam_params.setFactorization(factorization)
     isam_params.relinearizeSkip = 10
@@ -360,13 +410,18 @@ def run_gtsam_kitti(
     pose = gtsam.Pose3(gtsam.Rot3(), gps_xyz[first])
     vel = np.zeros(3)
     if init_from_gps:
-        disp = gps_xyz[first + 1] - gps_xyz[first]
+        fixed = np.flatnonzero(np.isfinite(gps_xyz[first + 1 :]).all(axis=1))
+        after = first + 1 + (int(fixed[0]) if fixed.size else 0)
+        disp = gps_xyz[after] - gps_xyz[first]
         yaw = float(np.arctan2(disp[1], disp[0]))
-        vel = disp / (gps_t[first + 1] - gps_t[first])
+        vel = disp / (gps_t[after] - gps_t[first])
         v_first = velocity_at(first)
         if v_first is not None:
             vel = v_first.copy()
             yaw = float(np.arctan2(vel[1], vel[0]))
+        if mag_field is not None and np.all(np.isfinite(mag_field[first])):
+            declination = math.atan2(mag_world[0], mag_world[1])
+            yaw = level_yaw_for_heading(declination, mag_field[first])
         z_first = heading_at(first)
         if z_first is not None:
             yaw = level_yaw_for_heading(z_first, baseline)
@@ -380,6 +435,7 @@ def run_gtsam_kitti(
     new_factors.addPriorConstantBias(B(first), bias, noise_init_b)
     add_velocity_prior(first)
     add_heading_factor(first)
+    add_mag_factor(first)
     gps_used[0] = True  # the initial position prior is centred on this fix
 
     j = int(np.searchsorted(imu_t, gps_t[first], side="left"))
@@ -405,6 +461,7 @@ def run_gtsam_kitti(
             if v_meas is not None:
                 vel = v_meas.copy()
         add_heading_factor(i)
+        add_mag_factor(i)
         new_values.insert(X(i), pose)
         new_values.insert(V(i), vel)
         new_values.insert(B(i), bias)
@@ -446,6 +503,7 @@ def run_gtsam_kitti(
         "smoothed_rotation": smoothed_rot,
         "gps_used": gps_used,
         "heading_used": heading_used,
+        "mag_used": mag_used,
         "causal": causal,
         "wall_s": wall_s,
         "n_states": n_states,
