@@ -272,16 +272,19 @@ def disturbed_field(
         reference: (M, 3) raw readings the median is taken over (default ``field``).
 
     Returns:
-        (N,) bool, True where disturbed.
+        (N,) bool, True where disturbed; also where the corrected field is zero (a sensor
+        that reads zeros gives no direction) or not finite.
     """
     hard = np.asarray(cfg.magnetometer_hard_iron_uT, dtype=np.float64)
     soft = np.reshape(np.asarray(cfg.magnetometer_soft_iron, dtype=np.float64), (3, 3))
     norm = np.linalg.norm((field - hard) @ soft.T, axis=-1)
     local = cfg.magnetometer_field_uT
     if local == 0.0:
-        ref = field if reference is None else reference
-        local = float(np.median(np.linalg.norm((ref - hard) @ soft.T, axis=-1))) if len(ref) else 0
-    return np.abs(norm - local) > cfg.magnetometer_field_tolerance * local
+        ref = np.linalg.norm(((field if reference is None else reference) - hard) @ soft.T, axis=-1)
+        ref = ref[np.isfinite(ref)]
+        local = float(np.median(ref)) if ref.size else 0.0
+    within = np.abs(norm - local) <= cfg.magnetometer_field_tolerance * local
+    return ~(within & (norm > 0.0))
 
 
 def median_dip(field: np.ndarray, accel: np.ndarray, cfg: EskfConfig) -> float:

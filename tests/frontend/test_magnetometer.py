@@ -106,6 +106,30 @@ def test_magnitude_test_by_hand():
     )
 
 
+def test_zero_and_nan_readings_are_disturbed():
+    """A sensor that reads zeros (no hard iron configured, the local field from the run's
+    median) or a NaN reading under the mask gives no direction: disturbed, so that the
+    initial yaw and the filter go on without it; one NaN does not spoil the median."""
+    field = np.array([[30.0, 0.0, -40.0], [0.0, 0.0, 0.0], [np.nan, 1.0, 2.0], [0.0, 30, -40]])
+    cfg = EskfConfig()
+    np.testing.assert_array_equal(disturbed_field(field, cfg), [False, True, True, False])
+    np.testing.assert_array_equal(disturbed_field(np.zeros((3, 3)), cfg), [True] * 3)
+    run = _sim(11, duration_s=15.0)
+    stream = run.sequence.magnetometer
+    seq = dataclasses.replace(
+        run.sequence,
+        gnss=None,
+        wheel=None,
+        magnetometer=dataclasses.replace(stream, field=torch.zeros_like(stream.field)),
+    )
+    cfg = dataclasses.replace(_config(run), magnetometer_hard_iron_uT=[0.0, 0.0, 0.0])
+    _, cov = initial_state(seq, cfg)
+    assert math.sqrt(float(cov[0, 8, 8])) == cfg.init_yaw_sigma_unknown_rad
+    result = run_eskf(seq, cfg)
+    assert int(result.accepted["magnetometer"].sum()) == 0
+    assert bool(torch.isfinite(result.position).all())
+
+
 def test_disturbance_detection_against_the_labels():
     """On runs past simulated anomalies the gyro-consistency and magnitude tests catch
     >= 90 % of the readings labelled disturbed; on clean runs they flag <= 1 % beyond the
