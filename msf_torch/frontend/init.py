@@ -50,7 +50,7 @@ import numpy as np
 import torch
 
 from msf_torch.frontend.config import EskfConfig
-from msf_torch.frontend.schedule import undisturbed_magnetometer
+from msf_torch.frontend.schedule import gyro_attitude, undisturbed_magnetometer
 from msf_torch.geometry import so3
 from msf_torch.geometry.conventions import ERROR_STATE_DIM
 from msf_torch.types import NavState, Sequence
@@ -292,9 +292,11 @@ def magnetometer_yaw(
 
     The first undisturbed reading (:func:`~msf_torch.frontend.schedule.undisturbed_magnetometer`)
     within ``cfg.init_max_track_s`` of the first IMU sample is corrected (hard and soft
-    iron), levelled with the accelerometer's roll and pitch, and the yaw that turns its
-    horizontal part to the declination is carried back to the first IMU sample by the
-    gyro's heading change. It needs no motion.
+    iron), turned into the first IMU sample's body axes by the gyro's rotation since
+    (:func:`~msf_torch.frontend.schedule.gyro_attitude`: on uneven ground roll and pitch
+    change too, not only the heading), levelled with the accelerometer's roll and pitch,
+    and the yaw that turns its horizontal part to the declination is the heading at the
+    first sample. It needs no motion.
 
     Args:
         seq: the batch; b: the sequence.
@@ -323,7 +325,13 @@ def magnetometer_yaw(
     k = int(index[0])
     hard = np.asarray(cfg.magnetometer_hard_iron_uT, dtype=np.float64)
     soft = np.reshape(np.asarray(cfg.magnetometer_soft_iron, dtype=np.float64), (3, 3))
-    field = soft @ (stream.field[b, k].detach().cpu().numpy() - hard)
+    # the reading in the first IMU sample's body axes: turned back by the gyro's rotation
+    # (roll and pitch change over it on uneven ground, not only the heading)
+    upto = np.searchsorted(imu_t, t[k], side="right") + 1
+    turn = gyro_attitude(
+        imu_t[:upto], gyro[:upto] - np.asarray(cfg.init_gyro_bias_radps), t[k : k + 1]
+    )[0]
+    field = turn @ soft @ (stream.field[b, k].detach().cpu().numpy() - hard)
 
     def azimuth(roll_: float, pitch_: float) -> tuple[float, float]:
         level = _rpy_numpy(roll_, pitch_, 0.0) @ field
@@ -341,9 +349,9 @@ def magnetometer_yaw(
     if not (math.isfinite(sigma) and sigma > 0):
         sigma = cfg.magnetometer_sigma_uT
     sigma *= math.sqrt(float((soft**2).sum()) / 3.0)
-    turned, carry_var = _carried_back(imu_t, gyro, _rpy_numpy(roll, pitch, 0.0), float(t[k]), cfg)
+    carry_var = float(_carry_variance(np.asarray(t[k] - imu_t[0]), cfg))
     # azimuth of the levelled field turned by yaw = level_azimuth - yaw = the declination
-    yaw = level_azimuth - cfg.magnetometer_declination_rad - turned
+    yaw = level_azimuth - cfg.magnetometer_declination_rad
     variance = (sigma / horizontal) ** 2 + cfg.magnetometer_heading_floor_rad**2
     if cfg.calibrate_magnetometer_declination:  # the declination's prior enters the yaw
         variance += cfg.calibration_magnetometer_declination_sigma_rad**2

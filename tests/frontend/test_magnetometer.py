@@ -13,7 +13,7 @@ import torch
 
 from msf_torch.frontend.config import EskfConfig, config_for_sequence
 from msf_torch.frontend.eskf import run_eskf
-from msf_torch.frontend.init import initial_state
+from msf_torch.frontend.init import initial_state, magnetometer_yaw
 from msf_torch.frontend.schedule import (
     disturbed_field,
     gyro_attitude,
@@ -216,6 +216,38 @@ def test_initial_yaw_from_the_magnetometer_alone():
         error = float(so3.log(run.truth.rotation[0, 0].mT @ state.rotation[0])[2])
         z.append(error / math.sqrt(float(cov[0, 8, 8])))
         assert math.sqrt(float(cov[0, 8, 8])) < 0.1
+    assert max(abs(x) for x in z) < 3.0, z
+
+
+def test_initial_yaw_carried_back_over_uneven_ground():
+    """Rough terrain at 3 m/s, turning up to 1 rad/s, no reading before 5 s (a start beside
+    steel): the compass yaw carried back to the first sample (given its true tilt) stays
+    within 3 sigma on 8 seeds (the heading-only carry-back levelled the late reading with
+    the first sample's tilt: errors to 0.7 rad, 9 sigma)."""
+    z = []
+    for seed in range(300, 308):
+        run = _sim(
+            seed,
+            duration_s=12.0,
+            terrain_slope_deg=8.0,
+            terrain_wavelength_m=(10.0, 30.0),
+            mean_speed_mps=3.0,
+            turn_rate_peak_rad_s=1.0,
+        )
+        stream = run.sequence.magnetometer
+        seq = dataclasses.replace(
+            run.sequence,
+            magnetometer=dataclasses.replace(stream, mask=stream.mask & (stream.t >= 5.0)),
+        )
+        first = run.truth.rotation[0, 0].numpy()
+        roll = math.atan2(first[2, 1], first[2, 2])
+        pitch = -math.asin(first[2, 0])
+        measured = magnetometer_yaw(
+            seq, 0, seq.imu.t[0].numpy(), seq.imu.gyro[0].numpy(), roll, pitch, _config(run)
+        )
+        assert measured is not None
+        error = math.remainder(measured[0] - math.atan2(first[1, 0], first[0, 0]), math.tau)
+        z.append(error / math.sqrt(measured[1]))
     assert max(abs(x) for x in z) < 3.0, z
 
 
