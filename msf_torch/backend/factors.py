@@ -21,6 +21,7 @@ __all__ = [
     "GnssFactor",
     "GnssVelocityFactor",
     "GnssHeadingFactor",
+    "MagnetometerFactor",
     "ZeroVelocityFactor",
     "NonholonomicFactor",
     "BetweenFactor",
@@ -45,6 +46,7 @@ from msf_torch.geometry.conventions import IDX_P, IDX_THETA
 from msf_torch.sensors.camera import reprojection_residual
 from msf_torch.sensors.gnss import gnss_heading_residual, gnss_residual, gnss_velocity_residual
 from msf_torch.sensors.imu import Preintegrated, preintegration_residual
+from msf_torch.sensors.magnetometer import magnetometer_heading_residual
 from msf_torch.sensors.plane import plane_residual
 from msf_torch.sensors.pose import pose_residual, relative_pose_residual
 from msf_torch.sensors.vehicle import nonholonomic_residual, zero_velocity_residual
@@ -420,6 +422,54 @@ class GnssHeadingFactor(_Unary):
         _, rotation = pose_of(kind, values[0])
         r, jac = gnss_heading_residual(
             rotation, self.baseline, self.measured.expand(rotation.shape[:-2])
+        )
+        return r, [_for_kind(jac, kind)]
+
+
+class MagnetometerFactor(_Unary):
+    """Magnetometer heading ``r = wrap(azimuth(R f_b) - D)`` (1,) rad: the azimuth of the
+    hard- and soft-iron corrected field ``f_b`` (body frame) turned into the world, clockwise
+    from north, against the declination ``D``
+    (:func:`msf_torch.sensors.magnetometer.magnetometer_heading_residual`, the front end's
+    residual; only the heading, not the field's dip).
+
+    Args:
+        group, index: variables (F,) (``nav_state`` or ``pose``). field: (B|1, F, 3)
+        corrected field ``W (m - b)``, uT (only its direction counts). declination: (B|1, F)
+        magnetic north's azimuth, rad (east positive). covariance: (B|1, F, 1, 1) rad^2
+        (:func:`~msf_torch.sensors.magnetometer.magnetometer_heading_variance`). kernel:
+        robust kernel (:mod:`msf_torch.backend.robust`), or None for plain least squares.
+    """
+
+    batched = ("field", "declination")
+
+    def __init__(
+        self,
+        group: str,
+        index: torch.Tensor,
+        field: torch.Tensor,
+        declination: torch.Tensor,
+        covariance: torch.Tensor,
+        kernel: RobustKernel | None = None,
+    ) -> None:
+        super().__init__(group, index, covariance, kernel)
+        self.field = field
+        self.declination = declination
+
+    def residual(self, values: list[torch.Tensor]) -> torch.Tensor:
+        """Residuals (B, F, 1), rad."""
+        return self.residual_and_jacobians(values, None)[0]
+
+    def residual_and_jacobians(
+        self, values: list[torch.Tensor], kinds: list[VariableKind] | None
+    ) -> tuple[torch.Tensor, list[torch.Tensor]]:
+        """Residuals (B, F, 1) rad and the Jacobian (B, F, 1, D) w.r.t. the variable's
+        tangent (D = 15 or 6); ``kinds`` is not read (``self.kinds``)."""
+        kind = self.kinds[0]
+        _, rotation = pose_of(kind, values[0])
+        lead = rotation.shape[:-2]
+        r, jac = magnetometer_heading_residual(
+            rotation, self.field.expand(*lead, 3), self.declination.expand(lead)
         )
         return r, [_for_kind(jac, kind)]
 

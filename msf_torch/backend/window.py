@@ -23,6 +23,16 @@ factor builder (:meth:`KeyframeGraph.factors`). One ``nav_state`` variable per k
   took position and heading from the first GNSS fixes (``frontend.init``), those fixes
   also enter as factors, so they count twice: once through the prior, with the prior's
   (larger) initial sigmas, and once as fixes;
+* magnetometer headings (``MagnetometerFactor``, the front end's residual
+  ``wrap(azimuth(R W (m - b)) - D)`` and variance ``sigma^2 / H^2 + floor^2``, under the
+  GNSS kernel): the readings the front end fused (``accepted["magnetometer"]``: undisturbed
+  in magnitude, turning with the gyro, at most ``magnetometer_rate_hz`` a second, inside
+  the dip tolerance and its gate), each carried by the gyro to the keyframe at or before
+  it (no keyframe is forced: at 2 Hz that would halve the time a window spans). Their
+  variance is evaluated at the front end's attitude, its floor part multiplied by
+  ``magnetometer_correlation_s * magnetometer_rate_hz`` (the floor's errors are correlated
+  for seconds, and the smoother sums a whole run's readings); the declination is the front
+  end's final estimate when it calibrated one;
 * wheel odometry between keyframes when the sequence has wheels: each reading holds its
   rim speeds over the interval before its stamp (encoders report the mean over it); its
   rim-speed sigma is ``sqrt(2) * wheel_speed_sigma_mps`` (so the forward speed has the
@@ -155,7 +165,7 @@ from msf_torch.frontend.config import EskfConfig
 from msf_torch.frontend.eskf import EskfNoise, EskfResult, _intra_op_threads
 from msf_torch.frontend.guard import sanitize_sequence
 from msf_torch.frontend.keyframes import KeyframeConfig, select_keyframes
-from msf_torch.frontend.schedule import UNMEASURED_SIGMA, gap_lengths
+from msf_torch.frontend.schedule import UNMEASURED_SIGMA, _corrected_magnetometer, gap_lengths
 from msf_torch.geometry import so3
 from msf_torch.geometry.conventions import gravity_world
 from msf_torch.geometry.quaternion import matrix_to_quat
@@ -163,6 +173,7 @@ from msf_torch.io.yaml_files import did_you_mean, named_key, read_yaml
 from msf_torch.sensors.calibration import shifted_heading_residual
 from msf_torch.sensors.imu import Preintegrated, propagate_nominal
 from msf_torch.sensors.imu_gaps import gap_walk_scale, interpolated_imu_samples
+from msf_torch.sensors.magnetometer import magnetometer_heading_variance
 from msf_torch.types import Sequence, Trajectory
 
 _GROUP = "state"
@@ -202,6 +213,14 @@ class SmootherConfig:
             the GNSS fixes' kernel.
         gnss_heading: dual-antenna GNSS headings (``Sequence.gnss_heading``) at their
             keyframes, under the GNSS fixes' kernel.
+        magnetometer: magnetometer headings (``Sequence.magnetometer``): the readings the
+            front end fused, each carried by the gyro to the keyframe before it, under the
+            GNSS fixes' kernel.
+        magnetometer_correlation_s: the heading floor's errors (calibration residue, weak
+            disturbances under the front end's thresholds) stay correlated over about this
+            long, s: of the readings fused in that span one counts as independent, so the
+            floor's variance is multiplied by ``max(1, magnetometer_correlation_s *
+            magnetometer_rate_hz)`` (0: the front end's variance).
         nhc: non-holonomic constraint at keyframes where the front end applied it.
         zero_velocity: zero velocity at keyframes the front end found stationary.
         plane: planar motion between consecutive keyframes (ground vehicles).
@@ -235,6 +254,8 @@ class SmootherConfig:
     calibrate_wheels: bool = False
     gnss_velocity: bool = True
     gnss_heading: bool = True
+    magnetometer: bool = True
+    magnetometer_correlation_s: float = 2.0
     nhc: bool = True
     zero_velocity: bool = True
     plane: bool = False
@@ -296,6 +317,7 @@ class SmootherConfig:
             "calibrate_wheels",
             "gnss_velocity",
             "gnss_heading",
+            "magnetometer",
             "nhc",
             "zero_velocity",
             "plane",
@@ -303,6 +325,13 @@ class SmootherConfig:
         for key in (*switches, "covariance"):
             if not isinstance(getattr(self, key), bool):
                 raise bad(key, "true or false")
+        value = self.magnetometer_correlation_s
+        if (
+            isinstance(value, bool)
+            or not isinstance(value, (int, float))
+            or not 0 <= value < math.inf
+        ):
+            raise bad("magnetometer_correlation_s", "a non-negative number")
         if self.calibrate_wheels and not self.wheel:
             raise bad("calibrate_wheels", "false when 'smoother.wheel' is false")
         for key, low in (("window_size", 2), ("window_step", 1), ("max_iterations", 1)):
@@ -415,6 +444,8 @@ class KeyframeGraph:
         gnss_velocity_gyro (1, V, 3) rad/s, gnss_velocity_covariance (1, V, 3, 3) (m/s)^2.
         gnss_heading_index (H,), gnss_heading (1, H) rad, gnss_heading_covariance
         (1, H, 1, 1) rad^2, gnss_heading_baseline (3,) m.
+        magnetometer_index (M,), magnetometer_field (1, M, 3) corrected field, uT,
+        magnetometer_declination (1, M) rad, magnetometer_covariance (1, M, 1, 1) rad^2.
         wheel_index (W,) intervals, wheel_increment (1, W, 3) [m, m, rad],
         wheel_covariance (1, W, 3, 3), wheel_lever_arm (3,) m.
         nhc_index (N,), nhc_gyro (1, N, 3) rad/s, nhc_covariance (1, N, 2, 2),
@@ -449,6 +480,10 @@ class KeyframeGraph:
     gnss_heading: torch.Tensor
     gnss_heading_covariance: torch.Tensor
     gnss_heading_baseline: torch.Tensor
+    magnetometer_index: torch.Tensor
+    magnetometer_field: torch.Tensor
+    magnetometer_declination: torch.Tensor
+    magnetometer_covariance: torch.Tensor
     wheel_index: torch.Tensor
     wheel_increment: torch.Tensor
     wheel_covariance: torch.Tensor
@@ -592,6 +627,18 @@ class KeyframeGraph:
                     self.gnss_heading[:, keep],
                     self.gnss_heading_covariance[:, keep],
                     self.gnss_heading_baseline,
+                    self.gnss_kernel,
+                )
+            )
+        keep, i = unary(self.magnetometer_index)
+        if i.numel():
+            out.append(
+                F.MagnetometerFactor(
+                    _GROUP,
+                    i,
+                    self.magnetometer_field[:, keep],
+                    self.magnetometer_declination[:, keep],
+                    self.magnetometer_covariance[:, keep],
                     self.gnss_kernel,
                 )
             )
@@ -831,6 +878,15 @@ def build_graph(
         heading_stream, "heading", t, tol, [cfg.gnss_heading_sigma_rad], vector=False
     )
     gnss_heading_covariance = (heading_sigma**2)[..., None, None]
+    magnetometer = _magnetometer_at_keyframes(
+        seq if smoother.magnetometer else None,
+        frontend,
+        cfg,
+        epoch,
+        (imu_t, gyro, accel),
+        tol,
+        smoother.magnetometer_correlation_s,
+    )
 
     # wheels
     wheel_index = torch.zeros(0, dtype=torch.long, device=device)
@@ -903,6 +959,10 @@ def build_graph(
         gnss_heading=gnss_heading,
         gnss_heading_covariance=gnss_heading_covariance,
         gnss_heading_baseline=heading_baseline,
+        magnetometer_index=magnetometer[0],
+        magnetometer_field=magnetometer[1],
+        magnetometer_declination=magnetometer[2],
+        magnetometer_covariance=magnetometer[3],
         wheel_index=wheel_index,
         wheel_increment=wheel_increment,
         wheel_covariance=wheel_covariance,
@@ -947,6 +1007,109 @@ def _at_keyframes(
     default = torch.tensor(default_sigma, dtype=dtype, device=device)
     sigma = torch.where(torch.isfinite(sigma) & (sigma > 0), sigma, default)
     return nearest[matched], values, sigma
+
+
+def _magnetometer_at_keyframes(
+    seq: Sequence | None,
+    frontend: EskfResult,
+    cfg: EskfConfig,
+    epoch: torch.Tensor,
+    imu: tuple[torch.Tensor, torch.Tensor, torch.Tensor],
+    tol: float,
+    correlation_s: float,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The magnetometer readings the front end fused (``accepted["magnetometer"]``), each
+    carried to the keyframe at or before it (front-end epochs ``epoch`` (K,)).
+
+    A reading at ``t_r`` after keyframe ``k`` sees the body turned by ``dR`` (the raw gyro
+    less the front end's gyro bias at ``k``, zero-order hold, over ``[t_k, t_r]``), so the
+    field in keyframe ``k``'s body frame is ``dR W (m - b)`` and its azimuth through ``R_k``
+    is the reading's heading. The carried field is fixed: a gyro bias error ``e`` turns it
+    by ``e (t_r - t_k)`` (1e-3 rad/s over a 1-s keyframe interval: 1e-3 rad against the
+    0.03-rad heading floor), and the keyframe count stays that of the other sensors.
+
+    Args:
+        seq: the sanitised sequence, or None (the factor switched off: none).
+        frontend: the front end's result on it.
+        cfg: hard and soft iron, noise, floor, declination.
+        epoch: (K,) the keyframes' front-end epochs.
+        imu: the IMU samples in use: times (T,) s, gyro (T, 3) rad/s, accel (T, 3) m/s^2.
+        tol: time tolerance matching an epoch to its reading, s.
+        correlation_s: ``SmootherConfig.magnetometer_correlation_s``, s.
+
+    Returns:
+        keyframe indices (M,), carried fields (1, M, 3) uT, declinations (1, M) rad
+        (``magnetometer_declination_rad``, or the front end's final estimate when it
+        calibrated it) and heading variances (1, M, 1, 1) rad^2 at the front end's attitude
+        at the reading.
+    """
+    dtype, device = frontend.t.dtype, frontend.t.device
+    index = torch.zeros(0, dtype=torch.long, device=device)
+    stream = None if seq is None else seq.magnetometer
+    fused = index
+    if stream is not None and bool(stream.mask.any()):
+        fused = torch.nonzero(frontend.accepted["magnetometer"][0] & frontend.mask[0])
+        fused = fused.squeeze(-1)
+    t = frontend.t[0, epoch]
+    target = frontend.t[0, fused]
+    inside = (target >= t[0]) & (target <= t[-1])
+    fused, target = fused[inside], target[inside]
+    if fused.numel():
+        keep = stream.mask[0]
+        times = stream.t[0, keep].to(dtype)
+        right = torch.searchsorted(times, target).clamp(max=times.numel() - 1)
+        left = (right - 1).clamp_min(0)
+        nearest = torch.where(
+            (target - times[left]).abs() <= (times[right] - target).abs(), left, right
+        )
+        matched = (times[nearest] - target).abs() <= tol
+        fused, nearest, target = fused[matched], nearest[matched], target[matched]
+    if fused.numel() == 0:
+        empty = torch.zeros(1, 0, dtype=dtype, device=device)
+        return index, empty[..., None].expand(1, 0, 3), empty, empty[..., None, None]
+    field, sigma = _corrected_magnetometer(
+        stream.field[:, keep][:, nearest].to(dtype),
+        stream.sigma[:, keep][:, nearest].to(dtype),
+        cfg,
+    )
+    # the floor's errors stay correlated over about correlation_s: of the readings fused in
+    # that span, one counts as independent
+    floor = cfg.magnetometer_heading_floor_rad * math.sqrt(
+        max(1.0, correlation_s * cfg.magnetometer_rate_hz)
+    )
+    variance = magnetometer_heading_variance(frontend.rotation[:, fused], field, sigma, floor)
+    # the gyro's turn from the keyframe before each reading: cut the IMU at the keyframes
+    # and the readings together, then multiply each reading's pieces since its keyframe
+    count = t.numel()
+    grid, order = torch.sort(torch.cat((t, target)), stable=True)
+    position = torch.empty_like(order)
+    position[order] = torch.arange(order.numel(), device=device)
+    anchor = torch.cummax(
+        torch.where(order < count, torch.arange(order.numel(), device=device), 0), 0
+    ).values
+    cut = cut_imu(*imu, grid)
+    index = torch.searchsorted(t, target, right=True) - 1
+    bias = frontend.gyro_bias[0, epoch][order[anchor[:-1]]]
+    step = preintegrate_imu(
+        ImuIntervals(cut.gyro[None], cut.accel[None], cut.dt[None]),
+        bias[None],
+        torch.zeros_like(bias)[None],
+        covariance="closed_form",
+    ).delta_rotation[0]
+    at = position[count:]
+    turn = so3.identity(dtype, device).expand(at.numel(), 3, 3)
+    rank, last = at - anchor[at], step.shape[0] - 1
+    for r in range(int(rank.max())):
+        turn = torch.where(
+            (r < rank)[:, None, None], turn @ step[(anchor[at] + r).clamp(max=last)], turn
+        )
+    field = (turn @ field[0, :, :, None])[None, ..., 0]
+    declination = torch.full_like(variance, cfg.magnetometer_declination_rad)
+    name = "declination_rad:magnetometer"
+    if frontend.calibration is not None and name in frontend.calibration_names:
+        estimate = frontend.calibration[0, -1, frontend.calibration_names.index(name)]
+        declination = estimate.to(dtype).expand_as(variance)
+    return index, field, declination, variance[..., None, None]
 
 
 def _heading_baseline(
