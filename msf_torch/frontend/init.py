@@ -444,20 +444,27 @@ def _check_heading_source(
     measured: tuple[float, float],
     yaw: float,
     yaw_sigma: float,
-) -> None:
+    consequence: str = "",
+    sigmas: float = 5.0,
+) -> bool:
     """Warn when a heading source's yaw and the one found before it (the GNSS track's or
-    course's, or another source's) differ by more than 5 sigma of the two together: a wrong
-    ``gnss_heading_baseline_m`` (antennas mounted left-right, the receiver's heading offset)
-    or magnetometer calibration makes the filter trust the heading and refuse the fixes."""
+    course's, or another source's) differ by more than ``sigmas`` sigma of the two
+    together: a wrong ``gnss_heading_baseline_m`` (antennas mounted left-right, the
+    receiver's heading offset) or magnetometer calibration makes the filter trust the
+    heading and refuse the fixes. Returns whether they agree (``consequence`` ends the
+    warning)."""
     difference = math.remainder(measured[0] - yaw, 2.0 * math.pi)
     sigma = math.sqrt(measured[1] + yaw_sigma**2)
-    if abs(difference) > 5.0 * sigma:
+    if abs(difference) > sigmas * sigma:
         warnings.warn(
             f"sequence '{name}': the {source} gives a yaw "
             f"{math.degrees(difference):+.1f} degrees from the GNSS track's or the heading "
-            f"found before it ({abs(difference) / sigma:.0f} sigma): check {hint}",
+            f"found before it ({abs(difference) / sigma:.0f} sigma): check {hint}"
+            f"{consequence}",
             stacklevel=4,
         )
+        return False
+    return True
 
 
 def _carried_back(
@@ -647,17 +654,29 @@ def _one(
             track_yaw = False
     if seq.magnetometer is not None:
         measured = magnetometer_yaw(seq, b, imu_t, read_imu("gyro", slice(None)), roll, pitch, cfg)
-        if measured is not None and yaw_sigma < cfg.init_yaw_sigma_unknown_rad:
-            _check_heading_source(
+        known = yaw_sigma < cfg.init_yaw_sigma_unknown_rad
+        if measured is not None and known:
+            # a compass that disagrees by over 3 sigma is not used: a run that starts beside
+            # steel reads a disturbed field as steady as the earth's (a wrong calibration
+            # warns the same); one that agrees is combined with the other heading
+            # (independent errors: inverse-variance weights)
+            if _check_heading_source(
                 seq.names[b],
                 "magnetometer",
                 "magnetometer_declination_rad, the hard- and soft-iron calibration and the "
-                "sensor's mounting",
+                "sensor's mounting, or a disturbance at the start",
                 measured,
                 yaw,
                 yaw_sigma,
-            )
-        if measured is not None and measured[1] < yaw_sigma**2:
+                "; the initial yaw keeps the other heading",
+                sigmas=3.0,
+            ):
+                weight = yaw_sigma**2 / (yaw_sigma**2 + measured[1])
+                yaw += weight * math.remainder(measured[0] - yaw, 2.0 * math.pi)
+                yaw = math.atan2(math.sin(yaw), math.cos(yaw))
+                yaw_sigma = math.sqrt(weight * measured[1])
+                track_yaw = False
+        elif measured is not None:
             yaw, yaw_sigma = measured[0], math.sqrt(measured[1])
             track_yaw = False
     if track_means is not None and not track_yaw:  # the dead-reckoned track turned by yaw

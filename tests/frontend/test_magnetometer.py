@@ -348,3 +348,24 @@ def test_declination_calibrated_online():
         assert sigma < 0.01
         assert _yaw_and_outage(run, result)[0] < 0.03
         assert _yaw_and_outage(run, off)[0] > 0.1
+
+
+def test_initial_yaw_combines_an_agreeing_compass_and_drops_a_disagreeing_one():
+    """With the GNSS track's heading known, a compass within 3 sigma is combined with it
+    (the variance below both), one 0.6 rad off is not used (the track's yaw and variance,
+    with a warning)."""
+    run = _sim(7, duration_s=40.0)
+    cfg = _config(run)
+    _, cov_track = initial_state(dataclasses.replace(run.sequence, magnetometer=None), cfg)
+    compass = dataclasses.replace(run.sequence, gnss=None, wheel=None)
+    _, cov_compass = initial_state(compass, cfg)
+    state, cov = initial_state(run.sequence, cfg)
+    assert float(cov[0, 8, 8]) < min(float(cov_track[0, 8, 8]), float(cov_compass[0, 8, 8]))
+    error = float(so3.log(run.truth.rotation[0, 0].mT @ state.rotation[0])[2])
+    assert abs(error) < 3.0 * math.sqrt(float(cov[0, 8, 8]))
+    wrong = dataclasses.replace(cfg, magnetometer_declination_rad=DECLINATION + 0.6)
+    track_state, _ = initial_state(dataclasses.replace(run.sequence, magnetometer=None), wrong)
+    with pytest.warns(UserWarning, match="the initial yaw keeps the other heading"):
+        state, cov = initial_state(run.sequence, wrong)
+    torch.testing.assert_close(state.rotation, track_state.rotation, rtol=0, atol=1e-12)
+    assert float(cov[0, 8, 8]) == pytest.approx(float(cov_track[0, 8, 8]), rel=1e-12)
