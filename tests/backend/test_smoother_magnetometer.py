@@ -126,16 +126,17 @@ def test_magnetometer_improves_the_smoothed_yaw():
     is better than the front end's (which fuses the magnetometer)."""
     runs = [_compare(seed, False, 0, ("full", "window")) for seed in (100, 101, 102)]
     runs += [_compare(seed, True, 0, ("full",)) for seed in (100, 101)]
-    # measured (yaw RMS, rad; front end / full with, without / window with, without):
-    # no wheels 0.0155 / 0.0013, 0.0016 / 0.0020, 0.0031; 0.0081 / 0.0034, 0.0088 / 0.0039,
-    # 0.0081; 0.0084 / 0.0046, 0.0128 / 0.0033, 0.0093; wheels 0.0077 / 0.0016, 0.0036;
-    # 0.0077 / 0.0026, 0.0038
+    # measured (yaw RMS, rad; front end / full with, without / window with, without; after
+    # the initial compass heading was combined with the track's, 14c7d45):
+    # no wheels 0.0134 / 0.0012, 0.0019 / 0.0018, 0.0033; 0.0088 / 0.0035, 0.0092 / 0.0040,
+    # 0.0083; 0.0077 / 0.0046, 0.0128 / 0.0034, 0.0093; wheels 0.0080 / 0.0014, 0.0032;
+    # 0.0076 / 0.0026, 0.0038
     for mode in ("full", "window"):
         with_mag = [yaw[mode, True] for yaw in runs if (mode, True) in yaw]
         without = [yaw[mode, False] for yaw in runs if (mode, True) in yaw]
         assert all(a < 0.9 * b for a, b in zip(with_mag, without, strict=True)), (mode, runs)
         assert sum(with_mag) < 0.6 * sum(without), (mode, runs)
-    assert all(yaw["full", True] < 0.6 * yaw["front"] for yaw in runs), runs
+    assert all(yaw["full", True] < 0.75 * yaw["front"] for yaw in runs), runs
 
 
 @pytest.mark.filterwarnings("ignore:.*the magnetometer gives a yaw")  # seed 105 starts disturbed
