@@ -551,11 +551,16 @@ def _header(seq: Sequence, result: EskfResult, wall: float) -> dict[str, Any]:
     }
 
 
-def _magnetometer_summary(seq: Sequence, cfg: EskfConfig) -> dict[str, int]:
+def _magnetometer_summary(
+    seq: Sequence, cfg: EskfConfig, counts: dict[str, Any] | None
+) -> dict[str, int]:
     """``magnetometer_readings`` of sequence 0 (B = 1) and how many of them the front end
     leaves out as disturbed (``frontend.schedule.undisturbed_magnetometer``: magnitude
     and gyro consistency; the dip test acts in the filter and counts as rejected); empty
-    without a magnetometer."""
+    without a magnetometer. Warns when over half of at least 20 readings are disturbed, or
+    the filter rejects over half of at least 10 it is given (``counts``: the block's
+    present / accepted counts): a wrong reference (field magnitude, inclination,
+    declination) or calibration leaves a magnetometer out without another sign."""
     stream = seq.magnetometer
     if stream is None or not bool(stream.mask[0].any()):
         return {}
@@ -565,10 +570,25 @@ def _magnetometer_summary(seq: Sequence, cfg: EskfConfig) -> dict[str, int]:
     index = np.flatnonzero(stream.mask[0].cpu().numpy())
     times = stream.t[0].detach().cpu().numpy()[index]
     kept, _ = undisturbed_magnetometer(stream, 0, cfg, imu_t, gyro, times, index)
-    return {
-        "magnetometer_readings": int(index.size),
-        "magnetometer_disturbed": int(index.size - kept.size),
-    }
+    disturbed = int(index.size - kept.size)
+    if index.size >= 20 and disturbed > 0.5 * index.size:
+        warnings.warn(
+            f"{seq.names[0]}: {disturbed} of {index.size} magnetometer readings are left out as "
+            "disturbed (magnitude or turn against the gyro): check magnetometer_field_uT (the "
+            "value msf magcal fits, not the world model's total field; 0 = the run's median), "
+            "the hard and soft iron and the units (uT)",
+            stacklevel=2,
+        )
+    if counts is not None and counts["present"][0] >= 10:
+        present, accepted = counts["present"][0], counts["accepted"][0]
+        if accepted < 0.5 * present:
+            warnings.warn(
+                f"{seq.names[0]}: the filter accepted {accepted} of {present} magnetometer "
+                "headings: check magnetometer_declination_rad, magnetometer_inclination_rad "
+                "(0 = the run's median dip) and the calibration",
+                stacklevel=2,
+            )
+    return {"magnetometer_readings": int(index.size), "magnetometer_disturbed": disturbed}
 
 
 def _score_and_write(
@@ -596,7 +616,7 @@ def _score_and_write(
     summary["imu_filled_stretches"] = _filled_summary(seq, cfg)
     summary.update(_fault_summary(result))
     summary.update(_calibration_summary(result))
-    summary.update(_magnetometer_summary(seq, cfg))
+    summary.update(_magnetometer_summary(seq, cfg, counts.get("magnetometer")))
     scored = [("", estimate)] + ([] if smoothed is None else [("frontend_", _single(trajectory))])
     if seq.ground_truth is not None and bool(seq.ground_truth.mask.any()):
         for prefix, traj in scored:

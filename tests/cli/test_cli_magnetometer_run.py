@@ -34,3 +34,25 @@ def test_run_summary_counts_disturbed_readings(tmp_path, capsys):
     assert labelled.sum() * 0.9 <= summary["magnetometer_disturbed"] <= labelled.sum() * 1.5
     counts = summary["measurements"]["magnetometer"]
     assert counts["accepted"] >= 0.9 * counts["present"] > 0
+
+
+def test_wrong_references_warn(tmp_path, capsys):
+    """A field magnitude 20 % off leaves most readings out as disturbed, an inclination
+    0.3 rad off has the filter reject most headings: each run warns, naming the key."""
+    out = tmp_path / "sim"
+    args = ["simulate", "--duration", "40", "--seed", "5", "--magnetometer", "--gnss-outages"]
+    assert main([*args, "0", "--out", str(out)]) == 0
+    capsys.readouterr()
+    for key, value, hint in (
+        ("magnetometer_field_uT", 48.0 * 1.2, "check magnetometer_field_uT"),
+        ("magnetometer_inclination_rad", 1.05 - 0.3, "check magnetometer_declination_rad"),
+    ):
+        config = tmp_path / f"{key}.yaml"
+        config.write_text(f"{key}: {value}\n")
+        run = ["run", str(out), "--config", str(config), "--out", str(tmp_path / key)]
+        assert main([*run, "--no-plot", "--no-learned"]) == 0
+        assert hint in capsys.readouterr().err
+    assert (
+        main(["run", str(out), "--out", str(tmp_path / "plain"), "--no-plot", "--no-learned"]) == 0
+    )
+    assert "magnetometer" not in capsys.readouterr().err
