@@ -450,7 +450,8 @@ def build_parser() -> argparse.ArgumentParser:
     mc = sub.add_parser(
         "magcal",
         help="fit the magnetometer's hard and soft iron to a sequence's readings (the sensor "
-        "turned through many orientations) and write the config keys",
+        "turned through many orientations, or a robot yawing round on level ground) and write "
+        "the config keys",
     )
     mc.add_argument(
         "sequence",
@@ -473,10 +474,11 @@ def build_parser() -> argparse.ArgumentParser:
     )
     mc.add_argument(
         "--model",
-        choices=("ellipsoid", "sphere"),
-        default="ellipsoid",
-        help="ellipsoid: hard and soft iron (needs tilted readings); sphere: hard iron only "
-        "(default: ellipsoid)",
+        choices=("auto", "ellipsoid", "ellipse", "sphere"),
+        default="auto",
+        help="ellipsoid: hard and soft iron (the sensor turned every way); ellipse: hard and "
+        "soft iron in the plane (a robot that only yaws, b_z = 0); sphere: hard iron only; "
+        "auto (default): the ellipse when the readings lie in one plane, else the ellipsoid",
     )
     mc.add_argument(
         "--out",
@@ -1396,14 +1398,21 @@ def _cmd_lidar_map(args) -> dict[str, Any]:
 
 def _cmd_magcal(args) -> dict[str, Any]:
     """``msf magcal SEQUENCE``: the magnetometer calibration of a sequence's readings
-    (:func:`msf_torch.sensors.magnetometer_calibration.fit_magnetometer`)."""
+    (:func:`msf_torch.sensors.magnetometer_calibration.fit_magnetometer`); ``--model auto``
+    fits the ellipse to planar readings (a robot that only yaws), else the ellipsoid."""
+    import re
+
     import numpy as np
     import torch
 
     from msf_torch.io import load_sequence
     from msf_torch.io.atomic import atomic_write
     from msf_torch.io.errors import DataError
-    from msf_torch.sensors.magnetometer_calibration import fit_magnetometer
+    from msf_torch.sensors.magnetometer_calibration import (
+        PLANAR_THICKNESS_RATIO,
+        fit_magnetometer,
+        planarity,
+    )
 
     if args.topics is not None:
         if args.fmt is not None:
@@ -1420,10 +1429,24 @@ def _cmd_magcal(args) -> dict[str, Any]:
             args.sequence, "no magnetometer readings (native: magnetometer.csv or magnetometer/*)"
         )
     field = mag.field[0][mag.mask[0]].detach().to(device="cpu", dtype=torch.float64).numpy()
+    model, reason = args.model, f"--model {args.model}"
+    if model == "auto":
+        planar, thickness, noise = planarity(field)
+        model = "ellipse" if planar else "ellipsoid"
+        reason = (
+            f"auto: the readings lie in one plane ({thickness:.3g} uT thick off it, <= "
+            f"{PLANAR_THICKNESS_RATIO:g} x their noise {noise:.3g} uT: a robot that only yaws)"
+            if planar
+            else f"auto: the readings are not planar ({thickness:.3g} uT thick off their "
+            f"plane, > {PLANAR_THICKNESS_RATIO:g} x their noise {noise:.3g} uT)"
+        )
     try:
-        cal = fit_magnetometer(field, model=args.model)
+        cal = fit_magnetometer(field, model=model)
     except ValueError as err:  # the library's advice in the command's words
-        raise ValueError(str(err).replace('model="sphere"', "--model sphere")) from None
+        raise ValueError(
+            re.sub(r'model="(\w+)"', r"--model \1", str(err))
+            + (f" ({reason}, so the {model} was tried)" if args.model == "auto" else "")
+        ) from None
     if not 10.0 <= cal.field_uT <= 100.0:
         warnings.warn(
             f"the fitted field {cal.field_uT:.4g} uT is far from the earth's 25-65 uT: are the "
@@ -1433,6 +1456,7 @@ def _cmd_magcal(args) -> dict[str, Any]:
     summary = {
         "sequence": str(args.sequence),
         "model": cal.model,
+        "model_reason": reason,
         "hard_iron_uT": cal.hard_iron.tolist(),
         "soft_iron": cal.soft_iron.reshape(-1).tolist(),
         "field_uT": cal.field_uT,
@@ -1450,7 +1474,7 @@ def _cmd_magcal(args) -> dict[str, Any]:
         with atomic_write(args.out) as handle:
             handle.write(
                 f"# msf magcal: {cal.model} fit of {cal.samples} magnetometer readings of "
-                f"{args.sequence}\n# coverage {cal.coverage:.3f}, residual RMS "
+                f"{args.sequence} ({reason})\n# coverage {cal.coverage:.3f}, residual RMS "
                 f"{cal.residual_rms_uT:.3f} uT; a front-end config (--config)\n"
                 f"magnetometer_hard_iron_uT: [{numbers(summary['hard_iron_uT'])}]\n"
                 f"magnetometer_soft_iron: [{numbers(summary['soft_iron'])}]\n"

@@ -4,6 +4,7 @@ the fitted keys written as a front-end config; the errors a user meets."""
 from __future__ import annotations
 
 import json
+import re
 
 import numpy as np
 import pytest
@@ -47,6 +48,7 @@ def test_magcal_fits_and_writes_config_keys(tmp_path, capsys):
     assert summary["residual_rms_uT"] < 1e-9 and summary["corrected_norm_std_uT"] < 1e-9
     assert summary["raw_norm_std_uT"] > 1.0
     assert summary["samples"] == 120 and summary["model"] == "ellipsoid"
+    assert summary["model_reason"].startswith("auto: the readings are not planar (")
     assert 0.7 < summary["coverage"] <= 1.0
     assert summary["config_file"] == str(out)
     cfg = load_config(out)  # the file is a valid --config
@@ -56,18 +58,69 @@ def test_magcal_fits_and_writes_config_keys(tmp_path, capsys):
 
 
 def test_magcal_on_a_robot_that_only_yaws(tmp_path, capsys):
-    yaw = Rotation.from_euler("z", np.linspace(0.0, 2 * np.pi, 90, endpoint=False)[:, None])
-    folder = _folder(tmp_path / "yawing", yaw)
-    assert main(["magcal", str(folder)]) == 2
+    """Default ``--model auto``: planar readings get the ellipse (exact headings); the
+    ellipsoid, asked for, points at ``--model ellipse``; the sphere warns."""
+    yaw = np.linspace(0.0, 2 * np.pi, 90, endpoint=False)
+    rotations = Rotation.from_euler("z", yaw[:, None])
+    folder = _folder(tmp_path / "yawing", rotations)
+    out = tmp_path / "mag.yaml"
+    assert main(["magcal", str(folder), "--out", str(out)]) == 0
+    captured = capsys.readouterr()
+    assert captured.err == ""
+    summary = _last_json(captured.out)
+    assert summary["model"] == "ellipse"
+    assert summary["model_reason"].startswith("auto: the readings lie in one plane (")
+    assert summary["hard_iron_uT"][2] == 0.0 and summary["residual_rms_uT"] < 1e-9
+    assert summary["coverage"] == pytest.approx(1.0, abs=1e-9)  # 90 even headings
+    cfg = load_config(out)
+    assert cfg.magnetometer_soft_iron == summary["soft_iron"]
+    assert "(auto: the readings lie in one plane" in out.read_text().splitlines()[0]
+    # the corrected field's azimuth is the true heading (SOFT_IRON couples x / y to z)
+    raw = np.loadtxt(folder / "magnetometer.csv", delimiter=",", skiprows=1)[:, 1:]
+    soft = np.reshape(summary["soft_iron"], (3, 3))
+    world = rotations.apply((raw - summary["hard_iron_uT"]) @ soft.T)
+    assert np.abs(np.arctan2(world[:, 0], world[:, 1])).max() < 1e-9  # WORLD_FIELD: north
+    assert main(["magcal", str(folder), "--model", "ellipsoid"]) == 2
     err = capsys.readouterr().err
     assert err.startswith("msf magcal: error: the readings span too little of the sphere")
-    assert err.rstrip().endswith("or fit the hard iron only with --model sphere")
+    assert err.rstrip().endswith("in the plane with --model ellipse")
     assert main(["magcal", str(folder), "--model", "sphere"]) == 0
     captured = capsys.readouterr()
     assert captured.err.startswith("msf magcal: warning: magnetometer readings lie close to one")
     summary = _last_json(captured.out)
     assert summary["model"] == "sphere" and summary["soft_iron"] == np.eye(3).ravel().tolist()
-    assert summary["coverage"] < 1e-3
+    assert summary["model_reason"] == "--model sphere" and summary["coverage"] < 1e-3
+
+
+def test_magcal_auto_on_readings_neither_planar_nor_covering(tmp_path, capsys):
+    """Yawing with roll and pitch within +-10 deg, noiseless: not planar, so auto tries the
+    ellipsoid, which refuses; the error says why auto chose it and what to do."""
+    rng = np.random.default_rng(8)
+    tilt = np.radians(10.0)
+    angles = np.column_stack(
+        (
+            rng.uniform(0, 2 * np.pi, 200),
+            rng.uniform(-tilt, tilt, 200),
+            rng.uniform(-tilt, tilt, 200),
+        )
+    )
+    folder = _folder(tmp_path / "tilting", Rotation.from_euler("ZYX", angles))
+    assert main(["magcal", str(folder)]) == 2
+    err = capsys.readouterr().err
+    assert (
+        "for a robot that only yaws (one circle of directions) fit the hard and soft iron in "
+        in err
+    )
+    assert "--model ellipse (tilts ignored), or the hard iron only with --model sphere" in err
+    assert re.search(
+        r"\(auto: the readings are not planar \([\d.]+ uT thick off their plane, > 2 x their "
+        r"noise [\d.]+ uT\), so the ellipsoid was tried\)$",
+        err.rstrip(),
+    )
+    assert main(["magcal", str(folder), "--model", "ellipse"]) == 0
+    captured = capsys.readouterr()
+    assert "uT thick off their plane, more than 2 x their noise" in captured.err
+    assert _last_json(captured.out)["model"] == "ellipse"
 
 
 def test_magcal_warns_on_readings_not_in_microtesla(tmp_path, capsys):

@@ -20,10 +20,12 @@ import pytest
 import torch
 from scipy.spatial.transform import Rotation
 
-from msf_torch.sensors.magnetometer import corrected_field
+from msf_torch.sensors.magnetometer import corrected_field, magnetometer_heading_residual
 from msf_torch.sensors.magnetometer_calibration import (
+    circle_coverage,
     direction_coverage,
     fit_magnetometer,
+    planarity,
     shape_coverage,
 )
 
@@ -152,14 +154,14 @@ def test_sphere_on_a_narrow_band_reaches_the_derived_bound():
 
 
 def test_a_robot_that_only_yaws():
-    """One circle of directions: the ellipsoid is refused (pointing to the sphere), the
+    """One circle of directions: the ellipsoid is refused (pointing to the ellipse), the
     sphere warns and fits the horizontal hard iron, the vertical one set to 0."""
     rng = np.random.default_rng(11)
     hard = np.array([12.0, -25.0, 18.0])
     for noise in (0.0, 0.3):
         m = _readings(_yawing(400, 11), hard, np.eye(3), noise, rng)
         assert direction_coverage(m - hard) < 1e-3
-        with pytest.raises(ValueError, match=r"span too little .* model=\"sphere\""):
+        with pytest.raises(ValueError, match=r"span too little .* with model=\"ellipse\"$"):
             fit_magnetometer(m)
         with pytest.warns(UserWarning, match="close to one plane .* unobservable and set to 0"):
             cal = fit_magnetometer(m, model="sphere")
@@ -170,6 +172,167 @@ def test_a_robot_that_only_yaws():
         expected = np.hypot(FIELD_UT * np.cos(INCLINATION), vertical)
         assert abs(cal.field_uT - expected) < max(tolerance, 1e-9)
         assert cal.coverage < 1e-3
+
+
+HORIZONTAL = FIELD_UT * np.cos(INCLINATION)
+VERTICAL = WORLD_FIELD[2]
+# a yawing robot's soft iron: W^-1 with 4 % in the plane and 3 % coupling x / y to z
+COUPLED = np.linalg.inv([[1.04, 0.02, 0.03], [0.02, 0.97, -0.03], [0.03, -0.03, 1.02]])
+
+
+def _heading_errors(cal, rotations: Rotation, hard: np.ndarray, soft: np.ndarray) -> np.ndarray:
+    """(N,) heading residuals, rad, of the noise-free readings in ``rotations`` corrected by
+    ``cal``: the front end's ``wrap(azimuth(R W (m - b)) - D)`` at the true attitude (D = 0:
+    WORLD_FIELD points north), zero for an exact calibration."""
+    clean = _readings(rotations, hard, soft, 0.0, np.random.default_rng(0))
+    rotation = torch.from_numpy(rotations.as_matrix())
+    residual, _ = magnetometer_heading_residual(rotation, torch.from_numpy(cal.correct(clean)), 0.0)
+    return residual[..., 0].numpy()
+
+
+@pytest.mark.parametrize("seed", [20, 21, 22])
+def test_noiseless_ellipse_recovers_the_in_plane_iron(seed):
+    """A level robot yawing all round, soft iron only in the plane: the in-plane hard iron
+    and the det-1 in-plane soft iron exactly, ``b_z = 0``, ``W_zz = 1``, exact headings."""
+    rng = np.random.default_rng(seed)
+    hard = np.append(rng.uniform(-30.0, 30.0, 2), rng.uniform(-10.0, 10.0))
+    soft = np.eye(3)
+    soft[:2, :2] = _soft_iron(rng)[:2, :2]
+    rotations = _yawing(300, seed)
+    m = _readings(rotations, hard, soft, 0.0, rng)
+    cal = fit_magnetometer(m, model="ellipse")
+    in_plane = soft[:2, :2] / np.sqrt(np.linalg.det(soft[:2, :2]))
+    assert np.abs(cal.hard_iron - [hard[0], hard[1], 0.0]).max() < 1e-9
+    assert np.abs(cal.soft_iron[:2, :2] - in_plane).max() < 1e-9
+    assert np.abs(cal.soft_iron - np.eye(3))[2].max() < 1e-12
+    assert np.abs(cal.soft_iron - cal.soft_iron.T).max() < 1e-15
+    # corrected: the horizontal field scaled by 1 / sqrt(det W_xy), and the vertical plus b_z
+    horizontal = HORIZONTAL / np.sqrt(np.linalg.det(soft[:2, :2]))
+    assert abs(cal.field_uT - np.hypot(horizontal, VERTICAL + hard[2])) < 1e-9
+    assert cal.residual_rms_uT < 1e-9 and cal.samples == 300 and cal.model == "ellipse"
+    assert 0.7 < cal.coverage <= 1.0  # 300 random headings
+    assert np.abs(_heading_errors(cal, rotations, hard, soft)).max() < 1e-9
+
+
+def test_noiseless_ellipse_with_coupling_gives_exact_headings():
+    """Soft iron coupling x / y to z tilts the readings' plane: ``W`` maps the truth's
+    horizontal columns ``W_true^-1 e_x, e_y`` onto the body's x, y axes (scaled), and the
+    corrected readings are the true corrected field (scaled) in x and y: exact headings.
+    Only z differs (``b_z`` and the vertical scale are unobservable). The sphere leaves
+    0.06 rad, a plane-normal embedding (``W`` the identity along the plane's normal, the
+    hard iron along it 0) 0.03 rad."""
+    hard = np.array([12.0, -25.0, 18.0])
+    rotations = _yawing(400, 23)
+    m = _readings(rotations, hard, COUPLED, 0.0, np.random.default_rng(0))
+    cal = fit_magnetometer(m, model="ellipse")
+    assert np.abs(_heading_errors(cal, rotations, hard, COUPLED)).max() < 1e-9
+    columns = cal.soft_iron @ np.linalg.inv(COUPLED)[:, :2]
+    scale = np.sqrt(np.linalg.det(columns[:2]))
+    assert np.abs(columns / scale - np.eye(3)[:, :2]).max() < 1e-9
+    truth = (m - hard) @ COUPLED.T
+    assert np.abs(cal.correct(m)[:, :2] - scale * truth[:, :2]).max() < 1e-9
+    assert abs(cal.hard_iron[2]) < 1e-12 and abs(cal.soft_iron[2, 2] - 1.0) < 1e-12
+    assert abs(np.linalg.det(cal.soft_iron) - 1.0) < 1e-12
+    with pytest.warns(UserWarning, match="close to one plane"):
+        sphere = fit_magnetometer(m, model="sphere")
+    assert np.abs(_heading_errors(sphere, rotations, hard, COUPLED)).max() > 0.05
+    centre = m.mean(0)  # the readings' centre, the identity along their plane's normal
+    normal = np.linalg.eigh(np.cov(m.T))[1][:, 0]
+    projector = np.eye(3) - np.outer(normal, normal)
+    along_normal = type(cal)(
+        hard_iron=centre - (normal @ centre) * normal,
+        soft_iron=projector @ cal.soft_iron @ projector + np.outer(normal, normal),
+        field_uT=cal.field_uT,
+        residual_rms_uT=0.0,
+        coverage=cal.coverage,
+        samples=cal.samples,
+        model="ellipse",
+    )
+    assert np.abs(_heading_errors(along_normal, rotations, hard, COUPLED)).max() > 0.02
+
+
+def _ellipse_heading_rms(seed: int, tilt_deg: float, soft: np.ndarray, hard: np.ndarray):
+    """RMS over 500 readings (0.3 uT) of the heading error after the ellipse fit, and its
+    derived value ``2 sigma_eff / (H sqrt(N))``: the in-plane centre (2 numbers, each
+    ``sigma_eff sqrt(2 / N)``, heading ``|delta b| / H`` over the turn) and the det-1 shape
+    (2 numbers, ``sigma_eff sqrt(2 / N) / H``, heading the same) each add ``2 sigma_eff^2 /
+    (N H^2)`` to its mean square; roll and pitch uniform in +-T move the horizontal
+    components by the vertical field times the tilt, in-plane noise of ``V T / sqrt(3)``:
+    ``sigma_eff^2 = sigma^2 + V^2 T^2 / 3``."""
+    sigma, n, tilt = 0.3, 500, np.radians(tilt_deg)
+    rng = np.random.default_rng(seed)
+    rotations = _yawing(n, seed, tilt_deg)
+    cal = fit_magnetometer(_readings(rotations, hard, soft, sigma, rng), model="ellipse")
+    errors = _heading_errors(cal, rotations, hard, soft)
+    effective = np.sqrt(sigma**2 + (VERTICAL * tilt) ** 2 / 3)
+    return np.sqrt(np.mean(errors**2)), 2 * effective / (HORIZONTAL * np.sqrt(n))
+
+
+@pytest.mark.parametrize("seed", [24, 25, 26, 27])
+def test_noisy_ellipse_within_the_derived_bound(seed):
+    """Level and yawing, the coupled soft iron; and roll / pitch within +-1 deg (planar up
+    to the noise), no coupling and ``b_z = 0`` (so no vertical offset leaks into the heading
+    under the tilt): heading RMS below 3 times the derived value (its square is about
+    chi-square with 4 degrees of freedom / 4: 3 times is past 1e-6 of the tail)."""
+    rms, derived = _ellipse_heading_rms(seed, 0.0, COUPLED, np.array([12.0, -25.0, 18.0]))
+    assert rms < 3 * derived, (rms, derived)
+    level = np.diag([1 / 1.04, 1 / 0.97, 1.0])
+    rms, derived = _ellipse_heading_rms(seed, 1.0, level, np.array([12.0, -25.0, 0.0]))
+    assert rms < 3 * derived, (rms, derived)
+
+
+def test_ellipse_noise_matches_the_derived_value():
+    """Over 40 draws the heading errors' mean square is the derived one, level and at +-1
+    deg: the algebraic fit is efficient on one full turn (the tilt acts as in-plane noise)."""
+    hard = np.array([12.0, -25.0, 0.0])
+    level = np.diag([1 / 1.04, 1 / 0.97, 1.0])
+    for tilt, soft in ((0.0, COUPLED), (1.0, level)):
+        rms, derived = zip(
+            *(_ellipse_heading_rms(seed, tilt, soft, hard) for seed in range(40)), strict=True
+        )
+        ratio = np.sqrt(np.mean(np.square(rms))) / derived[0]  # 160 chi-square terms: +-11 %
+        assert 0.8 < ratio < 1.25, (tilt, ratio)
+
+
+def test_ellipse_refusals_and_warning():
+    """Readings that do not go round, that cover the sphere, whose plane is tilted far from
+    the body's xy plane (not soft iron), too few; tilts beyond the noise warn."""
+    hard = np.array([12.0, -25.0, 18.0])
+    half = Rotation.from_euler("z", np.linspace(0.0, np.pi, 100)[:, None])
+    with pytest.raises(ValueError, match=r"do not go round the circle \(coverage 0.00"):
+        fit_magnetometer(
+            _readings(half, hard, COUPLED, 0.0, np.random.default_rng(0)), model="ellipse"
+        )
+    m, _, _ = _case(28, 200, 0.0)
+    with pytest.raises(ValueError, match=r'cover the sphere .* with model="ellipsoid"'):
+        fit_magnetometer(m, model="ellipse")
+    m = _readings(
+        _yawing(200, 28) * Rotation.from_euler("x", 0.3),
+        hard,
+        np.eye(3),
+        0.0,
+        np.random.default_rng(0),
+    )
+    with pytest.raises(ValueError, match=r"tilted 17.\d deg from the body's xy plane"):
+        fit_magnetometer(m, model="ellipse")
+    with pytest.raises(ValueError, match="the ellipse model needs at least 8 readings, got 7"):
+        fit_magnetometer(m[:7], model="ellipse")
+    rng = np.random.default_rng(29)
+    m = _readings(_yawing(500, 29, tilt_deg=8.0), hard, COUPLED, 0.3, rng)
+    assert not planarity(m)[0]
+    with pytest.warns(UserWarning, match="uT thick off their plane, more than 2 x their noise"):
+        assert fit_magnetometer(m, model="ellipse").model == "ellipse"
+
+
+def test_circle_coverage_values():
+    """1 for even angles, about 0.5 for 7/8 of a turn, 0.16 for 3/4, 0.005 for a half."""
+    for turn, expected, tolerance in ((1.0, 1.0, 1e-3), (0.875, 0.497, 0.01), (0.75, 0.160, 0.01)):
+        angle = np.linspace(0.0, 2 * np.pi * turn, 4000, endpoint=turn < 1)
+        vectors = np.column_stack((np.cos(angle), np.sin(angle)))
+        assert circle_coverage(3.0 * vectors) == pytest.approx(expected, abs=tolerance)
+    angle = np.linspace(0.0, np.pi, 4000)
+    assert circle_coverage(np.column_stack((np.cos(angle), np.sin(angle)))) < 0.006
+    assert circle_coverage(np.zeros((5, 2))) == 0.0
 
 
 def test_readings_on_two_circles_leave_the_shape_undetermined():
@@ -214,7 +377,7 @@ def test_bad_input_is_refused():
     with pytest.raises(ValueError, match=r"must be \(N, 3\)"):
         fit_magnetometer(m[:, :2])
     with pytest.raises(ValueError, match="model must be"):
-        fit_magnetometer(m, model="ellipse")
+        fit_magnetometer(m, model="circle")
     with pytest.raises(ValueError, match="all 20 readings are equal"):
         fit_magnetometer(np.ones((20, 3)))
     # points on a hyperboloid of one sheet x^2 + y^2 - z^2 = 1: a quadric, not an ellipsoid
