@@ -20,6 +20,7 @@ __all__ = [
     "NavStatePriorFactor",
     "GnssFactor",
     "GnssVelocityFactor",
+    "AzimuthFactor",
     "GnssHeadingFactor",
     "MagnetometerFactor",
     "ZeroVelocityFactor",
@@ -44,9 +45,8 @@ from msf_torch.backend.variables import VariableKind, unpack_nav_state, unpack_p
 from msf_torch.geometry import so3
 from msf_torch.geometry.conventions import IDX_P, IDX_THETA
 from msf_torch.sensors.camera import reprojection_residual
-from msf_torch.sensors.gnss import gnss_heading_residual, gnss_residual, gnss_velocity_residual
+from msf_torch.sensors.gnss import azimuth_residual, gnss_residual, gnss_velocity_residual
 from msf_torch.sensors.imu import Preintegrated, preintegration_residual
-from msf_torch.sensors.magnetometer import magnetometer_heading_residual
 from msf_torch.sensors.plane import plane_residual
 from msf_torch.sensors.pose import pose_residual, relative_pose_residual
 from msf_torch.sensors.vehicle import nonholonomic_residual, zero_velocity_residual
@@ -382,32 +382,32 @@ class GnssVelocityFactor(_PointVelocityFactor):
         return r, [jac]
 
 
-class GnssHeadingFactor(_Unary):
-    """Dual-antenna GNSS heading ``r = wrap(azimuth(R b) - z)`` (1,) rad, the azimuth of the
-    baseline ``b`` (body frame) clockwise from north
-    (:func:`msf_torch.sensors.gnss.gnss_heading_residual`).
+class AzimuthFactor(_Unary):
+    """Azimuth of a body-frame vector seen in the world, ``r = wrap(azimuth(R v) - z)`` (1,)
+    rad, clockwise from north (:func:`msf_torch.sensors.gnss.azimuth_residual`): the
+    common model of :class:`GnssHeadingFactor` and :class:`MagnetometerFactor`.
 
     Args:
-        group, index: variables (F,) (``nav_state`` or ``pose``). measured: (B|1, F)
-        heading, rad. covariance: (B|1, F, 1, 1) rad^2. baseline: (3,) primary ->
-        secondary antenna, body frame (only its direction counts). kernel: robust kernel
+        group, index: variables (F,) (``nav_state`` or ``pose``). body_vector: (B|1, F, 3)
+        the vector in the body frame (only its direction counts). measured: (B|1, F) the
+        azimuth it should have, rad. covariance: (B|1, F, 1, 1) rad^2. kernel: robust kernel
         (:mod:`msf_torch.backend.robust`), or None for plain least squares.
     """
 
-    batched = ("measured",)
+    batched = ("body_vector", "measured")
 
     def __init__(
         self,
         group: str,
         index: torch.Tensor,
+        body_vector: torch.Tensor,
         measured: torch.Tensor,
         covariance: torch.Tensor,
-        baseline: torch.Tensor,
         kernel: RobustKernel | None = None,
     ) -> None:
         super().__init__(group, index, covariance, kernel)
+        self.body_vector = body_vector
         self.measured = measured
-        self.baseline = baseline
 
     def residual(self, values: list[torch.Tensor]) -> torch.Tensor:
         """Residuals (B, F, 1), rad."""
@@ -420,13 +420,39 @@ class GnssHeadingFactor(_Unary):
         tangent (D = 15 or 6); ``kinds`` is not read (``self.kinds``)."""
         kind = self.kinds[0]
         _, rotation = pose_of(kind, values[0])
-        r, jac = gnss_heading_residual(
-            rotation, self.baseline, self.measured.expand(rotation.shape[:-2])
+        lead = rotation.shape[:-2]
+        r, jac = azimuth_residual(
+            rotation, self.body_vector.expand(*lead, 3), self.measured.expand(lead)
         )
         return r, [_for_kind(jac, kind)]
 
 
-class MagnetometerFactor(_Unary):
+class GnssHeadingFactor(AzimuthFactor):
+    """Dual-antenna GNSS heading ``r = wrap(azimuth(R b) - z)`` (1,) rad, the azimuth of the
+    baseline ``b`` (body frame) clockwise from north
+    (:func:`msf_torch.sensors.gnss.gnss_heading_residual`).
+
+    Args:
+        group, index: variables (F,) (``nav_state`` or ``pose``). measured: (B|1, F)
+        heading, rad. covariance: (B|1, F, 1, 1) rad^2. baseline: (3,) primary ->
+        secondary antenna, body frame (only its direction counts). kernel: robust kernel
+        (:mod:`msf_torch.backend.robust`), or None for plain least squares.
+    """
+
+    def __init__(
+        self,
+        group: str,
+        index: torch.Tensor,
+        measured: torch.Tensor,
+        covariance: torch.Tensor,
+        baseline: torch.Tensor,
+        kernel: RobustKernel | None = None,
+    ) -> None:
+        body_vector = baseline.expand(1, index.shape[0], 3)
+        super().__init__(group, index, body_vector, measured, covariance, kernel)
+
+
+class MagnetometerFactor(AzimuthFactor):
     """Magnetometer heading ``r = wrap(azimuth(R f_b) - D)`` (1,) rad: the azimuth of the
     hard- and soft-iron corrected field ``f_b`` (body frame) turned into the world, clockwise
     from north, against the declination ``D``
@@ -441,8 +467,6 @@ class MagnetometerFactor(_Unary):
         robust kernel (:mod:`msf_torch.backend.robust`), or None for plain least squares.
     """
 
-    batched = ("field", "declination")
-
     def __init__(
         self,
         group: str,
@@ -452,26 +476,7 @@ class MagnetometerFactor(_Unary):
         covariance: torch.Tensor,
         kernel: RobustKernel | None = None,
     ) -> None:
-        super().__init__(group, index, covariance, kernel)
-        self.field = field
-        self.declination = declination
-
-    def residual(self, values: list[torch.Tensor]) -> torch.Tensor:
-        """Residuals (B, F, 1), rad."""
-        return self.residual_and_jacobians(values, None)[0]
-
-    def residual_and_jacobians(
-        self, values: list[torch.Tensor], kinds: list[VariableKind] | None
-    ) -> tuple[torch.Tensor, list[torch.Tensor]]:
-        """Residuals (B, F, 1) rad and the Jacobian (B, F, 1, D) w.r.t. the variable's
-        tangent (D = 15 or 6); ``kinds`` is not read (``self.kinds``)."""
-        kind = self.kinds[0]
-        _, rotation = pose_of(kind, values[0])
-        lead = rotation.shape[:-2]
-        r, jac = magnetometer_heading_residual(
-            rotation, self.field.expand(*lead, 3), self.declination.expand(lead)
-        )
-        return r, [_for_kind(jac, kind)]
+        super().__init__(group, index, field, declination, covariance, kernel)
 
 
 class _Binary(Factor):

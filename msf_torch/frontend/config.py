@@ -10,6 +10,7 @@ from __future__ import annotations
 
 __all__ = [
     "EskfConfig",
+    "MEASUREMENT_BLOCKS",
     "load_config",
     "read_config_keys",
     "config_for_sequence",
@@ -26,6 +27,18 @@ from typing import Any
 
 from msf_torch.io.errors import DataError
 from msf_torch.io.yaml_files import YamlDocument, did_you_mean, named_key, read_yaml
+
+MEASUREMENT_BLOCKS = (
+    "wheel",
+    "nhc",
+    "zupt",
+    "gnss",
+    "gnss_velocity",
+    "gnss_heading",
+    "magnetometer",
+    "pose",
+)
+"""The filter's measurement blocks (``frontend.eskf.SENSORS``), besides ``pose:<name>``."""
 
 
 @dataclass
@@ -605,16 +618,7 @@ class EskfConfig:
 
     def _validate_adaptive(self) -> None:
         """Raise ``ValueError`` naming the first bad adaptive-noise key."""
-        blocks = (
-            "wheel",
-            "nhc",
-            "zupt",
-            "gnss",
-            "gnss_velocity",
-            "gnss_heading",
-            "magnetometer",
-            "pose",
-        )
+        blocks = MEASUREMENT_BLOCKS
         for key, allowed in (
             (
                 "adaptive_noise_sensors",

@@ -99,7 +99,7 @@ import torch
 
 from msf_torch.frontend.adaptive import BlockAdaptation
 from msf_torch.frontend.calibration import CalibrationLayout, CalibrationMemory, observability
-from msf_torch.frontend.config import EskfConfig
+from msf_torch.frontend.config import MEASUREMENT_BLOCKS, EskfConfig
 from msf_torch.frontend.gating import (
     FaultMemory,
     SourceFaultParams,
@@ -158,16 +158,7 @@ from msf_torch.sensors.vehicle import nonholonomic_residual, zero_velocity_resid
 from msf_torch.sensors.wheel import body_velocity_residual, wheel_residual
 from msf_torch.types import NavState, Sequence, Trajectory
 
-SENSORS = (
-    "wheel",
-    "nhc",
-    "zupt",
-    "gnss",
-    "gnss_velocity",
-    "gnss_heading",
-    "magnetometer",
-    "pose",
-)
+SENSORS = MEASUREMENT_BLOCKS
 _DIMS = {
     "wheel": 4,
     "nhc": 2,
