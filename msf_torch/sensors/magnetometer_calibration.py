@@ -52,8 +52,8 @@ are refused (fit the ellipsoid); readings that are not planar (below) are fitted
 projection onto the plane, with a warning. Tilts that vary with the heading (circles
 driven over uneven ground) shift the fitted centre by about ``V`` times the tilt's first
 harmonic, invisibly (the readings still lie on an ellipse): drive the circles on level
-ground (in simulation, 2.5 deg terrain of 30-100 m wavelength under 6-m circles: 0.6-2 uT
-off; level: 0.05 uT).
+ground (in simulation, 2.5 deg terrain of 30-100 m wavelength under 6-m circles: 0.9-2 uT
+off; level: 0.03-0.07 uT).
 
 Coverage
 --------
