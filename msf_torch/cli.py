@@ -481,6 +481,14 @@ def build_parser() -> argparse.ArgumentParser:
         "auto (default): the ellipse when the readings lie in one plane, else the ellipsoid",
     )
     mc.add_argument(
+        "--level",
+        action="store_true",
+        help="a robot yawing on uneven ground: run the front end without the magnetometer "
+        "(IMU with GNSS and / or wheels), level the readings with its roll and pitch and fit "
+        "the hard and soft iron so that they have one horizontal and one vertical component "
+        "(fit_magnetometer_levelled; --model does not apply)",
+    )
+    mc.add_argument(
         "--out",
         type=Path,
         default=None,
@@ -1396,10 +1404,50 @@ def _cmd_lidar_map(args) -> dict[str, Any]:
     return {"scans_file": str(path), **summary}
 
 
+def _front_end_tilt(seq: Any, robot: Any, times: Any, source: str) -> tuple[Any, Any]:
+    """Roll and pitch (M, 2) rad of the front end run on ``seq`` without its magnetometer
+    (``robot``'s config for a bag, else :func:`load_sequence_config`), interpolated at the
+    magnetometer times ``times`` (N,) s inside the run's span, and that mask (N,) bool, for
+    ``msf magcal --level``. DataError when the sequence has no GNSS or wheels."""
+    import dataclasses
+
+    import numpy as np
+    import torch
+
+    from msf_torch.frontend.config import load_sequence_config
+    from msf_torch.frontend.eskf import run_eskf
+    from msf_torch.io.errors import DataError
+
+    if seq.gnss is None and seq.wheel is None:
+        raise DataError(
+            source,
+            "--level needs the front end's roll and pitch: IMU with GNSS and / or wheel "
+            "odometry (gnss.csv, wheels.csv), not IMU alone",
+        )
+    cfg = load_sequence_config(seq.meta) if robot is None else robot.eskf_config(seq.meta, {})
+    result = run_eskf(dataclasses.replace(seq, magnetometer=None), cfg)
+    t = result.t[0].detach().to(device="cpu", dtype=torch.float64).numpy()
+    rotation = result.rotation[0].detach().to(device="cpu", dtype=torch.float64).numpy()
+    roll = np.unwrap(np.arctan2(rotation[:, 2, 1], rotation[:, 2, 2]))
+    pitch = -np.arcsin(np.clip(rotation[:, 2, 0], -1.0, 1.0))
+    inside = (times >= t[0]) & (times <= t[-1])
+    if inside.sum() < 10:
+        raise DataError(
+            source,
+            f"only {int(inside.sum())} magnetometer readings lie within the front end's "
+            f"run ({t[0]:.3f}-{t[-1]:.3f} s)",
+        )
+    return np.column_stack(
+        (np.interp(times[inside], t, roll), np.interp(times[inside], t, pitch))
+    ), inside
+
+
 def _cmd_magcal(args) -> dict[str, Any]:
     """``msf magcal SEQUENCE``: the magnetometer calibration of a sequence's readings
     (:func:`msf_torch.sensors.magnetometer_calibration.fit_magnetometer`); ``--model auto``
-    fits the ellipse to planar readings (a robot that only yaws), else the ellipsoid."""
+    fits the ellipse to planar readings (a robot that only yaws), else the ellipsoid;
+    ``--level`` levels them with the front end's roll and pitch
+    (:func:`~msf_torch.sensors.magnetometer_calibration.fit_magnetometer_levelled`)."""
     import re
 
     import numpy as np
@@ -1411,16 +1459,19 @@ def _cmd_magcal(args) -> dict[str, Any]:
     from msf_torch.sensors.magnetometer_calibration import (
         PLANAR_THICKNESS_RATIO,
         fit_magnetometer,
+        fit_magnetometer_levelled,
         planarity,
     )
 
+    robot = None
     if args.topics is not None:
         if args.fmt is not None:
             raise ValueError("--format does not apply to a ROS bag read with --topics")
         from msf_torch.io.rosbag import read_rosbag
         from msf_torch.robot.config import load_robot_config
 
-        seq = read_rosbag(args.sequence, load_robot_config(args.topics).layout)
+        robot = load_robot_config(args.topics)
+        seq = read_rosbag(args.sequence, robot.layout)
     else:
         seq = load_sequence(args.sequence, fmt=args.fmt)
     mag = seq.magnetometer
@@ -1430,7 +1481,23 @@ def _cmd_magcal(args) -> dict[str, Any]:
         )
     field = mag.field[0][mag.mask[0]].detach().to(device="cpu", dtype=torch.float64).numpy()
     model, reason = args.model, f"--model {args.model}"
-    if model == "auto":
+    if args.level:
+        if args.model != "auto":
+            raise ValueError("--level fits its own model: leave out --model")
+        times = mag.t[0][mag.mask[0]].detach().to(device="cpu", dtype=torch.float64).numpy()
+        tilt, inside = _front_end_tilt(seq, robot, times, args.sequence)
+        field = field[inside]
+        model = "levelled"
+        reason = (
+            f"--level: {int(inside.sum())} readings levelled with the roll and pitch of the "
+            "front end run without the magnetometer"
+            + (
+                f" ({int((~inside).sum())} outside its time span left out)"
+                if not inside.all()
+                else ""
+            )
+        )
+    elif model == "auto":
         planar, thickness, noise = planarity(field)
         model = "ellipse" if planar else "ellipsoid"
         reason = (
@@ -1441,11 +1508,19 @@ def _cmd_magcal(args) -> dict[str, Any]:
             f"plane, > {PLANAR_THICKNESS_RATIO:g} x their noise {noise:.3g} uT)"
         )
     try:
-        cal = fit_magnetometer(field, model=model)
+        cal = (
+            fit_magnetometer_levelled(field, tilt)
+            if args.level
+            else fit_magnetometer(field, model=model)
+        )
     except ValueError as err:  # the library's advice in the command's words
         raise ValueError(
             re.sub(r'model="(\w+)"', r"--model \1", str(err))
-            + (f" ({reason}, so the {model} was tried)" if args.model == "auto" else "")
+            + (
+                f" ({reason}, so the {model} was tried)"
+                if args.model == "auto" and not args.level
+                else ""
+            )
         ) from None
     if not 10.0 <= cal.field_uT <= 100.0:
         warnings.warn(

@@ -53,7 +53,24 @@ projection onto the plane, with a warning. Tilts that vary with the heading (cir
 driven over uneven ground) shift the fitted centre by about ``V`` times the tilt's first
 harmonic, invisibly (the readings still lie on an ellipse): drive the circles on level
 ground (in simulation, 2.5 deg terrain of 30-100 m wavelength under 6-m circles: 0.9-2 uT
-off; level: 0.03-0.07 uT).
+off; level: 0.03-0.07 uT), or level the readings:
+
+Levelled (:func:`fit_magnetometer_levelled`, for circles on uneven ground, with roll and
+pitch known at each reading, e.g. from the front end run without the magnetometer): the
+ellipse's parameters (``b``, ``T`` with ``det T = 1``, ``t``) plus the horizontal and
+vertical field ``H``, ``V``, fitted by nonlinear least squares so that the corrected
+readings turned level, ``g = L W (m - b)``, have ``|g_xy| = H`` and ``g_z = V``; the
+residual is ``g`` less its nearest such point, taken back through ``S L^T`` into reading
+units. It removes the ellipse's tilt error (the vertical field times the tilt) and leaves
+the unfitted ``b_z`` times the tilt (in simulation, 2.5 deg terrain: 0.12-0.27 uT with the
+front end's roll and pitch, 0.05-0.14 uT with the true ones). With tilts that vary within a
+turn, ``b_z`` and the vertical scale ``s33`` become observable too (``vertical=True``: the
+tilts leak ``b_z`` into the horizontal and ``H`` into ``S e_z``), but weakly: a steady
+slope under a circle leaves them free (its tilt turns with the heading, like the field),
++-2 deg bumps determine ``b_z`` to 1.4 uT, and on the simulator's terrain with the front
+end's tilts the fit wanders 3-21 uT off; so by default ``b_z`` stays 0 and ``s33`` the
+ellipse's ``1 + t^T T^-1 t``. Unobservable with any tilts: the overall scale and a rotation
+of the magnetometer against the IMU (``S`` symmetric, as the other models).
 
 Coverage
 --------
@@ -134,6 +151,7 @@ __all__ = [
     "circle_coverage",
     "direction_coverage",
     "fit_magnetometer",
+    "fit_magnetometer_levelled",
     "planarity",
     "shape_coverage",
 ]
@@ -142,6 +160,7 @@ import warnings
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.optimize import least_squares
 
 ELLIPSOID_MIN_COVERAGE = 0.1
 """Least :func:`direction_coverage` (of the sphere fit) for the ellipsoid model."""
@@ -541,4 +560,152 @@ def fit_magnetometer(field: np.ndarray, *, model: str = "ellipsoid") -> Magnetom
         coverage=coverage,
         samples=int(m.shape[0]),
         model=model,
+    )
+
+
+def _tilt_matrices(tilt: np.ndarray, n: int) -> np.ndarray:
+    """(N, 3, 3) body -> level rotations of ``tilt``: (N, 2) roll and pitch, rad (``R_y(pitch)
+    R_x(roll)``, the ZYX Euler angles), or (N, 3, 3) attitudes (body -> world; the yaw does
+    not matter). ValueError for another shape or non-finite values."""
+    a = np.asarray(tilt, dtype=np.float64)
+    if not np.isfinite(a).all():
+        raise ValueError("the roll / pitch (or attitudes) must be finite")
+    if a.shape == (n, 3, 3):
+        return a
+    if a.shape != (n, 2):
+        raise ValueError(
+            f"tilt must be (N, 2) roll and pitch or (N, 3, 3) attitudes for the {n} readings, "
+            f"got shape {a.shape}"
+        )
+    cr, sr, cp, sp = np.cos(a[:, 0]), np.sin(a[:, 0]), np.cos(a[:, 1]), np.sin(a[:, 1])
+    zero = np.zeros(n)
+    return np.stack(
+        (
+            np.stack((cp, sp * sr, sp * cr), 1),
+            np.stack((zero, cr, -sr), 1),
+            np.stack((-sp, cp * sr, cp * cr), 1),
+        ),
+        1,
+    )
+
+
+def _levelled_distortion(p: np.ndarray, vertical: bool) -> np.ndarray:
+    """Distortion ``S = [[T, t], [t^T, s33]]`` (3, 3) of the levelled fit's parameters
+    ``p[3:8]``: ``T = expm([[a, c], [c, -a]])`` (symmetric, det 1), ``t``, and ``s33 =
+    p[7]`` when ``vertical``, else the ellipse's ``1 + t^T T^-1 t`` (``det S = 1``)."""
+    a, c = p[3], p[4]
+    r = float(np.hypot(a, c))
+    top = np.cosh(r) * np.eye(2) + (np.sinh(r) / r if r > 0 else 1.0) * np.array([[a, c], [c, -a]])
+    coupling = p[5:7]
+    s33 = p[7] if vertical else 1.0 + coupling @ np.linalg.solve(top, coupling)
+    return np.block([[top, coupling[:, None]], [np.append(coupling, s33)[None, :]]])
+
+
+def _levelled_residual(
+    p: np.ndarray, m: np.ndarray, level: np.ndarray, vertical: bool
+) -> np.ndarray:
+    """(3N,) levelled residuals of parameters p (10,) = (b, a, c, t, s33, H, V), uT of the
+    readings: the corrected readings ``g = L S^-1 (m - b)`` turned level, less their nearest
+    point ``(H g_xy / |g_xy|, V)``, taken back through ``S L^T`` (so that a larger vertical
+    scale cannot shrink the noise it is weighed by); ``vertical``: p[7] is ``s33``, else the
+    ellipse's convention (:func:`_levelled_distortion`)."""
+    distortion = _levelled_distortion(p, vertical)
+    g = np.einsum("nij,nj->ni", level, np.linalg.solve(distortion, (m - p[:3]).T).T)
+    horizontal = np.hypot(g[:, 0], g[:, 1])
+    miss = np.column_stack(
+        (g[:, :2] * (1.0 - p[8] / np.maximum(horizontal, 1e-12))[:, None], g[:, 2] - p[9])
+    )
+    return (np.einsum("nji,nj->ni", level, miss) @ distortion.T).reshape(-1)
+
+
+def fit_magnetometer_levelled(
+    field: np.ndarray,
+    tilt: np.ndarray,
+    *,
+    vertical: bool = False,
+    initial: MagnetometerCalibration | None = None,
+) -> MagnetometerCalibration:
+    """Hard and soft iron of a robot yawing on uneven ground, its readings levelled with
+    known roll and pitch (e.g. the front end's, run without the magnetometer).
+
+    The corrected readings ``f_i = W (m_i - b)`` turned level, ``g_i = L_i f_i`` (``L_i``
+    the body -> level rotation of roll and pitch), must have one horizontal magnitude ``H``
+    and one vertical component ``V``: a nonlinear least squares
+    (``scipy.optimize.least_squares``) over ``b`` (3), ``S = W^-1 = [[T, t], [t^T, s33]]``
+    (``T`` symmetric with ``det T = 1``, as the ellipse model), ``H`` and ``V``, from the
+    ellipse fit (or ``initial``). The tilts explain what the ellipse absorbs into a shifted
+    centre (the vertical field times the tilt). ``b_z`` and ``s33`` are fitted only with
+    ``vertical``: tilts that vary within a turn make them observable, weakly (module
+    docstring); else ``b_z`` is the start's (the ellipse's 0) and ``s33 = 1 + t^T T^-1 t``
+    (``det W = 1``, the ellipse's convention). Never observable: the overall scale
+    (``det T = 1`` fixes it) and a rotation of the magnetometer against the IMU.
+
+    Args:
+        field: (N, 3) raw readings in the body frame, uT, N >= 10.
+        tilt: (N, 2) roll and pitch, rad (ZYX Euler angles), or (N, 3, 3) body -> world
+            attitudes, at the readings.
+        vertical: also fit ``b_z`` and the vertical scale ``s33``.
+        initial: the start (default: ``fit_magnetometer(field, model="ellipse")``, its
+            warning on readings that are not planar silenced).
+
+    Returns:
+        the calibration, ``model="levelled"``: ``hard_iron``, ``soft_iron = S^-1``,
+        ``field_uT = hypot(H, V)``, ``residual_rms_uT`` of the levelled residuals (3 per
+        reading, in reading units; the tangential one is 0), ``coverage``
+        :func:`circle_coverage` of the levelled horizontal part.
+
+    Raises:
+        ValueError: bad shapes, too few or non-finite readings, or the ellipse start's
+            refusals (readings that do not go round).
+    """
+    m = _checked_readings(field, 10, "the levelled fit")
+    level = _tilt_matrices(tilt, m.shape[0])
+    if initial is None:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", UserWarning)
+            initial = fit_magnetometer(m, model="ellipse")
+    distortion = np.linalg.inv(initial.soft_iron)
+    distortion = distortion / np.sqrt(np.linalg.det(distortion[:2, :2]))
+    values, vectors = np.linalg.eigh((distortion[:2, :2] + distortion[:2, :2].T) / 2)
+    log_top = (vectors * np.log(values)) @ vectors.T
+    g = np.einsum("nij,nj->ni", level, (m - initial.hard_iron) @ np.linalg.inv(distortion).T)
+    start = np.concatenate(
+        (
+            initial.hard_iron,
+            [log_top[0, 0], log_top[0, 1]],
+            distortion[:2, 2],
+            [distortion[2, 2], np.hypot(g[:, 0], g[:, 1]).mean(), g[:, 2].mean()],
+        )
+    )
+    free = np.ones(10, dtype=bool)
+    free[[2, 7]] = vertical  # else b_z the start's (the ellipse's 0), s33 the convention
+
+    def residual(x: np.ndarray) -> np.ndarray:
+        p = start.copy()
+        p[free] = x
+        return _levelled_residual(p, m, level, vertical)
+
+    solution = start.copy()
+    solution[free] = least_squares(
+        residual,
+        start[free],
+        method="trf",
+        x_scale="jac",
+        xtol=1e-15,
+        ftol=1e-15,
+        gtol=1e-15,
+        max_nfev=200,
+    ).x
+    soft_iron = np.linalg.inv(_levelled_distortion(solution, vertical))
+    soft_iron = (soft_iron + soft_iron.T) / 2
+    residual = _levelled_residual(solution, m, level, vertical)
+    g = np.einsum("nij,nj->ni", level, (m - solution[:3]) @ soft_iron.T)
+    return MagnetometerCalibration(
+        hard_iron=solution[:3].copy(),
+        soft_iron=soft_iron,
+        field_uT=float(np.hypot(solution[8], solution[9])),
+        residual_rms_uT=float(np.sqrt(np.mean(residual**2))),
+        coverage=circle_coverage(g[:, :2]),
+        samples=int(m.shape[0]),
+        model="levelled",
     )

@@ -12,6 +12,8 @@ from scipy.spatial.transform import Rotation
 
 from msf_torch.cli import main
 from msf_torch.frontend.config import load_config
+from msf_torch.io.native import write_native
+from msf_torch.sim import SimConfig, simulate_run
 
 WORLD_FIELD = 48.0 * np.array([0.0, np.cos(np.radians(60.0)), -np.sin(np.radians(60.0))])
 HARD_IRON = np.array([21.5, -13.25, 8.0])
@@ -144,3 +146,44 @@ def test_magcal_without_readings(tmp_path, capsys):
     assert main(["magcal", str(folder), "--out", str(out)]) == 2
     assert "no magnetometer readings" in capsys.readouterr().err
     assert not out.exists()
+
+
+def test_magcal_level_on_circles_over_uneven_ground(tmp_path, capsys):
+    """A simulated 60-s drive of slow circles (0.25 rad/s) on 2.5-deg terrain with IMU,
+    wheels and GNSS, hard iron [12, -7, 4] uT and soft iron: the ellipse (auto) takes the
+    tilts' leak of the vertical field for a shifted centre (0.83 uT off in the plane);
+    ``--level`` levels the readings with the front end's roll and pitch (0.20 uT)."""
+    hard = np.array([12.0, -7.0, 4.0])
+    config = SimConfig(
+        duration_s=60.0,
+        magnetometer=True,
+        magnetometer_hard_iron_uT=tuple(hard),
+        magnetometer_distortion=(1.05, 0.02, 0.0, 0.02, 0.96, 0.01, 0.0, 0.01, 1.0),
+        mean_turn_rate_rad_s=0.25,
+        turn_rate_peak_rad_s=0.05,
+        terrain_slope_deg=2.5,
+    )
+    folder = write_native(simulate_run(config, 200).sequence, tmp_path / "circles")
+    assert main(["magcal", str(folder)]) == 0
+    ellipse = _last_json(capsys.readouterr().out)
+    assert ellipse["model"] == "ellipse"
+    assert np.linalg.norm(np.array(ellipse["hard_iron_uT"][:2]) - hard[:2]) > 0.5
+    out = tmp_path / "mag.yaml"
+    assert main(["magcal", str(folder), "--level", "--out", str(out)]) == 0
+    summary = _last_json(capsys.readouterr().out)
+    assert summary["model"] == "levelled"
+    assert summary["model_reason"] == (
+        "--level: 3001 readings levelled with the roll and pitch of the front end run "
+        "without the magnetometer"
+    )
+    assert np.linalg.norm(np.array(summary["hard_iron_uT"][:2]) - hard[:2]) < 0.3
+    assert summary["hard_iron_uT"][2] == 0.0  # b_z: not fitted (the ellipse's convention)
+    assert load_config(out).magnetometer_hard_iron_uT == summary["hard_iron_uT"]
+    assert "(--level: 3001 readings levelled" in out.read_text().splitlines()[0]
+    assert main(["magcal", str(folder), "--level", "--model", "ellipse"]) == 2
+    assert "--level fits its own model: leave out --model" in capsys.readouterr().err
+    imu_only = _folder(tmp_path / "imu_only", Rotation.random(20, random_state=6))
+    assert main(["magcal", str(imu_only), "--level"]) == 2
+    assert "--level needs the front end's roll and pitch: IMU with GNSS and / or wheel" in (
+        capsys.readouterr().err
+    )

@@ -25,6 +25,7 @@ from msf_torch.sensors.magnetometer_calibration import (
     circle_coverage,
     direction_coverage,
     fit_magnetometer,
+    fit_magnetometer_levelled,
     planarity,
     shape_coverage,
 )
@@ -387,3 +388,88 @@ def test_bad_input_is_refused():
     hyperboloid = 30.0 * np.column_stack((r * np.cos(t * 3.1), r * np.sin(t * 3.1), h))
     with pytest.raises(ValueError, match="not an ellipsoid"):
         fit_magnetometer(hyperboloid)
+
+
+def _circling(n: int, seed: int, mean_roll_deg: float) -> np.ndarray:
+    """(n, 3) ZYX angles (yaw, pitch, roll) of a robot driving 2.5 circles over bumps: roll
+    ``mean_roll_deg`` (leaning into a bowl) +-1.5 deg and pitch +-2 deg, each at its own
+    frequency, so the tilts vary within a turn."""
+    rng = np.random.default_rng(seed)
+    s = np.linspace(0.0, 1.0, n)
+    yaw = 5 * np.pi * s + 0.3 * np.sin(9 * s)
+    roll = np.radians(mean_roll_deg) + np.radians(1.5) * np.sin(20.7 * s + rng.uniform(0, 6))
+    pitch = np.radians(2.0) * np.sin(25.8 * s + rng.uniform(0, 6))
+    return np.column_stack((yaw, pitch, roll))
+
+
+def test_noiseless_levelled_fit_recovers_the_iron():
+    """With varying tilts known, noiseless: ``vertical=True`` recovers everything up to the
+    overall scale (b with b_z, W with det W_xy^-1 = 1, the field scaled alike); the default
+    (b_z and the vertical scale held at the ellipse's b_z = 0, det W = 1) recovers iron that
+    keeps that convention. Attitudes (N, 3, 3) with any yaw give the same."""
+    angles = _circling(400, 40, 2.0)
+    rotations = Rotation.from_euler("ZYX", angles)
+    hard = np.array([12.0, -25.0, 18.0])
+    m = _readings(rotations, hard, COUPLED, 0.0, np.random.default_rng(0))
+    cal = fit_magnetometer_levelled(m, angles[:, [2, 1]], vertical=True)
+    distortion = np.linalg.inv(COUPLED)
+    scale = np.sqrt(np.linalg.det(distortion[:2, :2]))
+    assert np.abs(cal.hard_iron - hard).max() < 1e-9
+    assert np.abs(cal.soft_iron - COUPLED * scale).max() < 1e-9
+    assert abs(cal.field_uT - FIELD_UT * scale) < 1e-9
+    assert cal.residual_rms_uT < 1e-9 and cal.model == "levelled" and cal.samples == 400
+    assert 0.7 < cal.coverage < 0.9  # 2.5 turns: the extra half weighs one side
+    again = fit_magnetometer_levelled(m, rotations.as_matrix(), vertical=True)
+    assert np.abs(again.hard_iron - hard).max() < 1e-9
+    # the ellipse's convention: det S = 1 with det S_xy = 1, b_z = 0
+    top, column = distortion[:2, :2] / scale, distortion[:2, 2]
+    convention = np.block(
+        [[top, column[:, None]], [np.append(column, 1 + column @ np.linalg.solve(top, column))]]
+    )
+    in_plane = np.array([12.0, -25.0, 0.0])
+    m = _readings(rotations, in_plane, np.linalg.inv(convention), 0.0, np.random.default_rng(0))
+    cal = fit_magnetometer_levelled(m, angles[:, [2, 1]])
+    assert np.abs(cal.hard_iron - in_plane).max() < 1e-9
+    assert np.abs(cal.soft_iron - np.linalg.inv(convention)).max() < 1e-9
+    assert abs(cal.field_uT - FIELD_UT) < 1e-9 and cal.residual_rms_uT < 1e-9
+    ellipse = fit_magnetometer(m, model="ellipse")
+    assert np.abs(ellipse.hard_iron - in_plane).max() > 1.0  # 2 deg of lean: V * 0.035
+
+
+def test_levelled_fit_on_circles_over_bumps():
+    """0.3 uT noise, 500 readings, a 2-deg lean (mean roll) with +-1.5 / 2 deg bumps, b_z =
+    4 uT: the ellipse's centre is off by the vertical field times the lean (> 0.5 uT in the
+    plane), while the readings still look planar; the levelled fit is within 0.3 uT (the
+    unfitted b_z times the lean, 0.14 uT, and the noise, sigma sqrt(2 / N) = 0.02 uT per
+    axis; 0.20 uT at most over 40 draws). ``vertical=True`` also fits b_z, weakly: 1.4 uT
+    RMS over 40 draws with these bumps (bound 4.5 uT), 0.14 uT at most in the plane."""
+    hard = np.array([12.0, -25.0, 4.0])
+    for seed in range(41, 44):
+        angles = _circling(500, seed, 2.0)
+        rng = np.random.default_rng(seed)
+        m = _readings(Rotation.from_euler("ZYX", angles), hard, COUPLED, 0.3, rng)
+        assert planarity(m)[0]  # no trace of the tilts: the ellipse fits without a warning
+        ellipse = fit_magnetometer(m, model="ellipse")
+        levelled = fit_magnetometer_levelled(m, angles[:, [2, 1]])
+        vertical = fit_magnetometer_levelled(m, angles[:, [2, 1]], vertical=True)
+        assert np.linalg.norm(ellipse.hard_iron[:2] - hard[:2]) > 0.5
+        assert np.linalg.norm(levelled.hard_iron[:2] - hard[:2]) < 0.3
+        assert levelled.hard_iron[2] == 0.0
+        assert np.linalg.norm(vertical.hard_iron[:2] - hard[:2]) < 0.2
+        assert abs(vertical.hard_iron[2] - hard[2]) < 4.5
+        assert 0.2 < levelled.residual_rms_uT < 0.3  # sigma sqrt(2 / 3): 2 of 3 axes fitted
+
+
+def test_levelled_fit_refusals():
+    angles = _circling(100, 45, 0.0)
+    m = _readings(
+        Rotation.from_euler("ZYX", angles), np.zeros(3), np.eye(3), 0.0, np.random.default_rng(0)
+    )
+    with pytest.raises(ValueError, match=r"tilt must be \(N, 2\) roll and pitch or \(N, 3, 3\)"):
+        fit_magnetometer_levelled(m, angles[:50, [2, 1]])
+    bad = angles[:, [2, 1]].copy()
+    bad[3, 0] = np.inf
+    with pytest.raises(ValueError, match="must be finite"):
+        fit_magnetometer_levelled(m, bad)
+    with pytest.raises(ValueError, match="the levelled fit needs at least 10 readings, got 9"):
+        fit_magnetometer_levelled(m[:9], angles[:9, [2, 1]])
