@@ -139,6 +139,7 @@ def test_magnetometer_improves_the_smoothed_yaw():
     assert all(yaw["full", True] < 0.75 * yaw["front"] for yaw in runs), runs
 
 
+@pytest.mark.slow  # 12 full-smoother runs, ~20 s: kept out of CI (pytest -m slow)
 @pytest.mark.filterwarnings("ignore:.*the magnetometer gives a yaw")  # seed 105 starts disturbed
 def test_disturbed_runs_are_not_worse():
     """Wheels + IMU + GNSS, 20-s outage, 6 magnetic anomalies along the route (about half
