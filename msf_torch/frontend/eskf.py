@@ -1045,7 +1045,7 @@ def run_eskf(
     dtype, device = seq.imu.t.dtype, seq.imu.t.device
     noise = noise or EskfNoise.from_config(cfg, dtype, device)
     seq, dropped_samples = sanitize_sequence(seq)
-    sched = build_schedule(seq, cfg, pair_memory)
+    sched = build_schedule(seq, cfg, pair_memory, continuing=gate_memory is not None)
     frames = (
         build_source_frames(seq, sched, cfg, frame_memory)
         if cfg.pose_source_fusion == "drifting_frame" and sched.source_names

@@ -42,6 +42,7 @@ __all__ = [
     "UNMEASURED_SIGMA",
     "PairMemory",
     "Schedule",
+    "bin_starts",
     "build_schedule",
     "disturbed_field",
     "median_dip",
@@ -139,7 +140,8 @@ class Schedule:
             frame, uT (0 where absent); magnetometer_sigma (B, E) its per-axis noise, uT
             (the config's default, carried through the soft-iron matrix, filled in);
             magnetometer_mask (B, E). Fused readings: at most ``magnetometer_rate_hz`` per
-            second (the first undisturbed reading of each ``1 / rate`` bin of the clock),
+            second (the undisturbed readings that open a ``1 / rate`` bin of the clock,
+            :func:`bin_starts`),
             none whose corrected magnitude departs from the local field's by more than
             ``magnetometer_field_tolerance`` (:func:`disturbed_field`).
         magnetometer_dip: (B,) the local field's inclination (dip below the horizon), rad:
@@ -317,10 +319,12 @@ def undisturbed_magnetometer(
     gyro: np.ndarray,
     times: np.ndarray,
     index: np.ndarray,
+    refuse_unjudged: bool = True,
 ) -> tuple[np.ndarray, np.ndarray]:
     """The undisturbed magnetometer readings of sequence ``b`` among ``times`` (s) /
     ``index`` (into the stream): in magnitude (:func:`disturbed_field`, the median over
-    all the sequence's readings) and turning with the gyro (:func:`rotation_inconsistent`).
+    all the sequence's readings) and turning with the gyro (:func:`rotation_inconsistent`;
+    ``refuse_unjudged``: also leave out the readings it cannot judge).
 
     Args:
         stream: the ``Magnetometer`` stream (B, N).
@@ -343,10 +347,39 @@ def undisturbed_magnetometer(
         sigma = np.where(np.isfinite(sigma) & (sigma > 0), sigma, cfg.magnetometer_sigma_uT)
         upto = np.searchsorted(imu_t, times[-1], side="right") + 1  # the samples needed
         keep = ~rotation_inconsistent(
-            times, field[index], sigma, gyro_attitude(imu_t[:upto], gyro[:upto], times), cfg
+            times,
+            field[index],
+            sigma,
+            gyro_attitude(imu_t[:upto], gyro[:upto], times),
+            cfg,
+            refuse_unjudged,
         )
         times, index = times[keep], index[keep]
     return times, index
+
+
+def bin_starts(times: np.ndarray, stream_times: np.ndarray, cfg: EskfConfig) -> np.ndarray:
+    """The readings that open a ``1 / magnetometer_rate_hz`` bin of the clock: those less
+    than one reading interval (the stream's median, times 0.999 against round-off) after the
+    bin's start. The rule needs no neighbouring reading, so a run filtered in pieces or
+    chunks, whatever their bounds, fuses the same readings as in one piece; a bin whose
+    opening reading was left out as disturbed fuses none.
+
+    Args:
+        times: (M,) candidate reading times, s; stream_times: (N,) all the stream's reading
+            times, s (their median interval; with fewer than two, every candidate opens a
+            bin).
+        cfg: ``magnetometer_rate_hz``.
+
+    Returns:
+        (M,) bool.
+    """
+    rate = cfg.magnetometer_rate_hz
+    if stream_times.size < 2:
+        return np.ones(times.shape, dtype=bool)
+    interval = float(np.median(np.diff(np.sort(stream_times))))
+    phase = times * rate - np.floor(times * rate)
+    return phase < 0.999 * interval * rate
 
 
 CONSISTENCY_LAGS = (1.0 / 6.0, 1.0 / 3.0, 2.0 / 3.0, 1.0)
@@ -359,6 +392,7 @@ def rotation_inconsistent(
     sigma: np.ndarray,
     attitude: np.ndarray,
     cfg: EskfConfig,
+    refuse_unjudged: bool = True,
 ) -> np.ndarray:
     """Readings whose change from earlier readings is not the body's turn: the earth's field
     is fixed in the world, so between readings ``j`` and ``k`` the body-frame field turns
@@ -375,10 +409,11 @@ def rotation_inconsistent(
     ``|f_j|``). The relative rotation is the product of the held samples' exponentials, not
     the difference of the gyro's integral as a rotation vector: that is exact only for turns
     about one body axis, and a vehicle turning at 1 rad/s over 8-degree terrain then has a
-    third of its clean readings flagged. A reading with no
-    reading at least the shortest lag before it in the sequence cannot be judged and counts
-    as inconsistent (the run's first readings; in a run filtered in pieces, each piece's:
-    a run that starts beside steel would otherwise set its heading from the disturbance).
+    third of its clean readings flagged. A reading with no reading at least the shortest
+    lag before it in the sequence cannot be judged and counts as inconsistent with
+    ``refuse_unjudged`` (the run's first readings: a run that starts beside steel would
+    otherwise set its heading from the disturbance; a chunk or piece that continues a run
+    passes them on, :func:`build_schedule`'s ``continuing``).
 
     Args:
         times: (M,) s; field: (M, 3) raw readings, uT (corrected here with the config's
@@ -389,7 +424,7 @@ def rotation_inconsistent(
             the gyro bias prior.
 
     Returns:
-        (M,) bool, True where inconsistent or not judged.
+        (M,) bool, True where inconsistent (or not judged, with ``refuse_unjudged``).
     """
     hard = np.asarray(cfg.magnetometer_hard_iron_uT, dtype=np.float64)
     soft = np.reshape(np.asarray(cfg.magnetometer_soft_iron, dtype=np.float64), (3, 3))
@@ -409,7 +444,7 @@ def rotation_inconsistent(
         noise = bound * np.hypot(sigma[k], sigma[j]) * math.sqrt((soft**2).sum() / 3)
         drift = bias * (times[k] - times[j]) * np.linalg.norm(corrected[j], axis=-1)
         inconsistent[k] |= change > noise + drift
-    return inconsistent | ~judged_once
+    return inconsistent | (~judged_once if refuse_unjudged else False)
 
 
 def gyro_attitude(imu_t: np.ndarray, gyro: np.ndarray, t: np.ndarray) -> np.ndarray:
@@ -618,7 +653,10 @@ def _source_velocities(
 
 
 def build_schedule(
-    seq: Sequence, cfg: EskfConfig, pair_memory: PairMemory | None = None
+    seq: Sequence,
+    cfg: EskfConfig,
+    pair_memory: PairMemory | None = None,
+    continuing: bool = False,
 ) -> Schedule:
     """Build the padded epoch schedule of a batch.
 
@@ -628,6 +666,11 @@ def build_schedule(
         pair_memory: the previous chunk's ``Schedule.pair_memory`` when a run is filtered in
             chunks (each chunk's first IMU sample the previous chunk's last): each source's
             pair across the boundary is formed (module docstring).
+        continuing: the batch continues a run filtered in chunks or pieces (``run_eskf``
+            with a ``gate_memory``): magnetometer readings the gyro test cannot judge (no
+            reading early enough in this chunk) go on to the dip test and the gate instead
+            of being left out, since the state no longer rests on them (a live stream of
+            short pieces would otherwise never fuse one).
     Returns:
         :class:`Schedule` on the IMU tensors' device and dtype.
 
@@ -675,8 +718,7 @@ def build_schedule(
         gnss_t, gnss_src = stream_times(seq.gnss)
         gvel_t, gvel_src = stream_times(seq.gnss_velocity)
         head_t, head_src = stream_times(seq.gnss_heading)
-        # undisturbed readings, then the first of each 1 / magnetometer_rate_hz bin of the
-        # clock (absolute time: a run filtered in pieces picks the same readings)
+        # undisturbed readings that open a 1 / magnetometer_rate_hz bin of the clock
         mag_t, mag_src = undisturbed_magnetometer(
             seq.magnetometer,
             b,
@@ -684,9 +726,13 @@ def build_schedule(
             imu_t,
             _np(seq.imu.gyro[b])[imu_sel] - np.asarray(cfg.init_gyro_bias_radps),
             *stream_times(seq.magnetometer),
+            refuse_unjudged=not continuing,
         )
-        first_in_bin = np.diff(np.floor(mag_t * cfg.magnetometer_rate_hz), prepend=-np.inf) > 0
-        mag_t, mag_src = mag_t[first_in_bin], mag_src[first_in_bin]
+        if mag_t.size:
+            at_bin_start = bin_starts(
+                mag_t, _np(seq.magnetometer.t[b])[_np(seq.magnetometer.mask[b])], cfg
+            )
+            mag_t, mag_src = mag_t[at_bin_start], mag_src[at_bin_start]
         mag_dip = cfg.magnetometer_inclination_rad
         if mag_t.size and mag_dip == 0.0:
             mag_dip = median_dip(

@@ -462,7 +462,7 @@ def run_piecewise(
             results.append(stop.result)
             later, pairs = 0, stop.result.pair_memory
             for a, b in bounds[index + 1 :]:
-                sched = build_schedule(chunk_of(a, b), cfg, pairs)
+                sched = build_schedule(chunk_of(a, b), cfg, pairs, continuing=True)
                 later, pairs = later + sched.num_epochs, sched.pair_memory
             raise EstimationInterrupted(
                 concat_results(results, dropped_samples),

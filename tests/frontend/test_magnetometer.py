@@ -369,3 +369,32 @@ def test_initial_yaw_combines_an_agreeing_compass_and_drops_a_disagreeing_one():
         state, cov = initial_state(run.sequence, wrong)
     torch.testing.assert_close(state.rotation, track_state.rotation, rtol=0, atol=1e-12)
     assert float(cov[0, 8, 8]) == pytest.approx(float(cov_track[0, 8, 8]), rel=1e-12)
+
+
+def test_short_pieces_of_a_live_stream_fuse_the_magnetometer():
+    """A run pushed to ``EskfStream`` in 0.4-s pieces (shorter than the gyro test's
+    shortest lag, 0.5 s): the pieces after the first pass the readings the test cannot
+    judge on to the gate, so they fuse what the run in one piece fuses (before, none: every
+    reading of a piece was unjudged and left out)."""
+    run = _sim(14, duration_s=12.0)
+    cfg = _config(
+        run,
+        magnetometer_field_uT=SimConfig().magnetometer_field_uT,
+        magnetometer_inclination_rad=SimConfig().magnetometer_inclination_rad,
+    )
+    whole = run_eskf(run.sequence, cfg)
+    stream = EskfStream(cfg, initial=initial_state(run.sequence, cfg))
+    bounds = np.arange(0.0, 12.01, 0.4)
+    for start, end in zip(bounds[:-1], bounds[1:], strict=True):
+        stream.push(time_slice(run.sequence, float(start), float(end) + (end > 11.9) * 0.01))
+    joined = concat_results(stream.results)
+    fused_whole = int(whole.accepted["magnetometer"].sum())
+    fused_pieces = int(joined.accepted["magnetometer"].sum())
+    assert fused_whole >= 20
+    # the first piece's readings are unjudged (the run's start) and left out, as in one piece
+    assert fused_whole - 1 <= fused_pieces <= fused_whole + 1, (fused_pieces, fused_whole)
+    real = whole.t[0, whole.mask[0]]
+    index = torch.searchsorted(joined.t[0], real)
+    assert torch.equal(joined.t[0, index], real)
+    difference = (joined.position[0, index] - whole.position[0, whole.mask[0]]).norm(dim=-1)
+    assert float(difference.max()) < 0.01
