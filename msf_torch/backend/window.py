@@ -165,7 +165,7 @@ from msf_torch.frontend.config import EskfConfig
 from msf_torch.frontend.eskf import EskfNoise, EskfResult, _intra_op_threads
 from msf_torch.frontend.guard import sanitize_sequence
 from msf_torch.frontend.keyframes import KeyframeConfig, select_keyframes
-from msf_torch.frontend.schedule import UNMEASURED_SIGMA, _corrected_magnetometer, gap_lengths
+from msf_torch.frontend.schedule import UNMEASURED_SIGMA, corrected_magnetometer, gap_lengths
 from msf_torch.geometry import so3
 from msf_torch.geometry.conventions import gravity_world
 from msf_torch.geometry.quaternion import matrix_to_quat
@@ -1067,7 +1067,7 @@ def _magnetometer_at_keyframes(
     if fused.numel() == 0:
         empty = torch.zeros(1, 0, dtype=dtype, device=device)
         return index, empty[..., None].expand(1, 0, 3), empty, empty[..., None, None]
-    field, sigma = _corrected_magnetometer(
+    field, sigma = corrected_magnetometer(
         stream.field[:, keep][:, nearest].to(dtype),
         stream.sigma[:, keep][:, nearest].to(dtype),
         cfg,

@@ -183,20 +183,29 @@ class CalibrationLayout:
             imu_body = add(
                 "rotation_rad:imu_body", list(cfg.calibration_imu_body_rotation_rad), True
             )
+
+        def angle(name: str, start: float, prior_sigma: float) -> int:
+            """One angle state (rad) walking like the rotations; its column."""
+            names.append(name)
+            initial.append(float(start))
+            sigma.append(prior_sigma)
+            walk.append(cfg.calibration_rotation_rw_density)
+            return len(names) - 1
+
         heading_offset = None
         if cfg.calibrate_gnss_heading_offset and "gnss_heading" in sensors:
-            heading_offset = len(names)
-            names.append("heading_offset_rad:gnss_heading")
-            initial.append(float(cfg.calibration_gnss_heading_offset_rad))
-            sigma.append(cfg.calibration_rotation_sigma_rad)
-            walk.append(cfg.calibration_rotation_rw_density)
+            heading_offset = angle(
+                "heading_offset_rad:gnss_heading",
+                cfg.calibration_gnss_heading_offset_rad,
+                cfg.calibration_rotation_sigma_rad,
+            )
         declination = None
         if cfg.calibrate_magnetometer_declination and "magnetometer" in sensors:
-            declination = len(names)
-            names.append("declination_rad:magnetometer")
-            initial.append(float(cfg.magnetometer_declination_rad))
-            sigma.append(cfg.calibration_magnetometer_declination_sigma_rad)
-            walk.append(cfg.calibration_rotation_rw_density)
+            declination = angle(
+                "declination_rad:magnetometer",
+                cfg.magnetometer_declination_rad,
+                cfg.calibration_magnetometer_declination_sigma_rad,
+            )
         if not names:
             return None
 

@@ -50,7 +50,7 @@ import numpy as np
 import torch
 
 from msf_torch.frontend.config import EskfConfig
-from msf_torch.frontend.schedule import gyro_attitude, undisturbed_magnetometer
+from msf_torch.frontend.schedule import corrected_readings, gyro_attitude, undisturbed_magnetometer
 from msf_torch.geometry import so3
 from msf_torch.geometry.conventions import ERROR_STATE_DIM
 from msf_torch.types import NavState, Sequence
@@ -323,15 +323,16 @@ def magnetometer_yaw(
     if times.size == 0:
         return None
     k = int(index[0])
-    hard = np.asarray(cfg.magnetometer_hard_iron_uT, dtype=np.float64)
-    soft = np.reshape(np.asarray(cfg.magnetometer_soft_iron, dtype=np.float64), (3, 3))
     # the reading in the first IMU sample's body axes: turned back by the gyro's rotation
     # (roll and pitch change over it on uneven ground, not only the heading)
     upto = np.searchsorted(imu_t, t[k], side="right") + 1
     turn = gyro_attitude(
         imu_t[:upto], gyro[:upto] - np.asarray(cfg.init_gyro_bias_radps), t[k : k + 1]
     )[0]
-    field = turn @ soft @ (stream.field[b, k].detach().cpu().numpy() - hard)
+    corrected, sigma = corrected_readings(
+        stream.field[b, k].detach().cpu().numpy(), cfg, stream.sigma[b, k].detach().cpu().numpy()
+    )
+    field = turn @ corrected
 
     def azimuth(roll_: float, pitch_: float) -> tuple[float, float]:
         level = _rpy_numpy(roll_, pitch_, 0.0) @ field
@@ -345,10 +346,7 @@ def magnetometer_yaw(
         (math.remainder(azimuth(*angles)[0] - level_azimuth, 2.0 * math.pi) / step) ** 2
         for angles in ((roll + step, pitch), (roll, pitch + step))
     ) * (cfg.init_roll_pitch_sigma_rad**2)
-    sigma = float(stream.sigma[b, k])
-    if not (math.isfinite(sigma) and sigma > 0):
-        sigma = cfg.magnetometer_sigma_uT
-    sigma *= math.sqrt(float((soft**2).sum()) / 3.0)
+    sigma = float(sigma)
     carry_var = float(_carry_variance(np.asarray(t[k] - imu_t[0]), cfg))
     # azimuth of the levelled field turned by yaw = level_azimuth - yaw = the declination
     yaw = level_azimuth - cfg.magnetometer_declination_rad

@@ -44,6 +44,8 @@ __all__ = [
     "Schedule",
     "bin_starts",
     "build_schedule",
+    "corrected_magnetometer",
+    "corrected_readings",
     "disturbed_field",
     "median_dip",
     "rotation_inconsistent",
@@ -277,12 +279,12 @@ def disturbed_field(
         (N,) bool, True where disturbed; also where the corrected field is zero (a sensor
         that reads zeros gives no direction) or not finite.
     """
-    hard = np.asarray(cfg.magnetometer_hard_iron_uT, dtype=np.float64)
-    soft = np.reshape(np.asarray(cfg.magnetometer_soft_iron, dtype=np.float64), (3, 3))
-    norm = np.linalg.norm((field - hard) @ soft.T, axis=-1)
+    norm = np.linalg.norm(corrected_readings(field, cfg)[0], axis=-1)
     local = cfg.magnetometer_field_uT
     if local == 0.0:
-        ref = np.linalg.norm(((field if reference is None else reference) - hard) @ soft.T, axis=-1)
+        ref = norm
+        if reference is not None:
+            ref = np.linalg.norm(corrected_readings(reference, cfg)[0], axis=-1)
         ref = ref[np.isfinite(ref)]
         local = float(np.median(ref)) if ref.size else 0.0
     within = np.abs(norm - local) <= cfg.magnetometer_field_tolerance * local
@@ -302,9 +304,7 @@ def median_dip(field: np.ndarray, accel: np.ndarray, cfg: EskfConfig) -> float:
     Returns:
         The dip, rad (positive: the field points below the horizon).
     """
-    hard = np.asarray(cfg.magnetometer_hard_iron_uT, dtype=np.float64)
-    soft = np.reshape(np.asarray(cfg.magnetometer_soft_iron, dtype=np.float64), (3, 3))
-    corrected = (field - hard) @ soft.T
+    corrected = corrected_readings(field, cfg)[0]
     cosine = (corrected * accel).sum(-1) / (
         np.linalg.norm(corrected, axis=-1) * np.linalg.norm(accel, axis=-1)
     ).clip(1e-300)
@@ -344,7 +344,6 @@ def undisturbed_magnetometer(
     times, index = times[keep], index[keep]
     if cfg.magnetometer_consistency_s > 0 and times.size:
         sigma = _np(stream.sigma[b])[index]
-        sigma = np.where(np.isfinite(sigma) & (sigma > 0), sigma, cfg.magnetometer_sigma_uT)
         upto = np.searchsorted(imu_t, times[-1], side="right") + 1  # the samples needed
         keep = ~rotation_inconsistent(
             times,
@@ -426,9 +425,7 @@ def rotation_inconsistent(
     Returns:
         (M,) bool, True where inconsistent (or not judged, with ``refuse_unjudged``).
     """
-    hard = np.asarray(cfg.magnetometer_hard_iron_uT, dtype=np.float64)
-    soft = np.reshape(np.asarray(cfg.magnetometer_soft_iron, dtype=np.float64), (3, 3))
-    corrected = (field - hard) @ soft.T
+    corrected, sigma = corrected_readings(field, cfg, sigma)
     bound = math.sqrt(chi2_threshold(3, cfg.gate_probability))
     bias = float(np.linalg.norm(cfg.init_gyro_bias_sigma_radps))
     inconsistent = np.zeros(times.size, dtype=bool)
@@ -441,7 +438,7 @@ def rotation_inconsistent(
         j = j[judged]
         turned = np.einsum("nim,nm,nik->nk", attitude[j], corrected[j], attitude[k])
         change = np.linalg.norm(corrected[k] - turned, axis=-1)
-        noise = bound * np.hypot(sigma[k], sigma[j]) * math.sqrt((soft**2).sum() / 3)
+        noise = bound * np.hypot(sigma[k], sigma[j])
         drift = bias * (times[k] - times[j]) * np.linalg.norm(corrected[j], axis=-1)
         inconsistent[k] |= change > noise + drift
     return inconsistent | (~judged_once if refuse_unjudged else False)
@@ -467,11 +464,26 @@ def gyro_attitude(imu_t: np.ndarray, gyro: np.ndarray, t: np.ndarray) -> np.ndar
     return product[i] @ rest
 
 
-def _corrected_magnetometer(
+def corrected_readings(
+    field: np.ndarray, cfg: EskfConfig, sigma: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`corrected_magnetometer` of numpy readings (..., 3) uT and their sigmas (...,)
+    uT (None: the config's default): the corrected field and its per-axis sigma."""
+    raw = torch.from_numpy(np.asarray(field, dtype=np.float64))
+    noise = torch.full(raw.shape[:-1], torch.nan, dtype=raw.dtype)
+    if sigma is not None:
+        noise = torch.from_numpy(np.asarray(sigma, dtype=np.float64))
+    corrected, noise = corrected_magnetometer(raw, noise, cfg)
+    return corrected.numpy(), noise.numpy()
+
+
+def corrected_magnetometer(
     raw: torch.Tensor, sigma: torch.Tensor, cfg: EskfConfig
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Corrected field ``W (m - b)`` (B, E, 3) uT and its per-axis sigma (B, E) uT: the
-    reading's (config default where NaN or not above 0) times ``sqrt(trace(W W^T) / 3)``."""
+    """The config's hard- and soft-iron correction ``W (m - b)``
+    (:func:`msf_torch.sensors.magnetometer.corrected_field`) of raw readings (..., 3) uT,
+    and their per-axis sigma (...,) uT: the reading's (the config's default where NaN or not
+    above 0) times ``sqrt(trace(W W^T) / 3)``."""
     hard = torch.as_tensor(cfg.magnetometer_hard_iron_uT, dtype=raw.dtype, device=raw.device)
     soft = torch.as_tensor(cfg.magnetometer_soft_iron, dtype=raw.dtype, device=raw.device)
     soft = soft.reshape(3, 3)
@@ -959,7 +971,7 @@ def build_schedule(
         gnss_heading_sigma,
         cfg.gnss_heading_sigma_rad,
     )
-    magnetometer_field, magnetometer_sigma = _corrected_magnetometer(
+    magnetometer_field, magnetometer_sigma = corrected_magnetometer(
         take(seq.magnetometer, "field", "magnetometer", (3,)),
         take(seq.magnetometer, "sigma", "magnetometer", ()),
         cfg,
