@@ -1,14 +1,16 @@
 """Initial state of the front end from the first seconds of each sequence.
 
 Roll and pitch come from the mean accelerometer reading over ``init_window_s`` (gravity
-direction). Yaw, in order of preference: the first pose measurement (a heading source,
-sigma ``init_yaw_sigma_rad``); with GNSS and wheels, the 2-D rotation that best aligns the
-wheel/gyro dead-reckoned path with the GNSS track up to ``init_min_gnss_distance_m`` from
-the first fix (2-D Kabsch on the centred tracks; the aligned dead-reckoning origin is the
-initial position); with GNSS only, the course of the first GNSS displacement of that
-length, or the GNSS track's segment courses less the gyro's turns
-(:func:`segment_course_yaw`) where that is better known; else 0 with a heading sigma of
-``init_yaw_sigma_unknown_rad`` (pi; the world frame then starts aligned with the body). A
+direction), with the body's acceleration taken out where wheel speeds cover the window
+(:func:`levelling_specific_force`). Yaw, in order of preference: the first pose
+measurement (a heading source, sigma ``init_yaw_sigma_rad``); with GNSS and wheels, the
+2-D rotation that best aligns the wheel/gyro dead-reckoned path with the GNSS track up to
+``init_min_gnss_distance_m`` from the first fix (2-D Kabsch on the centred tracks; the
+aligned dead-reckoning origin is the initial position); with GNSS only, the course of the
+first GNSS displacement of that length, or the GNSS track's segment courses less the
+gyro's turns (:func:`segment_course_yaw`) where that is better known; else 0 with a
+heading sigma of ``init_yaw_sigma_unknown_rad`` (pi; the world frame then starts aligned
+with the body). A
 track that never gets that far but reaches a quarter of it is used up to its farthest fix.
 A GNSS heading's sigma is that of the estimate made
 (:func:`alignment_yaw_variance`: the fixes' noise over the track's spread, and the gyro
@@ -37,6 +39,7 @@ __all__ = [
     "alignment_yaw_variance",
     "antenna_heading_yaw",
     "initial_state",
+    "levelling_specific_force",
     "magnetometer_yaw",
     "segment_course_yaw",
     "velocity_heading",
@@ -492,21 +495,74 @@ def _rpy_numpy(roll: float, pitch: float, yaw: float) -> np.ndarray:
     return so3.rpy_matrix(angles).numpy()
 
 
+def levelling_specific_force(
+    imu_t: np.ndarray,
+    accel: np.ndarray,
+    gyro: np.ndarray,
+    wheel: dict[str, np.ndarray] | None,
+    cfg: EskfConfig,
+) -> np.ndarray:
+    """The specific force of gravity alone (3,) m/s^2 in the body axes at the first sample
+    of a levelling window, whose direction gives the initial roll and pitch.
+
+    Without wheel speeds over the window: the mean of the (bias-corrected) accelerometer,
+    which carries the body's mean acceleration over the window as a tilt. With them (a
+    robot that starts moving), each sample's specific force has the body's acceleration
+    taken out, ``f - (dv_b/dt + w x v_b)`` with ``v_b = R_vb (v, 0, 0) - w x l`` the IMU's
+    velocity from the mean wheel speed ``v`` (``l`` = ``wheel_lever_arm_m``, ``R_vb`` the
+    IMU-to-vehicle rotation when it is calibrated), and is turned back to the first sample
+    by the gyro (``frontend.schedule.gyro_attitude``) before the mean, so neither the
+    window's speed changes and turns nor the terrain's pitching while it lasts tilt the
+    estimate. The wheel speeds must cover the window (a first reading within a quarter
+    window of its start, a last within a quarter window of its end, three at least);
+    otherwise the plain mean is used.
+
+    Args:
+        imu_t: (N,) times of the window's IMU samples, s.
+        accel, gyro: (N, 3) raw readings, m/s^2 and rad/s (the config's initial biases are
+            taken out here).
+        wheel: the sequence's wheel readings (``t``, ``left_speed``, ``right_speed``, m/s) or
+            None.
+        cfg: the front end's config.
+    """
+    force = accel - np.asarray(cfg.init_accel_bias_mps2)
+    quarter = 0.25 * (imu_t[-1] - imu_t[0])
+    if wheel is None or imu_t.size < 2:
+        return force.mean(0)
+    wheel_t = wheel["t"]
+    inside = (wheel_t >= imu_t[0] - quarter) & (wheel_t <= imu_t[-1] + quarter)
+    if wheel_t[0] > imu_t[0] + quarter or wheel_t[-1] < imu_t[-1] - quarter or inside.sum() < 3:
+        return force.mean(0)
+    rate = gyro - np.asarray(cfg.init_gyro_bias_radps)
+    speed = np.interp(imu_t, wheel_t, 0.5 * (wheel["left_speed"] + wheel["right_speed"]))
+    forward = np.array([1.0, 0.0, 0.0])
+    if cfg.calibrate_imu_body_rotation:
+        rotvec = torch.as_tensor(cfg.calibration_imu_body_rotation_rad, dtype=torch.float64)
+        forward = so3.exp(rotvec).numpy() @ forward
+    lever = np.asarray(cfg.wheel_lever_arm_m, dtype=np.float64)
+    body_velocity = speed[:, None] * forward - np.cross(rate, lever)
+    acceleration = np.gradient(body_velocity, imu_t, axis=0) + np.cross(rate, body_velocity)
+    turned = gyro_attitude(imu_t, rate, imu_t)
+    return np.einsum("kij,kj->i", turned, force - acceleration) / imu_t.size
+
+
 def _one(
     seq: Sequence, b: int, cfg: EskfConfig
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, float]:
     imu_t, read_imu = _imu_reader(seq, b)
     t0 = imu_t[0]
     window = imu_t <= t0 + cfg.init_window_s
-    f = read_imu("accel", window).mean(0) - np.asarray(cfg.init_accel_bias_mps2)
+    span = (t0 - cfg.time_tolerance_s, imu_t[-1] + cfg.time_tolerance_s)
+    wheel = _valid(seq.wheel, b, span)
+    f = levelling_specific_force(
+        imu_t[window], read_imu("accel", window), read_imu("gyro", window), wheel, cfg
+    )
     roll = math.atan2(f[1], f[2])
     pitch = math.atan2(-f[0], math.hypot(f[1], f[2]))
     yaw = 0.0
     yaw_sigma = cfg.init_yaw_sigma_unknown_rad  # no heading source
     position = np.zeros(3)
     velocity = np.zeros(3)
-    span = (t0 - cfg.time_tolerance_s, imu_t[-1] + cfg.time_tolerance_s)
-    wheel = _valid(seq.wheel, b, span)
     gnss = _valid(seq.gnss, b, span)
     poses = _valid(seq.poses, b, span)
     wheel_speed = 0.0
