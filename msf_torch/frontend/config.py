@@ -26,6 +26,7 @@ from pathlib import Path
 from typing import Any
 
 from msf_torch.io.errors import DataError
+from msf_torch.io.native import GEOMETRY_KEYS
 from msf_torch.io.yaml_files import YamlDocument, did_you_mean, named_key, read_yaml
 
 MEASUREMENT_BLOCKS = (
@@ -738,9 +739,10 @@ def config_for_sequence(config: EskfConfig, meta: dict[str, Any], explicit: set[
 
     ``meta`` is ``Sequence.meta`` (B = 1); values come from ``meta["imu_noise"]`` (dataset
     files such as KITTI's metadata) and ``meta["sensor"]`` (native ``meta.json`` / the
-    simulator); ``meta["platform"] == "aerial"`` (EuRoC's MAV) turns the non-holonomic
-    constraint off (``nhc: auto`` would apply it to any run without wheels). Keys in
-    ``explicit`` (set by the user's YAML or CLI; a YAML's are
+    simulator: IMU noise, wheel track, GNSS sigma, and the lever arms and antenna baseline
+    of ``io.native.GEOMETRY_KEYS``); ``meta["platform"] == "aerial"`` (EuRoC's MAV) turns
+    the non-holonomic constraint off (``nhc: auto`` would apply it to any run without
+    wheels). Keys in ``explicit`` (set by the user's YAML or CLI; a YAML's are
     ``set(read_config_keys(path))``) are left alone.
     """
     changes: dict[str, Any] = {}
@@ -761,6 +763,9 @@ def config_for_sequence(config: EskfConfig, meta: dict[str, Any], explicit: set[
     sensor = meta.get("sensor", {})
     if "wheel_track_m" in sensor and "wheel_track_m" not in explicit:
         changes["wheel_track_m"] = float(sensor["wheel_track_m"])
+    for key in GEOMETRY_KEYS:  # lever arms and baseline, m, body axes
+        if key in sensor and key not in explicit:
+            changes[key] = [float(x) for x in sensor[key]]
     if "gnss_sigma_m" in sensor and "gnss_sigma_m" not in explicit:
         sigma = sensor["gnss_sigma_m"]
         changes["gnss_sigma_m"] = (

@@ -128,6 +128,7 @@ __all__ = [
     "LABEL_COLUMNS",
     "TABLE_FILES",
     "SOURCE_NAME_PATTERN",
+    "GEOMETRY_KEYS",
     "pose_source_file",
     "read_native",
     "stored_gnss_origin",
@@ -169,6 +170,10 @@ from msf_torch.types import (
     WheelSamples,
 )
 
+# sensor geometry a ``meta.json`` may give (m, body axes): the GNSS antenna and wheel-axle
+# lever arms and the dual-antenna baseline; the front end's config takes them from there
+# unless the run's YAML sets them (frontend.config.config_for_sequence)
+GEOMETRY_KEYS = ("gnss_lever_arm_m", "wheel_lever_arm_m", "gnss_heading_baseline_m")
 IMU_COLUMNS = ["t", "gyro_x", "gyro_y", "gyro_z", "accel_x", "accel_y", "accel_z"]
 WHEEL_COLUMNS = ["t", "left_speed", "right_speed"]
 GNSS_COLUMNS = ["t", "x", "y", "z"]
@@ -539,6 +544,16 @@ def _gnss_origin(where: str, value: Any) -> list[float]:
     return origin
 
 
+def _geometry_vector(where: str, key: str, value: Any) -> list[float]:
+    """A ``meta.json`` lever arm or baseline (one of :data:`GEOMETRY_KEYS`) checked: three
+    finite numbers in m, body axes; else a DataError naming the field."""
+    vector = _three_numbers(value)
+    if vector is None:
+        shown = repr(value)[:80]
+        raise DataError(where, f"expected [x, y, z] in m, got {shown}", field=key)
+    return vector
+
+
 def _imu_mounting(where: str, value: Any) -> np.ndarray:
     """``meta.json``'s ``imu_rpy_deg`` ``[roll, pitch, yaw]`` (deg, the IMU's axes in the body
     frame) as ``R_body_imu = Rz(yaw) Ry(pitch) Rx(roll)`` (3, 3); DataError naming the field
@@ -811,6 +826,9 @@ def _assemble(
             meta["gnss_origin"] = _gnss_origin(where_meta, sensor["gnss_origin"])
         if "time_origin_ns" in sensor:
             meta["time_origin_ns"] = _time_origin(where_meta, sensor["time_origin_ns"])
+        for key in GEOMETRY_KEYS:
+            if key in sensor:
+                sensor[key] = _geometry_vector(where_meta, key, sensor[key])
     label_tensors = {
         name: torch.tensor(spans, dtype=torch.float64).reshape(1, -1, 2)
         for name, spans in labels.items()
