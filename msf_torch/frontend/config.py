@@ -119,6 +119,8 @@ class EskfConfig:
     zupt_imu_detector: bool = False
     # GNSS
     gnss_sigma_m: list[float] = field(default_factory=lambda: [0.5, 0.5, 1.0])
+    # multiplier on every fix's sigma, the file's or gnss_sigma_m (msf tune fits it)
+    gnss_sigma_scale: float = 1.0
     gnss_lever_arm_m: list[float] = field(default_factory=lambda: [0.0, 0.0, 0.0])
     # GNSS velocity (Sequence.gnss_velocity: Doppler, or speed and course over ground) of the
     # same antenna: default per-axis sigma east, north, up (m/s) where the data gives none
@@ -181,6 +183,8 @@ class EskfConfig:
     pose_source_drift_rotation_rad_per_sqrt_m: float = 1e-3
     # ... and per source name [m/sqrt(m), rad/sqrt(m)], overriding the two above
     pose_source_drift: dict[str, list[float]] = field(default_factory=dict)
+    # per source name: multiplier on its declared covariance (variances; default 1; msf tune)
+    pose_source_variance_scale: dict[str, float] = field(default_factory=dict)
     # chi-square gating (probability of the acceptance region; 1.0 disables)
     gate_probability: float = 0.9999
     gate_pseudo_measurements: bool = False  # also gate NHC and zero-velocity updates
@@ -304,6 +308,7 @@ class EskfConfig:
             "max_epoch_s",
             "nhc_sigma_mps",
             "zupt_sigma_mps",
+            "gnss_sigma_scale",
             "imu_gap_s",
             "imu_gap_noise_scale",
             "imu_gap_walk_max_blind_s",
@@ -577,6 +582,19 @@ class EskfConfig:
             raise ValueError(
                 f"config key 'pose_source_drift' must map source names to two non-negative "
                 f"numbers [m/sqrt(m), rad/sqrt(m)], got {drift!r}"
+            )
+        scales = self.pose_source_variance_scale
+        if not isinstance(scales, dict) or not all(
+            isinstance(k, str)
+            and isinstance(v, (int, float))
+            and not isinstance(v, bool)
+            and math.isfinite(v)
+            and v > 0
+            for k, v in scales.items()
+        ):
+            raise ValueError(
+                f"config key 'pose_source_variance_scale' must map source names to positive "
+                f"numbers, got {scales!r}"
             )
         calibrated = [
             n

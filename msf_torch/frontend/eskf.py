@@ -219,7 +219,10 @@ class EskfNoise:
             wheel_yaw_rate_sigma=t(cfg.wheel_yaw_rate_sigma_radps),
             nhc_sigma=t(cfg.nhc_sigma_mps),
             zupt_sigma=t(cfg.zupt_sigma_mps),
-            gnss_sigma_scale=t(1.0),
+            gnss_sigma_scale=t(cfg.gnss_sigma_scale),
+            pose_source_scale={
+                name: t(float(scale)) for name, scale in cfg.pose_source_variance_scale.items()
+            },
         )
 
 
@@ -239,6 +242,13 @@ class EskfResult:
         present, accepted: sensor -> (B, E + 1) bool (a measurement was there / was fused);
             sensors are :data:`SENSORS` and ``"pose:<name>"`` per fused pose source.
         nis: sensor -> (B, E + 1) normalised innovation squared (0 where absent).
+        innovation_logdet: sensor -> (B, E + 1) ``log det S`` of its innovation covariance
+            (0 where absent): with ``nis`` and the block's rows ``d``, the Gaussian
+            log-likelihood of the innovation is ``-(nis + logdet + d log 2 pi) / 2``
+            (differentiable w.r.t. the noise; :mod:`msf_torch.frontend.tuning`).
+        gate_threshold: sensor -> the chi-square gate on its NIS (``gate_probability`` at
+            the block's rows; inf where it is not gated), for every sensor with a
+            measurement.
         gap: (B, E + 1) bool, an IMU gap was bridged in this epoch.
         divergence: (B, E + 1) int64, 0 or the ``frontend.guard`` codes (bit flags: 1
             non-finite, 2 not positive definite, 4 NIS blow-up) of a sequence that diverged
@@ -297,6 +307,8 @@ class EskfResult:
     present: dict[str, torch.Tensor] = field(default_factory=dict)
     accepted: dict[str, torch.Tensor] = field(default_factory=dict)
     nis: dict[str, torch.Tensor] = field(default_factory=dict)
+    innovation_logdet: dict[str, torch.Tensor] = field(default_factory=dict)
+    gate_threshold: dict[str, float] = field(default_factory=dict)
     gap: torch.Tensor | None = None
     divergence: torch.Tensor | None = None
     dropped_samples: dict[str, torch.Tensor] = field(default_factory=dict)
@@ -1242,6 +1254,7 @@ def run_eskf(
     }
     accepted_out: list[torch.Tensor] = []
     nis_out: list[torch.Tensor] = []
+    logdet_out: list[torch.Tensor] = []
 
     def record(st: NavState, p_cov: torch.Tensor, slip_now: torch.Tensor) -> None:
         out["p"].append(st.position)
@@ -1258,6 +1271,7 @@ def run_eskf(
     no_blocks = torch.zeros(batch, len(active), dtype=dtype, device=device)
     accepted_out.append(no_blocks.bool())
     nis_out.append(no_blocks)
+    logdet_out.append(no_blocks)
 
     # which epochs have a measurement in any sequence: one host transfer, not one per epoch
     epoch_has_update = (
@@ -1356,6 +1370,7 @@ def run_eskf(
                 divergence_out.append(code)
                 accepted_out.append(no_blocks.bool())
                 nis_out.append(no_blocks)
+                logdet_out.append(no_blocks)
                 record(state, cov, slip)
                 if progress is not None:
                     progress(e + 1, n_epochs)
@@ -1725,6 +1740,8 @@ def run_eskf(
             chol_b, info_b = torch.linalg.cholesky_ex(s_blocks)
             white = torch.linalg.solve_triangular(chol_b, r_all[..., None], upper=False)
             nis = ((white[..., 0] ** 2) @ segment) * here
+            # rows of absent blocks are the identity there: log 1 = 0
+            logdet = (2.0 * torch.log(torch.diagonal(chol_b, dim1=-2, dim2=-1)) @ segment) * here
             gate = threshold
             if velocity_col is not None and bool(here[:, velocity_col].any()):
                 gate = threshold.expand(batch, -1).clone()
@@ -1782,11 +1799,14 @@ def run_eskf(
             divergence_out.append(code)
             accepted_out.append(ok)
             nis_out.append(nis)
+            logdet_out.append(logdet)
             record(state, cov, slip)
             if progress is not None:
                 progress(e + 1, n_epochs)
 
-    done = interrupt.settle(list(out.values()), [accepted_out, nis_out, divergence_out], n_epochs)
+    done = interrupt.settle(
+        list(out.values()), [accepted_out, nis_out, logdet_out, divergence_out], n_epochs
+    )
     mask = torch.cat((torch.ones(batch, 1, dtype=torch.bool, device=device), sched.epoch_mask), 1)
     mask[:, done + 1 :] = False
     t = torch.cat((sched.t_start[:, None], sched.t_end), 1)
@@ -1803,17 +1823,21 @@ def run_eskf(
     ).unflatten(0, (batch, n_epochs + 1))
     accepted_all = torch.stack(accepted_out, 1)  # (B, E + 1, K)
     nis_all = torch.stack(nis_out, 1)
+    logdet_all = torch.stack(logdet_out, 1)
     present_out = {k: torch.cat((false_b[:, None], present[k]), 1) for k in sensors}
     accepted = {}
     nis = {}
+    logdets = {}
     for k in sensors:
         if k in active:
             col = active.index(k)
             accepted[k] = accepted_all[..., col]
             nis[k] = nis_all[..., col]
+            logdets[k] = logdet_all[..., col]
         else:
             accepted[k] = torch.zeros_like(present_out[k])
             nis[k] = torch.zeros(batch, n_epochs + 1, dtype=dtype, device=device)
+            logdets[k] = torch.zeros_like(nis[k])
     gap = torch.cat((false_b[:, None], sched.gap), 1)
     fading, noise_estimate = adaptation.history(n_epochs)
     calib_ratio, calib_observable = None, {}
@@ -1844,6 +1868,8 @@ def run_eskf(
         present=present_out,
         accepted=accepted,
         nis=nis,
+        innovation_logdet=logdets,
+        gate_threshold={k: thresholds[k] for k in active},
         gap=gap,
         divergence=torch.stack(divergence_out, 1),
         dropped_samples=dropped_samples,

@@ -89,11 +89,12 @@ def _problem(seed: int, duration: float = 6.0, imu_rate: float = 100.0, gnss_eve
     return seq, t, f, g_idx, fixes, sigma
 
 
-def _filterpy_run(t, f, g_idx, fixes, sigma, x0, p0, velocities=None):
+def _filterpy_run(t, f, g_idx, fixes, sigma, x0, p0, velocities=None, log_likelihood=None):
     """Step filterpy per IMU sample; return {imu index: (x (6,), P (6, 6))} at the fixes.
 
     ``velocities``: optional (indices, values (M, 3) with NaN up where not given, sigmas):
-    GNSS velocity updates after the fix at the same sample."""
+    GNSS velocity updates after the fix at the same sample. ``log_likelihood``: a dict that
+    gets filterpy's innovation log-likelihood of each fix, by IMU index."""
     kf = KalmanFilter(dim_x=6, dim_z=3)
     kf.x = x0.reshape(6, 1).copy()
     kf.P = p0.copy()
@@ -116,6 +117,8 @@ def _filterpy_run(t, f, g_idx, fixes, sigma, x0, p0, velocities=None):
             i = fix_at[k + 1]
             kf.update(fixes[i].reshape(3, 1), R=np.diag(sigma[i] ** 2))
             out[k + 1] = (kf.x[:, 0].copy(), kf.P.copy())
+            if log_likelihood is not None:
+                log_likelihood[k + 1] = float(kf.log_likelihood)
         if k + 1 in vel_at:
             i = vel_at[k + 1]
             value, vel_sigma = velocities[1][i], velocities[2][i]
@@ -174,6 +177,32 @@ def test_eskf_equals_filterpy_on_linear_problem(seed):
     assert float(res.gyro_bias.abs().max()) == 0.0 and float(res.accel_bias.abs().max()) == 0.0
     assert float(res.covariance[0, :, 6:, :].abs().max()) == 0.0
     assert float(res.covariance[0, :, :, 6:].abs().max()) == 0.0
+
+
+def test_innovation_log_likelihood_equals_filterpy():
+    """``nis`` and ``innovation_logdet`` give each fix's Gaussian innovation log-likelihood
+    ``-(nis + log det S + 3 log 2 pi) / 2``: filterpy's ``log_likelihood`` after the same
+    update (scipy's multivariate normal of the innovation under ``S``)."""
+    seq, t, f, g_idx, fixes, sigma = _problem(64)
+    cfg = _config()
+    state0, cov0 = initial_state(seq, cfg)
+    x0 = torch.cat((state0.position[0], state0.velocity[0])).numpy()
+    reference: dict[int, float] = {}
+    _filterpy_run(t, f, g_idx, fixes, sigma, x0, cov0[0, :6, :6].numpy(), None, reference)
+    res = run_eskf(seq, cfg)
+    times = res.t[0].numpy()
+    imu_index = {float(t[k]): k for k in g_idx[1:]}
+    fused = np.flatnonzero(res.present["gnss"][0].numpy())
+    ours = -0.5 * (
+        res.nis["gnss"][0, fused].numpy()
+        + res.innovation_logdet["gnss"][0, fused].numpy()
+        + 3.0 * np.log(2.0 * np.pi)
+    )
+    theirs = [reference[imu_index[float(times[e])]] for e in fused]
+    assert fused.size == g_idx.size - 1
+    np.testing.assert_allclose(ours, theirs, rtol=1e-9, atol=1e-9)
+    absent = ~res.present["gnss"][0]
+    assert float(res.innovation_logdet["gnss"][0, absent].abs().max()) == 0.0
 
 
 @pytest.mark.parametrize("seed", [62, 63])
