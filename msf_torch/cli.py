@@ -11,6 +11,7 @@ from __future__ import annotations
 __all__ = ["main", "build_parser"]
 
 import argparse
+import dataclasses
 import json
 import math
 import sys
@@ -495,6 +496,74 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="FILE.yaml",
         help="write magnetometer_hard_iron_uT, magnetometer_soft_iron and "
         "magnetometer_field_uT as a front-end config (for --config, or to copy into one)",
+    )
+    tn = sub.add_parser(
+        "tune",
+        help="fit the front end's noise to recorded runs by maximum likelihood of its "
+        "innovations (no ground truth needed) and write the config keys",
+    )
+    tn.add_argument(
+        "sequence",
+        nargs="+",
+        help="recorded runs (native .npz / folder, EuRoC, KITTI raw, kitti-gtsam, or ROS "
+        "bags with --topics); one config fits them all",
+    )
+    tn.add_argument(
+        "--topics",
+        type=Path,
+        default=None,
+        metavar="ROBOT.yaml",
+        help="read the sequences as ROS bags with this robot config",
+    )
+    tn.add_argument(
+        "--format",
+        dest="fmt",
+        default=None,
+        help="native | npz | csv | euroc | kitti-raw | kitti-gtsam (default: detect)",
+    )
+    tn.add_argument(
+        "--config", type=Path, default=None, help="start config YAML (its noise is the start)"
+    )
+    tn.add_argument(
+        "--params",
+        type=lambda text: [p.strip() for p in text.split(",") if p.strip()],
+        default=None,
+        metavar="P1,P2",
+        help="what to tune: gyro_noise_density, accel_noise_density, gyro_bias_rw_density, "
+        "accel_bias_rw_density, wheel_speed_sigma_mps, wheel_lateral_sigma_mps, "
+        "wheel_yaw_rate_sigma_radps, nhc_sigma_mps, gnss_sigma_scale, pose:<name> (default: "
+        "the IMU's white noises and every fused sensor's sigma)",
+    )
+    tn.add_argument(
+        "--piece-s",
+        type=_positive_float,
+        default=30.0,
+        help="the runs are cut into pieces this long, filtered as one batch (s; default 30)",
+    )
+    tn.add_argument(
+        "--burn-in-s",
+        type=float,
+        default=5.0,
+        help="the first seconds of each piece do not count (its initialisation; default 5)",
+    )
+    tn.add_argument(
+        "--max-evaluations",
+        type=_positive_int,
+        default=25,
+        help="most filter runs with gradient (L-BFGS evaluations; default 25)",
+    )
+    tn.add_argument(
+        "--out",
+        type=Path,
+        default=None,
+        metavar="FILE.yaml",
+        help="write the start config's keys with the tuned values as a front-end config",
+    )
+    tn.add_argument(
+        "--progress",
+        choices=("auto", "on", "off"),
+        default="auto",
+        help="progress bar on stderr (auto: when stderr is a terminal)",
     )
     return parser
 
@@ -1559,6 +1628,92 @@ def _cmd_magcal(args) -> dict[str, Any]:
     return summary
 
 
+def _cmd_tune(args) -> dict[str, Any]:
+    """``msf tune RUN [RUN ...]``: the noise of the front end fitted to the runs by
+    maximum likelihood of its innovations (:func:`msf_torch.frontend.tuning.tune_noise`);
+    ``--out`` writes the start config with the tuned values."""
+    import time
+
+    import yaml
+
+    from msf_torch.frontend.config import read_config_keys
+    from msf_torch.frontend.tuning import tune_noise
+    from msf_torch.io.atomic import atomic_write
+
+    args.sort, args.no_slip_detection = False, False
+    loaded = [_load(args, source) for source in args.sequence]
+    cfg = loaded[0][1]
+    for _, other, source in loaded[1:]:
+        differ = [
+            f.name
+            for f in dataclasses.fields(cfg)
+            if getattr(cfg, f.name) != getattr(other, f.name)
+        ]
+        if differ:
+            raise ValueError(
+                f"{source}: its config differs from {loaded[0][2]}'s in {', '.join(differ)} "
+                "(one config is tuned for all runs: give the same --config, or tune them "
+                "apart)"
+            )
+    factory = _progress_factory(args.progress, unit="evaluation")
+    update, close = factory() if factory is not None else (None, None)
+    start = time.perf_counter()
+    try:
+        result = tune_noise(
+            [seq for seq, _, _ in loaded],
+            cfg,
+            args.params,
+            piece_s=args.piece_s,
+            burn_in_s=args.burn_in_s,
+            max_evaluations=args.max_evaluations,
+            progress=update,
+        )
+    finally:
+        if close is not None:
+            close()
+    wall = time.perf_counter() - start
+    if result.at_bound:
+        warnings.warn(
+            f"{', '.join(result.at_bound)} ended at the bound (x100 or /100 of the start): "
+            "the runs want it further, or cannot see it (a sensor that never disagrees, "
+            "e.g. a simulated one without that noise); check before using it",
+            stacklevel=2,
+        )
+    summary: dict[str, Any] = {
+        "sequences": list(args.sequence),
+        "pieces": result.pieces,
+        "piece_s": result.piece_s,
+        "burn_in_s": result.burn_in_s,
+        "parameters": result.parameters,
+        "at_bound": result.at_bound,
+        "nll_per_measurement_initial": result.nll_initial,
+        "nll_per_measurement_final": result.nll_final,
+        "mean_nis": {k: list(v) for k, v in result.mean_nis.items()},
+        "accepted": {k: list(v) for k, v in result.accepted.items()},
+        "evaluations": result.evaluations,
+        "wall_s": wall,
+    }
+    if args.out is not None:
+        keys: dict[str, Any] = {} if args.config is None else read_config_keys(args.config)
+        for name in result.parameters:
+            if name.startswith("pose:"):
+                keys["pose_source_variance_scale"] = dict(result.config.pose_source_variance_scale)
+            else:
+                keys[name] = getattr(result.config, name)
+        header = (
+            f"# msf tune: noise fitted by maximum likelihood of the innovations of "
+            f"{', '.join(map(str, args.sequence))}\n# ({result.evaluations} evaluations; "
+            f"negative log-likelihood per measurement {result.nll_initial:.4g} -> "
+            f"{result.nll_final:.4g})"
+            + (f"; the other keys as in {args.config}" if args.config is not None else "")
+            + "\n"
+        )
+        with atomic_write(args.out) as handle:
+            handle.write(header + yaml.safe_dump(keys, sort_keys=False))
+        summary["config_file"] = str(args.out)
+    return summary
+
+
 def main(argv: list[str] | None = None) -> int:
     """Entry point of the ``msf`` console script; returns the exit status."""
     from msf_torch.io.errors import DataError, MissingExtraError
@@ -1576,6 +1731,7 @@ def main(argv: list[str] | None = None) -> int:
         "encoders": _cmd_encoders,
         "config": _cmd_config,
         "magcal": _cmd_magcal,
+        "tune": _cmd_tune,
     }
     try:
         with warnings.catch_warnings():
