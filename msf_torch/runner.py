@@ -591,6 +591,31 @@ def _magnetometer_summary(
     return {"magnetometer_readings": int(index.size), "magnetometer_disturbed": disturbed}
 
 
+def _innovation_summary(seq: Sequence, result: EskfResult) -> dict[str, dict[str, float]]:
+    """Per measurement block of sequence 0 (B = 1) with accepted measurements: their mean
+    NIS, the block's rows (what a consistent filter's mean NIS is) and the ratio. Warns for
+    a block of at least 10 whose ratio is above 3: innovations that large against the
+    modelled spread mean a noise set too small for the run (an over-confident filter),
+    which ``msf tune`` fits (docs/tuning.md)."""
+    out = {}
+    for name, rows in result.block_rows.items():
+        accepted = result.accepted[name][0] & result.mask[0]
+        count = int(accepted.sum())
+        if count == 0:
+            continue
+        mean = float(result.nis[name][0][accepted].mean())
+        out[name] = {"mean_nis": round(mean, 3), "rows": rows, "ratio": round(mean / rows, 3)}
+        if count >= 10 and mean > 3.0 * rows:
+            warnings.warn(
+                f"{seq.names[0]}: the {name} innovations are {mean / rows:.1f}x the spread the "
+                f"filter models (mean NIS {mean:.3g} for {rows} rows over {count} accepted): "
+                "its noise looks too small for this run; msf tune fits the noise to the run "
+                "(docs/tuning.md)",
+                stacklevel=2,
+            )
+    return out
+
+
 def _score_and_write(
     seq: Sequence,
     result: EskfResult,
@@ -609,6 +634,7 @@ def _score_and_write(
     summary["measurements"] = {
         k: {n: v[0] for n, v in c.items()} for k, c in counts.items() if c["present"][0] > 0
     }
+    summary["innovations"] = _innovation_summary(seq, result)
     dropped = seq.meta.get("dropped_nonfinite")
     if dropped:
         summary["dropped_nonfinite"] = dropped

@@ -249,6 +249,8 @@ class EskfResult:
         gate_threshold: sensor -> the chi-square gate on its NIS (``gate_probability`` at
             the block's rows; inf where it is not gated), for every sensor with a
             measurement.
+        block_rows: sensor -> its block's rows (the NIS's degrees of freedom), for every
+            sensor with a measurement.
         gap: (B, E + 1) bool, an IMU gap was bridged in this epoch.
         divergence: (B, E + 1) int64, 0 or the ``frontend.guard`` codes (bit flags: 1
             non-finite, 2 not positive definite, 4 NIS blow-up) of a sequence that diverged
@@ -309,6 +311,7 @@ class EskfResult:
     nis: dict[str, torch.Tensor] = field(default_factory=dict)
     innovation_logdet: dict[str, torch.Tensor] = field(default_factory=dict)
     gate_threshold: dict[str, float] = field(default_factory=dict)
+    block_rows: dict[str, int] = field(default_factory=dict)
     gap: torch.Tensor | None = None
     divergence: torch.Tensor | None = None
     dropped_samples: dict[str, torch.Tensor] = field(default_factory=dict)
@@ -1870,6 +1873,7 @@ def run_eskf(
         nis=nis,
         innovation_logdet=logdets,
         gate_threshold={k: thresholds[k] for k in active},
+        block_rows={k: dims[k] for k in active},
         gap=gap,
         divergence=torch.stack(divergence_out, 1),
         dropped_samples=dropped_samples,

@@ -72,3 +72,23 @@ def test_tune_errors_name_the_parameter(run_file, capsys):
     assert "'nhc_sigma_mps' needs nhc measurements" in capsys.readouterr().err  # wheels: no NHC
     assert main(["tune", str(run_file), "--burn-in-s", "40", "--max-evaluations", "1"]) == 2
     assert "burn_in_s must lie in [0, piece_s)" in capsys.readouterr().err
+
+
+def test_msf_run_reports_the_innovations_and_warns_of_an_overconfident_sensor(
+    run_file, tmp_path, capsys
+):
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("gnss_sigma_scale: 0.3\n")
+    assert main(["run", str(run_file), "--out", str(tmp_path / "a"), "--no-plot"]) == 0
+    captured = capsys.readouterr()
+    good = _last_json(captured.out)["innovations"]
+    assert 0.5 < good["gnss"]["ratio"] < 1.5 and good["gnss"]["rows"] == 3
+    assert "innovations are" not in captured.err
+    code = main(
+        ["run", str(run_file), "--config", str(bad), "--out", str(tmp_path / "b"), "--no-plot"]
+    )
+    captured = capsys.readouterr()
+    ratio = _last_json(captured.out)["innovations"]["gnss"]["ratio"]
+    assert code == 0 and ratio > 3.0
+    assert f"the gnss innovations are {ratio:.1f}x the spread the filter models" in captured.err
+    assert "msf tune" in captured.err
