@@ -549,8 +549,9 @@ def build_parser() -> argparse.ArgumentParser:
     tn.add_argument(
         "--max-evaluations",
         type=_positive_int,
-        default=25,
-        help="most filter runs with gradient (L-BFGS evaluations; default 25)",
+        default=100,
+        help="most filter runs with gradient (L-BFGS evaluations; default 100; a warning "
+        "says when it stopped there still improving)",
     )
     tn.add_argument(
         "--out",
@@ -1679,6 +1680,12 @@ def _cmd_tune(args) -> dict[str, Any]:
             "e.g. a simulated one without that noise); check before using it",
             stacklevel=2,
         )
+    if not result.converged:
+        warnings.warn(
+            f"stopped at --max-evaluations {args.max_evaluations} while still improving: the "
+            "values may move further with more",
+            stacklevel=2,
+        )
     summary: dict[str, Any] = {
         "sequences": list(args.sequence),
         "pieces": result.pieces,
@@ -1691,6 +1698,7 @@ def _cmd_tune(args) -> dict[str, Any]:
         "mean_nis": {k: list(v) for k, v in result.mean_nis.items()},
         "accepted": {k: list(v) for k, v in result.accepted.items()},
         "evaluations": result.evaluations,
+        "converged": result.converged,
         "wall_s": wall,
     }
     if args.out is not None:

@@ -37,9 +37,12 @@ def test_tune_fixes_a_bad_start_and_writes_a_config(run_file, tmp_path, capsys):
         "gyro_noise_density,gnss_sigma_scale",
     ]
     code = main(["tune", *args, "--piece-s", "20", "--max-evaluations", "6", "--out", str(out)])
-    summary = _last_json(capsys.readouterr().out)
+    captured = capsys.readouterr()
+    summary = _last_json(captured.out)
     assert code == 0
     assert summary["pieces"] == 2 and summary["evaluations"] <= 6
+    cut_off = "stopped at --max-evaluations 6 while still improving" in captured.err
+    assert cut_off == (not summary["converged"])
     assert summary["nll_per_measurement_final"] < summary["nll_per_measurement_initial"]
     # the simulated receiver's noise is its declared sigma (scale 1), the gyro's ~1e-4
     assert 0.6 < summary["parameters"]["gnss_sigma_scale"]["tuned"] < 1.5
