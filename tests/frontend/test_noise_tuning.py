@@ -130,3 +130,43 @@ def test_tuning_finds_the_noise_of_a_linear_system_without_the_truth():
         tuned.gnss_sigma_scale / 5.0
     )
     assert result.pieces == 2 and not result.at_bound
+
+
+def test_the_tuned_config_is_the_noise_that_was_optimised():
+    """``_tuned_config`` (what ``msf tune --out`` writes) gives, through
+    ``EskfNoise.from_config``, the very noise tensors the objective saw (``_noise``), for
+    every tunable key and a pose source, starting from non-default scales."""
+    from msf_torch.frontend.tuning import TUNABLE, _tuned_config
+
+    cfg = _config(
+        gyro_noise_density=1e-3,
+        gyro_bias_rw_density=1e-5,
+        accel_bias_rw_density=1e-4,
+        gnss_sigma_scale=1.7,
+        pose_source_variance_scale={"vo": 0.4, "lidar": 2.0},
+    )
+    names = [*TUNABLE, "pose:vo", "pose:wheel_odom"]
+    theta = torch.linspace(-1.2, 1.5, len(names), dtype=DTYPE)
+    optimised = _noise(EskfNoise.from_config(cfg), names, theta)
+    written = EskfNoise.from_config(_tuned_config(cfg, names, theta.tolist()))
+    for field in (
+        "wheel_speed_sigma",
+        "wheel_lateral_sigma",
+        "wheel_yaw_rate_sigma",
+        "nhc_sigma",
+        "zupt_sigma",
+        "gnss_sigma_scale",
+    ):
+        torch.testing.assert_close(getattr(written, field), getattr(optimised, field))
+    for density in (
+        "gyro_noise_density",
+        "accel_noise_density",
+        "gyro_bias_rw_density",
+        "accel_bias_rw_density",
+    ):
+        torch.testing.assert_close(getattr(written.imu, density), getattr(optimised.imu, density))
+    assert set(written.pose_source_scale) == {"vo", "lidar", "wheel_odom"}
+    for name, value in optimised.pose_source_scale.items():
+        torch.testing.assert_close(
+            written.pose_source_scale[name], torch.as_tensor(value, dtype=DTYPE)
+        )
