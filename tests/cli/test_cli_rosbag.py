@@ -346,3 +346,34 @@ def test_checkpoint_filter_settings_are_compared_with_the_robot_estimator(
         err = capsys.readouterr().err
         expected = "gyro_noise_density: trained with 9.9e-05, this run 0.005"
         assert (expected in err) is warned, err
+
+
+def test_tune_reads_a_bag_as_the_native_run(robot_run, tmp_path, capsys) -> None:
+    """``msf tune BAG --topics ROBOT.yaml`` sees what ``msf tune`` of the same run written
+    natively (with the bag's settings by hand) sees: the same parameters, the same
+    likelihood of the same innovations to rounding (one evaluation each: the data path,
+    not the optimiser, is under test)."""
+    common = ["--piece-s", "12.5", "--burn-in-s", "2", "--max-evaluations", "1"]
+    common += ["--progress", "off"]
+    bag = ["tune", str(robot_run["bag"]), "--topics", str(robot_run["robot"]), *common]
+    out = tmp_path / "tuned.yaml"
+    assert main([*bag, "--out", str(out)]) == 0
+    from_bag = _last_json(capsys)
+    native = ["tune", str(robot_run["native"]), "--config", str(robot_run["native_cfg"]), *common]
+    assert main(native) == 0
+    from_native = _last_json(capsys)
+    assert from_bag["pieces"] == from_native["pieces"] == 1
+    assert set(from_bag["parameters"]) == {
+        "gyro_noise_density",
+        "accel_noise_density",
+        "wheel_speed_sigma_mps",
+        "wheel_lateral_sigma_mps",
+        "gnss_sigma_scale",
+    }
+    for key in ("nll_per_measurement_initial", "nll_per_measurement_final"):
+        assert from_bag[key] == pytest.approx(from_native[key], rel=1e-9)
+    assert from_bag["mean_nis"].keys() == from_native["mean_nis"].keys()
+    for name, values in from_bag["mean_nis"].items():
+        assert values == pytest.approx(from_native["mean_nis"][name], rel=1e-9)
+    assert from_bag["accepted"] == from_native["accepted"]
+    assert "gnss_sigma_scale" in out.read_text()
