@@ -1,17 +1,17 @@
 """Initial state of the front end from the first seconds of each sequence.
 
 Roll and pitch come from the mean accelerometer reading over ``init_window_s`` (gravity
-direction), with the body's acceleration taken out where wheel speeds cover the window
-(:func:`levelling_specific_force`). Yaw, in order of preference: the first pose
-measurement (a heading source, sigma ``init_yaw_sigma_rad``); with GNSS and wheels, the
-2-D rotation that best aligns the wheel/gyro dead-reckoned path with the GNSS track up to
-``init_min_gnss_distance_m`` from the first fix (2-D Kabsch on the centred tracks; the
-aligned dead-reckoning origin is the initial position); with GNSS only, the course of the
-first GNSS displacement of that length, or the GNSS track's segment courses less the
-gyro's turns (:func:`segment_course_yaw`) where that is better known; else 0 with a
-heading sigma of ``init_yaw_sigma_unknown_rad`` (pi; the world frame then starts aligned
-with the body). A
-track that never gets that far but reaches a quarter of it is used up to its farthest fix.
+direction), with the body's acceleration taken out where wheel speeds (or, without wheels,
+GNSS velocities) cover the window (:func:`levelling_specific_force`). Yaw, in order of
+preference: the first pose measurement (a heading source, sigma ``init_yaw_sigma_rad``);
+with GNSS and wheels, the 2-D rotation that best aligns the wheel/gyro dead-reckoned path
+with the GNSS track up to ``init_min_gnss_distance_m`` from the first fix (2-D Kabsch on
+the centred tracks; the aligned dead-reckoning origin is the initial position); with GNSS
+only, the course of the first GNSS displacement of that length, or the GNSS track's
+segment courses less the gyro's turns (:func:`segment_course_yaw`) where that is better
+known; else 0 with a heading sigma of ``init_yaw_sigma_unknown_rad`` (pi; the world frame
+then starts aligned with the body). A track that never gets that far but reaches a quarter
+of it is used up to its farthest fix.
 A GNSS heading's sigma is that of the estimate made
 (:func:`alignment_yaw_variance`: the fixes' noise over the track's spread, and the gyro
 bias and white noise bending the dead-reckoned track; for a course, the two fixes' noise
@@ -501,6 +501,7 @@ def levelling_specific_force(
     gyro: np.ndarray,
     wheel: dict[str, np.ndarray] | None,
     cfg: EskfConfig,
+    gnss_velocity: dict[str, np.ndarray] | None = None,
 ) -> np.ndarray:
     """The specific force of gravity alone (3,) m/s^2 in the body axes at the first sample
     of a levelling window, whose direction gives the initial roll and pitch.
@@ -517,6 +518,12 @@ def levelling_specific_force(
     window of its start, a last within a quarter window of its end, three at least);
     otherwise the plain mean is used.
 
+    Without wheels, GNSS velocities that cover the window in the same way stand in for
+    them where the non-holonomic constraint holds (``nhc`` not ``off``): the speed over
+    ground ``|v|`` (the antenna's, taken as that of the NHC point ``nhc_lever_arm_m``,
+    driving forwards) along the vehicle's x axis. A receiver at 5 Hz or more covers the
+    0.5-s window; at 1 Hz the plain mean stays.
+
     Args:
         imu_t: (N,) times of the window's IMU samples, s.
         accel, gyro: (N, 3) raw readings, m/s^2 and rad/s (the config's initial biases are
@@ -524,22 +531,41 @@ def levelling_specific_force(
         wheel: the sequence's wheel readings (``t``, ``left_speed``, ``right_speed``, m/s) or
             None.
         cfg: the front end's config.
+        gnss_velocity: the sequence's GNSS velocities (``t``, ``velocity`` (M, 3) m/s east,
+            north, up; a NaN up is not measured) or None.
     """
     force = accel - np.asarray(cfg.init_accel_bias_mps2)
     quarter = 0.25 * (imu_t[-1] - imu_t[0])
-    if wheel is None or imu_t.size < 2:
+
+    def covers(times: np.ndarray) -> bool:
+        inside = (times >= imu_t[0] - quarter) & (times <= imu_t[-1] + quarter)
+        return (
+            bool(times[0] <= imu_t[0] + quarter and times[-1] >= imu_t[-1] - quarter)
+            and int(inside.sum()) >= 3
+        )
+
+    if imu_t.size < 2:
         return force.mean(0)
-    wheel_t = wheel["t"]
-    inside = (wheel_t >= imu_t[0] - quarter) & (wheel_t <= imu_t[-1] + quarter)
-    if wheel_t[0] > imu_t[0] + quarter or wheel_t[-1] < imu_t[-1] - quarter or inside.sum() < 3:
+    if wheel is not None and covers(wheel["t"]):
+        speed_t, speeds = wheel["t"], 0.5 * (wheel["left_speed"] + wheel["right_speed"])
+        lever = np.asarray(cfg.wheel_lever_arm_m, dtype=np.float64)
+    elif (
+        wheel is None
+        and gnss_velocity is not None
+        and cfg.nhc != "off"
+        and covers(gnss_velocity["t"])
+    ):
+        speed_t = gnss_velocity["t"]
+        speeds = np.linalg.norm(np.nan_to_num(gnss_velocity["velocity"]), axis=1)
+        lever = np.asarray(cfg.nhc_lever_arm_m, dtype=np.float64)
+    else:
         return force.mean(0)
     rate = gyro - np.asarray(cfg.init_gyro_bias_radps)
-    speed = np.interp(imu_t, wheel_t, 0.5 * (wheel["left_speed"] + wheel["right_speed"]))
+    speed = np.interp(imu_t, speed_t, speeds)
     forward = np.array([1.0, 0.0, 0.0])
     if cfg.calibrate_imu_body_rotation:
         rotvec = torch.as_tensor(cfg.calibration_imu_body_rotation_rad, dtype=torch.float64)
         forward = so3.exp(rotvec).numpy() @ forward
-    lever = np.asarray(cfg.wheel_lever_arm_m, dtype=np.float64)
     body_velocity = speed[:, None] * forward - np.cross(rate, lever)
     acceleration = np.gradient(body_velocity, imu_t, axis=0) + np.cross(rate, body_velocity)
     turned = gyro_attitude(imu_t, rate, imu_t)
@@ -554,8 +580,14 @@ def _one(
     window = imu_t <= t0 + cfg.init_window_s
     span = (t0 - cfg.time_tolerance_s, imu_t[-1] + cfg.time_tolerance_s)
     wheel = _valid(seq.wheel, b, span)
+    gnss_velocity = _valid(seq.gnss_velocity, b, span)
     f = levelling_specific_force(
-        imu_t[window], read_imu("accel", window), read_imu("gyro", window), wheel, cfg
+        imu_t[window],
+        read_imu("accel", window),
+        read_imu("gyro", window),
+        wheel,
+        cfg,
+        gnss_velocity,
     )
     roll = math.atan2(f[1], f[2])
     pitch = math.atan2(-f[0], math.hypot(f[1], f[2]))
@@ -671,7 +703,6 @@ def _one(
                 # an IMU-to-vehicle yaw still to be calibrated adds its prior uncertainty
                 model_var += cfg.calibration_rotation_sigma_rad**2
             yaw_sigma = math.sqrt(model_var)
-    gnss_velocity = _valid(seq.gnss_velocity, b, span)
     if gnss_velocity is not None:
         tilt = _rpy_numpy(roll, pitch, 0.0)
         reversing = None

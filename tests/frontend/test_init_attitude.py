@@ -136,3 +136,29 @@ def test_moving_start_on_rough_ground_against_the_simulated_truth():
     # the accelerometer's turn-on bias (5 mg: 0.005 rad) is what is left
     assert max(levelled) < 0.025 and np.median(levelled) < 0.012
     assert np.median(plain) > 0.04 and max(plain) > 0.15
+
+
+def test_moving_start_without_wheels_levelled_with_gnss_velocities():
+    """The same fast starts without wheels, with a 10-Hz GNSS velocity (0.05 m/s noise):
+    the speed over ground along body x stands in for the wheels; with ``nhc: off`` (a
+    platform that may slide sideways) the plain mean stays."""
+    sim = SimConfig(
+        duration_s=3.0,
+        mean_speed_mps=3.0,
+        turn_rate_peak_rad_s=0.8,
+        terrain_slope_deg=8.0,
+        terrain_wavelength_m=(10.0, 30.0),
+        gnss_velocity=True,
+        gnss_rate_hz=10.0,
+    )
+    levelled, plain = [], []
+    for seed in range(100, 116):
+        seq = replace(simulate_run(sim, seed).sequence, wheel=None)
+        cfg = load_sequence_config(seq.meta)
+        truth = Rotation.from_quat(seq.ground_truth.quaternion[0, 0].numpy()[[1, 2, 3, 0]])
+        state, _ = initial_state(seq, cfg)
+        levelled.append(_tilt_error(state.rotation[0].numpy(), truth))
+        state, _ = initial_state(seq, cfg.replace(nhc="off"))
+        plain.append(_tilt_error(state.rotation[0].numpy(), truth))
+    assert max(levelled) < 0.045 and np.median(levelled) < 0.015
+    assert np.median(plain) > 0.05 and max(plain) > 0.15
