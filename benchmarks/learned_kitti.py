@@ -95,7 +95,12 @@ from msf_torch.eval.outage import outage_metrics, split_gnss_outage  # noqa: E40
 from msf_torch.frontend.config import EskfConfig  # noqa: E402
 from msf_torch.frontend.eskf import EskfNoise, run_eskf  # noqa: E402
 from msf_torch.frontend.stream import time_slice  # noqa: E402
-from msf_torch.frontend.tuning import TuningResult, innovation_nll, tune_noise  # noqa: E402
+from msf_torch.frontend.tuning import (  # noqa: E402
+    TuningResult,
+    counted_blocks,
+    innovation_nll,
+    tune_noise,
+)
 from msf_torch.io import load_sequence  # noqa: E402
 from msf_torch.learning.covnet import LOG_SCALE_SENSORS, load_checkpoint, scaled_noise  # noqa: E402
 from msf_torch.learning.inference import run_piecewise  # noqa: E402
@@ -176,7 +181,7 @@ def innovation_nll_per_measurement(seq: Sequence, cfg: EskfConfig, burn_in_s: fl
     (B = 1) with ``cfg``; the first ``burn_in_s`` seconds do not count."""
     with torch.no_grad():
         result = run_eskf(seq, cfg)
-    total, count = innovation_nll(result, burn_in_s, cfg.slip_skip_below)
+    total, count = innovation_nll(result, counted_blocks(result, burn_in_s, cfg.slip_skip_below))
     return float(total) / max(float(count), 1.0)
 
 

@@ -36,7 +36,7 @@ so they are tuned only when asked for (:data:`TUNABLE`, ``parameters``).
 
 from __future__ import annotations
 
-__all__ = ["TUNABLE", "TuningResult", "innovation_nll", "tune_noise"]
+__all__ = ["TUNABLE", "TuningResult", "counted_blocks", "innovation_nll", "tune_noise"]
 
 import dataclasses
 import math
@@ -111,36 +111,48 @@ class TuningResult:
     burn_in_s: float = 0.0
 
 
-def innovation_nll(
+def counted_blocks(
     result: EskfResult, burn_in_s: float = 0.0, slip_skip_below: float = 0.0
+) -> dict[str, torch.Tensor]:
+    """Per measurement block, the (B, E + 1) epochs whose measurement counts in
+    :func:`innovation_nll`: every one that was there, gated or not, except in the first
+    ``burn_in_s`` seconds of each sequence, wheel readings where the slip factor was below
+    ``slip_skip_below`` and pose samples of a source flagged as faulty (not the noise's
+    doing). :func:`tune_noise` takes them from the start run and keeps them: the sum then
+    holds the same terms at every noise it tries (the slip factor moves with the noise)."""
+    settled = result.mask & (result.t >= result.t[:, :1] + burn_in_s)
+    counted = {}
+    for name, present in result.present.items():
+        keep = present & settled
+        if name == "wheel":
+            keep = keep & (result.slip_factor >= slip_skip_below)
+        if name in result.source_fault:
+            keep = keep & ~result.source_fault[name]
+        counted[name] = keep
+    return counted
+
+
+def innovation_nll(
+    result: EskfResult, counted: dict[str, torch.Tensor]
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Robust negative log-likelihood ``1/2 sum (rho(nis) + log det S)`` () of the
-    measurement blocks of a filter run (all sequences and blocks; the ``d log 2 pi``
-    constant left out), and the number of blocks it sums () (float).
+    ``counted`` measurement blocks of a filter run (:func:`counted_blocks`; all sequences
+    and blocks; the ``d log 2 pi`` constant left out), and the number of blocks it sums
+    () (float).
 
-    Every block that was there counts, whether the gate let it in or not, so the sum
-    holds the same terms for any noise; ``rho(x) = -2 log(exp(-x / 2) + exp(-g / 2))``
-    (less its value at 0) is the NIS itself well below the block's gate ``g`` and ``g``
-    well above it: a Gaussian contaminated by outliers that look like an NIS of ``g``,
-    smooth in the noise (a gate's yes / no is not). Left out: the first ``burn_in_s``
-    seconds of each sequence, wheel readings where the slip factor was below
-    ``slip_skip_below`` and pose samples of a source flagged as faulty (not the noise's
-    doing)."""
+    ``rho(x) = -2 log(exp(-x / 2) + exp(-g / 2))`` (less its value at 0) is the NIS itself
+    well below the block's gate ``g`` and ``g`` well above it: a Gaussian contaminated by
+    outliers that look like an NIS of ``g``, smooth in the noise (a gate's yes / no is
+    not)."""
     total = result.position.new_zeros(())
     count = result.position.new_zeros(())
-    settled = result.mask & (result.t >= result.t[:, :1] + burn_in_s)
     for name, nis in result.nis.items():
-        counted = result.present[name] & settled
-        if name == "wheel":
-            counted = counted & (result.slip_factor >= slip_skip_below)
-        if name in result.source_fault:
-            counted = counted & ~result.source_fault[name]
         gate = result.gate_threshold.get(name, math.inf)
         rho = nis
         if math.isfinite(gate):
             cap = torch.full_like(nis, -0.5 * gate)
             rho = -2.0 * (torch.logaddexp(-0.5 * nis, cap) - math.log1p(math.exp(-0.5 * gate)))
-        weight = counted.to(nis.dtype)
+        weight = counted[name].to(nis.dtype)
         total = total + 0.5 * (weight * (rho + result.innovation_logdet[name])).sum()
         count = count + weight.sum()
     return total, count
@@ -329,7 +341,8 @@ def tune_noise(
         start = run_eskf(batch, cfg)
     names = _default_parameters(start) if parameters is None else list(parameters)
     _check_parameters(names, start)
-    total, count = innovation_nll(start, burn_in_s, cfg.slip_skip_below)
+    counted = counted_blocks(start, burn_in_s, cfg.slip_skip_below)
+    total, count = innovation_nll(start, counted)
     if float(count) == 0:
         raise ValueError("tune: the filter accepted no measurement in these runs")
     base = EskfNoise.from_config(cfg, dtype, device)
@@ -351,9 +364,14 @@ def tune_noise(
         optimizer.zero_grad()
         theta = bound * torch.tanh(phi / bound)
         result = run_eskf(batch, cfg, noise=_noise(base, names, theta))
-        nll, blocks = innovation_nll(result, burn_in_s, cfg.slip_skip_below)
+        nll, blocks = innovation_nll(result, counted)
         prior = 0.5 * ((theta / prior_sigma) ** 2).sum()
         loss = nll + prior  # summed: L-BFGS's first step is then one unit of log scale
+        if not torch.isfinite(loss):  # a diverged filter: a wall for the line search
+            history.append(math.inf)
+            if progress is not None:
+                progress(len(history), max_evaluations)
+            return torch.full_like(loss, 1e20).detach()
         loss.backward()
         history.append(float(loss.detach()) / max(float(blocks), 1.0))
         if float(loss.detach()) < best["loss"]:  # the same terms at every evaluation
@@ -368,7 +386,7 @@ def tune_noise(
     tuned = _tuned_config(cfg, names, theta)
     with torch.no_grad():
         final = run_eskf(batch, tuned)
-    final_total, final_count = innovation_nll(final, burn_in_s, cfg.slip_skip_below)
+    final_total, final_count = innovation_nll(final, counted)
     nis_before, count_before = _block_figures(start, burn_in_s)
     nis_after, count_after = _block_figures(final, burn_in_s)
     return TuningResult(

@@ -12,11 +12,11 @@ import math
 import numpy as np
 import pytest
 import torch
+from error_state_checks import level_sequence
 
 from msf_torch.frontend.config import EskfConfig
 from msf_torch.frontend.eskf import EskfNoise, run_eskf
-from msf_torch.frontend.tuning import _noise, innovation_nll, tune_noise
-from msf_torch.types import GnssFixes, ImuSamples, Sequence
+from msf_torch.frontend.tuning import _noise, counted_blocks, innovation_nll, tune_noise
 
 DTYPE = torch.float64
 G = 9.80665
@@ -67,22 +67,7 @@ def _linear_run(seed: int, duration: float, imu_rate: float = 50.0, gnss_every: 
     sigma = rng.uniform(0.02, 0.06, (g_idx.size, 3))
     fixes = pos[g_idx] + SCALE * sigma * rng.normal(size=(g_idx.size, 3))
     fixes[0] = pos[0]
-    seq = Sequence(
-        names=[f"linear{seed}"],
-        imu=ImuSamples(
-            t=torch.as_tensor(t)[None],
-            gyro=torch.zeros(1, n, 3, dtype=DTYPE),
-            accel=torch.as_tensor(measured)[None],
-            mask=torch.ones(1, n, dtype=torch.bool),
-        ),
-        gnss=GnssFixes(
-            t=torch.as_tensor(t[g_idx])[None],
-            position=torch.as_tensor(fixes)[None],
-            sigma=torch.as_tensor(sigma)[None],
-            mask=torch.ones(1, g_idx.size, dtype=torch.bool),
-        ),
-    )
-    seq.check()
+    seq = level_sequence(f"linear{seed}", t, measured, g_idx, fixes, sigma)
     return seq
 
 
@@ -91,9 +76,11 @@ def test_gradient_of_the_innovation_likelihood_matches_finite_differences():
     cfg = _config()
     base = EskfNoise.from_config(cfg)
     names = ["accel_noise_density", "gnss_sigma_scale"]
+    with torch.no_grad():
+        counted = counted_blocks(run_eskf(seq, cfg))
 
     def objective(theta: torch.Tensor) -> torch.Tensor:
-        return innovation_nll(run_eskf(seq, cfg, noise=_noise(base, names, theta)))[0]
+        return innovation_nll(run_eskf(seq, cfg, noise=_noise(base, names, theta)), counted)[0]
 
     theta = torch.tensor([0.3, -0.2], dtype=DTYPE, requires_grad=True)
     objective(theta).backward()
