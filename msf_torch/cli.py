@@ -118,12 +118,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="where the estimator runs: cpu (default), cuda or cuda:N; a batch of many "
         "sequences gains the most on a GPU, one sequence is faster on the CPU",
     )
-    run.add_argument(
-        "--progress",
-        choices=("auto", "on", "off"),
-        default="auto",
-        help="progress bar on stderr (auto: when stderr is a terminal)",
-    )
+    _progress_argument(run)
     run.add_argument(
         "--smooth",
         choices=("full", "window"),
@@ -560,13 +555,18 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="FILE.yaml",
         help="write the start config's keys with the tuned values as a front-end config",
     )
-    tn.add_argument(
+    _progress_argument(tn)
+    return parser
+
+
+def _progress_argument(parser: argparse.ArgumentParser) -> None:
+    """``--progress auto|on|off``: a progress bar on stderr (auto: when it is a terminal)."""
+    parser.add_argument(
         "--progress",
         choices=("auto", "on", "off"),
         default="auto",
         help="progress bar on stderr (auto: when stderr is a terminal)",
     )
-    return parser
 
 
 def _receiver_arguments(

@@ -1,12 +1,15 @@
 """Shared helpers for tests of error-state measurement models: a random batch of
 navigation states, the conventions' perturbation and central differences; a filter run's
-navigation errors against a simulated truth."""
+navigation errors against a simulated truth; a level, non-turning IMU + GNSS sequence (the
+linear-Gaussian reduction of the filter)."""
 
 from __future__ import annotations
 
+import numpy as np
 import torch
 
 from msf_torch.geometry import so3
+from msf_torch.types import GnssFixes, ImuSamples, Sequence
 
 DTYPE = torch.float64
 EPS = 1e-6
@@ -81,3 +84,34 @@ def nees_inside_fraction(result, runs, after_s: float = 5.0) -> float:
         nees = (error[:, None, :] @ torch.linalg.solve(cov, error[..., None]))[:, 0, 0]
         inside.append((nees[t > after_s] < CHI2_95_9DOF).double())
     return float(torch.cat(inside).mean())
+
+
+def level_sequence(
+    name: str,
+    t: np.ndarray,
+    specific_force: np.ndarray,
+    fix_index: np.ndarray,
+    fixes: np.ndarray,
+    sigma: np.ndarray,
+) -> Sequence:
+    """A B = 1 sequence of a level body that does not turn (the gyro reads 0): IMU at times
+    ``t`` (N,) s with ``specific_force`` (N, 3) m/s^2, and GNSS ``fixes`` (M, 3) m with
+    their ``sigma`` (M, 3) m at the IMU samples ``fix_index`` (M,)."""
+    n = t.size
+    seq = Sequence(
+        names=[name],
+        imu=ImuSamples(
+            t=torch.as_tensor(t)[None],
+            gyro=torch.zeros(1, n, 3, dtype=DTYPE),
+            accel=torch.as_tensor(specific_force)[None],
+            mask=torch.ones(1, n, dtype=torch.bool),
+        ),
+        gnss=GnssFixes(
+            t=torch.as_tensor(t[fix_index])[None],
+            position=torch.as_tensor(fixes)[None],
+            sigma=torch.as_tensor(sigma)[None],
+            mask=torch.ones(1, fix_index.size, dtype=torch.bool),
+        ),
+    )
+    seq.check()
+    return seq

@@ -15,12 +15,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
+from error_state_checks import level_sequence
 from filterpy.kalman import KalmanFilter
 
 from msf_torch.frontend.config import EskfConfig
 from msf_torch.frontend.eskf import run_eskf
 from msf_torch.frontend.init import initial_state
-from msf_torch.types import GnssFixes, GnssVelocity, ImuSamples, Sequence
+from msf_torch.types import GnssVelocity
 
 DTYPE = torch.float64
 G = 9.80665
@@ -70,22 +71,7 @@ def _problem(seed: int, duration: float = 6.0, imu_rate: float = 100.0, gnss_eve
     g_idx = np.arange(0, n, gnss_every)
     sigma = rng.uniform(0.3, 1.2, (g_idx.size, 3))
     fixes = pos[g_idx] + sigma * rng.normal(size=(g_idx.size, 3))
-    seq = Sequence(
-        names=[f"linear{seed}"],
-        imu=ImuSamples(
-            t=torch.as_tensor(t)[None],
-            gyro=torch.zeros(1, n, 3, dtype=DTYPE),
-            accel=torch.as_tensor(f)[None],
-            mask=torch.ones(1, n, dtype=torch.bool),
-        ),
-        gnss=GnssFixes(
-            t=torch.as_tensor(t[g_idx])[None],
-            position=torch.as_tensor(fixes)[None],
-            sigma=torch.as_tensor(sigma)[None],
-            mask=torch.ones(1, g_idx.size, dtype=torch.bool),
-        ),
-    )
-    seq.check()
+    seq = level_sequence(f"linear{seed}", t, f, g_idx, fixes, sigma)
     return seq, t, f, g_idx, fixes, sigma
 
 

@@ -113,52 +113,50 @@ def test_wheel_speeds_that_start_late_leave_the_plain_mean():
     np.testing.assert_allclose(up, expected, rtol=0, atol=1e-12)
 
 
-def test_moving_start_on_rough_ground_against_the_simulated_truth():
+def _fast_start_tilts(plain, wheels=True, **sim_changes) -> tuple[list[float], list[float]]:
     """Fast drives (3 m/s, 0.8 rad/s turns) over 8-degree slopes 10-30 m long, with the
-    ADIS16470's noise and turn-on biases and 1024-tick encoders: the initial tilt against the
-    simulator's truth."""
+    ADIS16470's noise and turn-on biases, seeds 100-115: the initial tilt error (rad)
+    against the simulator's truth, levelled and with ``plain(seq, cfg)`` (the sequence and
+    config that leave the plain mean); ``wheels=False`` takes the wheels out."""
     sim = SimConfig(
         duration_s=3.0,
         mean_speed_mps=3.0,
         turn_rate_peak_rad_s=0.8,
         terrain_slope_deg=8.0,
         terrain_wavelength_m=(10.0, 30.0),
+        **sim_changes,
     )
-    levelled, plain = [], []
+    levelled, unlevelled = [], []
     for seed in range(100, 116):
         seq = simulate_run(sim, seed).sequence
+        if not wheels:
+            seq = replace(seq, wheel=None)
         cfg = load_sequence_config(seq.meta)
         truth = Rotation.from_quat(seq.ground_truth.quaternion[0, 0].numpy()[[1, 2, 3, 0]])
         state, _ = initial_state(seq, cfg)
         levelled.append(_tilt_error(state.rotation[0].numpy(), truth))
-        state, _ = initial_state(replace(seq, wheel=None), cfg)
-        plain.append(_tilt_error(state.rotation[0].numpy(), truth))
+        state, _ = initial_state(*plain(seq, cfg))
+        unlevelled.append(_tilt_error(state.rotation[0].numpy(), truth))
+    return levelled, unlevelled
+
+
+def test_moving_start_on_rough_ground_against_the_simulated_truth():
+    """With 1024-tick encoders; plain: the same without wheels."""
+    levelled, plain = _fast_start_tilts(lambda seq, cfg: (replace(seq, wheel=None), cfg))
     # the accelerometer's turn-on bias (5 mg: 0.005 rad) is what is left
     assert max(levelled) < 0.025 and np.median(levelled) < 0.012
     assert np.median(plain) > 0.04 and max(plain) > 0.15
 
 
 def test_moving_start_without_wheels_levelled_with_gnss_velocities():
-    """The same fast starts without wheels, with a 10-Hz GNSS velocity (0.05 m/s noise):
-    the speed over ground along body x stands in for the wheels; with ``nhc: off`` (a
-    platform that may slide sideways) the plain mean stays."""
-    sim = SimConfig(
-        duration_s=3.0,
-        mean_speed_mps=3.0,
-        turn_rate_peak_rad_s=0.8,
-        terrain_slope_deg=8.0,
-        terrain_wavelength_m=(10.0, 30.0),
+    """Without wheels, with a 10-Hz GNSS velocity (0.05 m/s noise): the speed over ground
+    along body x stands in for the wheels; with ``nhc: off`` (a platform that may slide
+    sideways) the plain mean stays."""
+    levelled, plain = _fast_start_tilts(
+        lambda seq, cfg: (seq, cfg.replace(nhc="off")),
+        wheels=False,
         gnss_velocity=True,
         gnss_rate_hz=10.0,
     )
-    levelled, plain = [], []
-    for seed in range(100, 116):
-        seq = replace(simulate_run(sim, seed).sequence, wheel=None)
-        cfg = load_sequence_config(seq.meta)
-        truth = Rotation.from_quat(seq.ground_truth.quaternion[0, 0].numpy()[[1, 2, 3, 0]])
-        state, _ = initial_state(seq, cfg)
-        levelled.append(_tilt_error(state.rotation[0].numpy(), truth))
-        state, _ = initial_state(seq, cfg.replace(nhc="off"))
-        plain.append(_tilt_error(state.rotation[0].numpy(), truth))
     assert max(levelled) < 0.045 and np.median(levelled) < 0.015
     assert np.median(plain) > 0.05 and max(plain) > 0.15
