@@ -11,7 +11,6 @@ from __future__ import annotations
 __all__ = ["main", "build_parser"]
 
 import argparse
-import dataclasses
 import json
 import math
 import sys
@@ -896,6 +895,23 @@ def _notes(summary: dict[str, Any], label: str) -> None:
         )
 
 
+def _load_with_one_config(args, who: str, apart: str) -> tuple[list[Any], Any]:
+    """Every ``args.sequence`` loaded (``_load``) and the config they share; a ValueError
+    naming the keys where one differs from the first (``who`` need one config, "``apart``
+    one at a time" is the way out)."""
+    loaded = [_load(args, source) for source in args.sequence]
+    _, cfg, first = loaded[0]
+    for _, other, source in loaded[1:]:
+        differ = other.differing_keys(cfg)
+        if differ:
+            raise ValueError(
+                f"{who} need one front-end config, but {source} differs from {first} in "
+                f"{', '.join(differ)} (each sequence's metadata can set keys the --config "
+                f"file leaves out; {apart} one at a time or set those keys)"
+            )
+    return loaded, cfg
+
+
 def _cmd_run_batch(args) -> dict[str, Any]:
     """``msf run A B ...``: one batched front-end run (``runner.run_batch``)."""
 
@@ -903,16 +919,8 @@ def _cmd_run_batch(args) -> dict[str, Any]:
 
     if args.topics is not None:
         raise ValueError("--topics reads one bag at a time (give one SEQUENCE)")
-    loaded = [_load(args, source) for source in args.sequence]
-    _, cfg, first = loaded[0]
-    for _, other, source in loaded[1:]:
-        differ = other.differing_keys(cfg)
-        if differ:
-            raise ValueError(
-                f"the sequences of one batch need one front-end config, but {source} differs "
-                f"from {first} in {', '.join(differ)} (each sequence's metadata can set "
-                "keys the --config file leaves out; run them one at a time or set those keys)"
-            )
+    loaded, cfg = _load_with_one_config(args, "the sequences of one batch", "run them")
+    first = loaded[0][2]
     options = RunOptions(
         out_dir=args.out,
         gnss_outage_s=args.gnss_outage,
@@ -1642,20 +1650,7 @@ def _cmd_tune(args) -> dict[str, Any]:
     from msf_torch.io.atomic import atomic_write
 
     args.sort, args.no_slip_detection = False, False
-    loaded = [_load(args, source) for source in args.sequence]
-    cfg = loaded[0][1]
-    for _, other, source in loaded[1:]:
-        differ = [
-            f.name
-            for f in dataclasses.fields(cfg)
-            if getattr(cfg, f.name) != getattr(other, f.name)
-        ]
-        if differ:
-            raise ValueError(
-                f"{source}: its config differs from {loaded[0][2]}'s in {', '.join(differ)} "
-                "(one config is tuned for all runs: give the same --config, or tune them "
-                "apart)"
-            )
+    loaded, cfg = _load_with_one_config(args, "the runs tuned together", "tune them")
     factory = _progress_factory(args.progress, unit="evaluation")
     update, close = factory() if factory is not None else (None, None)
     start = time.perf_counter()

@@ -598,12 +598,8 @@ def _innovation_summary(seq: Sequence, result: EskfResult) -> dict[str, dict[str
     modelled spread mean a noise set too small for the run (an over-confident filter),
     which ``msf tune`` fits (docs/tuning.md)."""
     out = {}
-    for name, rows in result.block_rows.items():
-        accepted = result.accepted[name][0] & result.mask[0]
-        count = int(accepted.sum())
-        if count == 0:
-            continue
-        mean = float(result.nis[name][0][accepted].mean())
+    for name, (mean, count) in result.accepted_nis().items():
+        rows = result.block_rows[name]
         out[name] = {"mean_nis": round(mean, 3), "rows": rows, "ratio": round(mean / rows, 3)}
         if count >= 10 and mean > 3.0 * rows:
             warnings.warn(

@@ -377,6 +377,19 @@ class EskfResult:
             mask=self.mask,
         )
 
+    def accepted_nis(self, after_s: float = 0.0) -> dict[str, tuple[float, int]]:
+        """Per sensor with accepted measurements (all sequences pooled, from ``after_s``
+        seconds after each one's start): their mean NIS and count. A consistent filter's
+        mean NIS is the block's rows (``block_rows``)."""
+        settled = self.mask & (self.t >= self.t[:, :1] + after_s)
+        out = {}
+        for key, nis in self.nis.items():
+            accepted = self.accepted[key] & settled
+            count = int(accepted.sum())
+            if count:
+                out[key] = (float(nis[accepted].mean()), count)
+        return out
+
     def counts(self) -> dict[str, dict[str, list[int]]]:
         """Per sensor: present / accepted / rejected counts per sequence."""
         out = {}

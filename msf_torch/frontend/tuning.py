@@ -277,19 +277,6 @@ def _value(cfg: EskfConfig, name: str) -> float:
     return float(getattr(cfg, name))
 
 
-def _block_figures(result: EskfResult, burn_in_s: float) -> tuple[dict[str, float], dict[str, int]]:
-    """Mean NIS and count of each block's accepted measurements after the burn-in."""
-    mean, count = {}, {}
-    settled = result.mask & (result.t >= result.t[:, :1] + burn_in_s)
-    for name, nis in result.nis.items():
-        accepted = result.accepted[name] & settled
-        n = int(accepted.sum())
-        if n:
-            mean[name] = float(nis[accepted].mean())
-            count[name] = n
-    return mean, count
-
-
 def tune_noise(
     sequences: list[Sequence],
     cfg: EskfConfig,
@@ -392,8 +379,8 @@ def tune_noise(
     with torch.no_grad():
         final = run_eskf(batch, tuned)
     final_total, final_count = innovation_nll(final, counted)
-    nis_before, count_before = _block_figures(start, burn_in_s)
-    nis_after, count_after = _block_figures(final, burn_in_s)
+    before, after = start.accepted_nis(burn_in_s), final.accepted_nis(burn_in_s)
+    blocks = sorted(set(before) | set(after))
     return TuningResult(
         config=tuned,
         parameters={
@@ -408,12 +395,10 @@ def tune_noise(
         nll_initial=float(total) / float(count),
         nll_final=float(final_total) / max(float(final_count), 1.0),
         mean_nis={
-            k: (nis_before.get(k, math.nan), nis_after.get(k, math.nan))
-            for k in sorted(set(nis_before) | set(nis_after))
+            k: (before.get(k, (math.nan, 0))[0], after.get(k, (math.nan, 0))[0]) for k in blocks
         },
         accepted={
-            k: (count_before.get(k, 0), count_after.get(k, 0))
-            for k in sorted(set(count_before) | set(count_after))
+            k: (before.get(k, (math.nan, 0))[1], after.get(k, (math.nan, 0))[1]) for k in blocks
         },
         evaluations=len(history),
         converged=len(history) < max_evaluations,
